@@ -1,0 +1,44 @@
+"""The ``fojax`` command line.
+
+fojax accuracy --out DIR     accuracy and cost of the fractional operators
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+COMMANDS = {
+    "accuracy": (
+        "experiments.fractional_accuracy",
+        "accuracy and cost of the fractional operators",
+    ),
+}
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(
+        prog="fojax",
+        description="Fractional-order quadrotor control research in JAX.",
+        usage="fojax COMMAND [options]   (fojax COMMAND --help for its options)",
+    )
+    parser.add_argument(
+        "command",
+        choices=sorted(COMMANDS),
+        help=", ".join(f"{name}: {text}" for name, (_, text) in sorted(COMMANDS.items())),
+    )
+    if not argv or argv[0] in ("-h", "--help"):
+        parser.print_help()
+        return 0 if argv else 2
+    args = parser.parse_args(argv[:1])
+    module_name, _ = COMMANDS[args.command]
+    import importlib
+
+    module = importlib.import_module(module_name)
+    module.main(argv[1:])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

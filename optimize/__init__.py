@@ -1,0 +1,1 @@
+"""Gradient-based gain tuning for fojax controllers."""
