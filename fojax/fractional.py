@@ -56,6 +56,7 @@ Array = jax.Array
 
 __all__ = [
     "GrunwaldLetnikov",
+    "MultiOrder",
     "Oustaloup",
     "SumOfExponentials",
     "differintegrate",
@@ -108,6 +109,21 @@ def _float_dtype(dtype: Any) -> Any:
     if not jnp.issubdtype(dtype, jnp.floating):
         dtype = jnp.dtype(jnp.result_type(float))
     return dtype
+
+
+def _per_order(build, alpha: Any, dtype: Any) -> Any:
+    """``build(alpha_scalar, dtype)`` mapped over the entries of ``alpha``.
+
+    The result's leaves get ``alpha.shape`` as leading axes, so one operator state of
+    shape ``S + (modes,)`` can carry a different order per channel when
+    ``alpha.shape`` broadcasts against ``S``.
+    """
+    dtype = _float_dtype(jnp.result_type(float) if dtype is None else dtype)
+    alpha = jnp.asarray(alpha, dtype)
+    if alpha.ndim == 0:
+        return build(alpha, dtype)
+    flat = jax.vmap(lambda a: build(a, dtype))(alpha.reshape(-1))
+    return jax.tree.map(lambda leaf: leaf.reshape(alpha.shape + leaf.shape[1:]), flat)
 
 
 def _select(pred: Array, on_true: Any, on_false: Any) -> Any:
@@ -283,7 +299,7 @@ class SumOfExponentials:
 
         ``one_minus_b`` is passed separately so that orders near 1 keep full precision.
         """
-        dtype = _float_dtype(dtype or jnp.result_type(float))
+        dtype = _float_dtype(jnp.result_type(float) if dtype is None else dtype)
         tb = self._tables
         b = jnp.asarray(b, dtype)
         omb = jnp.asarray(one_minus_b, dtype)
@@ -302,8 +318,10 @@ class SumOfExponentials:
         return scale * jnp.concatenate([trap, tail])
 
     def coefficients(self, alpha: Any, dtype: Any = None) -> SOECoefficients:
-        dtype = _float_dtype(dtype or jnp.result_type(float))
-        alpha = jnp.asarray(alpha, dtype)
+        """Weights for order ``alpha`` (any shape: one order per channel)."""
+        return _per_order(self._coefficients, alpha, dtype)
+
+    def _coefficients(self, alpha: Array, dtype: Any) -> SOECoefficients:
         tb = self._tables
         dt = float(self.dt)
         decay = jnp.asarray(tb["decay"], dtype)
@@ -342,7 +360,7 @@ class SumOfExponentials:
         return _select(alpha <= 0, int_coeffs, der_coeffs)
 
     def init(self, shape: tuple[int, ...] = (), dtype: Any = None) -> SOEState:
-        dtype = _float_dtype(dtype or jnp.result_type(float))
+        dtype = _float_dtype(jnp.result_type(float) if dtype is None else dtype)
         shape = tuple(shape)
         return SOEState(
             modes=jnp.zeros(shape + (self.n_modes,), dtype),
@@ -351,15 +369,29 @@ class SumOfExponentials:
             count=jnp.zeros((), jnp.int32),
         )
 
-    def step(self, coeffs: SOECoefficients, state: SOEState, u: Array) -> tuple[SOEState, Array]:
+    def output(self, coeffs: SOECoefficients, state: SOEState, u: Array) -> Array:
+        """The differintegral at ``t_k`` for sample ``u = u(t_k)``, without advancing.
+
+        Any number of orders can be read from one state: the modes do not depend on
+        the order.
+        """
+        dtype = state.modes.dtype
+        u = jnp.asarray(u, dtype)
+        u_prev2 = self._previous2(state, u)
+        local = (
+            coeffs.local[..., 0] * u
+            + coeffs.local[..., 1] * state.u_prev
+            + coeffs.local[..., 2] * u_prev2
+        )
+        history = jnp.sum(state.modes * coeffs.history, axis=-1)
+        return jnp.where(state.count > 0, history + local, coeffs.first * u)
+
+    def advance(self, state: SOEState, u: Array) -> SOEState:
+        """Consume ``u = u(t_k)``: advance the modes to ``t_k``."""
         tb = self._tables
         dtype = state.modes.dtype
         u = jnp.asarray(u, dtype)
-        started = state.count > 0
-        # On the first step, extrapolate linearly so the quadratic is the line.
-        u_prev2 = jnp.where(state.count > 1, state.u_prev2, 2.0 * state.u_prev - u)
-        local = coeffs.local[0] * u + coeffs.local[1] * state.u_prev + coeffs.local[2] * u_prev2
-        y = jnp.where(started, state.modes @ coeffs.history + local, coeffs.first * u)
+        u_prev2 = self._previous2(state, u)
         increment = (
             jnp.asarray(tb["gain_u"], dtype) * u[..., None]
             + jnp.asarray(tb["gain_u1"], dtype) * state.u_prev[..., None]
@@ -367,10 +399,18 @@ class SumOfExponentials:
         )
         # y + (exp(-z) - 1) y keeps slow modes exact in float32 (exp(-z) ~ 1 - 1e-6).
         modes = state.modes + (
-            jnp.asarray(tb["decay_m1"], dtype) * state.modes + jnp.where(started, increment, 0.0)
+            jnp.asarray(tb["decay_m1"], dtype) * state.modes
+            + jnp.where(state.count > 0, increment, 0.0)
         )
-        new = SOEState(modes=modes, u_prev=u, u_prev2=state.u_prev, count=state.count + 1)
-        return new, y
+        return SOEState(modes=modes, u_prev=u, u_prev2=state.u_prev, count=state.count + 1)
+
+    @staticmethod
+    def _previous2(state: SOEState, u: Array) -> Array:
+        # On the first step, extrapolate linearly so that the quadratic is the line.
+        return jnp.where(state.count > 1, state.u_prev2, 2.0 * state.u_prev - u)
+
+    def step(self, coeffs: SOECoefficients, state: SOEState, u: Array) -> tuple[SOEState, Array]:
+        return self.advance(state, u), self.output(coeffs, state, u)
 
     def cost(self) -> dict[str, int]:
         """Work and memory per step for one scalar channel."""
@@ -532,8 +572,10 @@ class Oustaloup:
         return _select(alpha == 0, identity, out)
 
     def coefficients(self, alpha: Any, dtype: Any = None) -> ModalCoefficients:
-        dtype = _float_dtype(dtype or jnp.result_type(float))
-        alpha = jnp.asarray(alpha, dtype)
+        """Discretised filter for order ``alpha`` (any shape: one order per channel)."""
+        return _per_order(self._coefficients, alpha, dtype)
+
+    def _coefficients(self, alpha: Array, dtype: Any) -> ModalCoefficients:
         poles, residues, direct = self._transfer(alpha, dtype)
         z = -poles * self.dt
         j0, j1 = _expint_moments(z)
@@ -546,7 +588,7 @@ class Oustaloup:
         )
 
     def init(self, shape: tuple[int, ...] = (), dtype: Any = None) -> ModalState:
-        dtype = _float_dtype(dtype or jnp.result_type(float))
+        dtype = _float_dtype(jnp.result_type(float) if dtype is None else dtype)
         shape = tuple(shape)
         return ModalState(
             modes=jnp.zeros(shape + (self.n_modes,), dtype),
@@ -561,7 +603,7 @@ class Oustaloup:
         u = jnp.asarray(u, dtype)
         increment = coeffs.gain_u * u[..., None] + coeffs.gain_u1 * state.u_prev[..., None]
         modes = coeffs.decay * state.modes + jnp.where(state.count > 0, increment, 0.0)
-        y = coeffs.direct * u + modes @ coeffs.residue
+        y = coeffs.direct * u + jnp.sum(modes * coeffs.residue, axis=-1)
         return ModalState(modes=modes, u_prev=u, count=state.count + 1), y
 
     def cost(self) -> dict[str, int]:
@@ -620,21 +662,64 @@ class GrunwaldLetnikov:
         return int(self.memory)
 
     def coefficients(self, alpha: Any, dtype: Any = None) -> GLCoefficients:
-        dtype = _float_dtype(dtype or jnp.result_type(float))
-        return GLCoefficients(_gl_weights(jnp.asarray(alpha, dtype), self.memory, self.dt, dtype))
+        """Weights for order ``alpha`` (any shape: one order per channel)."""
+        return _per_order(
+            lambda a, dt_: GLCoefficients(_gl_weights(a, self.memory, self.dt, dt_)), alpha, dtype
+        )
 
     def init(self, shape: tuple[int, ...] = (), dtype: Any = None) -> GLState:
-        dtype = _float_dtype(dtype or jnp.result_type(float))
+        dtype = _float_dtype(jnp.result_type(float) if dtype is None else dtype)
         return GLState(jnp.zeros(tuple(shape) + (self.memory,), dtype))
 
     def step(self, coeffs: GLCoefficients, state: GLState, u: Array) -> tuple[GLState, Array]:
         u = jnp.asarray(u, state.history.dtype)
         history = jnp.concatenate([u[..., None], state.history[..., :-1]], axis=-1)
-        return GLState(history), history @ coeffs.weights
+        return GLState(history), jnp.sum(history * coeffs.weights, axis=-1)
 
     def cost(self) -> dict[str, int]:
         m = int(self.memory)
         return {"modes": m, "flops_per_step": 2 * m, "state_floats": m}
+
+
+# ------------------------------------------------------------- several orders, one signal
+
+
+@dataclasses.dataclass(frozen=True)
+class MultiOrder:
+    """Several orders applied to the same signal.
+
+    With :class:`SumOfExponentials` the memory is shared: the modes do not depend on
+    the order, so one state serves every order (for instance ``D^(gamma-1) f`` and
+    its time derivative ``D^gamma f``). Other methods keep one state per order.
+
+    ``coefficients(alphas)`` takes a sequence of ``n_orders`` orders (each of any
+    shape broadcastable to the signal); ``step`` returns a tuple of ``n_orders``
+    outputs.
+    """
+
+    operator: Any
+    n_orders: int
+
+    @property
+    def shared(self) -> bool:
+        return isinstance(self.operator, SumOfExponentials)
+
+    def coefficients(self, alphas, dtype: Any = None) -> tuple:
+        if len(alphas) != self.n_orders:
+            raise ValueError(f"expected {self.n_orders} orders, got {len(alphas)}")
+        return tuple(self.operator.coefficients(a, dtype) for a in alphas)
+
+    def init(self, shape: tuple[int, ...] = (), dtype: Any = None) -> Any:
+        if self.shared:
+            return self.operator.init(shape, dtype)
+        return tuple(self.operator.init(shape, dtype) for _ in range(self.n_orders))
+
+    def step(self, coeffs: tuple, state: Any, u: Array) -> tuple[Any, tuple]:
+        if self.shared:
+            outputs = tuple(self.operator.output(c, state, u) for c in coeffs)
+            return self.operator.advance(state, u), outputs
+        pairs = [self.operator.step(c, s, u) for c, s in zip(coeffs, state, strict=True)]
+        return tuple(p[0] for p in pairs), tuple(p[1] for p in pairs)
 
 
 # ------------------------------------------------------------------- whole signals

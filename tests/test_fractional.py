@@ -398,3 +398,27 @@ def test_bad_input_is_rejected_before_compiling(kwargs, match):
 def test_unknown_option_is_rejected():
     with pytest.raises(TypeError, match="unknown option"):
         differintegrate(jnp.asarray(SHORT_U), 0.5, SHORT_DT, method="soe", band=(1, 2))
+
+
+@pytest.mark.parametrize("method", ("soe", "oustaloup"))
+def test_multi_order_and_per_channel_orders(method):
+    # One memory, several orders, a different order per channel: equal to separate runs.
+    op = fractional.make_operator(method, SHORT_DT, 1.0)
+    multi = fractional.MultiOrder(op, 2)
+    u = jnp.asarray(np.stack([SHORT_U, np.cos(SHORT_T)], axis=1))
+    orders = (jnp.asarray([-0.3, -0.6]), jnp.asarray([0.7, 0.4]))
+    coeffs = multi.coefficients(orders, u.dtype)
+    _, (first, second) = lax.scan(
+        lambda s, u_k: multi.step(coeffs, s, u_k), multi.init((2,), u.dtype), u
+    )
+    for out, alphas in ((first, orders[0]), (second, orders[1])):
+        for channel in range(2):
+            expected = differintegrate(
+                u[:, channel],
+                float(alphas[channel]),
+                SHORT_DT,
+                method,
+                **({"horizon": 1.0} if method == "soe" else {}),
+            )
+            np.testing.assert_allclose(out[:, channel], expected, rtol=1e-10, atol=1e-10)
+    assert multi.shared == (method == "soe")

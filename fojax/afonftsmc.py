@@ -1,0 +1,353 @@
+"""The paper's adaptive fractional-order nonsingular fast terminal sliding mode control.
+
+Position loop eqs. (12)-(28), attitude loop eqs. (37)-(47) of Labbadi & Cherkaoui,
+read as in ``docs/model.md``. Axes are ordered ``(x, y, z, phi, theta, psi)``; every
+gain is a ``(6,)`` array (one value per axis) so gains can be batched, sampled and
+differentiated.
+
+Sliding surface per axis (16)-(18), (37)-(39), with ``e1`` the tracking error and
+``e2`` its rate:
+
+    S = e2 + D^(gamma1 - 1)[c1 sig^(p/q)(e1)] + I^gamma2[c2 sig^phi(e1)]
+
+``D^(gamma1 - 1)`` is a fractional integral of order ``1 - gamma1`` (notes item 7).
+The time derivative of each fractional term is read from the same fractional memory
+(``D^gamma1 f = d/dt D^(gamma1 - 1) f``, and ``d/dt I^gamma2 g``), so the equivalent
+control cancels exactly the derivative of ``S`` as defined. Reaching law (24), (42)-(44)
+with the adaptive bound ``b0 + b1|e1| + b2|e2| + mu`` and laws (25)-(27), (45)-(47)
+``b_dot = eta * (|S|, |e1||S|, |e2||S|)`` (notes item 8), integrated by forward Euler
+at the control step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fojax import fractional, plant
+from fojax.controller import (
+    SWITCHING_FUNCTIONS,
+    ControlInfo,
+    Observation,
+    attitude_drift,
+    signed_power,
+    switching,
+    thrust_and_attitude,
+)
+
+Array = jax.Array
+
+
+class AFONFTSMCGains(NamedTuple):
+    """Gains of the AFONFTSMC, each ``(6,)`` over ``(x, y, z, phi, theta, psi)``.
+
+    surface_c1: ``c_i1`` (> 0), weight of the ``p/q`` term of the surface.
+    surface_c2: ``c_i2`` (> 0), weight of the ``phi`` term.
+    reaching_h1: ``hbar_i1`` (> 0), switching gain.
+    reaching_h2: ``hbar_i2`` (> 0), proportional reaching gain.
+    power: ``phi_i`` (> 0), exponent of the ``I^gamma2`` term.
+    ratio: ``p_i / q_i``, with ``1 < p/q < 2`` (nonsingular).
+    gamma1: ``gamma_i1`` in ``(0, 1)``.
+    gamma2: ``gamma_i2`` in ``(0, 1)``.
+    adaptation: ``(6, 3)`` rates ``(eta_i0, eta_i1, eta_i2)`` (>= 0).
+    mu: ``mu`` (> 0), the small constant of the reaching law.
+    boundary_layer: width of ``sat``/``tanh`` switching (> 0; unused by ``sign``).
+    """
+
+    surface_c1: Array
+    surface_c2: Array
+    reaching_h1: Array
+    reaching_h2: Array
+    power: Array
+    ratio: Array
+    gamma1: Array
+    gamma2: Array
+    adaptation: Array
+    mu: Array
+    boundary_layer: Array
+
+
+def paper_gains(dtype: Any = None) -> AFONFTSMCGains:
+    """The gains of Section V (notes item 16), ``mu = 1e-3``.
+
+    Boundary layer (``sat``/``tanh`` only): 0.05 for position, 0.2 for attitude. In a
+    boundary layer the switching term is a gain ``h1 / width`` on ``S``; the discrete
+    loop at ``dt`` stays free of a period-2 limit cycle while ``h1 dt / width < 2``,
+    which the paper's attitude ``h1 = 156.4`` breaks below a width of 0.078 at 1 ms.
+    """
+    dtype = jnp.result_type(float) if dtype is None else dtype
+
+    def axes(position_xy, position_z, attitude):
+        return jnp.asarray([position_xy, position_xy, position_z] + [attitude] * 3, dtype)
+
+    return AFONFTSMCGains(
+        surface_c1=axes(0.1797, 4.4265, 35.5118),
+        surface_c2=axes(0.1769, 3.7049, 3.9926),
+        reaching_h1=axes(2.6044, 16.1251, 156.4373),
+        reaching_h2=axes(0.2204, 0.8876, 5.8670),
+        power=jnp.full((6,), 3.0, dtype),
+        ratio=jnp.full((6,), 11.0 / 10.0, dtype),
+        gamma1=jnp.full((6,), 0.99, dtype),
+        gamma2=jnp.full((6,), 0.01, dtype),
+        adaptation=jnp.full((6, 3), 0.01, dtype),
+        mu=jnp.full((6,), 1e-3, dtype),
+        boundary_layer=axes(0.05, 0.05, 0.2),
+    )
+
+
+def check_gains(gains: AFONFTSMCGains) -> None:
+    """Raise ``ValueError`` naming every entry that breaks the paper's constraints."""
+    problems = []
+    values = {name: np.asarray(getattr(gains, name), dtype=float) for name in gains._fields}
+    for name, value in values.items():
+        if not np.all(np.isfinite(value)):
+            problems.append(f"{name} must be finite, got {value.tolist()}")
+    for name in (
+        "surface_c1",
+        "surface_c2",
+        "reaching_h1",
+        "reaching_h2",
+        "power",
+        "mu",
+        "boundary_layer",
+    ):
+        if np.any(values[name] <= 0):
+            problems.append(f"{name} must be > 0, got {values[name].tolist()}")
+    if np.any(values["adaptation"] < 0):
+        problems.append(f"adaptation must be >= 0, got {values['adaptation'].tolist()}")
+    if np.any((values["ratio"] <= 1) | (values["ratio"] >= 2)):
+        problems.append(f"ratio p/q must satisfy 1 < p/q < 2, got {values['ratio'].tolist()}")
+    for name in ("gamma1", "gamma2"):
+        if np.any((values[name] <= 0) | (values[name] >= 1)):
+            problems.append(f"{name} must satisfy 0 < {name} < 1, got {values[name].tolist()}")
+    for name, value in values.items():
+        expected = (6, 3) if name == "adaptation" else (6,)
+        if value.shape != expected:
+            problems.append(f"{name} must have shape {expected}, got {value.shape}")
+    if problems:
+        raise ValueError("invalid AFONFTSMC gains:\n  " + "\n  ".join(problems))
+
+
+class AFONFTSMCParams(NamedTuple):
+    """Per-run constants: gains, the nominal model and precomputed weights."""
+
+    gains: AFONFTSMCGains
+    model: plant.PlantParams
+    surface_p_weights: tuple  # (S term, dS/dt term) for the p/q memory, 6 channels
+    surface_phi_weights: tuple  # (S term, dS/dt term) for the phi memory, 6 channels
+    filter_transition: Array  # (2, 2) command filter, exact zero-order-hold update
+    filter_input: Array  # (2,)
+
+
+class AFONFTSMCState(NamedTuple):
+    """Controller memory.
+
+    position_p, attitude_p: fractional memories of ``c1 sig^(p/q)(e1)`` (3 channels).
+    position_phi, attitude_phi: fractional memories of ``c2 sig^phi(e1)`` (3 channels).
+    adaptive: ``(6, 3)`` estimates ``(b0, b1, b2)`` per axis.
+    command_filter: ``(2, 2)`` rows ``(phi, theta)``, columns ``(value, rate)``.
+    last_inputs: ``(4,)`` the previous command (for the gyroscopic term).
+    """
+
+    position_p: Any
+    attitude_p: Any
+    position_phi: Any
+    attitude_phi: Any
+    adaptive: Array
+    command_filter: Array
+    last_inputs: Array
+
+
+@dataclasses.dataclass(frozen=True)
+class AFONFTSMC:
+    """The paper's controller (see the module docstring).
+
+    Args:
+        dt: control and plant step (s).
+        horizon: run length (s), sizes the fractional memory.
+        fractional_method: ``"soe"`` (accurate default) or ``"oustaloup"`` (the
+            paper's CRONE filters, Remark 4) or ``"gl"``.
+        fractional_options: extra options of the fractional operator, as a tuple of
+            ``(name, value)`` pairs.
+        switching: ``"sign"`` (the paper), ``"sat"`` or ``"tanh"``.
+        filter_frequency: natural frequency (rad/s) of the second-order command filter
+            that supplies ``phi_r, theta_r`` and their derivatives (notes item 11).
+        filter_damping: its damping ratio.
+    """
+
+    dt: float = 1e-3
+    horizon: float = 80.0
+    fractional_method: str = "soe"
+    fractional_options: tuple = ()
+    switching: str = "sign"
+    filter_frequency: float = 50.0
+    filter_damping: float = 1.0
+
+    name = "afonftsmc"
+
+    def __post_init__(self) -> None:
+        if self.switching not in SWITCHING_FUNCTIONS:
+            raise ValueError(
+                f"unknown switching function {self.switching!r}; choose one of "
+                f"{SWITCHING_FUNCTIONS}"
+            )
+        for label, value in (
+            ("dt", self.dt),
+            ("horizon", self.horizon),
+            ("filter_frequency", self.filter_frequency),
+            ("filter_damping", self.filter_damping),
+        ):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
+        # Validates the method and its options before anything is traced.
+        self.operator  # noqa: B018
+
+    @property
+    def operator(self):
+        return fractional.make_operator(
+            self.fractional_method, self.dt, self.horizon, **dict(self.fractional_options)
+        )
+
+    @property
+    def _memory(self) -> fractional.MultiOrder:
+        return fractional.MultiOrder(self.operator, 2)
+
+    def prepare(self, gains: AFONFTSMCGains, model: plant.PlantParams) -> AFONFTSMCParams:
+        dtype = jnp.asarray(gains.surface_c1).dtype
+        memory = self._memory
+        # p/q memory: integral of order 1 - gamma1 (the S term) and its time
+        # derivative, the derivative of order gamma1. phi memory: integral of order
+        # gamma2 and its time derivative, the derivative of order 1 - gamma2.
+        surface_p = memory.coefficients((gains.gamma1 - 1.0, gains.gamma1), dtype)
+        surface_phi = memory.coefficients((-gains.gamma2, 1.0 - gains.gamma2), dtype)
+        w, zeta = self.filter_frequency, self.filter_damping
+        augmented = jnp.asarray(
+            [[0.0, 1.0, 0.0], [-w * w, -2.0 * zeta * w, w * w], [0.0, 0.0, 0.0]], dtype
+        )
+        exp = jax.scipy.linalg.expm(augmented * self.dt)
+        return AFONFTSMCParams(
+            gains=gains,
+            model=model,
+            surface_p_weights=surface_p,
+            surface_phi_weights=surface_phi,
+            filter_transition=exp[:2, :2],
+            filter_input=exp[:2, 2],
+        )
+
+    def init(self, params: AFONFTSMCParams, observation: Observation) -> AFONFTSMCState:
+        dtype = observation.state.dtype
+        memory = self._memory
+        attitude = observation.state[3:5]
+        return AFONFTSMCState(
+            position_p=memory.init((3,), dtype),
+            attitude_p=memory.init((3,), dtype),
+            position_phi=memory.init((3,), dtype),
+            attitude_phi=memory.init((3,), dtype),
+            adaptive=jnp.zeros((6, 3), dtype),
+            command_filter=jnp.stack([attitude, jnp.zeros_like(attitude)], axis=1),
+            last_inputs=plant.hover_inputs(params.model).astype(dtype),
+        )
+
+    def _surface(self, params, axes, memory_p, memory_phi, error, error_rate):
+        """Surfaces (16)-(18)/(37)-(39) and the fractional part of their derivative."""
+        g = params.gains
+        memory = self._memory
+        p_term = g.surface_c1[axes] * signed_power(error, g.ratio[axes])
+        phi_term = g.surface_c2[axes] * signed_power(error, g.power[axes])
+        coeffs_p = jax.tree.map(lambda c: c[axes], params.surface_p_weights)
+        coeffs_phi = jax.tree.map(lambda c: c[axes], params.surface_phi_weights)
+        memory_p, (p_integral, p_derivative) = memory.step(coeffs_p, memory_p, p_term)
+        memory_phi, (phi_integral, phi_derivative) = memory.step(coeffs_phi, memory_phi, phi_term)
+        surface = error_rate + p_integral + phi_integral
+        return memory_p, memory_phi, surface, p_derivative + phi_derivative
+
+    def _reaching(self, params, axes, adaptive, surface, error, error_rate):
+        """Reaching law (24)/(42)-(44) and the adaptive update (25)-(27)/(45)-(47)."""
+        g = params.gains
+        sw = switching(self.switching, surface, g.boundary_layer[axes])
+        bound = (
+            adaptive[:, 0] + adaptive[:, 1] * jnp.abs(error) + adaptive[:, 2] * jnp.abs(error_rate)
+        )
+        reaching = (
+            -g.reaching_h1[axes] * sw - g.reaching_h2[axes] * surface - (bound + g.mu[axes]) * sw
+        )
+        regressor = jnp.stack([jnp.ones_like(error), jnp.abs(error), jnp.abs(error_rate)], axis=1)
+        adaptive = adaptive + self.dt * g.adaptation[axes] * regressor * jnp.abs(surface)[:, None]
+        return reaching, adaptive
+
+    def step(
+        self, params: AFONFTSMCParams, state: AFONFTSMCState, observation: Observation
+    ) -> tuple[AFONFTSMCState, Array, ControlInfo]:
+        model = params.model
+        x = observation.state
+        position, attitude = x[0:3], x[3:6]
+        velocity, attitude_rate = x[6:9], x[9:12]
+        pos_axes, att_axes = slice(0, 3), slice(3, 6)
+
+        # Position loop, eqs. (14)-(28).
+        position_error = position - observation.reference[:3]
+        velocity_error = velocity - observation.reference_velocity[:3]
+        position_p, position_phi, position_surface, position_dsurface = self._surface(
+            params, pos_axes, state.position_p, state.position_phi, position_error, velocity_error
+        )
+        position_reaching, position_adaptive = self._reaching(
+            params, pos_axes, state.adaptive[:3], position_surface, position_error, velocity_error
+        )
+        virtual = (
+            model.drag_position / model.mass * velocity
+            + observation.reference_acceleration[:3]
+            - position_dsurface
+            + position_reaching
+        )
+        yaw_reference = observation.reference[3]
+        thrust, tilt_reference = thrust_and_attitude(model, virtual, yaw_reference)
+
+        # Command filter (notes item 11): phi_r, theta_r and two derivatives.
+        filt = state.command_filter
+        w, zeta = self.filter_frequency, self.filter_damping
+        filtered_accel = w * w * (tilt_reference - filt[:, 0]) - 2.0 * zeta * w * filt[:, 1]
+        attitude_reference = jnp.concatenate([filt[:, 0], yaw_reference[None]])
+        attitude_reference_rate = jnp.concatenate([filt[:, 1], observation.reference_velocity[3:4]])
+        attitude_reference_accel = jnp.concatenate(
+            [filtered_accel, observation.reference_acceleration[3:4]]
+        )
+        command_filter = (
+            filt @ params.filter_transition.T + tilt_reference[:, None] * params.filter_input
+        )
+
+        # Attitude loop, eqs. (37)-(47).
+        attitude_error = attitude - attitude_reference
+        rate_error = attitude_rate - attitude_reference_rate
+        attitude_p, attitude_phi, attitude_surface, attitude_dsurface = self._surface(
+            params, att_axes, state.attitude_p, state.attitude_phi, attitude_error, rate_error
+        )
+        attitude_reaching, attitude_adaptive = self._reaching(
+            params, att_axes, state.adaptive[3:], attitude_surface, attitude_error, rate_error
+        )
+        omega_r = plant.rotor_speed_sum(model, state.last_inputs)
+        drift = attitude_drift(model, attitude_rate, omega_r)
+        torque = model.inertia * (
+            -drift + attitude_reference_accel - attitude_dsurface + attitude_reaching
+        )
+
+        inputs = jnp.concatenate([thrust[None], torque])
+        new_state = AFONFTSMCState(
+            position_p=position_p,
+            attitude_p=attitude_p,
+            position_phi=position_phi,
+            attitude_phi=attitude_phi,
+            adaptive=jnp.concatenate([position_adaptive, attitude_adaptive]),
+            command_filter=command_filter,
+            last_inputs=inputs,
+        )
+        info = ControlInfo(
+            surfaces=jnp.concatenate([position_surface, attitude_surface]),
+            attitude_reference=jnp.concatenate([tilt_reference, yaw_reference[None]]),
+            adaptive=state.adaptive,
+        )
+        return new_state, inputs, info

@@ -1,0 +1,151 @@
+"""The controller interface of the closed-loop simulator.
+
+A controller is a static configuration object (a frozen dataclass: step size,
+fractional method, switching function; settled before tracing) with three pure
+functions:
+
+``prepare(gains, model) -> params``
+    Everything derived from the gains and the controller's nominal model that stays
+    fixed during a run (fractional weights, for instance), as a pytree. Called once
+    per rollout, outside the time loop; differentiable in ``gains``.
+``init(params, observation) -> state``
+    The controller's internal state at ``t = 0`` (fractional memories, adaptive
+    estimates, command filters), as a pytree of arrays.
+``step(params, state, observation) -> (state, inputs, info)``
+    One control update at the sample time; ``inputs`` is ``(4,)``
+    ``(u_F, tau_x, tau_y, tau_z)``, held over the next plant step (zero-order hold);
+    ``info`` is a :class:`ControlInfo`.
+
+``gains`` is any pytree of arrays (what a tuner may change); ``model`` is the
+:class:`fojax.plant.PlantParams` the controller believes in (the nominal plant).
+User-written controllers implement the same three functions and plug into
+:func:`fojax.simulator.rollout` unchanged.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Protocol
+
+import jax
+import jax.numpy as jnp
+
+Array = jax.Array
+
+
+class Observation(NamedTuple):
+    """What a controller sees at time ``t_k``.
+
+    time: ``()`` s.
+    state: ``(12,)`` plant state ``(x, y, z, phi, theta, psi, x', y', z', phi', theta', psi')``.
+    reference: ``(4,)`` ``(x_r, y_r, z_r, psi_r)`` (m, rad).
+    reference_velocity: ``(4,)`` its exact first time derivative.
+    reference_acceleration: ``(4,)`` its exact second time derivative.
+    """
+
+    time: Array
+    state: Array
+    reference: Array
+    reference_velocity: Array
+    reference_acceleration: Array
+
+
+class ControlInfo(NamedTuple):
+    """Diagnostics returned with each control update (fixed shapes for every controller).
+
+    surfaces: ``(6,)`` sliding variables ``(S_x, S_y, S_z, S_phi, S_theta, S_psi)``
+        (controllers without surfaces return their error measure or zeros).
+    attitude_reference: ``(3,)`` ``(phi_r, theta_r, psi_r)`` commanded by the position
+        loop (rad).
+    adaptive: ``(6, 3)`` adaptive estimates ``(b0, b1, b2)`` per axis (zeros when the
+        controller does not adapt).
+    """
+
+    surfaces: Array
+    attitude_reference: Array
+    adaptive: Array
+
+
+class Controller(Protocol):
+    """What :func:`fojax.simulator.rollout` needs from a controller."""
+
+    name: str
+
+    def prepare(self, gains: Any, model: Any) -> Any: ...
+
+    def init(self, params: Any, observation: Observation) -> Any: ...
+
+    def step(
+        self, params: Any, state: Any, observation: Observation
+    ) -> tuple[Any, Array, ControlInfo]: ...
+
+
+# ------------------------------------------------------------------ shared helpers
+
+SWITCHING_FUNCTIONS = ("sign", "sat", "tanh")
+
+
+def switching(kind: str, surface: Array, width: Array) -> Array:
+    """The switching function ``sgn(S)`` of the reaching laws.
+
+    ``"sign"``: exact sign; ``"sat"``: ``clip(S / width, -1, 1)`` (boundary layer);
+    ``"tanh"``: ``tanh(S / width)`` (smooth; for gradient-based tuning).
+    """
+    if kind == "sign":
+        return jnp.sign(surface)
+    if kind == "sat":
+        return jnp.clip(surface / width, -1.0, 1.0)
+    if kind == "tanh":
+        return jnp.tanh(surface / width)
+    raise ValueError(f"unknown switching function {kind!r}; choose one of {SWITCHING_FUNCTIONS}")
+
+
+def signed_power(value: Array, exponent: Array) -> Array:
+    """``sig^r(e) = |e|^r sign(e)`` (notes item 6), with finite gradients at ``e = 0``."""
+    magnitude = jnp.abs(value)
+    nonzero = magnitude > 0
+    safe = jnp.where(nonzero, magnitude, 1.0)
+    return jnp.where(nonzero, jnp.sign(value) * jnp.exp(exponent * jnp.log(safe)), 0.0)
+
+
+def signed_square(rate: Array) -> Array:
+    """Aerodynamic drag shape ``w |w|`` (notes item 1), the same in plant and controller."""
+    return rate * jnp.abs(rate)
+
+
+def attitude_drift(model: Any, attitude_rate: Array, rotor_speed_sum: Array) -> Array:
+    """The model's coupling and drag accelerations ``(3,)`` of eq. (11a)-(11c).
+
+    ``{a_phi1 theta' psi' - a_phi2 theta' Omega_r - a_phi3 drag(phi'), ...}``: the
+    bracket of eqs. (42)-(44) (notes items 1 and 10), without the torques.
+    """
+    i11, i22, i33 = model.inertia[0], model.inertia[1], model.inertia[2]
+    p, q, r = attitude_rate[0], attitude_rate[1], attitude_rate[2]
+    drag = model.drag_attitude / model.inertia * signed_square(attitude_rate)
+    j_r = model.rotor_inertia
+    return (
+        jnp.stack(
+            [
+                (i22 - i33) / i11 * q * r - j_r / i11 * q * rotor_speed_sum,
+                (i33 - i11) / i22 * p * r + j_r / i22 * p * rotor_speed_sum,
+                (i11 - i22) / i33 * p * q,
+            ]
+        )
+        - drag
+    )
+
+
+def thrust_and_attitude(model: Any, virtual: Array, yaw_reference: Array) -> tuple[Array, Array]:
+    """Eq. (13): thrust ``u_F`` and ``(phi_r, theta_r)`` from the virtual control ``v``.
+
+    ``v`` ``(3,)`` is the commanded acceleration without gravity (notes item 5). The
+    vertical term ``v_z + g`` is kept above ``0.1 g`` so the quadrotor never asks to
+    fly upside down (a documented guard; it is inactive in the paper's scenarios).
+    """
+    g = model.gravity
+    vx, vy = virtual[0], virtual[1]
+    lift = jnp.maximum(virtual[2] + g, 0.1 * g)
+    c_psi, s_psi = jnp.cos(yaw_reference), jnp.sin(yaw_reference)
+    theta_r = jnp.arctan((c_psi * vx + s_psi * vy) / lift)
+    phi_r = jnp.arctan(jnp.cos(theta_r) * (s_psi * vx - c_psi * vy) / lift)
+    thrust = model.mass * jnp.sqrt(vx * vx + vy * vy + lift * lift)
+    return thrust, jnp.stack([phi_r, theta_r])

@@ -1,0 +1,368 @@
+"""Quadrotor plant of the paper's Section III, eqs. (8)-(11).
+
+State
+-----
+The plant state is a flat array of shape ``(12,)``::
+
+    index  0  1  2  3    4      5    6   7   8   9     10      11
+    value  x  y  z  phi  theta  psi  x'  y'  z'  phi'  theta'  psi'
+
+position ``X_p = (x, y, z)`` in the earth frame (m, ``z`` up), Euler angles
+``eta = (phi, theta, psi)`` (rad, roll/pitch/yaw, Z-Y-X sequence of eq. (9)), then
+their time derivatives. The slices :data:`POSITION`, :data:`ATTITUDE`,
+:data:`VELOCITY`, :data:`ATTITUDE_RATE` and :func:`split_state` name the parts.
+
+Inputs
+------
+``inputs`` has shape ``(4,)``: ``(u_F, tau_x, tau_y, tau_z)``, total thrust (N) and
+body torques (N m) of eq. (10).
+
+Disturbances
+------------
+``disturbance_accel`` has shape ``(6,)``: ``(d_px, d_py, d_pz)`` in m/s^2, then
+``(d_phi1, d_phi2, d_phi3)`` in rad/s^2. They are the accelerations ``d_p / m`` and
+``d_eta / I`` of eq. (11) (paper notes, item 4): added as they are, never divided
+again by the mass or the inertia.
+
+Model (paper notes, items 1-2)
+------------------------------
+With ``drag(w) = w |w|`` (the paper prints ``w^2``) and the coefficients under (11)::
+
+    phi''   = a_phi1 theta' psi' - a_phi2 theta' Omega_r - a_phi3 drag(phi')
+              + tau_x / I11 + d_phi1                                          (11a)
+    theta'' = a_theta1 phi' psi' + a_theta2 phi' Omega_r - a_theta3 drag(theta')
+              + tau_y / I22 + d_phi2                                          (11b)
+    psi''   = a_psi1 phi' theta' - a_psi2 drag(psi') + tau_z / I33 + d_phi3   (11c)
+    x''     = (c_psi s_theta c_phi + s_psi s_phi) u_F / m - (K_px / m) x' + d_px  (11d)
+    y''     = (s_psi s_theta c_phi - c_psi s_phi) u_F / m - (K_py / m) y' + d_py  (11e)
+    z''     = -g + c_theta c_phi u_F / m - (K_pz / m) z' + d_pz                 (11f)
+
+``a_phi1 = (I22 - I33)/I11``, ``a_phi2 = J_r/I11``, ``a_phi3 = K_phi1/I11``,
+``a_theta1 = (I33 - I11)/I22``, ``a_theta2 = J_r/I22``, ``a_theta3 = K_phi2/I22``,
+``a_psi1 = (I11 - I22)/I33``, ``a_psi2 = K_phi3/I33``, and the rotor speed sum
+``Omega_r = w1 - w2 + w3 - w4`` from the inverted mixer (10).
+
+Everything is pure and works in the floating dtype of its arguments (float32 by
+default, float64 when ``jax_enable_x64`` is on); ``jit``, ``vmap`` and ``grad`` apply.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+Array = jax.Array
+
+__all__ = [
+    "ATTITUDE",
+    "ATTITUDE_RATE",
+    "POSITION",
+    "STATE_SIZE",
+    "VELOCITY",
+    "PlantParams",
+    "derivatives",
+    "hover_inputs",
+    "hover_state",
+    "make_state",
+    "mixer",
+    "nominal_params",
+    "rk4_step",
+    "rotor_speed_sum",
+    "rotor_speeds_squared",
+    "split_state",
+]
+
+STATE_SIZE = 12
+POSITION = slice(0, 3)
+"""``(x, y, z)`` in the state vector."""
+ATTITUDE = slice(3, 6)
+"""``(phi, theta, psi)`` in the state vector."""
+VELOCITY = slice(6, 9)
+"""``(x', y', z')`` in the state vector."""
+ATTITUDE_RATE = slice(9, 12)
+"""``(phi', theta', psi')`` in the state vector."""
+
+# Nominal constants (Section V; rotor inertia from the notes, item 2).
+_NOMINAL_MASS = 0.74  # kg
+_NOMINAL_INERTIA = (0.4e-2, 0.4e-2, 0.84e-2)  # kg m^2
+_NOMINAL_DRAG_POSITION = (1e-2, 1e-2, 1e-2)  # N s / m
+_NOMINAL_DRAG_ATTITUDE = (1.2e-2, 1.2e-2, 1.2e-2)  # N s / rad (as printed)
+_NOMINAL_THRUST_FACTOR = 3e-3  # N s^2
+_NOMINAL_DRAG_FACTOR = 3.24e-2  # N m s^2
+_NOMINAL_ARM_LENGTH = 0.21  # m
+_NOMINAL_ROTOR_INERTIA = 2.8385e-5  # kg m^2
+_GRAVITY = 9.81  # m / s^2
+
+
+def _default_float(dtype=None):
+    if dtype is None:
+        return jnp.dtype(jnp.result_type(float))
+    return jnp.dtype(dtype)
+
+
+class PlantParams(NamedTuple):
+    """Physical parameters of the quadrotor (all leaves are arrays).
+
+    mass: ``()`` ``m`` in kg.
+    inertia: ``(3,)`` ``(I11, I22, I33)`` in kg m^2 (diagonal inertia ``I``).
+    drag_position: ``(3,)`` ``K_p = (K_px, K_py, K_pz)`` in N s/m.
+    drag_attitude: ``(3,)`` ``K_phi = (K_phi1, K_phi2, K_phi3)``, multiplies
+        ``drag(w) = w |w|``.
+    thrust_factor: ``()`` ``rho_b`` in N s^2 (thrust per squared rotor speed).
+    drag_factor: ``()`` ``rho_c`` in N m s^2 (yaw torque per squared rotor speed).
+    arm_length: ``()`` ``d`` in m.
+    rotor_inertia: ``()`` ``J_r`` in kg m^2.
+    gravity: ``()`` ``g`` in m/s^2.
+    """
+
+    mass: Array
+    inertia: Array
+    drag_position: Array
+    drag_attitude: Array
+    thrust_factor: Array
+    drag_factor: Array
+    arm_length: Array
+    rotor_inertia: Array
+    gravity: Array
+
+
+def nominal_params(dtype=None) -> PlantParams:
+    """The paper's nominal constants (Section V; notes items 2-3).
+
+    ``m = 0.74``, ``I = diag(0.4, 0.4, 0.84) 1e-2``, ``K_p = diag(1, 1, 1) 1e-2``,
+    ``K_phi = diag(1.2, 1.2, 1.2) 1e-2``, ``rho_b = 3e-3``, ``rho_c = 3.24e-2``,
+    ``d = 0.21``, ``J_r = 2.8385e-5``, ``g = 9.81`` (SI units).
+
+    dtype: floating dtype of the leaves; default float32, or float64 with x64 enabled.
+    """
+    dtype = _default_float(dtype)
+
+    def arr(value):
+        return jnp.asarray(value, dtype=dtype)
+
+    return PlantParams(
+        mass=arr(_NOMINAL_MASS),
+        inertia=arr(_NOMINAL_INERTIA),
+        drag_position=arr(_NOMINAL_DRAG_POSITION),
+        drag_attitude=arr(_NOMINAL_DRAG_ATTITUDE),
+        thrust_factor=arr(_NOMINAL_THRUST_FACTOR),
+        drag_factor=arr(_NOMINAL_DRAG_FACTOR),
+        arm_length=arr(_NOMINAL_ARM_LENGTH),
+        rotor_inertia=arr(_NOMINAL_ROTOR_INERTIA),
+        gravity=arr(_GRAVITY),
+    )
+
+
+# ------------------------------------------------------------------------------- state
+
+
+def make_state(position, attitude, velocity=None, attitude_rate=None, dtype=None) -> Array:
+    """Assemble the ``(12,)`` state from its parts (each ``(3,)``; rates default to 0)."""
+    dtype = _default_float(dtype)
+    position = jnp.asarray(position, dtype=dtype)
+    attitude = jnp.asarray(attitude, dtype=dtype)
+    velocity = jnp.zeros(3, dtype) if velocity is None else jnp.asarray(velocity, dtype)
+    attitude_rate = (
+        jnp.zeros(3, dtype) if attitude_rate is None else jnp.asarray(attitude_rate, dtype)
+    )
+    return jnp.concatenate([position, attitude, velocity, attitude_rate])
+
+
+def split_state(state: Array) -> tuple[Array, Array, Array, Array]:
+    """Split a ``(..., 12)`` state into ``(position, attitude, velocity, attitude_rate)``.
+
+    Each part has shape ``(..., 3)``: ``X_p``, ``eta = (phi, theta, psi)``, ``X_p'``,
+    ``eta'``.
+    """
+    return (
+        state[..., POSITION],
+        state[..., ATTITUDE],
+        state[..., VELOCITY],
+        state[..., ATTITUDE_RATE],
+    )
+
+
+# ------------------------------------------------------------------------------- mixer
+
+
+def mixer(params: PlantParams) -> Array:
+    """The ``(4, 4)`` matrix ``M`` of eq. (10): ``(u_F, tau) = M (w1^2, w2^2, w3^2, w4^2)``.
+
+    ::
+
+        [[ rho_b,     rho_b,    rho_b,     rho_b   ],
+         [ 0,        -rho_b d,  0,         rho_b d ],
+         [-rho_b d,   0,        rho_b d,   0       ],
+         [-rho_c,     rho_c,   -rho_c,     rho_c   ]]
+    """
+    b = params.thrust_factor
+    c = params.drag_factor
+    bd = b * params.arm_length
+    zero = jnp.zeros_like(bd)
+    return jnp.stack(
+        [
+            jnp.stack([b, b, b, b]),
+            jnp.stack([zero, -bd, zero, bd]),
+            jnp.stack([-bd, zero, bd, zero]),
+            jnp.stack([-c, c, -c, c]),
+        ]
+    )
+
+
+def rotor_speeds_squared(params: PlantParams, inputs: Array) -> Array:
+    """Squared rotor speeds ``w_i^2`` (``(4,)``, rad^2/s^2) that produce ``inputs``.
+
+    Inverts eq. (10) in closed form; the result may be negative when ``inputs`` is
+    not achievable (no clipping here).
+
+    inputs: ``(4,)`` ``(u_F, tau_x, tau_y, tau_z)``.
+    """
+    b = params.thrust_factor
+    c = params.drag_factor
+    bd = b * params.arm_length
+    thrust, tau_x, tau_y, tau_z = inputs[0], inputs[1], inputs[2], inputs[3]
+    common = thrust / (4.0 * b)
+    yaw = tau_z / (4.0 * c)
+    return jnp.stack(
+        [
+            common - tau_y / (2.0 * bd) - yaw,
+            common - tau_x / (2.0 * bd) + yaw,
+            common + tau_y / (2.0 * bd) - yaw,
+            common + tau_x / (2.0 * bd) + yaw,
+        ]
+    )
+
+
+def _safe_sqrt_nonnegative(x: Array) -> Array:
+    """``sqrt(max(x, 0))`` with a zero (not NaN/inf) gradient for ``x <= 0``."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
+def rotor_speed_sum(params: PlantParams, inputs: Array) -> Array:
+    """``Omega_r = w1 - w2 + w3 - w4`` (rad/s, ``()``) of eq. (11) (notes item 2).
+
+    ``w_i = sqrt(max(w_i^2, 0))`` with ``w_i^2`` from :func:`rotor_speeds_squared`.
+    Gradient-safe: the gradient is finite everywhere (zero where a rotor is clipped;
+    at ``w_i^2 = 0`` the one-sided infinite derivative of the square root is replaced
+    by zero).
+    """
+    speeds = _safe_sqrt_nonnegative(rotor_speeds_squared(params, inputs))
+    return speeds[0] - speeds[1] + speeds[2] - speeds[3]
+
+
+def hover_inputs(params: PlantParams) -> Array:
+    """Equilibrium inputs ``(m g, 0, 0, 0)`` (``(4,)``) for level hover."""
+    thrust = params.mass * params.gravity
+    zero = jnp.zeros_like(thrust)
+    return jnp.stack([thrust, zero, zero, zero])
+
+
+def hover_state(position=(0.0, 0.0, 0.0), yaw=0.0, dtype=None) -> Array:
+    """A ``(12,)`` level hover state at ``position`` with heading ``yaw``, all rates zero."""
+    dtype = _default_float(dtype)
+    attitude = jnp.stack([jnp.zeros((), dtype), jnp.zeros((), dtype), jnp.asarray(yaw, dtype)])
+    return make_state(position, attitude, dtype=dtype)
+
+
+# ------------------------------------------------------------------------- dynamics
+
+
+def _signed_square(w: Array) -> Array:
+    """``drag(w) = w |w|`` (notes item 1): the aerodynamic drag pushes against ``w``."""
+    return w * jnp.abs(w)
+
+
+def derivatives(
+    params: PlantParams,
+    state: Array,
+    inputs: Array,
+    disturbance_accel: Array,
+    drag_position: Array | None = None,
+    drag_attitude: Array | None = None,
+) -> Array:
+    """Time derivative ``(12,)`` of the state under eq. (11) (corrected, notes item 1).
+
+    params: :class:`PlantParams`.
+    state: ``(12,)`` ``(x, y, z, phi, theta, psi, x', y', z', phi', theta', psi')``.
+    inputs: ``(4,)`` ``(u_F, tau_x, tau_y, tau_z)``.
+    disturbance_accel: ``(6,)`` ``(d_px, d_py, d_pz)`` m/s^2 and
+        ``(d_phi1, d_phi2, d_phi3)`` rad/s^2, added directly (notes item 4).
+    drag_position: optional ``(3,)`` override of ``K_p`` (time-varying drag).
+    drag_attitude: optional ``(3,)`` override of ``K_phi`` (time-varying drag).
+
+    Returns ``(x', y', z', phi', theta', psi', x'', y'', z'', phi'', theta'', psi'')``.
+    """
+    k_p = params.drag_position if drag_position is None else drag_position
+    k_phi = params.drag_attitude if drag_attitude is None else drag_attitude
+    _, attitude, velocity, attitude_rate = split_state(state)
+    phi, theta, psi = attitude[0], attitude[1], attitude[2]
+    roll_rate, pitch_rate, yaw_rate = attitude_rate[0], attitude_rate[1], attitude_rate[2]
+    i11, i22, i33 = params.inertia[0], params.inertia[1], params.inertia[2]
+    thrust, torque = inputs[0], inputs[1:]
+    omega_r = rotor_speed_sum(params, inputs)
+    j_r = params.rotor_inertia
+
+    rate_drag = _signed_square(attitude_rate)
+    roll_accel = (
+        (i22 - i33) / i11 * pitch_rate * yaw_rate
+        - j_r / i11 * pitch_rate * omega_r
+        - k_phi[0] / i11 * rate_drag[0]
+        + torque[0] / i11
+    )
+    pitch_accel = (
+        (i33 - i11) / i22 * roll_rate * yaw_rate
+        + j_r / i22 * roll_rate * omega_r
+        - k_phi[1] / i22 * rate_drag[1]
+        + torque[1] / i22
+    )
+    yaw_accel = (
+        (i11 - i22) / i33 * roll_rate * pitch_rate - k_phi[2] / i33 * rate_drag[2] + torque[2] / i33
+    )
+
+    c_phi, s_phi = jnp.cos(phi), jnp.sin(phi)
+    c_theta, s_theta = jnp.cos(theta), jnp.sin(theta)
+    c_psi, s_psi = jnp.cos(psi), jnp.sin(psi)
+    specific_thrust = thrust / params.mass
+    thrust_direction = jnp.stack(
+        [
+            c_psi * s_theta * c_phi + s_psi * s_phi,
+            s_psi * s_theta * c_phi - c_psi * s_phi,
+            c_theta * c_phi,
+        ]
+    )
+    linear_accel = thrust_direction * specific_thrust - k_p / params.mass * velocity
+    linear_accel = linear_accel.at[2].add(-params.gravity)
+
+    accel = jnp.concatenate([linear_accel, jnp.stack([roll_accel, pitch_accel, yaw_accel])])
+    accel = accel + disturbance_accel
+    return jnp.concatenate([velocity, attitude_rate, accel.astype(state.dtype)])
+
+
+def rk4_step(
+    params: PlantParams,
+    state: Array,
+    inputs: Array,
+    disturbance_accel: Array,
+    dt,
+    drag_position: Array | None = None,
+    drag_attitude: Array | None = None,
+) -> Array:
+    """One classical Runge-Kutta step of :func:`derivatives` (``(12,)`` -> ``(12,)``).
+
+    ``inputs``, ``disturbance_accel`` and the drag overrides are held constant over the
+    step (zero-order hold), so the step is fourth-order accurate in ``dt`` for smooth
+    dynamics. Pure: ``jit``, ``vmap`` and ``grad`` apply.
+    """
+
+    def f(x):
+        return derivatives(params, x, inputs, disturbance_accel, drag_position, drag_attitude)
+
+    dt = jnp.asarray(dt, dtype=state.dtype)
+    k1 = f(state)
+    k2 = f(state + 0.5 * dt * k1)
+    k3 = f(state + 0.5 * dt * k2)
+    k4 = f(state + dt * k3)
+    return state + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)

@@ -1,0 +1,436 @@
+"""The paper's simulation scenarios (Section V) as data and pure functions of time.
+
+A :class:`Scenario` is a static description (a frozen, hashable dataclass: pass it
+to ``jit`` as a static argument or close over it). Everything random in a run is
+drawn up front by :func:`sample_draw` into a :class:`Draw`, a NamedTuple of arrays
+(``vmap`` over draws is the intended use), and read back at time ``t`` by
+:func:`disturbance_at` and :func:`drag_at`, which index piecewise-constant tables:
+no key is split inside the simulation loop.
+
+Scenarios (paper notes, items 13-15; every choice is listed in ``docs/model_plant.md``):
+
+1. Reference (54)-(55), deterministic disturbances (53), drag coefficients
+   ``K_p``, ``K_phi`` varying randomly in time, horizon 80 s.
+2. Scenario 1 plus Gaussian random disturbances.
+3. Reference (57), disturbances (56), mass and inertia ``x (1 + U[0, 0.3])`` per
+   draw, nominal drag, horizon 50 s.
+
+Random processes (the paper's Figs. 3-4 are missing, these are our choices):
+
+* drag: each of the six coefficients ``(K_px, K_py, K_pz, K_phi1, K_phi2, K_phi3)``
+  is its nominal value times an independent ``U[1 - 0.2, 1 + 0.2]`` multiplier,
+  held for 1 s (piecewise constant);
+* Gaussian disturbance (scenario 2): independent zero-mean normal accelerations,
+  standard deviation 0.1 m/s^2 per position axis and 0.1 rad/s^2 per attitude axis,
+  held for 0.1 s, added to the deterministic disturbance.
+
+Hold boundaries sit on the simulation step grid: a hold lasts
+``round(hold / dt)`` steps and time ``t`` is mapped to step ``round(t / dt)``, so
+float rounding of ``t = k dt`` never moves a boundary.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Iterable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from fojax import plant
+
+Array = jax.Array
+
+__all__ = [
+    "Draw",
+    "Scenario",
+    "SCENARIO_IDS",
+    "disturbance_at",
+    "disturbances_53",
+    "disturbances_56",
+    "drag_at",
+    "draw_keys",
+    "get_scenario",
+    "initial_state",
+    "reference_54_55",
+    "reference_57",
+    "reference_with_derivatives",
+    "sample_draw",
+]
+
+SCENARIO_IDS = (1, 2, 3)
+
+
+def _as_time(t) -> Array:
+    t = jnp.asarray(t)
+    if not jnp.issubdtype(t.dtype, jnp.floating):
+        t = t.astype(jnp.result_type(float))
+    return t
+
+
+# --------------------------------------------------------------------------- references
+
+
+def reference_54_55(t) -> Array:
+    """Scenario 1-2 reference, eqs. (54)-(55) with the time restored (notes item 13).
+
+    ``x_r = 0.5 cos(pi t / 20)``, ``y_r = 0.5 sin(pi t / 20)``,
+    ``z_r = 2 - 2 cos(pi t / 20)`` (m), ``psi_r = 0.5`` rad.
+
+    t: scalar time (s). Returns ``(4,)`` ``(x_r, y_r, z_r, psi_r)``.
+    """
+    t = _as_time(t)
+    phase = jnp.pi * t / 20.0
+    return jnp.stack(
+        [
+            0.5 * jnp.cos(phase),
+            0.5 * jnp.sin(phase),
+            2.0 - 2.0 * jnp.cos(phase),
+            jnp.full_like(t, 0.5),
+        ]
+    )
+
+
+def reference_57(t) -> Array:
+    """Scenario 3 reference, eq. (57), as printed.
+
+    ``x_r = 0`` for ``t <= 7``, ``10 (1 - cos(2 pi (t - 7) / 23))`` after;
+    ``y_r = 0`` for ``t <= 7``, ``5 sin(4 pi (t - 7) / 23)`` after;
+    ``z_r = 7 (1 - exp(-0.3 t))`` (m); ``psi_r = 0.5`` rad.
+
+    Smoothness: ``x_r`` is C1 (its second derivative jumps from 0 to
+    ``10 (2 pi / 23)^2`` at ``t = 7``), ``y_r`` is only C0 (its velocity jumps from 0
+    to ``20 pi / 23`` m/s at ``t = 7``), and ``z_r'(0) = 2.1`` m/s. Derivatives from
+    :func:`reference_with_derivatives` are the exact one-sided ones (left side at
+    ``t = 7``). The paper's curve is kept; no smoothing is applied.
+
+    t: scalar time (s). Returns ``(4,)`` ``(x_r, y_r, z_r, psi_r)``.
+    """
+    t = _as_time(t)
+    after = t > 7.0
+    shifted = jnp.where(after, t - 7.0, 0.0)
+    x = jnp.where(after, 10.0 * (1.0 - jnp.cos(2.0 * jnp.pi * shifted / 23.0)), 0.0)
+    y = jnp.where(after, 5.0 * jnp.sin(4.0 * jnp.pi * shifted / 23.0), 0.0)
+    z = 7.0 * (1.0 - jnp.exp(-0.3 * t))
+    return jnp.stack([x, y, z, jnp.full_like(t, 0.5)]).astype(t.dtype)
+
+
+def reference_with_derivatives(
+    reference_fn: Callable[[Array], Array], t
+) -> tuple[Array, Array, Array]:
+    """Reference and its first two time derivatives, by forward-mode autodiff.
+
+    Exact derivatives of ``reference_fn`` itself (notes item 9), no differencing.
+
+    reference_fn: scalar ``t`` -> ``(4,)``. t: scalar time.
+    Returns ``(position (4,), velocity (4,), acceleration (4,))``, each ordered
+    ``(x, y, z, psi)``.
+    """
+    t = _as_time(t)
+    one = jnp.ones_like(t)
+
+    def value_and_rate(s):
+        return jax.jvp(reference_fn, (s,), (one,))
+
+    (position, velocity), (_, acceleration) = jax.jvp(value_and_rate, (t,), (one,))
+    return position, velocity, acceleration
+
+
+# ------------------------------------------------------------------------ disturbances
+
+
+def _window(t: Array, start: float, stop: float) -> Array:
+    return (t >= start) & (t <= stop)
+
+
+def disturbances_53(t) -> Array:
+    """Scenario 1-2 deterministic disturbances, eq. (53), as accelerations (notes item 4).
+
+    ``d_px = -(0.08 sin(0.11 t - 3.0403) + 0.04 sin(0.5 t - 13.5)
+    + 0.008 sin(1.6 t - 15 pi) + 0.006 sin(0.3 t - 8.6))`` on ``[10, 30]``,
+    ``d_py = 0.05 sin(0.4 t) + 0.05 cos(0.7 t)`` on ``[10, 50]``,
+    ``d_pz = 0.05 cos(0.7 t) + 0.07 sin(0.3)`` (``sin(0.3)`` a constant, as printed),
+    ``d_phi1 = 0.5 cos(0.4 t) + 1``, ``d_phi2 = 0.5 sin(0.5 t) + 1``,
+    ``d_phi3 = 0.05 sin(0.7 t) + 0.1``, these four on ``[0, 80]``; zero outside the
+    (closed) windows.
+
+    t: scalar time (s). Returns ``(6,)``: m/s^2 (position) then rad/s^2 (attitude).
+    """
+    t = _as_time(t)
+    zero = jnp.zeros_like(t)
+    d_px = -(
+        0.08 * jnp.sin(0.11 * t - 3.0403)
+        + 0.04 * jnp.sin(0.5 * t - 13.5)
+        + 0.008 * jnp.sin(1.6 * t - 15.0 * jnp.pi)
+        + 0.006 * jnp.sin(0.3 * t - 8.6)
+    )
+    d_py = 0.05 * jnp.sin(0.4 * t) + 0.05 * jnp.cos(0.7 * t)
+    d_pz = 0.05 * jnp.cos(0.7 * t) + 0.07 * math.sin(0.3)
+    d_phi1 = 0.5 * jnp.cos(0.4 * t) + 1.0
+    d_phi2 = 0.5 * jnp.sin(0.5 * t) + 1.0
+    d_phi3 = 0.05 * jnp.sin(0.7 * t) + 0.1
+    whole = _window(t, 0.0, 80.0)
+    return jnp.stack(
+        [
+            jnp.where(_window(t, 10.0, 30.0), d_px, zero),
+            jnp.where(_window(t, 10.0, 50.0), d_py, zero),
+            jnp.where(whole, d_pz, zero),
+            jnp.where(whole, d_phi1, zero),
+            jnp.where(whole, d_phi2, zero),
+            jnp.where(whole, d_phi3, zero),
+        ]
+    ).astype(t.dtype)
+
+
+def disturbances_56(t) -> Array:
+    """Scenario 3 deterministic disturbances, eq. (56), as accelerations, for all ``t``.
+
+    ``d_px = 0.3 sin(2t) + 0.1 sin(3t)``, ``d_py = 0.2 cos(2t) + 0.2 sin(2t)``,
+    ``d_pz = 0.5 cos(2t) + 0.7 sin(3t)`` (m/s^2); ``d_phi1 = 0.9 cos(0.4t) + 2.2 sin(2t)``,
+    ``d_phi2 = 0.8 sin(t) + 1.4 cos(2t)``, ``d_phi3 = 1.3 sin(5t) + 1.5 cos(3t)`` (rad/s^2).
+
+    t: scalar time (s). Returns ``(6,)``.
+    """
+    t = _as_time(t)
+    return jnp.stack(
+        [
+            0.3 * jnp.sin(2.0 * t) + 0.1 * jnp.sin(3.0 * t),
+            0.2 * jnp.cos(2.0 * t) + 0.2 * jnp.sin(2.0 * t),
+            0.5 * jnp.cos(2.0 * t) + 0.7 * jnp.sin(3.0 * t),
+            0.9 * jnp.cos(0.4 * t) + 2.2 * jnp.sin(2.0 * t),
+            0.8 * jnp.sin(t) + 1.4 * jnp.cos(2.0 * t),
+            1.3 * jnp.sin(5.0 * t) + 1.5 * jnp.cos(3.0 * t),
+        ]
+    )
+
+
+# ---------------------------------------------------------------------------- scenarios
+
+
+_INITIAL_POSITION = (0.05, 0.01, 0.0)
+_INITIAL_ATTITUDE = (0.01, 0.01, 0.1)
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """Static description of one of the paper's scenarios.
+
+    scenario_id: 1, 2 or 3. name: short description.
+    horizon: simulated time (s).
+    reference: scalar ``t`` -> ``(4,)`` ``(x_r, y_r, z_r, psi_r)``.
+    disturbance: scalar ``t`` -> ``(6,)`` deterministic disturbance accelerations.
+    drag_variation: half-width ``a`` of the drag multipliers ``U[1 - a, 1 + a]``
+        (0 keeps the nominal drag).
+    drag_hold: hold time (s) of each drag multiplier.
+    noise_std_position: standard deviation (m/s^2) of the Gaussian position
+        disturbance, per axis (0: none).
+    noise_std_attitude: standard deviation (rad/s^2) of the Gaussian attitude
+        disturbance, per axis (0: none).
+    noise_hold: hold time (s) of each Gaussian sample.
+    mass_uncertainty: ``m = m_nominal (1 + U[0, mass_uncertainty])`` per draw.
+    inertia_uncertainty: ``I_ii = I_ii_nominal (1 + U[0, inertia_uncertainty])``,
+        independently per axis, per draw.
+    initial_position, initial_attitude: ``(3,)`` tuples (m, rad); rates start at 0.
+    """
+
+    scenario_id: int
+    name: str
+    horizon: float
+    reference: Callable[[Array], Array]
+    disturbance: Callable[[Array], Array]
+    drag_variation: float = 0.0
+    drag_hold: float = 1.0
+    noise_std_position: float = 0.0
+    noise_std_attitude: float = 0.0
+    noise_hold: float = 0.1
+    mass_uncertainty: float = 0.0
+    inertia_uncertainty: float = 0.0
+    initial_position: tuple[float, float, float] = _INITIAL_POSITION
+    initial_attitude: tuple[float, float, float] = _INITIAL_ATTITUDE
+
+    @property
+    def has_noise(self) -> bool:
+        return self.noise_std_position > 0 or self.noise_std_attitude > 0
+
+    @property
+    def has_drag_variation(self) -> bool:
+        return self.drag_variation > 0
+
+
+_SCENARIOS = {
+    1: Scenario(
+        scenario_id=1,
+        name="drag uncertainty + disturbances (53), reference (54)-(55)",
+        horizon=80.0,
+        reference=reference_54_55,
+        disturbance=disturbances_53,
+        drag_variation=0.2,
+    ),
+    2: Scenario(
+        scenario_id=2,
+        name="scenario 1 + Gaussian random disturbances",
+        horizon=80.0,
+        reference=reference_54_55,
+        disturbance=disturbances_53,
+        drag_variation=0.2,
+        noise_std_position=0.1,
+        noise_std_attitude=0.1,
+    ),
+    3: Scenario(
+        scenario_id=3,
+        name="30% mass/inertia uncertainty + disturbances (56), reference (57)",
+        horizon=50.0,
+        reference=reference_57,
+        disturbance=disturbances_56,
+        mass_uncertainty=0.3,
+        inertia_uncertainty=0.3,
+    ),
+}
+
+
+def get_scenario(scenario_id: int) -> Scenario:
+    """The :class:`Scenario` numbered ``scenario_id`` (1, 2 or 3)."""
+    try:
+        return _SCENARIOS[int(scenario_id)]
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(
+            f"unknown scenario id {scenario_id!r}; expected one of {SCENARIO_IDS}"
+        ) from None
+
+
+def initial_state(scenario: Scenario, dtype=None) -> Array:
+    """The ``(12,)`` initial plant state: position, attitude, zero rates (Section V)."""
+    return plant.make_state(scenario.initial_position, scenario.initial_attitude, dtype=dtype)
+
+
+# -------------------------------------------------------------------------------- draws
+
+
+class Draw(NamedTuple):
+    """Everything random in one run, sampled up front (all leaves are arrays).
+
+    params: :class:`fojax.plant.PlantParams` of the simulated plant (mass and inertia
+        perturbed in scenario 3; the controller keeps the nominal values).
+    drag_multipliers: ``(n_drag_holds, 6)`` multipliers of
+        ``(K_px, K_py, K_pz, K_phi1, K_phi2, K_phi3)``, one row per drag hold.
+    noise_accel: ``(n_noise_holds, 6)`` Gaussian disturbance accelerations
+        (m/s^2, rad/s^2), one row per noise hold.
+    time_step: ``()`` the step ``dt`` the tables were laid out for.
+    drag_hold_steps, noise_hold_steps: ``()`` int32, steps per hold.
+    """
+
+    params: plant.PlantParams
+    drag_multipliers: Array
+    noise_accel: Array
+    time_step: Array
+    drag_hold_steps: Array
+    noise_hold_steps: Array
+
+
+def draw_keys(seed: int, indices: Iterable[int] | Array) -> Array:
+    """Per-draw keys ``fold_in(PRNGKey(seed), i)`` for each ``i`` in ``indices``.
+
+    Draw ``i`` depends only on ``(seed, i)``, never on how many draws are made.
+    Returns ``(len(indices), 2)`` uint32 raw keys.
+    """
+    base = jax.random.PRNGKey(seed)
+    indices = jnp.asarray(list(indices) if not hasattr(indices, "shape") else indices)
+    indices = indices.astype(jnp.uint32)
+    return jax.vmap(lambda i: jax.random.fold_in(base, i))(indices)
+
+
+def _hold_layout(horizon: float, hold: float, dt: float) -> tuple[int, int]:
+    """``(steps per hold, number of holds)`` covering steps ``0 ... ceil(horizon/dt)``."""
+    hold_steps = max(1, round(hold / dt))
+    n_steps = math.ceil(horizon / dt - 1e-9)
+    return hold_steps, n_steps // hold_steps + 1
+
+
+def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None) -> Draw:
+    """Sample one :class:`Draw` of ``scenario`` from ``key`` for a step ``dt`` (s).
+
+    ``key`` should come from :func:`draw_keys`. ``dt`` must be a Python number (it
+    fixes the table shapes). Tables of disabled processes have a single row
+    (multipliers 1, noise 0). Pure and ``vmap``-able over ``key``.
+    """
+    dt = float(dt)
+    if not dt > 0:
+        raise ValueError(f"dt must be > 0, got {dt}")
+    float_dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
+    key_params, key_drag, key_noise = jax.random.split(key, 3)
+    key_mass, key_inertia = jax.random.split(key_params)
+
+    nominal = plant.nominal_params(float_dtype)
+    mass_factor = 1.0 + jax.random.uniform(
+        key_mass, (), float_dtype, 0.0, scenario.mass_uncertainty
+    )
+    inertia_factor = 1.0 + jax.random.uniform(
+        key_inertia, (3,), float_dtype, 0.0, scenario.inertia_uncertainty
+    )
+    params = nominal._replace(
+        mass=nominal.mass * mass_factor, inertia=nominal.inertia * inertia_factor
+    )
+
+    drag_hold_steps, n_drag = _hold_layout(scenario.horizon, scenario.drag_hold, dt)
+    if scenario.has_drag_variation:
+        a = scenario.drag_variation
+        drag_multipliers = jax.random.uniform(key_drag, (n_drag, 6), float_dtype, 1.0 - a, 1.0 + a)
+    else:
+        drag_multipliers = jnp.ones((1, 6), float_dtype)
+
+    noise_hold_steps, n_noise = _hold_layout(scenario.horizon, scenario.noise_hold, dt)
+    if scenario.has_noise:
+        std = jnp.asarray(
+            [scenario.noise_std_position] * 3 + [scenario.noise_std_attitude] * 3, float_dtype
+        )
+        noise_accel = std * jax.random.normal(key_noise, (n_noise, 6), float_dtype)
+    else:
+        noise_accel = jnp.zeros((1, 6), float_dtype)
+
+    return Draw(
+        params=params,
+        drag_multipliers=drag_multipliers,
+        noise_accel=noise_accel,
+        time_step=jnp.asarray(dt, float_dtype),
+        drag_hold_steps=jnp.asarray(drag_hold_steps, jnp.int32),
+        noise_hold_steps=jnp.asarray(noise_hold_steps, jnp.int32),
+    )
+
+
+def _hold_index(t: Array, time_step: Array, hold_steps: Array, n_rows: int) -> Array:
+    step = jnp.round(t / time_step).astype(jnp.int32)
+    return jnp.clip(step // hold_steps, 0, n_rows - 1)
+
+
+def disturbance_at(scenario: Scenario, draw: Draw, t) -> Array:
+    """Total disturbance acceleration ``(6,)`` at time ``t``: deterministic + Gaussian.
+
+    Traceable in ``t``; the Gaussian part is the row of ``draw.noise_accel`` of the
+    hold containing step ``round(t / dt)`` (zero when the scenario has no noise; times
+    past the table reuse its last row).
+    """
+    t = _as_time(t)
+    deterministic = scenario.disturbance(t)
+    if not scenario.has_noise:
+        return deterministic
+    row = _hold_index(t, draw.time_step, draw.noise_hold_steps, draw.noise_accel.shape[0])
+    return deterministic + draw.noise_accel[row].astype(deterministic.dtype)
+
+
+def drag_at(scenario: Scenario, draw: Draw, t) -> tuple[Array, Array]:
+    """Drag coefficients ``(K_p (3,), K_phi (3,))`` in force at time ``t``.
+
+    The draw's (nominal) drag times the multipliers of the hold containing step
+    ``round(t / dt)``; the nominal drag when the scenario has no drag variation.
+    """
+    if not scenario.has_drag_variation:
+        return draw.params.drag_position, draw.params.drag_attitude
+    t = _as_time(t)
+    row = _hold_index(t, draw.time_step, draw.drag_hold_steps, draw.drag_multipliers.shape[0])
+    multipliers = draw.drag_multipliers[row]
+    return (
+        draw.params.drag_position * multipliers[:3],
+        draw.params.drag_attitude * multipliers[3:],
+    )
