@@ -1,6 +1,7 @@
 """The ``fojax`` command line.
 
 fojax accuracy --out DIR     accuracy and cost of the fractional operators
+fojax simulate ...           Monte Carlo study of a scenario (see fojax simulate --help)
 """
 
 from __future__ import annotations
@@ -12,6 +13,10 @@ COMMANDS = {
     "accuracy": (
         "experiments.fractional_accuracy",
         "accuracy and cost of the fractional operators",
+    ),
+    "simulate": (
+        "experiments.simulate",
+        "Monte Carlo study of a scenario under one or all controllers",
     ),
 }
 
@@ -36,8 +41,8 @@ def main(argv=None) -> int:
     import importlib
 
     module = importlib.import_module(module_name)
-    module.main(argv[1:])
-    return 0
+    status = module.main(argv[1:])
+    return status if isinstance(status, int) else 0
 
 
 if __name__ == "__main__":

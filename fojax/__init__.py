@@ -1,7 +1,64 @@
-"""fojax: differentiable, vectorised quadrotor simulation with fractional-order control."""
+"""fojax: differentiable, vectorised quadrotor simulation with fractional-order control.
 
-from fojax import fractional
+Modules: :mod:`fojax.fractional` (fractional operators), :mod:`fojax.plant` (the
+quadrotor, eqs. (8)-(11)), :mod:`fojax.scenarios` (Section V's scenarios as data),
+:mod:`fojax.controller` (the controller interface), :mod:`fojax.afonftsmc` (the paper's
+controller), :mod:`fojax.registry` (controllers by name), :mod:`fojax.simulator` (one
+closed-loop rollout), :mod:`fojax.metrics`, :mod:`fojax.montecarlo` (batched draws),
+:mod:`fojax.statistics`, :mod:`fojax.gains_io` (gains files).
+"""
+
+from fojax import (
+    afonftsmc,
+    controller,
+    fractional,
+    gains_io,
+    metrics,
+    montecarlo,
+    plant,
+    registry,
+    scenarios,
+    simulator,
+    statistics,
+)
+from fojax.afonftsmc import AFONFTSMC, AFONFTSMCGains, paper_gains
 from fojax.fractional import differintegrate
+from fojax.gains_io import load_gains, save_gains
+from fojax.montecarlo import MonteCarloResult
+from fojax.montecarlo import run as run_monte_carlo
+from fojax.plant import PlantParams, nominal_params
+from fojax.registry import controller_names, make_controller
+from fojax.scenarios import Scenario, get_scenario
+from fojax.simulator import Rollout, SimulationConfig, rollout
 
-__all__ = ["differintegrate", "fractional"]
+__all__ = [
+    "AFONFTSMC",
+    "AFONFTSMCGains",
+    "MonteCarloResult",
+    "PlantParams",
+    "Rollout",
+    "Scenario",
+    "SimulationConfig",
+    "afonftsmc",
+    "controller",
+    "controller_names",
+    "differintegrate",
+    "fractional",
+    "gains_io",
+    "get_scenario",
+    "load_gains",
+    "make_controller",
+    "metrics",
+    "montecarlo",
+    "nominal_params",
+    "paper_gains",
+    "plant",
+    "registry",
+    "rollout",
+    "run_monte_carlo",
+    "save_gains",
+    "scenarios",
+    "simulator",
+    "statistics",
+]
 __version__ = "0.1.0"

@@ -27,14 +27,15 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from fojax import fractional, plant
 from fojax.controller import (
     SWITCHING_FUNCTIONS,
+    Bounds,
     ControlInfo,
     Observation,
     attitude_drift,
+    check_bounds,
     signed_power,
     switching,
     thrust_and_attitude,
@@ -100,37 +101,28 @@ def paper_gains(dtype: Any = None) -> AFONFTSMCGains:
     )
 
 
+GAINS_BOUNDS = {
+    "surface_c1": Bounds(0.0),
+    "surface_c2": Bounds(0.0),
+    "reaching_h1": Bounds(0.0),
+    "reaching_h2": Bounds(0.0),
+    "power": Bounds(0.0),
+    "ratio": Bounds(1.0, 2.0, symbol="p/q"),
+    "gamma1": Bounds(0.0, 1.0),
+    "gamma2": Bounds(0.0, 1.0),
+    "adaptation": Bounds(0.0, include_low=True),
+    "mu": Bounds(0.0),
+    "boundary_layer": Bounds(0.0),
+}
+"""The paper's constraints on each gain (Section IV): positive gains, ``1 < p/q < 2``,
+``0 < gamma < 1``, non-negative adaptation rates."""
+
+GAINS_SHAPES = {name: ((6, 3) if name == "adaptation" else (6,)) for name in GAINS_BOUNDS}
+
+
 def check_gains(gains: AFONFTSMCGains) -> None:
     """Raise ``ValueError`` naming every entry that breaks the paper's constraints."""
-    problems = []
-    values = {name: np.asarray(getattr(gains, name), dtype=float) for name in gains._fields}
-    for name, value in values.items():
-        if not np.all(np.isfinite(value)):
-            problems.append(f"{name} must be finite, got {value.tolist()}")
-    for name in (
-        "surface_c1",
-        "surface_c2",
-        "reaching_h1",
-        "reaching_h2",
-        "power",
-        "mu",
-        "boundary_layer",
-    ):
-        if np.any(values[name] <= 0):
-            problems.append(f"{name} must be > 0, got {values[name].tolist()}")
-    if np.any(values["adaptation"] < 0):
-        problems.append(f"adaptation must be >= 0, got {values['adaptation'].tolist()}")
-    if np.any((values["ratio"] <= 1) | (values["ratio"] >= 2)):
-        problems.append(f"ratio p/q must satisfy 1 < p/q < 2, got {values['ratio'].tolist()}")
-    for name in ("gamma1", "gamma2"):
-        if np.any((values[name] <= 0) | (values[name] >= 1)):
-            problems.append(f"{name} must satisfy 0 < {name} < 1, got {values[name].tolist()}")
-    for name, value in values.items():
-        expected = (6, 3) if name == "adaptation" else (6,)
-        if value.shape != expected:
-            problems.append(f"{name} must have shape {expected}, got {value.shape}")
-    if problems:
-        raise ValueError("invalid AFONFTSMC gains:\n  " + "\n  ".join(problems))
+    check_bounds(gains, GAINS_BOUNDS, GAINS_SHAPES, "AFONFTSMC")
 
 
 class AFONFTSMCParams(NamedTuple):
@@ -189,6 +181,8 @@ class AFONFTSMC:
     filter_damping: float = 1.0
 
     name = "afonftsmc"
+    gains_type = AFONFTSMCGains
+    gains_bounds = GAINS_BOUNDS
 
     def __post_init__(self) -> None:
         if self.switching not in SWITCHING_FUNCTIONS:
@@ -206,6 +200,34 @@ class AFONFTSMC:
                 raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
         # Validates the method and its options before anything is traced.
         self.operator  # noqa: B018
+
+    # -- gains ----------------------------------------------------------------------
+    @staticmethod
+    def default_gains(dtype: Any = None) -> AFONFTSMCGains:
+        """The paper's gains (:func:`paper_gains`)."""
+        return paper_gains(dtype)
+
+    @staticmethod
+    def check_gains(gains: AFONFTSMCGains) -> None:
+        """Raise ``ValueError`` if ``gains`` break the paper's constraints."""
+        check_gains(gains)
+
+    @staticmethod
+    def reaching_time_bound(gains: AFONFTSMCGains, initial_surface: Array) -> Array:
+        """Finite-time bound of eq. (34) on reaching ``S = 0``, per axis ``(..., 6)``.
+
+        Lemma 1 with ``V = S^2 / 2``, ``lambda_1 = sqrt(2) (hbar_1 + mu)``,
+        ``lambda_2 = 2 hbar_2`` and ``V' <= -lambda_1 V^(1/2) - lambda_2 V``, (33), gives
+        ``t_r <= (2 / lambda_2) ln((lambda_2 V0^(1/2) + lambda_1) / lambda_1)``
+        ``= (1 / hbar_2) ln(1 + hbar_2 |S(0)| / (hbar_1 + mu))``. (34) as printed swaps
+        ``lambda_1`` and ``lambda_2``; this is the form Lemma 1 gives. The adaptive
+        estimation errors of the paper's ``V(t_0)`` are taken as zero (their true
+        bounds are unknown), and the bound assumes the adaptive term dominates the
+        disturbance, so it is a reference value, not a guarantee for every draw.
+        """
+        h1 = jnp.asarray(gains.reaching_h1) + jnp.asarray(gains.mu)
+        h2 = jnp.asarray(gains.reaching_h2)
+        return jnp.log1p(h2 * jnp.abs(initial_surface) / h1) / h2
 
     @property
     def operator(self):

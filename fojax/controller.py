@@ -24,10 +24,12 @@ User-written controllers implement the same three functions and plug into
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 Array = jax.Array
 
@@ -77,6 +79,55 @@ class Controller(Protocol):
     def step(
         self, params: Any, state: Any, observation: Observation
     ) -> tuple[Any, Array, ControlInfo]: ...
+
+
+# ---------------------------------------------------------------- gain constraints
+
+
+class Bounds(NamedTuple):
+    """The feasible set of one gain field: ``low < value < high`` elementwise.
+
+    ``include_low``: ``low <= value`` instead. ``symbol``: the name used in messages
+    (for instance ``"p/q"``). Tuners map unconstrained parameters onto these sets.
+    """
+
+    low: float
+    high: float = math.inf
+    include_low: bool = False
+    symbol: str | None = None
+
+    def describe(self, name: str) -> str:
+        symbol = self.symbol or name
+        low_op = "<=" if self.include_low else "<"
+        if math.isinf(self.high):
+            return f"{symbol} must be {'>=' if self.include_low else '>'} {self.low:g}"
+        return f"{symbol} must satisfy {self.low:g} {low_op} {symbol} < {self.high:g}"
+
+    def contains(self, value: np.ndarray) -> np.ndarray:
+        above = value >= self.low if self.include_low else value > self.low
+        return above & (value < self.high)
+
+
+def check_bounds(gains: Any, bounds: dict, shapes: dict, label: str) -> None:
+    """Raise ``ValueError`` listing every field of ``gains`` that is non-finite, has the
+    wrong shape or lies outside ``bounds`` (field -> :class:`Bounds`)."""
+    problems = []
+    for name in gains._fields:
+        value = np.asarray(getattr(gains, name), dtype=float)
+        if value.shape != shapes[name]:
+            problems.append(f"{name} must have shape {shapes[name]}, got {value.shape}")
+            continue
+        if not np.all(np.isfinite(value)):
+            problems.append(f"{name} must be finite, got {value.tolist()}")
+            continue
+        bound = bounds[name]
+        if not np.all(bound.contains(value)):
+            text = bound.describe(name)
+            if bound.symbol:
+                text = f"{name} {text}"
+            problems.append(f"{text}, got {value.tolist()}")
+    if problems:
+        raise ValueError(f"invalid {label} gains:\n  " + "\n  ".join(problems))
 
 
 # ------------------------------------------------------------------ shared helpers

@@ -7,7 +7,7 @@ drawn up front by :func:`sample_draw` into a :class:`Draw`, a NamedTuple of arra
 :func:`disturbance_at` and :func:`drag_at`, which index piecewise-constant tables:
 no key is split inside the simulation loop.
 
-Scenarios (paper notes, items 13-15; every choice is listed in ``docs/model_plant.md``):
+Scenarios (paper notes, items 13-15; every choice is listed in ``docs/model.md``):
 
 1. Reference (54)-(55), deterministic disturbances (53), drag coefficients
    ``K_p``, ``K_phi`` varying randomly in time, horizon 80 s.

@@ -1,0 +1,392 @@
+"""Monte Carlo over random draws: chunked, vmapped rollouts with online metrics.
+
+Draw ``i`` of a run with seed ``s`` always uses the key ``fold_in(PRNGKey(s), i)``
+(:func:`fojax.scenarios.draw_keys`), so its trajectory does not depend on how many
+draws run or how they are chunked, and every controller given the same seed sees the
+same draws (common random numbers): comparisons between controllers are paired.
+
+Draws run in chunks of a fixed size (the last chunk is padded, so one compiled
+function serves the whole run); each chunk is one ``jit(vmap(rollout))`` call. With a
+``store`` directory every finished chunk is written to disk at once, and a run
+started again with the same settings picks up where it stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fojax import metrics, plant, scenarios, simulator, statistics
+
+Array = jax.Array
+
+__all__ = [
+    "DIVERGED",
+    "MonteCarloResult",
+    "make_chunk_runner",
+    "run",
+    "summarize",
+]
+
+DIVERGED = simulator.NONFINITE | simulator.TILT_LIMIT
+"""Status bits that make a draw count as diverged (excluded from the metrics)."""
+
+
+class MonteCarloResult(NamedTuple):
+    """Per-draw results on the host.
+
+    controller: the controller's name.
+    status: ``(draws,)`` int32 bit flags (:data:`fojax.simulator.STATUS_NAMES`).
+    per_draw: metric name -> ``(draws,)`` or ``(draws, k)`` array (:mod:`fojax.metrics`).
+    trajectories: :class:`fojax.simulator.Snapshot` of the first ``keep`` draws, leaves
+        ``(keep, blocks, ...)``.
+    wall_time: seconds spent, compilation included. compile_time: seconds of the first
+        chunk beyond the steady per-chunk time (an estimate; 0 when every chunk came
+        from the store).
+    """
+
+    controller: str
+    status: np.ndarray
+    per_draw: dict
+    trajectories: Any
+    wall_time: float
+    compile_time: float
+
+    @property
+    def draws(self) -> int:
+        return int(self.status.shape[0])
+
+    @property
+    def valid(self) -> np.ndarray:
+        """``(draws,)`` bool, draws that neither diverged nor left Assumption 1."""
+        return (self.status & DIVERGED) == 0
+
+
+def _accumulator(metrics_config: metrics.MetricsConfig, mixer_params, dtype):
+    def init():
+        return metrics.init(dtype)
+
+    def update(acc, t, state, reference, inputs, info):
+        error = jnp.concatenate(
+            [state[:3] - reference[:3], state[3:6] - info.attitude_reference.astype(state.dtype)]
+        )
+        return metrics.update(metrics_config, acc, t, error, inputs, info.surfaces, mixer_params)
+
+    return init, update
+
+
+def make_chunk_runner(
+    controller,
+    scenario: scenarios.Scenario,
+    config: simulator.SimulationConfig,
+    metrics_config: metrics.MetricsConfig | None = None,
+    dtype=None,
+) -> Callable:
+    """A jitted ``(gains, keys (n, 2)) -> (status (n,), metrics, snapshots)``.
+
+    ``gains`` is shared by every draw of the chunk; the compiled function is reused for
+    any gains and keys of the same shapes.
+    """
+    dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
+    metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
+    model = plant.nominal_params(dtype)
+    accumulator = _accumulator(metrics_config, model, dtype)
+
+    def one(gains, key):
+        draw = scenarios.sample_draw(scenario, key, config.dt, dtype)
+        result = simulator.rollout(controller, gains, model, scenario, draw, config, accumulator)
+        return result.status, metrics.finalize(metrics_config, result.extra), result.trajectory
+
+    return jax.jit(jax.vmap(one, in_axes=(None, 0)))
+
+
+# ---------------------------------------------------------------------------- store
+
+
+def _fingerprint_hash(fingerprint: dict) -> str:
+    text = json.dumps(fingerprint, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+class _ChunkStore:
+    """One ``.npz`` per finished chunk under ``directory``, keyed by a fingerprint."""
+
+    def __init__(self, directory: Path, fingerprint: dict):
+        self.directory = Path(directory)
+        self.key = _fingerprint_hash(fingerprint)
+        manifest = self.directory / "manifest.json"
+        if manifest.exists():
+            stored = json.loads(manifest.read_text())
+            if stored.get("key") != self.key:
+                raise ValueError(
+                    f"{self.directory} holds chunks of a run with other settings "
+                    f"({stored.get('fingerprint')}); remove it or choose another output "
+                    "directory"
+                )
+        else:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            tmp = manifest.with_suffix(".tmp")
+            tmp.write_text(
+                json.dumps({"key": self.key, "fingerprint": fingerprint}, indent=1, default=str)
+            )
+            os.replace(tmp, manifest)
+
+    def _path(self, first: int) -> Path:
+        return self.directory / f"chunk_{first:07d}.npz"
+
+    def load(self, first: int):
+        path = self._path(first)
+        if not path.exists():
+            return None
+        with np.load(path) as data:
+            status = data["status"]
+            per_draw = {k[2:]: data[k] for k in data.files if k.startswith("m.")}
+            snaps = {k[2:]: data[k] for k in data.files if k.startswith("s.")}
+        return status, per_draw, snaps or None
+
+    def save(self, first: int, status, per_draw, snapshots) -> None:
+        arrays = {"status": status}
+        arrays.update({f"m.{k}": v for k, v in per_draw.items()})
+        if snapshots is not None:
+            arrays.update({f"s.{k}": v for k, v in snapshots.items()})
+        path = self._path(first)
+        tmp = path.with_name(path.stem + ".tmp.npz")
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+
+
+def _flatten_snapshot(snapshot) -> dict[str, np.ndarray]:
+    leaves = {
+        "time": snapshot.time,
+        "state": snapshot.state,
+        "reference": snapshot.reference,
+        "inputs": snapshot.inputs,
+    }
+    leaves.update({f"info.{k}": v for k, v in snapshot.info._asdict().items()})
+    return {k: np.asarray(v) for k, v in leaves.items()}
+
+
+def _unflatten_snapshot(flat: dict[str, np.ndarray]) -> simulator.Snapshot:
+    from fojax.controller import ControlInfo
+
+    info = ControlInfo(**{k[5:]: v for k, v in flat.items() if k.startswith("info.")})
+    return simulator.Snapshot(
+        time=flat["time"],
+        state=flat["state"],
+        reference=flat["reference"],
+        inputs=flat["inputs"],
+        info=info,
+    )
+
+
+# ------------------------------------------------------------------------------ run
+
+
+def _config_fingerprint(controller, gains, scenario, config, seed, chunk, keep, dtype, mcfg):
+    def plain(obj):
+        if dataclasses.is_dataclass(obj):
+            return {
+                f.name: (
+                    getattr(obj, f.name).__name__
+                    if callable(getattr(obj, f.name))
+                    else getattr(obj, f.name)
+                )
+                for f in dataclasses.fields(obj)
+            }
+        return obj
+
+    return {
+        "controller": controller.name,
+        "controller_config": plain(controller),
+        "gains": {k: np.asarray(v).tolist() for k, v in gains._asdict().items()},
+        "scenario": plain(scenario),
+        "simulation": plain(config),
+        "metrics": plain(mcfg),
+        "seed": int(seed),
+        "chunk": int(chunk),
+        "keep": int(keep),
+        "dtype": str(dtype),
+    }
+
+
+def run(
+    controller,
+    gains,
+    scenario: scenarios.Scenario,
+    config: simulator.SimulationConfig,
+    draws: int,
+    seed: int = 0,
+    chunk: int = 256,
+    keep: int = 64,
+    progress: bool = True,
+    dtype=None,
+    metrics_config: metrics.MetricsConfig | None = None,
+    store: str | os.PathLike | None = None,
+    runner: Callable | None = None,
+) -> MonteCarloResult:
+    """Roll out draws ``0 ... draws - 1`` of ``scenario`` with seed ``seed``.
+
+    Args:
+        controller, gains: the controller (see :mod:`fojax.controller`) and its gains.
+        scenario: the scenario; its ``horizon`` should cover ``config.horizon`` (the
+            random tables are laid out for it).
+        config: simulation settings.
+        draws: number of draws, >= 1. seed: the run's seed, >= 0.
+        chunk: draws per compiled call (memory grows with it).
+        keep: decimated trajectories are kept for the first ``keep`` draws.
+        progress: print a progress line per chunk to stderr.
+        dtype: floating dtype (default float32, float64 with x64 enabled).
+        metrics_config: settling bands etc.; default :class:`fojax.metrics.MetricsConfig`.
+        store: a directory: each finished chunk is saved there, and chunks already
+            there (from an interrupted run with the same settings) are loaded, not rerun.
+        runner: a function from :func:`make_chunk_runner` for these settings, to share
+            one compiled function between calls.
+
+    Returns a :class:`MonteCarloResult`.
+    """
+    if not isinstance(draws, int | np.integer) or draws < 1:
+        raise ValueError(f"draws must be a positive integer, got {draws!r}")
+    if not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if not isinstance(chunk, int | np.integer) or chunk < 1:
+        raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+    dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
+    metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
+    chunk = int(min(chunk, draws))
+    keep = int(min(max(keep, 0), draws))
+    chunk_store = None
+    if store is not None:
+        fingerprint = _config_fingerprint(
+            controller, gains, scenario, config, seed, chunk, keep, dtype, metrics_config
+        )
+        chunk_store = _ChunkStore(Path(store), fingerprint)
+    if runner is None:
+        runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype)
+
+    statuses, per_draw, kept = [], [], []
+    start = time.perf_counter()
+    chunk_times = []
+    computed = 0
+    for first in range(0, draws, chunk):
+        n = min(chunk, draws - first)
+        loaded = chunk_store.load(first) if chunk_store is not None else None
+        if loaded is not None:
+            status, values, snaps = loaded
+        else:
+            t0 = time.perf_counter()
+            indices = np.arange(first, first + chunk)
+            indices = np.minimum(indices, draws - 1)  # pad the last chunk
+            keys = scenarios.draw_keys(seed, indices)
+            status, values, snapshots = runner(gains, keys)
+            status = np.asarray(status)[:n]
+            values = {k: np.asarray(v)[:n] for k, v in values.items()}
+            snaps = None
+            if first < keep:
+                snaps = {k: v[:n] for k, v in _flatten_snapshot(snapshots).items()}
+            chunk_times.append(time.perf_counter() - t0)
+            computed += n
+            if chunk_store is not None:
+                chunk_store.save(first, status, values, snaps)
+        statuses.append(status)
+        per_draw.append(values)
+        if first < keep and snaps is not None:
+            kept.append(snaps)
+        if progress:
+            done = first + n
+            elapsed = time.perf_counter() - start
+            diverged = int(np.sum((np.concatenate(statuses) & DIVERGED) > 0))
+            steady = np.median(chunk_times[1:]) if len(chunk_times) > 1 else None
+            remaining = (draws - done) / chunk
+            eta = f", about {remaining * steady:.0f} s left" if steady else ""
+            rate = computed * config.steps / max(sum(chunk_times), 1e-9) if computed else 0.0
+            print(
+                f"\r  {controller.name}: {done}/{draws} draws, {elapsed:.0f} s"
+                f"{eta}, {rate:.3g} draw-steps/s, diverged {diverged}   ",
+                end="",
+                file=sys.stderr,
+                flush=True,
+            )
+    if progress:
+        print(file=sys.stderr)
+    wall = time.perf_counter() - start
+    compile_time = 0.0
+    if len(chunk_times) > 1:
+        compile_time = max(0.0, chunk_times[0] - float(np.median(chunk_times[1:])))
+    elif chunk_times:
+        compile_time = float("nan")  # one chunk: cannot separate compile from run
+    trajectories = None
+    if kept:
+        merged = {k: np.concatenate([c[k] for c in kept])[:keep] for k in kept[0]}
+        trajectories = _unflatten_snapshot(merged)
+    return MonteCarloResult(
+        controller=controller.name,
+        status=np.concatenate(statuses).astype(np.int32),
+        per_draw={k: np.concatenate([p[k] for p in per_draw]) for k in per_draw[0]},
+        trajectories=trajectories,
+        wall_time=wall,
+        compile_time=compile_time,
+    )
+
+
+# -------------------------------------------------------------------------- summary
+
+
+def status_counts(status: np.ndarray) -> dict[str, int]:
+    """Number of draws with each status flag set (a draw may have several)."""
+    status = np.asarray(status)
+    return {name: int(np.sum((status & bit) > 0)) for bit, name in simulator.STATUS_NAMES.items()}
+
+
+def metric_table(result: MonteCarloResult) -> dict[str, tuple[np.ndarray, str]]:
+    """Scalar components of every metric: name -> (``(draws,)`` values, unit).
+
+    Diverged draws (:data:`DIVERGED`) are set to NaN, so that no statistic uses them.
+    """
+    valid = result.valid
+    table = {}
+    for name, values in result.per_draw.items():
+        values = np.asarray(values, dtype=np.float64)
+        shape = values.shape[1:]
+        names = metrics.component_names(name, shape)
+        units = metrics.component_units(name, shape)
+        flat = values.reshape(values.shape[0], -1)
+        for j, (component, unit) in enumerate(zip(names, units, strict=True)):
+            table[component] = (np.where(valid, flat[:, j], np.nan), unit)
+    return table
+
+
+def summarize(result: MonteCarloResult, extra: dict[str, np.ndarray] | None = None) -> dict:
+    """JSON-ready summary of one controller's run.
+
+    ``{"draws", "valid", "diverged", "status_counts", "metrics": {name: {"mean",
+    "std", "ci95", "n", "n_nonfinite", "unit"}}}``; ``diverged`` counts the draws
+    flagged non-finite or beyond the tilt limit, whose metrics are left out. ``inf``
+    values (a surface never reached) are left out of the mean and counted in
+    ``n_nonfinite``. ``extra`` adds per-draw series (name -> ``(draws,)``).
+    """
+    table = metric_table(result)
+    out_metrics = {}
+    for name, (values, unit) in table.items():
+        out_metrics[name] = {**statistics.mean_ci(values), "unit": unit}
+    for name, values in (extra or {}).items():
+        values = np.where(result.valid, np.asarray(values, dtype=np.float64), np.nan)
+        out_metrics[name] = {**statistics.mean_ci(values), "unit": "s"}
+    valid = int(np.sum(result.valid))
+    return {
+        "draws": result.draws,
+        "valid": valid,
+        "diverged": result.draws - valid,
+        "status_counts": status_counts(result.status),
+        "metrics": out_metrics,
+    }

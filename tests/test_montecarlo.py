@@ -1,0 +1,271 @@
+"""Monte Carlo layer: online metrics, chunking, resumable store, summaries, statistics."""
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fojax import metrics, montecarlo, plant, scenarios, simulator, statistics
+from fojax.afonftsmc import AFONFTSMC, paper_gains
+
+HORIZON = 0.3
+SCENARIO = dataclasses.replace(scenarios.get_scenario(2), horizon=HORIZON)
+# save_every=1: the snapshots hold every step, so metrics can be recomputed offline.
+CONFIG = simulator.SimulationConfig(dt=1e-3, horizon=HORIZON, save_every=1)
+CONTROLLER = AFONFTSMC(dt=1e-3, horizon=HORIZON, switching="sat")
+METRICS = metrics.MetricsConfig(
+    dt=1e-3, steps=CONFIG.steps, position_band=0.02, attitude_band=0.01, reaching_band=0.02
+)
+
+
+@functools.cache
+def runner():
+    return montecarlo.make_chunk_runner(CONTROLLER, SCENARIO, CONFIG, METRICS)
+
+
+def offline_metrics(tr, dt, cfg):
+    """The metrics of one draw from its full-rate trajectory, in plain NumPy.
+
+    Snapshot k holds the state after step k, the reference and inputs of step k; the
+    online metrics use the state before step k, i.e. snapshot k - 1 (the initial
+    state for k = 0).
+    """
+    n = tr.time.shape[0]
+    t = np.arange(n) * dt
+    horizon = n * dt
+    state0 = np.asarray(scenarios.initial_state(SCENARIO, jnp.float64))
+    state_before = np.concatenate([state0[None], tr.state[:-1]])
+    error = np.concatenate(
+        [
+            state_before[:, :3] - tr.reference[:, :3],
+            state_before[:, 3:6] - tr.info.attitude_reference,
+        ],
+        axis=1,
+    )
+    mag = np.abs(error)
+    bands = np.array([cfg.position_band] * 3 + [cfg.attitude_band] * 3)
+    settling = []
+    for j in range(6):
+        outside = np.nonzero(mag[:, j] > bands[j])[0]
+        settling.append(0.0 if outside.size == 0 else min(t[outside[-1]] + dt, horizon))
+    overshoot = []
+    for j in range(6):
+        big = np.nonzero(mag[:, j] > cfg.overshoot_threshold)[0]
+        if big.size == 0:
+            overshoot.append(0.0)
+            continue
+        direction = np.sign(error[big[0], j])
+        overshoot.append(max(0.0, float(np.max(-direction * error[big[0] :, j]))))
+    surfaces = tr.info.surfaces
+    reaching = []
+    for j in range(6):
+        outside = np.nonzero(np.abs(surfaces[:, j]) > cfg.reaching_band)[0]
+        if outside.size == 0:
+            reaching.append(0.0)
+        elif outside[-1] == n - 1:
+            reaching.append(np.inf)
+        else:
+            reaching.append(t[outside[-1]] + dt)
+    u = tr.inputs
+    p = plant.nominal_params(jnp.float64)
+    infeasible = np.array(
+        [np.any(np.asarray(plant.rotor_speeds_squared(p, jnp.asarray(row))) < 0) for row in u]
+    )
+    return {
+        "position_rmse": np.sqrt(np.sum(error[:, :3] ** 2) * dt / horizon),
+        "attitude_rmse": np.sqrt(np.sum(error[:, 3:] ** 2) * dt / horizon),
+        "rmse": np.sqrt(np.sum(error**2, axis=0) * dt / horizon),
+        "iae": np.sum(mag, axis=0) * dt,
+        "itae": np.sum(t[:, None] * mag, axis=0) * dt,
+        "max_error": np.max(mag, axis=0),
+        "settling_time": np.array(settling),
+        "overshoot": np.array(overshoot),
+        "control_effort": np.sqrt(np.sum(u**2, axis=0) * dt / horizon),
+        "chattering": np.sum(np.abs(np.diff(u, axis=0)), axis=0),
+        "actuator_saturation": np.mean(infeasible),
+        "reaching_time": np.array(reaching),
+        "initial_surface": surfaces[0],
+    }
+
+
+def test_online_metrics_match_offline_evaluation():
+    keys = scenarios.draw_keys(11, [0, 1])
+    status, online, snaps = runner()(paper_gains(), keys)
+    for d in range(2):
+        tr = jax.tree.map(lambda x, d=d: np.asarray(x[d]), snaps)
+        want = offline_metrics(tr, CONFIG.dt, METRICS)
+        assert set(want) == set(online)
+        for name, value in want.items():
+            np.testing.assert_allclose(
+                np.asarray(online[name][d]), value, rtol=1e-9, atol=1e-12, err_msg=name
+            )
+    # The run is not trivial: errors, inputs and settling are all non-zero somewhere.
+    assert np.all(np.asarray(online["iae"]) > 0)
+    assert np.all(np.asarray(online["chattering"]) > 0)
+    assert np.any(np.asarray(online["settling_time"]) > 0)
+
+
+def test_chunking_does_not_change_draws_and_store_resumes(tmp_path):
+    gains = paper_gains()
+    whole = montecarlo.run(
+        CONTROLLER,
+        gains,
+        SCENARIO,
+        CONFIG,
+        draws=5,
+        seed=3,
+        chunk=5,
+        keep=2,
+        progress=False,
+        metrics_config=METRICS,
+        runner=None,
+    )
+    calls = []
+    compiled = montecarlo.make_chunk_runner(CONTROLLER, SCENARIO, CONFIG, METRICS)
+
+    def counting(g, keys):
+        calls.append(keys.shape[0])
+        return compiled(g, keys)
+
+    store = tmp_path / "chunks"
+    chunked = montecarlo.run(
+        CONTROLLER,
+        gains,
+        SCENARIO,
+        CONFIG,
+        draws=5,
+        seed=3,
+        chunk=2,
+        keep=2,
+        progress=False,
+        metrics_config=METRICS,
+        store=store,
+        runner=counting,
+    )
+    assert calls == [2, 2, 2]  # padded last chunk: one shape, one compilation
+    assert compiled._cache_size() == 1
+    for name in whole.per_draw:
+        np.testing.assert_allclose(chunked.per_draw[name], whole.per_draw[name], rtol=1e-12)
+    np.testing.assert_array_equal(chunked.status, whole.status)
+    np.testing.assert_allclose(chunked.trajectories.state, whole.trajectories.state, rtol=1e-12)
+
+    # Interrupted after two chunks: the third is recomputed, the first two are loaded.
+    (store / "chunk_0000004.npz").unlink()
+    calls.clear()
+    resumed = montecarlo.run(
+        CONTROLLER,
+        gains,
+        SCENARIO,
+        CONFIG,
+        draws=5,
+        seed=3,
+        chunk=2,
+        keep=2,
+        progress=False,
+        metrics_config=METRICS,
+        store=store,
+        runner=counting,
+    )
+    assert calls == [2]
+    for name in whole.per_draw:
+        np.testing.assert_allclose(resumed.per_draw[name], whole.per_draw[name], rtol=1e-12)
+
+    # Other settings in the same store are refused, not mixed in.
+    with pytest.raises(ValueError, match="other settings"):
+        montecarlo.run(
+            CONTROLLER,
+            gains,
+            SCENARIO,
+            CONFIG,
+            draws=5,
+            seed=4,
+            chunk=2,
+            keep=2,
+            progress=False,
+            metrics_config=METRICS,
+            store=store,
+            runner=counting,
+        )
+
+
+def test_summary_excludes_diverged_draws_and_counts_flags():
+    n = 6
+    values = np.arange(n, dtype=float) + 1.0
+    per_draw = {"position_rmse": values, "iae": np.tile(values[:, None], (1, 6))}
+    status = np.array(
+        [0, simulator.NONFINITE, simulator.ACTUATOR_LIMIT, simulator.TILT_LIMIT, 0, 0], np.int32
+    )
+    result = montecarlo.MonteCarloResult("test", status, per_draw, None, 0.0, 0.0)
+    summary = montecarlo.summarize(result)
+    assert summary["draws"] == 6 and summary["valid"] == 4 and summary["diverged"] == 2
+    assert summary["status_counts"] == {"nonfinite": 1, "tilt_limit": 1, "actuator_limit": 1}
+    kept = values[[0, 2, 4, 5]]
+    entry = summary["metrics"]["position_rmse"]
+    assert entry["n"] == 4 and entry["unit"] == "m"
+    assert entry["mean"] == pytest.approx(np.mean(kept))
+    assert summary["metrics"]["iae_psi"]["unit"] == "rad s"
+
+
+def test_student_t_and_confidence_intervals():
+    scipy_stats = pytest.importorskip("scipy.stats")
+    for df in (1, 2, 5, 10, 11, 20, 50, 200, 5000):
+        assert statistics.student_t_975(df) == pytest.approx(scipy_stats.t.ppf(0.975, df), rel=2e-4)
+    rng = np.random.default_rng(0)
+    x = rng.normal(3.0, 2.0, 40)
+    out = statistics.mean_ci(np.concatenate([x, [np.inf, np.nan]]))
+    lo, hi = scipy_stats.t.interval(0.95, 39, loc=np.mean(x), scale=scipy_stats.sem(x))
+    assert out["n"] == 40 and out["n_nonfinite"] == 2
+    np.testing.assert_allclose(out["ci95"], [lo, hi], rtol=1e-5)
+    # Paired: a constant shift has zero width.
+    paired = statistics.paired_difference(x + 1.5, x)
+    assert paired["mean"] == pytest.approx(1.5)
+    assert paired["ci95"][1] - paired["ci95"][0] == pytest.approx(0.0, abs=1e-12)
+    # Coverage: about 95 % of intervals of normal samples hold the true mean.
+    hits = sum(
+        lo <= 0.0 <= hi
+        for lo, hi in (statistics.mean_ci(rng.normal(0, 1, 12))["ci95"] for _ in range(2000))
+    )
+    assert 0.93 < hits / 2000 < 0.97
+
+
+def test_reaching_time_bound_matches_comparison_system():
+    # |S|' = -(h1 + mu) - h2 |S| reaches 0 exactly at the bound (Lemma 1 with nu = 1/2).
+    gains = paper_gains()
+    s0 = jnp.array([0.3, -0.2, 1.0, 2.0, -0.5, 0.1])
+    bound = np.asarray(AFONFTSMC.reaching_time_bound(gains, s0))
+    h1 = np.asarray(gains.reaching_h1 + gains.mu)
+    h2 = np.asarray(gains.reaching_h2)
+    for j in range(6):
+        s, t, dt = abs(float(s0[j])), 0.0, 1e-6
+        while s > 0:
+
+            def f(v, j=j):
+                return -h1[j] - h2[j] * v
+
+            k1 = f(s)
+            k2 = f(s + 0.5 * dt * k1)
+            k3 = f(s + 0.5 * dt * k2)
+            k4 = f(s + dt * k3)
+            s_next = s + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            if s_next <= 0:
+                t += dt * s / (s - s_next)
+                break
+            s, t = s_next, t + dt
+        assert bound[j] == pytest.approx(t, rel=1e-5, abs=1e-8)
+    # Lemma 1's own form, with V = S^2/2, lambda1 = sqrt(2)(h1 + mu), lambda2 = 2 h2.
+    lam1, lam2 = math.sqrt(2) * h1, 2 * h2
+    v0 = np.asarray(s0) ** 2 / 2
+    np.testing.assert_allclose(bound, 2 / lam2 * np.log((lam2 * np.sqrt(v0) + lam1) / lam1))
+
+
+def test_metrics_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="position_band"):
+        metrics.MetricsConfig(dt=1e-3, steps=10, position_band=0.0)
+    with pytest.raises(ValueError, match="steps"):
+        metrics.MetricsConfig(dt=1e-3, steps=0)
+    with pytest.raises(ValueError, match="draws"):
+        montecarlo.run(CONTROLLER, paper_gains(), SCENARIO, CONFIG, draws=0)

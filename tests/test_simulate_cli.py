@@ -1,0 +1,146 @@
+"""``fojax simulate``: input checks before compiling, gains files, one tiny end-to-end run."""
+
+import json
+
+import numpy as np
+import pytest
+
+from experiments import cli, simulate
+from fojax import gains_io
+from fojax.afonftsmc import paper_gains
+
+BASE = ["--scenario", "2", "--controller", "afonftsmc", "--draws", "3"]
+
+
+def _error(capsys, argv):
+    with pytest.raises(SystemExit) as info:
+        simulate.parse_args(argv)
+    assert info.value.code == 2
+    return capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--scenario", "4", "--controller", "afonftsmc", "--draws", "3"], "invalid choice"),
+        (["--scenario", "2", "--controller", "pid", "--draws", "3"], "unknown controller 'pid'"),
+        (["--scenario", "2", "--controller", "afonftsmc", "--draws", "0"], "positive integer"),
+        (BASE + ["--seed", "-1"], "integer >= 0"),
+        (BASE + ["--horizon", "-2"], "finite number > 0"),
+        (BASE + ["--dt", "0"], "finite number > 0"),
+        (BASE + ["--dt", "nan"], "finite number > 0"),
+        (BASE + ["--horizon", "1.0005"], "whole number of steps"),
+        (BASE + ["--dt", "2", "--horizon", "1"], "must not exceed the horizon"),
+        (BASE + ["--fractional", "crone"], "invalid choice"),
+        (BASE + ["--switching", "signum"], "invalid choice"),
+    ],
+)
+def test_bad_arguments_fail_before_compiling(capsys, tmp_path, argv, message):
+    err = _error(capsys, argv + ["--out", str(tmp_path)])
+    assert message in err
+
+
+def _write(path, document):
+    path.write_text(json.dumps(document))
+    return path
+
+
+def test_gains_files_are_validated(capsys, tmp_path):
+    good = gains_io.gains_to_dict(paper_gains())
+    cases = {
+        "missing": (
+            {"controller": "afonftsmc", "gains": {k: v for k, v in good.items() if k != "mu"}},
+            "missing entries: mu",
+        ),
+        "extra": ({"controller": "afonftsmc", "gains": {**good, "kd": 1.0}}, "unknown entries: kd"),
+        "text": (
+            {"controller": "afonftsmc", "gains": {**good, "mu": "small"}},
+            "'mu' must be numeric",
+        ),
+        "shape": ({"controller": "afonftsmc", "gains": {**good, "mu": [1e-3, 1e-3]}}, "shape (6,)"),
+        "ratio": ({"controller": "afonftsmc", "gains": {**good, "ratio": 2.5}}, "1 < p/q < 2"),
+        "gamma": ({"controller": "afonftsmc", "gains": {**good, "gamma1": 1.0}}, "0 < gamma1 < 1"),
+        "negative": (
+            {"controller": "afonftsmc", "gains": {**good, "reaching_h2": -1}},
+            "reaching_h2 must be > 0",
+        ),
+        "controller": ({"controller": "lqr", "gains": good}, "unknown controller 'lqr'"),
+        "keys": ({"controller": "afonftsmc", "gain": good}, "missing keys ['gains']"),
+    }
+    for label, (document, message) in cases.items():
+        path = _write(tmp_path / f"{label}.json", document)
+        err = _error(capsys, BASE + ["--gains", str(path), "--out", str(tmp_path)])
+        assert message in err, (label, err)
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    assert "not valid JSON" in _error(capsys, BASE + ["--gains", str(broken), "--out", "x"])
+    assert "does not exist" in _error(
+        capsys, BASE + ["--gains", str(tmp_path / "no.json"), "--out", "x"]
+    )
+
+
+def test_gains_round_trip_and_scalar_broadcast(tmp_path):
+    gains = paper_gains()
+    path = tmp_path / "gains.json"
+    gains_io.save_gains(path, "afonftsmc", gains, {"source": "test"})
+    name, loaded, metadata = gains_io.load_gains(path)
+    assert name == "afonftsmc" and metadata == {"source": "test"}
+    for a, b in zip(loaded, gains, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    document = json.loads(path.read_text())
+    document["gains"]["mu"] = 0.002
+    path.write_text(json.dumps(document))
+    _, loaded, _ = gains_io.load_gains(path)
+    np.testing.assert_allclose(loaded.mu, np.full(6, 0.002))
+
+
+def test_simulate_end_to_end_tiny(tmp_path, capsys):
+    gains_path = tmp_path / "gains.json"
+    gains_io.save_gains(gains_path, "afonftsmc", paper_gains())
+    out = tmp_path / "run"
+    argv = [
+        "simulate",
+        "--scenario",
+        "3",
+        "--controller",
+        "afonftsmc",
+        "--draws",
+        "3",
+        "--chunk",
+        "2",
+        "--horizon",
+        "0.2",
+        "--seed",
+        "5",
+        "--switching",
+        "sat",
+        "--gains",
+        str(gains_path),
+        "--out",
+        str(out),
+        "--quiet",
+    ]
+    assert cli.main(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    entry = summary["controllers"]["afonftsmc"]
+    assert entry["draws"] == 3 and "diverged" in entry
+    for key, unit in (("position_rmse", "m"), ("attitude_rmse", "rad")):
+        assert entry["metrics"][key]["unit"] == unit
+        assert entry["metrics"][key]["n"] + entry["diverged"] == 3
+    assert "reaching_time_bound_x" in entry["metrics"]
+    with np.load(out / "draws.npz") as draws:
+        assert draws["afonftsmc.position_rmse"].shape == (3,)
+        assert draws["afonftsmc.iae"].shape == (3, 6)
+        np.testing.assert_allclose(
+            np.mean(draws["afonftsmc.position_rmse"]),
+            entry["metrics"]["position_rmse"]["mean"],
+            rtol=1e-6,
+        )
+    with np.load(out / "trajectories.npz") as tr:
+        assert tr["afonftsmc.state"].shape[0] == 3
+    for figure in ("tracking", "errors", "inputs", "path3d", "adaptive"):
+        assert (out / f"{figure}.png").stat().st_size > 10_000
+    # Started again, the same command reuses the finished chunks and agrees.
+    assert cli.main(argv) == 0
+    again = json.loads((out / "summary.json").read_text())
+    assert again["controllers"]["afonftsmc"]["metrics"] == entry["metrics"]
