@@ -150,13 +150,20 @@ class AFONFTSMCState(NamedTuple):
         ``c1 sig^(p/q)(e1)`` for ``(x, y, z, phi, theta, psi)`` then
         ``c2 sig^phi(e1)`` for the same axes (:class:`fojax.fractional.IntegralWithRate`:
         each channel gives its fractional integral and that integral's time derivative).
-    adaptive: ``(6, 3)`` estimates ``(b0, b1, b2)`` per axis.
+    adaptive: ``(6, 3)`` estimates ``(b0, b1, b2)`` per axis before the previous
+        step's update; the update (25)-(27)/(45)-(47) is applied at the start of the
+        next step from the three quantities below, so it reads stored values only.
+    previous_surface, previous_error, previous_error_rate: ``(6,)`` ``S``, ``e1``,
+        ``e2`` of the previous step (zeros before the first).
     command_filter: ``(2, 2)`` rows ``(phi, theta)``, columns ``(value, rate)``.
     last_inputs: ``(4,)`` the previous command (for the gyroscopic term).
     """
 
     surface_memory: Any
     adaptive: Array
+    previous_surface: Array
+    previous_error: Array
+    previous_error_rate: Array
     command_filter: Array
     last_inputs: Array
 
@@ -242,6 +249,9 @@ class AFONFTSMC:
         return AFONFTSMCState(
             surface_memory=self._memory.init((12,), dtype),
             adaptive=jnp.zeros((6, 3), dtype),
+            previous_surface=jnp.zeros((6,), dtype),
+            previous_error=jnp.zeros((6,), dtype),
+            previous_error_rate=jnp.zeros((6,), dtype),
             command_filter=jnp.stack([attitude, jnp.zeros_like(attitude)], axis=1),
             last_inputs=plant.hover_inputs(params.model).astype(dtype),
         )
@@ -259,17 +269,27 @@ class AFONFTSMC:
         surface = error_rate + integral[:6] + integral[6:]
         return memory, surface, rate[:6] + rate[6:]
 
+    def _adapt(self, params, state):
+        """The adaptive update (25)-(27)/(45)-(47) owed by the previous step (Euler)."""
+        magnitude = jnp.abs(state.previous_surface)
+        regressor = jnp.stack(
+            [
+                jnp.ones_like(magnitude),
+                jnp.abs(state.previous_error),
+                jnp.abs(state.previous_error_rate),
+            ],
+            axis=1,
+        )
+        return state.adaptive + self.dt * params.gains.adaptation * regressor * magnitude[:, None]
+
     def _reaching(self, params, adaptive, surface, error, error_rate):
-        """Reaching law (24)/(42)-(44) and the adaptive update (25)-(27)/(45)-(47)."""
+        """Reaching law (24)/(42)-(44) with the adaptive bound."""
         g = params.gains
         sw = switching(self.switching, surface, g.boundary_layer)
         bound = (
             adaptive[:, 0] + adaptive[:, 1] * jnp.abs(error) + adaptive[:, 2] * jnp.abs(error_rate)
         )
-        reaching = -g.reaching_h1 * sw - g.reaching_h2 * surface - (bound + g.mu) * sw
-        regressor = jnp.stack([jnp.ones_like(error), jnp.abs(error), jnp.abs(error_rate)], axis=1)
-        adaptive = adaptive + self.dt * g.adaptation * regressor * jnp.abs(surface)[:, None]
-        return reaching, adaptive
+        return -g.reaching_h1 * sw - g.reaching_h2 * surface - (bound + g.mu) * sw
 
     def step(
         self, params: AFONFTSMCParams, state: AFONFTSMCState, observation: Observation
@@ -293,7 +313,8 @@ class AFONFTSMC:
 
         # Surfaces and reaching laws of the six axes at once.
         memory, surface, dsurface = self._surface(params, state.surface_memory, error, error_rate)
-        reaching, adaptive = self._reaching(params, state.adaptive, surface, error, error_rate)
+        adaptive = self._adapt(params, state)
+        reaching = self._reaching(params, adaptive, surface, error, error_rate)
 
         # Position loop, eqs. (23)-(28), (12)-(13).
         virtual = (
@@ -323,12 +344,15 @@ class AFONFTSMC:
         new_state = AFONFTSMCState(
             surface_memory=memory,
             adaptive=adaptive,
+            previous_surface=surface,
+            previous_error=error,
+            previous_error_rate=error_rate,
             command_filter=command_filter,
             last_inputs=inputs,
         )
         info = ControlInfo(
             surfaces=surface,
             attitude_reference=jnp.concatenate([tilt_reference, yaw_reference[None]]),
-            adaptive=state.adaptive,
+            adaptive=adaptive,
         )
         return new_state, inputs, info

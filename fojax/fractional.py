@@ -746,17 +746,17 @@ class RatePairCoefficients(NamedTuple):
 class RatePairState(NamedTuple):
     """Memory of :class:`IntegralWithRate` for a signal of shape ``S``.
 
-    modes: ``S + (modes,)`` scaled modes ``z_j`` at the previous sample.
-    history: ``S + (2,)`` their readout ``(sum_j z_j, -sum_j s_j z_j)``, kept with the
-        modes so that each step reads the modes once.
-    u_prev, u_prev2: ``S`` the two previous samples.
-    count: ``()`` int32, number of samples consumed.
+    The modes lag one sample behind (see :class:`IntegralWithRate`):
+
+    modes: ``S + (modes,)`` scaled modes ``z_j`` at ``t_{k-2}`` when ``u_k`` comes next.
+    u_prev, u_prev2, u_prev3: ``S`` the samples ``u_{k-1}``, ``u_{k-2}``, ``u_{k-3}``.
+    count: ``()`` int32, number of samples consumed (``k``).
     """
 
     modes: Array
-    history: Array
     u_prev: Array
     u_prev2: Array
+    u_prev3: Array
     count: Array
 
 
@@ -774,6 +774,13 @@ class IntegralWithRate:
     ``(2, modes)`` with fixed weights for every channel and order (one small matrix
     product per step), and each mode is read and written once per step. Other methods
     fall back to :class:`MultiOrder`.
+
+    The step advances the modes over the interval before last, ``[t_{k-2}, t_{k-1}]``,
+    with samples it already holds, then reads them out: the same arithmetic as
+    advancing them at the end of the previous step, but the update of the modes (the
+    bulk of the work) depends on stored values only, never on the sample ``u_k`` just
+    computed. Compiled, it is then one pass over the modes that does not recompute the
+    expressions producing ``u_k`` for every mode.
 
     ``coefficients(b)`` takes the integral orders ``b`` in ``(0, 1)`` (any shape, one
     per channel); ``step(coeffs, state, u) -> (state, (integral, rate))``.
@@ -814,11 +821,12 @@ class IntegralWithRate:
             return self._fallback.init(shape, dtype)
         dtype = _float_dtype(jnp.result_type(float) if dtype is None else dtype)
         shape = tuple(shape)
+        zeros = jnp.zeros(shape, dtype)
         return RatePairState(
             modes=jnp.zeros(shape + (self.operator.n_modes,), dtype),
-            history=jnp.zeros(shape + (2,), dtype),
-            u_prev=jnp.zeros(shape, dtype),
-            u_prev2=jnp.zeros(shape, dtype),
+            u_prev=zeros,
+            u_prev2=zeros,
+            u_prev3=zeros,
             count=jnp.zeros((), jnp.int32),
         )
 
@@ -827,27 +835,37 @@ class IntegralWithRate:
             return self._fallback.step(coeffs, state, u)
         dtype = state.modes.dtype
         u = jnp.asarray(u, dtype)
-        started = state.count > 0
-        # On the first step, extrapolate linearly so that the quadratic is the line.
-        u_prev2 = jnp.where(state.count > 1, state.u_prev2, 2.0 * state.u_prev - u)
-        samples = (u, state.u_prev, u_prev2)
+        count = state.count
+        # The advance that the previous step (sample u_{k-1}, count k - 1) owed: the
+        # interval [t_{k-2}, t_{k-1}] against the quadratic through u_{k-3}, u_{k-2},
+        # u_{k-1} (on the first interval, the line through u_{k-2}, u_{k-1}).
+        u_before = jnp.where(count > 2, state.u_prev3, 2.0 * state.u_prev2 - state.u_prev)
         # Written as explicit multiply-adds (not contractions over the 3 samples), so
         # that they fuse with their neighbours instead of becoming small matrix products.
-        local = sum(coeffs.local[..., i] * samples[i][..., None] for i in range(3))
-        outputs = jnp.where(started, state.history + local, 0.0)  # S + (2,)
         gains = coeffs.mode_gains
-        increment = sum(gains[..., i, :] * samples[i][..., None] for i in range(3))
-        increment = jnp.where(started, increment, 0.0)
+        increment = sum(
+            gains[..., i, :] * sample[..., None]
+            for i, sample in enumerate((state.u_prev, state.u_prev2, u_before))
+        )
+        increment = jnp.where(count > 1, increment, 0.0)
         decay_m1 = jnp.asarray(self.operator._tables["decay_m1"], dtype)
         # z + (exp(-z) - 1) z keeps slow modes exact in float32 (exp(-z) ~ 1 - 1e-6).
-        modes = state.modes + (decay_m1 * state.modes + increment)
-        history = modes @ coeffs.readout.T
+        modes = state.modes + (decay_m1 * state.modes + increment)  # now at t_{k-1}
+        history = modes @ coeffs.readout.T  # S + (2,)
+
+        # On the first step, extrapolate linearly so that the quadratic is the line.
+        u_prev2 = jnp.where(count > 1, state.u_prev2, 2.0 * state.u_prev - u)
+        local = sum(
+            coeffs.local[..., i] * sample[..., None]
+            for i, sample in enumerate((u, state.u_prev, u_prev2))
+        )
+        outputs = jnp.where(count > 0, history + local, 0.0)
         new_state = RatePairState(
             modes=modes,
-            history=history,
             u_prev=u,
             u_prev2=state.u_prev,
-            count=state.count + 1,
+            u_prev3=state.u_prev2,
+            count=count + 1,
         )
         return new_state, (outputs[..., 0], outputs[..., 1])
 
