@@ -13,6 +13,7 @@ COMMANDS = {
         "experiments.fractional_accuracy",
         "accuracy and cost of the fractional operators",
     ),
+    "bench": ("experiments.bench", "throughput, compile time and gradient cost of the closed loop"),
 }
 
 
