@@ -475,7 +475,7 @@ def main(argv=None) -> dict:
         )
 
     if args.scaling:
-        base_draws = max(min(args.draws), mesh.devices.size)
+        base_draws = 8 if args.small else 256
         _log("scaling: cost against draws and horizon ...")
         result["scaling"]["draws"] = [
             measure_forward(base_draws * m, args.short_horizon, args.repeats, mesh)
@@ -483,7 +483,7 @@ def main(argv=None) -> dict:
         ]
         result["scaling"]["horizon"] = [
             measure_forward(base_draws * 4, args.short_horizon * m, args.repeats, mesh)
-            for m in (1, 2, 4)
+            for m in (0.5, 1, 2)
         ]
         for kind, entries in result["scaling"].items():
             for e in entries:
