@@ -295,10 +295,10 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
         else:
             u_before = u_prev2 if k > 1 else 2.0 * u_prev - u
             history = modes @ readout.T  # (n, 12, 2)
-            samples = np.stack([u, u_prev, u_before], axis=-1)  # (n, 12, 3)
-            outputs = history + np.einsum("cos,ncs->nco", local, samples)
+            samples = (u, u_prev, u_before)  # each (n, 12)
+            outputs = history + sum(local[:, :, i] * samples[i][:, :, None] for i in range(3))
             integral, rate = outputs[..., 0], outputs[..., 1]
-            increment = np.einsum("csm,ncs->ncm", mode_gains, samples)
+            increment = sum(mode_gains[:, i] * samples[i][:, :, None] for i in range(3))
             modes = modes + (decay_m1 * modes + increment)
         u_prev2, u_prev = u_prev, u
         surface = error_rate + integral[:, :6] + integral[:, 6:]
