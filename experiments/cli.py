@@ -18,6 +18,7 @@ COMMANDS = {
         "experiments.simulate",
         "Monte Carlo study of a scenario under one or all controllers",
     ),
+    "bench": ("experiments.bench", "throughput, compile time and gradient cost of the closed loop"),
 }
 
 

@@ -130,8 +130,7 @@ class AFONFTSMCParams(NamedTuple):
 
     gains: AFONFTSMCGains
     model: plant.PlantParams
-    surface_p_weights: tuple  # (S term, dS/dt term) for the p/q memory, 6 channels
-    surface_phi_weights: tuple  # (S term, dS/dt term) for the phi memory, 6 channels
+    surface_weights: Any  # fractional weights of the 12-channel surface memory
     filter_transition: Array  # (2, 2) command filter, exact zero-order-hold update
     filter_input: Array  # (2,)
 
@@ -139,18 +138,24 @@ class AFONFTSMCParams(NamedTuple):
 class AFONFTSMCState(NamedTuple):
     """Controller memory.
 
-    position_p, attitude_p: fractional memories of ``c1 sig^(p/q)(e1)`` (3 channels).
-    position_phi, attitude_phi: fractional memories of ``c2 sig^phi(e1)`` (3 channels).
-    adaptive: ``(6, 3)`` estimates ``(b0, b1, b2)`` per axis.
+    surface_memory: the fractional memory of the 12 surface signals, channels
+        ``c1 sig^(p/q)(e1)`` for ``(x, y, z, phi, theta, psi)`` then
+        ``c2 sig^phi(e1)`` for the same axes (:class:`fojax.fractional.IntegralWithRate`:
+        each channel gives its fractional integral and that integral's time derivative).
+    adaptive: ``(6, 3)`` estimates ``(b0, b1, b2)`` per axis before the previous
+        step's update; the update (25)-(27)/(45)-(47) is applied at the start of the
+        next step from the three quantities below, so it reads stored values only.
+    previous_surface, previous_error, previous_error_rate: ``(6,)`` ``S``, ``e1``,
+        ``e2`` of the previous step (zeros before the first).
     command_filter: ``(2, 2)`` rows ``(phi, theta)``, columns ``(value, rate)``.
     last_inputs: ``(4,)`` the previous command (for the gyroscopic term).
     """
 
-    position_p: Any
-    attitude_p: Any
-    position_phi: Any
-    attitude_phi: Any
+    surface_memory: Any
     adaptive: Array
+    previous_surface: Array
+    previous_error: Array
+    previous_error_rate: Array
     command_filter: Array
     last_inputs: Array
 
@@ -236,17 +241,17 @@ class AFONFTSMC:
         )
 
     @property
-    def _memory(self) -> fractional.MultiOrder:
-        return fractional.MultiOrder(self.operator, 2)
+    def _memory(self) -> fractional.IntegralWithRate:
+        return fractional.IntegralWithRate(self.operator)
 
     def prepare(self, gains: AFONFTSMCGains, model: plant.PlantParams) -> AFONFTSMCParams:
         dtype = jnp.asarray(gains.surface_c1).dtype
-        memory = self._memory
-        # p/q memory: integral of order 1 - gamma1 (the S term) and its time
-        # derivative, the derivative of order gamma1. phi memory: integral of order
-        # gamma2 and its time derivative, the derivative of order 1 - gamma2.
-        surface_p = memory.coefficients((gains.gamma1 - 1.0, gains.gamma1), dtype)
-        surface_phi = memory.coefficients((-gains.gamma2, 1.0 - gains.gamma2), dtype)
+        # Channels 0-5, the p/q terms: integral of order 1 - gamma1 (the S term) and its
+        # time derivative, the derivative of order gamma1. Channels 6-11, the phi terms:
+        # integral of order gamma2 and its time derivative, the derivative of order
+        # 1 - gamma2. All twelve share one memory (one array of modes).
+        integral_orders = jnp.concatenate([1.0 - gains.gamma1, gains.gamma2])
+        surface_weights = self._memory.coefficients(integral_orders, dtype)
         w, zeta = self.filter_frequency, self.filter_damping
         augmented = jnp.asarray(
             [[0.0, 1.0, 0.0], [-w * w, -2.0 * zeta * w, w * w], [0.0, 0.0, 0.0]], dtype
@@ -255,86 +260,96 @@ class AFONFTSMC:
         return AFONFTSMCParams(
             gains=gains,
             model=model,
-            surface_p_weights=surface_p,
-            surface_phi_weights=surface_phi,
+            surface_weights=surface_weights,
             filter_transition=exp[:2, :2],
             filter_input=exp[:2, 2],
         )
 
     def init(self, params: AFONFTSMCParams, observation: Observation) -> AFONFTSMCState:
         dtype = observation.state.dtype
-        memory = self._memory
         attitude = observation.state[3:5]
         return AFONFTSMCState(
-            position_p=memory.init((3,), dtype),
-            attitude_p=memory.init((3,), dtype),
-            position_phi=memory.init((3,), dtype),
-            attitude_phi=memory.init((3,), dtype),
+            surface_memory=self._memory.init((12,), dtype),
             adaptive=jnp.zeros((6, 3), dtype),
+            previous_surface=jnp.zeros((6,), dtype),
+            previous_error=jnp.zeros((6,), dtype),
+            previous_error_rate=jnp.zeros((6,), dtype),
             command_filter=jnp.stack([attitude, jnp.zeros_like(attitude)], axis=1),
             last_inputs=plant.hover_inputs(params.model).astype(dtype),
         )
 
-    def _surface(self, params, axes, memory_p, memory_phi, error, error_rate):
-        """Surfaces (16)-(18)/(37)-(39) and the fractional part of their derivative."""
-        g = params.gains
-        memory = self._memory
-        p_term = g.surface_c1[axes] * signed_power(error, g.ratio[axes])
-        phi_term = g.surface_c2[axes] * signed_power(error, g.power[axes])
-        coeffs_p = jax.tree.map(lambda c: c[axes], params.surface_p_weights)
-        coeffs_phi = jax.tree.map(lambda c: c[axes], params.surface_phi_weights)
-        memory_p, (p_integral, p_derivative) = memory.step(coeffs_p, memory_p, p_term)
-        memory_phi, (phi_integral, phi_derivative) = memory.step(coeffs_phi, memory_phi, phi_term)
-        surface = error_rate + p_integral + phi_integral
-        return memory_p, memory_phi, surface, p_derivative + phi_derivative
+    def _surface(self, params, memory, error, error_rate):
+        """Surfaces (16)-(18)/(37)-(39) of the six axes and the fractional part of dS/dt.
 
-    def _reaching(self, params, axes, adaptive, surface, error, error_rate):
-        """Reaching law (24)/(42)-(44) and the adaptive update (25)-(27)/(45)-(47)."""
+        error, error_rate: ``(6,)`` ``e1``, ``e2`` over ``(x, y, z, phi, theta, psi)``.
+        """
         g = params.gains
-        sw = switching(self.switching, surface, g.boundary_layer[axes])
+        p_term = g.surface_c1 * signed_power(error, g.ratio)
+        phi_term = g.surface_c2 * signed_power(error, g.power)
+        signals = jnp.concatenate([p_term, phi_term])
+        memory, (integral, rate) = self._memory.step(params.surface_weights, memory, signals)
+        surface = error_rate + integral[:6] + integral[6:]
+        return memory, surface, rate[:6] + rate[6:]
+
+    def _adapt(self, params, state):
+        """The adaptive update (25)-(27)/(45)-(47) owed by the previous step (Euler)."""
+        magnitude = jnp.abs(state.previous_surface)
+        regressor = jnp.stack(
+            [
+                jnp.ones_like(magnitude),
+                jnp.abs(state.previous_error),
+                jnp.abs(state.previous_error_rate),
+            ],
+            axis=1,
+        )
+        return state.adaptive + self.dt * params.gains.adaptation * regressor * magnitude[:, None]
+
+    def _reaching(self, params, adaptive, surface, error, error_rate):
+        """Reaching law (24)/(42)-(44) with the adaptive bound."""
+        g = params.gains
+        sw = switching(self.switching, surface, g.boundary_layer)
         bound = (
             adaptive[:, 0] + adaptive[:, 1] * jnp.abs(error) + adaptive[:, 2] * jnp.abs(error_rate)
         )
-        reaching = (
-            -g.reaching_h1[axes] * sw - g.reaching_h2[axes] * surface - (bound + g.mu[axes]) * sw
-        )
-        regressor = jnp.stack([jnp.ones_like(error), jnp.abs(error), jnp.abs(error_rate)], axis=1)
-        adaptive = adaptive + self.dt * g.adaptation[axes] * regressor * jnp.abs(surface)[:, None]
-        return reaching, adaptive
+        return -g.reaching_h1 * sw - g.reaching_h2 * surface - (bound + g.mu) * sw
 
     def step(
         self, params: AFONFTSMCParams, state: AFONFTSMCState, observation: Observation
     ) -> tuple[AFONFTSMCState, Array, ControlInfo]:
         model = params.model
         x = observation.state
-        position, attitude = x[0:3], x[3:6]
         velocity, attitude_rate = x[6:9], x[9:12]
-        pos_axes, att_axes = slice(0, 3), slice(3, 6)
+        yaw_reference = observation.reference[3]
 
-        # Position loop, eqs. (14)-(28).
-        position_error = position - observation.reference[:3]
-        velocity_error = velocity - observation.reference_velocity[:3]
-        position_p, position_phi, position_surface, position_dsurface = self._surface(
-            params, pos_axes, state.position_p, state.position_phi, position_error, velocity_error
+        # Errors of both loops, eqs. (14)-(15), (40)-(41). The attitude loop tracks the
+        # command filter's output (notes item 11), known at the start of the step.
+        filt = state.command_filter
+        attitude_reference = jnp.concatenate([filt[:, 0], yaw_reference[None]])
+        attitude_reference_rate = jnp.concatenate([filt[:, 1], observation.reference_velocity[3:4]])
+        reference = jnp.concatenate([observation.reference[:3], attitude_reference])
+        reference_rate = jnp.concatenate(
+            [observation.reference_velocity[:3], attitude_reference_rate]
         )
-        position_reaching, position_adaptive = self._reaching(
-            params, pos_axes, state.adaptive[:3], position_surface, position_error, velocity_error
-        )
+        error = x[:6] - reference
+        error_rate = x[6:12] - reference_rate
+
+        # Surfaces and reaching laws of the six axes at once.
+        memory, surface, dsurface = self._surface(params, state.surface_memory, error, error_rate)
+        adaptive = self._adapt(params, state)
+        reaching = self._reaching(params, adaptive, surface, error, error_rate)
+
+        # Position loop, eqs. (23)-(28), (12)-(13).
         virtual = (
             model.drag_position / model.mass * velocity
             + observation.reference_acceleration[:3]
-            - position_dsurface
-            + position_reaching
+            - dsurface[:3]
+            + reaching[:3]
         )
-        yaw_reference = observation.reference[3]
         thrust, tilt_reference = thrust_and_attitude(model, virtual, yaw_reference)
 
         # Command filter (notes item 11): phi_r, theta_r and two derivatives.
-        filt = state.command_filter
         w, zeta = self.filter_frequency, self.filter_damping
         filtered_accel = w * w * (tilt_reference - filt[:, 0]) - 2.0 * zeta * w * filt[:, 1]
-        attitude_reference = jnp.concatenate([filt[:, 0], yaw_reference[None]])
-        attitude_reference_rate = jnp.concatenate([filt[:, 1], observation.reference_velocity[3:4]])
         attitude_reference_accel = jnp.concatenate(
             [filtered_accel, observation.reference_acceleration[3:4]]
         )
@@ -342,34 +357,24 @@ class AFONFTSMC:
             filt @ params.filter_transition.T + tilt_reference[:, None] * params.filter_input
         )
 
-        # Attitude loop, eqs. (37)-(47).
-        attitude_error = attitude - attitude_reference
-        rate_error = attitude_rate - attitude_reference_rate
-        attitude_p, attitude_phi, attitude_surface, attitude_dsurface = self._surface(
-            params, att_axes, state.attitude_p, state.attitude_phi, attitude_error, rate_error
-        )
-        attitude_reaching, attitude_adaptive = self._reaching(
-            params, att_axes, state.adaptive[3:], attitude_surface, attitude_error, rate_error
-        )
+        # Attitude loop, eqs. (42)-(44).
         omega_r = plant.rotor_speed_sum(model, state.last_inputs)
         drift = attitude_drift(model, attitude_rate, omega_r)
-        torque = model.inertia * (
-            -drift + attitude_reference_accel - attitude_dsurface + attitude_reaching
-        )
+        torque = model.inertia * (-drift + attitude_reference_accel - dsurface[3:] + reaching[3:])
 
         inputs = jnp.concatenate([thrust[None], torque])
         new_state = AFONFTSMCState(
-            position_p=position_p,
-            attitude_p=attitude_p,
-            position_phi=position_phi,
-            attitude_phi=attitude_phi,
-            adaptive=jnp.concatenate([position_adaptive, attitude_adaptive]),
+            surface_memory=memory,
+            adaptive=adaptive,
+            previous_surface=surface,
+            previous_error=error,
+            previous_error_rate=error_rate,
             command_filter=command_filter,
             last_inputs=inputs,
         )
         info = ControlInfo(
-            surfaces=jnp.concatenate([position_surface, attitude_surface]),
+            surfaces=surface,
             attitude_reference=jnp.concatenate([tilt_reference, yaw_reference[None]]),
-            adaptive=state.adaptive,
+            adaptive=adaptive,
         )
         return new_state, inputs, info

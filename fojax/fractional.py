@@ -56,6 +56,7 @@ Array = jax.Array
 
 __all__ = [
     "GrunwaldLetnikov",
+    "IntegralWithRate",
     "MultiOrder",
     "Oustaloup",
     "SumOfExponentials",
@@ -720,6 +721,153 @@ class MultiOrder:
             return self.operator.advance(state, u), outputs
         pairs = [self.operator.step(c, s, u) for c, s in zip(coeffs, state, strict=True)]
         return tuple(p[0] for p in pairs), tuple(p[1] for p in pairs)
+
+
+# ------------------------------------------- an integral and its rate, one memory
+
+
+class RatePairCoefficients(NamedTuple):
+    """Weights of :class:`IntegralWithRate` over the :class:`SumOfExponentials` modes.
+
+    For channel orders of shape ``S`` (``S`` broadcast against the signal):
+
+    mode_gains: ``S + (3, modes)`` gains of ``(u_k, u_{k-1}, u_{k-2})`` into the
+        scaled modes ``z_j = w_j exp(-s_j dt) y_j``.
+    readout: ``(2, modes)`` ``(1, -s_j)``: the integral's history is ``sum_j z_j``, the
+        rate's history ``-sum_j s_j z_j`` (the same for every order).
+    local: ``S + (2, 3)`` weights of ``(u_k, u_{k-1}, u_{k-2})`` for (integral, rate).
+    """
+
+    mode_gains: Array
+    readout: Array
+    local: Array
+
+
+class RatePairState(NamedTuple):
+    """Memory of :class:`IntegralWithRate` for a signal of shape ``S``.
+
+    The modes lag one sample behind (see :class:`IntegralWithRate`):
+
+    modes: ``S + (modes,)`` scaled modes ``z_j`` at ``t_{k-2}`` when ``u_k`` comes next.
+    u_prev, u_prev2, u_prev3: ``S`` the samples ``u_{k-1}``, ``u_{k-2}``, ``u_{k-3}``.
+    count: ``()`` int32, number of samples consumed (``k``).
+    """
+
+    modes: Array
+    u_prev: Array
+    u_prev2: Array
+    u_prev3: Array
+    count: Array
+
+
+@dataclasses.dataclass(frozen=True)
+class IntegralWithRate:
+    """``I^b u`` and its time derivative ``d/dt I^b u = D^(1-b) u`` from one memory.
+
+    The pair that a sliding surface and its derivative need: ``D^(gamma - 1) f`` with
+    ``D^gamma f``, or ``I^gamma g`` with ``D^(1 - gamma) g``. ``step`` returns the same
+    values as :class:`MultiOrder` with orders ``(-b, 1 - b)``.
+
+    With :class:`SumOfExponentials` both orders share the kernel weights ``w_j(b)``,
+    so the modes are stored scaled, ``z_j = w_j exp(-s_j dt) y_j``: the integral's
+    history is then ``sum_j z_j`` and the rate's ``-sum_j s_j z_j``, one contraction
+    ``(2, modes)`` with fixed weights for every channel and order (one small matrix
+    product per step), and each mode is read and written once per step. Other methods
+    fall back to :class:`MultiOrder`.
+
+    The step advances the modes over the interval before last, ``[t_{k-2}, t_{k-1}]``,
+    with samples it already holds, then reads them out: the same arithmetic as
+    advancing them at the end of the previous step, but the update of the modes (the
+    bulk of the work) depends on stored values only, never on the sample ``u_k`` just
+    computed. Compiled, it is then one pass over the modes that does not recompute the
+    expressions producing ``u_k`` for every mode.
+
+    ``coefficients(b)`` takes the integral orders ``b`` in ``(0, 1)`` (any shape, one
+    per channel); ``step(coeffs, state, u) -> (state, (integral, rate))``.
+    """
+
+    operator: Any
+
+    @property
+    def fused(self) -> bool:
+        return isinstance(self.operator, SumOfExponentials)
+
+    @property
+    def _fallback(self) -> MultiOrder:
+        return MultiOrder(self.operator, 2)
+
+    def coefficients(self, b: Any, dtype: Any = None) -> Any:
+        """Weights for integral orders ``b`` (rate order ``1 - b``)."""
+        dtype = _float_dtype(jnp.result_type(float) if dtype is None else dtype)
+        b = jnp.asarray(b, dtype)
+        if not self.fused:
+            return self._fallback.coefficients((-b, 1.0 - b), dtype)
+        op = self.operator
+        tb = op._tables
+        integral = op.coefficients(-b, dtype)
+        rate = op.coefficients(1.0 - b, dtype)
+        gains = jnp.stack(
+            [jnp.asarray(tb[name], dtype) for name in ("gain_u", "gain_u1", "gain_u2")]
+        )  # (3, modes)
+        rates = jnp.asarray(tb["rates"], dtype)
+        return RatePairCoefficients(
+            mode_gains=integral.history[..., None, :] * gains,
+            readout=jnp.stack([jnp.ones_like(rates), -rates]),
+            local=jnp.stack([integral.local, rate.local], axis=-2),
+        )
+
+    def init(self, shape: tuple[int, ...] = (), dtype: Any = None) -> Any:
+        if not self.fused:
+            return self._fallback.init(shape, dtype)
+        dtype = _float_dtype(jnp.result_type(float) if dtype is None else dtype)
+        shape = tuple(shape)
+        zeros = jnp.zeros(shape, dtype)
+        return RatePairState(
+            modes=jnp.zeros(shape + (self.operator.n_modes,), dtype),
+            u_prev=zeros,
+            u_prev2=zeros,
+            u_prev3=zeros,
+            count=jnp.zeros((), jnp.int32),
+        )
+
+    def step(self, coeffs: Any, state: Any, u: Array) -> tuple[Any, tuple[Array, Array]]:
+        if not self.fused:
+            return self._fallback.step(coeffs, state, u)
+        dtype = state.modes.dtype
+        u = jnp.asarray(u, dtype)
+        count = state.count
+        # The advance that the previous step (sample u_{k-1}, count k - 1) owed: the
+        # interval [t_{k-2}, t_{k-1}] against the quadratic through u_{k-3}, u_{k-2},
+        # u_{k-1} (on the first interval, the line through u_{k-2}, u_{k-1}).
+        u_before = jnp.where(count > 2, state.u_prev3, 2.0 * state.u_prev2 - state.u_prev)
+        # Written as explicit multiply-adds (not contractions over the 3 samples), so
+        # that they fuse with their neighbours instead of becoming small matrix products.
+        gains = coeffs.mode_gains
+        increment = sum(
+            gains[..., i, :] * sample[..., None]
+            for i, sample in enumerate((state.u_prev, state.u_prev2, u_before))
+        )
+        increment = jnp.where(count > 1, increment, 0.0)
+        decay_m1 = jnp.asarray(self.operator._tables["decay_m1"], dtype)
+        # z + (exp(-z) - 1) z keeps slow modes exact in float32 (exp(-z) ~ 1 - 1e-6).
+        modes = state.modes + (decay_m1 * state.modes + increment)  # now at t_{k-1}
+        history = modes @ coeffs.readout.T  # S + (2,)
+
+        # On the first step, extrapolate linearly so that the quadratic is the line.
+        u_prev2 = jnp.where(count > 1, state.u_prev2, 2.0 * state.u_prev - u)
+        local = sum(
+            coeffs.local[..., i] * sample[..., None]
+            for i, sample in enumerate((u, state.u_prev, u_prev2))
+        )
+        outputs = jnp.where(count > 0, history + local, 0.0)
+        new_state = RatePairState(
+            modes=modes,
+            u_prev=u,
+            u_prev2=state.u_prev,
+            u_prev3=state.u_prev2,
+            count=count + 1,
+        )
+        return new_state, (outputs[..., 0], outputs[..., 1])
 
 
 # ------------------------------------------------------------------- whole signals

@@ -109,6 +109,47 @@ def _status(state: Array, inputs: Array, info: ControlInfo, params: plant.PlantP
     ).astype(jnp.int32)
 
 
+def _hold_row(k: Array, horizon: float, hold: float, dt: float, n_rows: int) -> Array:
+    """Row of a hold table at step ``k``, from the static layout of ``sample_draw``."""
+    hold_steps, _ = scenarios._hold_layout(horizon, hold, dt)
+    return jnp.clip(k // hold_steps, 0, n_rows - 1)
+
+
+def _table_lookups(scenario: scenarios.Scenario, draw: scenarios.Draw, config: SimulationConfig):
+    """``disturbance_at(k, t)`` and ``drag_at(k)``: :func:`fojax.scenarios.disturbance_at`
+    and :func:`fojax.scenarios.drag_at` at step ``k`` (time ``t = k dt``).
+
+    The draw's tables are laid out for ``config.dt`` (``sample_draw(..., dt=config.dt)``),
+    so the row of step ``k`` is ``k // hold_steps`` with ``hold_steps`` known before
+    tracing (the same row as ``round(t / dt) // hold_steps``). The row then does not
+    depend on the draw, and under ``vmap`` each lookup is one slice of the batched
+    table instead of a gather per draw.
+    """
+    dt = config.dt
+
+    def disturbance_at(k, t):
+        deterministic = scenario.disturbance(t)
+        if not scenario.has_noise:
+            return deterministic
+        table = draw.noise_accel
+        row = _hold_row(k, scenario.horizon, scenario.noise_hold, dt, table.shape[0])
+        noise = lax.dynamic_index_in_dim(table, row, keepdims=False)
+        return deterministic + noise.astype(deterministic.dtype)
+
+    def drag_at(k):
+        if not scenario.has_drag_variation:
+            return draw.params.drag_position, draw.params.drag_attitude
+        table = draw.drag_multipliers
+        row = _hold_row(k, scenario.horizon, scenario.drag_hold, dt, table.shape[0])
+        multipliers = lax.dynamic_index_in_dim(table, row, keepdims=False)
+        return (
+            draw.params.drag_position * multipliers[:3],
+            draw.params.drag_attitude * multipliers[3:],
+        )
+
+    return disturbance_at, drag_at
+
+
 def rollout(
     controller: Any,
     gains: Any,
@@ -121,7 +162,8 @@ def rollout(
     """Simulate one draw of ``scenario`` under ``controller`` with ``gains``.
 
     ``model`` is the nominal plant the controller uses; ``draw.params`` is the
-    simulated plant. ``accumulator``, if given, is a pair ``(init, update)`` with
+    simulated plant; ``draw`` must be sampled for ``config.dt`` (its tables are read by
+    step index). ``accumulator``, if given, is a pair ``(init, update)`` with
     ``init() -> acc`` and ``update(acc, t, state, reference, inputs, info) -> acc``,
     evaluated every step (online metrics). Pure; ``vmap`` over ``draw`` (and
     ``gains``) for Monte Carlo, ``grad`` through ``cost`` or ``extra``.
@@ -139,14 +181,15 @@ def rollout(
 
     control0 = controller.init(params, observe(jnp.zeros((), dtype), state0))
     acc0 = accumulator[0]() if accumulator is not None else None
+    disturbance_at, drag_at = _table_lookups(scenario, draw, config)
 
     def one_step(carry, k):
         state, control, status, cost, acc = carry
         t = k.astype(dtype) * dt
         obs = observe(t, state)
         control, inputs, info = controller.step(params, control, obs)
-        disturbance = scenarios.disturbance_at(scenario, draw, t).astype(dtype)
-        drag_position, drag_attitude = scenarios.drag_at(scenario, draw, t)
+        disturbance = disturbance_at(k, t).astype(dtype)
+        drag_position, drag_attitude = drag_at(k)
         next_state = plant.rk4_step(
             draw.params, state, inputs, disturbance, dt, drag_position, drag_attitude
         )

@@ -1,0 +1,546 @@
+"""``fojax bench``: throughput, compile time and gradient cost of the closed loop.
+
+Standard workload: scenario 2, AFONFTSMC with the default fractional method (sum of
+exponentials), RK4, 1 ms, float32. Measured in one run, on every device JAX sees
+(draws sharded with :mod:`fojax.sharding`):
+
+* forward rollouts at several draw counts: draw-steps per second (median of
+  ``--repeats`` runs) and compile time, apart;
+* reverse-mode gradient of the rollout cost with respect to the gains (``tanh``
+  switching) at several horizons: draw-steps per second, its cost relative to the
+  forward pass of the same rollout, compile time, and peak memory (XLA's buffer
+  assignment: arguments + outputs + temporaries of the compiled program);
+* the same closed loop in plain NumPy vectorised over draws
+  (:mod:`experiments.numpy_reference`) and the ratio JAX / NumPy;
+* crazyflow's simulator at the same world counts, where it is installed.
+
+Big batches run a shorter horizon (``--long-horizon`` for at most ``--long-max-draws``
+draws, ``--short-horizon`` above): cost is linear in the horizon (``--scaling``
+measures it), and the horizon used is printed and stored with each figure. On a CPU
+the default spreads the draws over one XLA host device per core
+(``--xla_force_host_platform_device_count``; set before JAX starts, ``--devices``
+changes it). Progress goes to stderr; ``--json FILE`` writes every figure with its
+units.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import sys
+import time
+from pathlib import Path
+
+DEFAULT_DRAWS = (1, 64, 1024, 4096)
+
+
+def _log(message: str) -> None:
+    print(f"[bench] {message}", file=sys.stderr, flush=True)
+
+
+def _positive_ints(text: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated positive integers, got {text!r}"
+        ) from None
+    if not values or any(v < 1 for v in values):
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated positive integers (e.g. 1,64,1024), got {text!r}"
+        )
+    return values
+
+
+def _positive_floats(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated positive numbers, got {text!r}"
+        ) from None
+    if not values or any(not (math.isfinite(v) and v > 0) for v in values):
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated positive numbers of seconds (e.g. 0.5,2), got {text!r}"
+        )
+    return values
+
+
+def _positive_float(text: str) -> float:
+    values = _positive_floats(text)
+    if len(values) != 1:
+        raise argparse.ArgumentTypeError(f"expected one positive number, got {text!r}")
+    return values[0]
+
+
+def _positive_int(text: str) -> int:
+    values = _positive_ints(text)
+    if len(values) != 1:
+        raise argparse.ArgumentTypeError(f"expected one positive integer, got {text!r}")
+    return values[0]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fojax bench",
+        description=(
+            "Throughput of the standard workload (scenario 2, AFONFTSMC, SOE, RK4, 1 ms, "
+            "float32): forward, gradient, NumPy reference. Defaults finish in a few "
+            "minutes on a 2-core CPU."
+        ),
+    )
+    parser.add_argument("--json", type=Path, help="write every figure, with units, here")
+    parser.add_argument(
+        "--draws", type=_positive_ints, default=DEFAULT_DRAWS, help="forward draw counts"
+    )
+    parser.add_argument(
+        "--long-horizon", type=_positive_float, default=4.0, help="horizon (s), small batches"
+    )
+    parser.add_argument(
+        "--short-horizon", type=_positive_float, default=1.0, help="horizon (s), big batches"
+    )
+    parser.add_argument(
+        "--long-max-draws",
+        type=_positive_int,
+        default=64,
+        help="batches up to this size run the long horizon",
+    )
+    parser.add_argument("--repeats", type=_positive_int, default=3, help="timed runs (median)")
+    parser.add_argument(
+        "--gradient-draws", type=_positive_int, default=64, help="draws of the gradient runs"
+    )
+    parser.add_argument(
+        "--gradient-horizons",
+        type=_positive_floats,
+        default=(0.25, 1.0, 4.0),
+        help="horizons (s) of the gradient runs (memory against horizon)",
+    )
+    parser.add_argument(
+        "--numpy-draws",
+        type=_positive_ints,
+        default=None,
+        help="draw counts of the NumPy reference (default: the forward ones)",
+    )
+    parser.add_argument(
+        "--numpy-horizon", type=_positive_float, default=0.25, help="NumPy horizon (s)"
+    )
+    parser.add_argument(
+        "--scaling",
+        action="store_true",
+        help="also measure forward cost against draws and horizon (linearity)",
+    )
+    parser.add_argument(
+        "--devices",
+        type=_positive_int,
+        default=None,
+        help="CPU only: XLA host devices to split the draws over (default: CPU cores)",
+    )
+    parser.add_argument(
+        "--small",
+        action="store_true",
+        help="tiny sizes for a smoke test (seconds, not minutes; figures meaningless)",
+    )
+    return parser
+
+
+def _configure_devices(requested: int | None) -> int | None:
+    """Ask XLA for one CPU device per core unless JAX has started (then leave it)."""
+    if "jax" in sys.modules:
+        return None
+    count = requested or os.cpu_count() or 1
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
+    return count
+
+
+# ----------------------------------------------------------------------------- pieces
+
+
+class _Workload:
+    """The standard workload, built for a given horizon."""
+
+    def __init__(self, horizon: float, switching: str = "sat", save_every: int | None = None):
+        from fojax import plant, scenarios, simulator
+        from fojax.afonftsmc import AFONFTSMC, paper_gains
+
+        self.dt = 1e-3
+        steps = int(round(horizon / self.dt))
+        if save_every is None:
+            save_every = _block_size(steps)
+        self.scenario = scenarios.get_scenario(2)
+        self.config = simulator.SimulationConfig(dt=self.dt, horizon=horizon, save_every=save_every)
+        # The fractional memory is sized for the scenario's 80 s, whatever the horizon.
+        self.controller = AFONFTSMC(dt=self.dt, horizon=80.0, switching=switching)
+        self.gains = paper_gains("float32")
+        self.model = plant.nominal_params("float32")
+
+    def draws(self, count: int):
+        import jax
+
+        from fojax import scenarios
+
+        keys = scenarios.draw_keys(0, range(count))
+        return jax.vmap(lambda k: scenarios.sample_draw(self.scenario, k, self.dt, "float32"))(keys)
+
+    def one_draw(self, gains, draw):
+        from fojax import simulator
+
+        return simulator.rollout(
+            self.controller, gains, self.model, self.scenario, draw, self.config
+        )
+
+
+def _block_size(steps: int) -> int:
+    """The divisor of ``steps`` nearest ``sqrt(steps)``: checkpointed blocks of that many
+    steps keep reverse-mode memory ``O(sqrt(steps))``."""
+    target = math.sqrt(steps)
+    divisors = [d for d in range(1, steps + 1) if steps % d == 0]
+    return min(divisors, key=lambda d: (abs(d - target), d))
+
+
+def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
+    import jax
+
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    times.sort()
+    return times[len(times) // 2], times
+
+
+def _padded_count(count: int, devices: int) -> int:
+    return count if count % devices == 0 else count + (-count % devices)
+
+
+def _compile(fn, *args):
+    start = time.perf_counter()
+    compiled = fn.lower(*args).compile()
+    return compiled, time.perf_counter() - start
+
+
+def _memory(compiled) -> dict:
+    try:
+        stats = compiled.memory_analysis()
+    except Exception:  # not every backend reports it
+        return {}
+    if stats is None:
+        return {}
+    fields = (
+        "temp_size_in_bytes",
+        "argument_size_in_bytes",
+        "output_size_in_bytes",
+        "generated_code_size_in_bytes",
+    )
+    out = {name.replace("_in_bytes", "_bytes"): int(getattr(stats, name, 0)) for name in fields}
+    out["peak_bytes"] = (
+        out["temp_size_bytes"] + out["argument_size_bytes"] + out["output_size_bytes"]
+    )
+    return out
+
+
+def measure_forward(count: int, horizon: float, repeats: int, mesh) -> dict:
+    """Forward rollouts of ``count`` draws over ``horizon`` seconds."""
+    from fojax import sharding
+
+    work = _Workload(horizon)
+    devices = mesh.devices.size
+    padded = _padded_count(count, devices)
+    draws = sharding.shard_draws(work.draws(padded), mesh)
+    gains = sharding.replicate(work.gains, mesh)
+    run = sharding.sharded_vmap(work.one_draw, mesh, in_axes=(None, 0))
+    compiled, compile_s = _compile(run, gains, draws)
+    import jax
+
+    jax.block_until_ready(compiled(gains, draws))  # warm
+    run_s, times = _median_time(lambda: compiled(gains, draws), repeats)
+    steps = work.config.steps
+    return {
+        "draws": count,
+        "draws_computed": padded,
+        "horizon_s": horizon,
+        "steps": steps,
+        "compile_s": compile_s,
+        "run_s": run_s,
+        "run_s_all": times,
+        "draw_steps_per_s": count * steps / run_s,
+    }
+
+
+def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
+    """Reverse-mode gradient of the mean rollout cost w.r.t. the gains (tanh switching)."""
+    import jax
+    import jax.numpy as jnp
+
+    from fojax import sharding
+
+    work = _Workload(horizon, switching="tanh")
+    devices = mesh.devices.size
+    padded = _padded_count(count, devices)
+    draws = sharding.shard_draws(work.draws(padded), mesh)
+    gains = sharding.replicate(work.gains, mesh)
+
+    def forward(gains, draws):
+        return jnp.mean(jax.vmap(lambda d: work.one_draw(gains, d).cost)(draws))
+
+    replicated = sharding.replicated_sharding(mesh)
+    in_shardings = (replicated, sharding.draw_sharding(mesh))
+    forward_jit = jax.jit(forward, in_shardings=in_shardings)
+    gradient_jit = jax.jit(jax.grad(forward), in_shardings=in_shardings)
+    forward_c, forward_compile_s = _compile(forward_jit, gains, draws)
+    gradient_c, gradient_compile_s = _compile(gradient_jit, gains, draws)
+    jax.block_until_ready(forward_c(gains, draws))
+    jax.block_until_ready(gradient_c(gains, draws))
+    forward_s, _ = _median_time(lambda: forward_c(gains, draws), repeats)
+    gradient_s, _ = _median_time(lambda: gradient_c(gains, draws), repeats)
+    steps = work.config.steps
+    return {
+        "draws": count,
+        "draws_computed": padded,
+        "horizon_s": horizon,
+        "steps": steps,
+        "save_every": work.config.save_every,
+        "forward_s": forward_s,
+        "gradient_s": gradient_s,
+        "gradient_over_forward": gradient_s / forward_s,
+        "gradient_draw_steps_per_s": count * steps / gradient_s,
+        "forward_compile_s": forward_compile_s,
+        "gradient_compile_s": gradient_compile_s,
+        "gradient_memory": _memory(gradient_c),
+        "forward_memory": _memory(forward_c),
+    }
+
+
+def measure_numpy(count: int, horizon: float) -> dict:
+    """The NumPy reference (float32, like the JAX workload), one timed run."""
+    import numpy as np
+
+    from experiments import numpy_reference
+
+    work = _Workload(horizon)
+    prepared = numpy_reference.prepare(
+        work.controller, work.gains, work.model, work.draws(count), np.float32
+    )
+    start = time.perf_counter()
+    numpy_reference.simulate(prepared, work.scenario, work.config)
+    run_s = time.perf_counter() - start
+    steps = work.config.steps
+    return {
+        "draws": count,
+        "horizon_s": horizon,
+        "steps": steps,
+        "run_s": run_s,
+        "draw_steps_per_s": count * steps / run_s,
+    }
+
+
+def measure_crazyflow(count: int, steps: int) -> dict:
+    """crazyflow's simulator (attitude control, analytical physics) at ``count`` worlds."""
+    import numpy as np
+    from crazyflow.control import Control
+    from crazyflow.sim import Physics, Sim
+
+    sim = Sim(
+        n_worlds=count,
+        n_drones=1,
+        physics=Physics.analytical,
+        control=Control.attitude,
+        device="cpu",
+    )
+    sim.reset()
+    cmd = np.zeros((count, 1, 4))
+    cmd[..., 0] = 0.3
+    sim.attitude_control(cmd)
+    sim.step(10)  # compile
+    start = time.perf_counter()
+    sim.step(steps)
+    run_s = time.perf_counter() - start
+    return {
+        "worlds": count,
+        "steps": steps,
+        "run_s": run_s,
+        "drone_steps_per_s": count * steps / run_s,
+    }
+
+
+# ------------------------------------------------------------------------------ main
+
+
+UNITS = {
+    "draw_steps_per_s": "draw-steps per second (draws x plant/controller steps / wall time)",
+    "gradient_draw_steps_per_s": "draw-steps per second of the reverse-mode gradient",
+    "drone_steps_per_s": "drone-steps per second (crazyflow)",
+    "compile_s": "seconds, lowering + XLA compilation",
+    "run_s": "seconds of wall time, median of the timed runs",
+    "horizon_s": "simulated seconds",
+    "steps": "steps of 1 ms",
+    "*_bytes": "bytes (XLA buffer assignment of the compiled program, all devices' share)",
+    "gradient_over_forward": "gradient wall time / forward wall time, same draws and horizon",
+    "jax_over_numpy": "JAX draw-steps/s / NumPy draw-steps/s at the same draw count",
+}
+
+
+def main(argv=None) -> dict:
+    args = build_parser().parse_args(argv)
+    if args.small:
+        args.draws = (min(args.draws[0], 4),)
+        args.long_horizon = args.short_horizon = 0.02
+        args.repeats = 1
+        args.gradient_draws = min(args.gradient_draws, 4)
+        args.gradient_horizons = (0.02,)
+        args.numpy_draws = args.draws
+        args.numpy_horizon = 0.02
+    requested_devices = _configure_devices(args.devices)
+
+    import jax
+    import numpy as np
+
+    from fojax import sharding
+
+    mesh = sharding.draw_mesh()
+    backend = jax.default_backend()
+    _log(
+        f"backend {backend}, {mesh.devices.size} device(s)"
+        + (f" (asked for {requested_devices} host devices)" if requested_devices else "")
+    )
+    result: dict = {
+        "workload": {
+            "scenario": 2,
+            "controller": "afonftsmc",
+            "fractional_method": "soe",
+            "integrator": "rk4",
+            "dt_s": 1e-3,
+            "dtype": "float32",
+            "switching_forward": "sat",
+            "switching_gradient": "tanh",
+        },
+        "machine": {
+            "backend": backend,
+            "devices": [str(d) for d in mesh.devices.flat],
+            "device_count": int(mesh.devices.size),
+            "cpu_count": os.cpu_count(),
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "jax": jax.__version__,
+            "numpy": np.__version__,
+        },
+        "units": UNITS,
+        "forward": [],
+        "gradient": [],
+        "numpy": [],
+        "comparison": [],
+        "scaling": {},
+        "crazyflow": None,
+    }
+
+    for count in args.draws:
+        horizon = args.long_horizon if count <= args.long_max_draws else args.short_horizon
+        _log(f"forward: {count} draws x {horizon} s ...")
+        entry = measure_forward(count, horizon, args.repeats, mesh)
+        result["forward"].append(entry)
+        _log(
+            f"  {entry['draw_steps_per_s']:.3g} draw-steps/s "
+            f"(run {entry['run_s']:.3f} s, compile {entry['compile_s']:.1f} s)"
+        )
+
+    for count in args.numpy_draws or args.draws:
+        _log(f"numpy reference: {count} draws x {args.numpy_horizon} s ...")
+        entry = measure_numpy(count, args.numpy_horizon)
+        result["numpy"].append(entry)
+        _log(f"  {entry['draw_steps_per_s']:.3g} draw-steps/s")
+
+    forward_by_draws = {e["draws"]: e for e in result["forward"]}
+    for entry in result["numpy"]:
+        jax_entry = forward_by_draws.get(entry["draws"])
+        if jax_entry is not None:
+            ratio = jax_entry["draw_steps_per_s"] / entry["draw_steps_per_s"]
+            result["comparison"].append({"draws": entry["draws"], "jax_over_numpy": ratio})
+
+    for horizon in args.gradient_horizons:
+        _log(f"gradient: {args.gradient_draws} draws x {horizon} s ...")
+        entry = measure_gradient(args.gradient_draws, horizon, args.repeats, mesh)
+        result["gradient"].append(entry)
+        memory = entry["gradient_memory"].get("peak_bytes")
+        _log(
+            f"  {entry['gradient_draw_steps_per_s']:.3g} draw-steps/s, "
+            f"{entry['gradient_over_forward']:.2f}x forward, "
+            f"peak {memory / 2**20 if memory else float('nan'):.1f} MiB, "
+            f"compile {entry['gradient_compile_s']:.1f} s"
+        )
+
+    if args.scaling:
+        base_draws = 8 if args.small else 256
+        _log("scaling: cost against draws and horizon ...")
+        result["scaling"]["draws"] = [
+            measure_forward(base_draws * m, args.short_horizon, args.repeats, mesh)
+            for m in (1, 4, 16)
+        ]
+        result["scaling"]["horizon"] = [
+            measure_forward(base_draws * 4, args.short_horizon * m, args.repeats, mesh)
+            for m in (0.5, 1, 2)
+        ]
+        for kind, entries in result["scaling"].items():
+            for e in entries:
+                _log(f"  {kind}: {e['draws']} x {e['horizon_s']} s: run {e['run_s']:.3f} s")
+
+    import importlib.util
+
+    if importlib.util.find_spec("crazyflow") is not None:
+        _log("crazyflow ...")
+        try:
+            result["crazyflow"] = [measure_crazyflow(c, 1000) for c in args.draws]
+        except Exception as error:  # report, do not fail the whole benchmark
+            result["crazyflow"] = {"error": f"{type(error).__name__}: {error}"}
+    else:
+        result["crazyflow"] = {"skipped": "crazyflow is not installed"}
+
+    result["process_max_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    _print_summary(result)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=1))
+        _log(f"wrote {args.json}")
+    return result
+
+
+def _print_summary(result: dict) -> None:
+    machine = result["machine"]
+    print(
+        f"fojax bench: scenario 2, AFONFTSMC (soe), RK4, 1 ms, float32; "
+        f"{machine['backend']} x {machine['device_count']} device(s)"
+    )
+    print("forward:")
+    for e in result["forward"]:
+        print(
+            f"  {e['draws']:6d} draws x {e['horizon_s']:g} s: "
+            f"{e['draw_steps_per_s']:10.3g} draw-steps/s   compile {e['compile_s']:5.1f} s"
+        )
+    print("numpy reference:")
+    for e in result["numpy"]:
+        print(f"  {e['draws']:6d} draws x {e['horizon_s']:g} s: {e['draw_steps_per_s']:10.3g}")
+    for e in result["comparison"]:
+        print(f"  JAX / NumPy at {e['draws']} draws: {e['jax_over_numpy']:.2f}x")
+    print("gradient (reverse mode, cost w.r.t. gains, tanh):")
+    for e in result["gradient"]:
+        memory = e["gradient_memory"].get("peak_bytes")
+        print(
+            f"  {e['draws']} draws x {e['horizon_s']:g} s (blocks of {e['save_every']}): "
+            f"{e['gradient_draw_steps_per_s']:10.3g} draw-steps/s, "
+            f"{e['gradient_over_forward']:.2f}x forward, peak "
+            + (f"{memory / 2**20:.1f} MiB" if memory else "n/a")
+        )
+    if isinstance(result["crazyflow"], list):
+        for e in result["crazyflow"]:
+            print(f"crazyflow {e['worlds']} worlds: {e['drone_steps_per_s']:.3g} drone-steps/s")
+    else:
+        print(f"crazyflow: {result['crazyflow']}")
+
+
+if __name__ == "__main__":
+    main()

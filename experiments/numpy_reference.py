@@ -1,0 +1,405 @@
+"""The closed loop of scenarios 1-2 under AFONFTSMC in plain NumPy, vectorised over draws.
+
+The reference for ``fojax bench``: the same plant (eq. (11) as read in
+``docs/model.md``), RK4 at the same step, the AFONFTSMC with the sum-of-exponentials
+fractional memory, and the same draws, written as a straightforward NumPy program
+whose arrays carry the draws on their leading axis (``(n_draws, ...)``). Nothing here
+is compiled; every line is one or a few NumPy calls over all draws at once.
+
+What is reused from fojax, evaluated once to NumPy before the loop: the fractional
+weights and the command filter's transition matrix (``AFONFTSMC.prepare``) and the
+random tables of each draw (``fojax.scenarios.sample_draw``). The reference (54)-(55)
+and the disturbances (53) are re-implemented in closed form, as functions of time
+only, once per step for all draws.
+
+:func:`prepare` converts the inputs once; :func:`simulate` is the timed loop.
+``tests/test_performance.py`` checks that :func:`rollout` agrees with
+``fojax.simulator.rollout`` in float64 on a short horizon.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from fojax import fractional
+
+__all__ = ["NumpyRollout", "disturbances_53", "prepare", "reference_54_55", "rollout", "simulate"]
+
+
+class NumpyRollout(NamedTuple):
+    """Final state ``(n, 12)``, status bits ``(n,)`` and cost ``(n,)`` of every draw."""
+
+    final_state: np.ndarray
+    status: np.ndarray
+    cost: np.ndarray
+
+
+def reference_54_55(t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eqs. (54)-(55) and their exact first two derivatives at time ``t``, each ``(4,)``."""
+    w = math.pi / 20.0
+    c, s = math.cos(w * t), math.sin(w * t)
+    position = np.array([0.5 * c, 0.5 * s, 2.0 - 2.0 * c, 0.5])
+    velocity = np.array([-0.5 * w * s, 0.5 * w * c, 2.0 * w * s, 0.0])
+    acceleration = np.array([-0.5 * w * w * c, -0.5 * w * w * s, 2.0 * w * w * c, 0.0])
+    return position, velocity, acceleration
+
+
+def disturbances_53(t: float) -> np.ndarray:
+    """Eq. (53) as accelerations at time ``t``, ``(6,)``, with its closed windows."""
+    d = np.array(
+        [
+            -(
+                0.08 * math.sin(0.11 * t - 3.0403)
+                + 0.04 * math.sin(0.5 * t - 13.5)
+                + 0.008 * math.sin(1.6 * t - 15.0 * math.pi)
+                + 0.006 * math.sin(0.3 * t - 8.6)
+            ),
+            0.05 * math.sin(0.4 * t) + 0.05 * math.cos(0.7 * t),
+            0.05 * math.cos(0.7 * t) + 0.07 * math.sin(0.3),
+            0.5 * math.cos(0.4 * t) + 1.0,
+            0.5 * math.sin(0.5 * t) + 1.0,
+            0.05 * math.sin(0.7 * t) + 0.1,
+        ]
+    )
+    windows = np.array([10.0 <= t <= 30.0, 10.0 <= t <= 50.0] + [0.0 <= t <= 80.0] * 4, dtype=float)
+    return d * windows
+
+
+def _signed_power(value: np.ndarray, exponent: np.ndarray) -> np.ndarray:
+    magnitude = np.abs(value)
+    nonzero = magnitude > 0
+    safe = np.where(nonzero, magnitude, 1.0)
+    return np.where(nonzero, np.sign(value) * np.exp(exponent * np.log(safe)), 0.0)
+
+
+def _switching(kind: str, surface: np.ndarray, width: np.ndarray) -> np.ndarray:
+    if kind == "sign":
+        return np.sign(surface)
+    if kind == "sat":
+        return np.clip(surface / width, -1.0, 1.0)
+    return np.tanh(surface / width)
+
+
+def _rotor_speeds_squared(thrust_factor, drag_factor, arm_length, inputs):
+    """``(n, 4)`` squared rotor speeds of the inverted mixer (10); ``inputs`` ``(n, 4)``."""
+    bd = thrust_factor * arm_length
+    common = inputs[:, 0] / (4.0 * thrust_factor)
+    yaw = inputs[:, 3] / (4.0 * drag_factor)
+    tau_x, tau_y = inputs[:, 1], inputs[:, 2]
+    return np.stack(
+        [
+            common - tau_y / (2.0 * bd) - yaw,
+            common - tau_x / (2.0 * bd) + yaw,
+            common + tau_y / (2.0 * bd) - yaw,
+            common + tau_x / (2.0 * bd) + yaw,
+        ],
+        axis=1,
+    )
+
+
+def _rotor_speed_sum(thrust_factor, drag_factor, arm_length, inputs):
+    speeds = np.sqrt(
+        np.maximum(_rotor_speeds_squared(thrust_factor, drag_factor, arm_length, inputs), 0.0)
+    )
+    return speeds[:, 0] - speeds[:, 1] + speeds[:, 2] - speeds[:, 3]
+
+
+def _derivatives(p, state, inputs, disturbance, drag_position, drag_attitude, omega_r):
+    """Eq. (11) for all draws: ``(n, 12)``. ``p``: dict of per-draw plant arrays."""
+    phi, theta, psi = state[:, 3], state[:, 4], state[:, 5]
+    rates = state[:, 9:12]
+    roll_rate, pitch_rate, yaw_rate = rates[:, 0], rates[:, 1], rates[:, 2]
+    i11, i22, i33 = p["inertia"][:, 0], p["inertia"][:, 1], p["inertia"][:, 2]
+    j_r = p["rotor_inertia"]
+    drag = rates * np.abs(rates)
+    roll_accel = (
+        (i22 - i33) / i11 * pitch_rate * yaw_rate
+        - j_r / i11 * pitch_rate * omega_r
+        - drag_attitude[:, 0] / i11 * drag[:, 0]
+        + inputs[:, 1] / i11
+    )
+    pitch_accel = (
+        (i33 - i11) / i22 * roll_rate * yaw_rate
+        + j_r / i22 * roll_rate * omega_r
+        - drag_attitude[:, 1] / i22 * drag[:, 1]
+        + inputs[:, 2] / i22
+    )
+    yaw_accel = (
+        (i11 - i22) / i33 * roll_rate * pitch_rate
+        - drag_attitude[:, 2] / i33 * drag[:, 2]
+        + inputs[:, 3] / i33
+    )
+    c_phi, s_phi = np.cos(phi), np.sin(phi)
+    c_theta, s_theta = np.cos(theta), np.sin(theta)
+    c_psi, s_psi = np.cos(psi), np.sin(psi)
+    specific_thrust = inputs[:, 0] / p["mass"]
+    mass = p["mass"][:, None]
+    linear_accel = (
+        np.stack(
+            [
+                c_psi * s_theta * c_phi + s_psi * s_phi,
+                s_psi * s_theta * c_phi - c_psi * s_phi,
+                c_theta * c_phi,
+            ],
+            axis=1,
+        )
+        * specific_thrust[:, None]
+        - drag_position / mass * state[:, 6:9]
+    )
+    linear_accel[:, 2] -= p["gravity"]
+    accel = np.concatenate(
+        [linear_accel, np.stack([roll_accel, pitch_accel, yaw_accel], axis=1)], axis=1
+    )
+    return np.concatenate([state[:, 6:12], accel + disturbance], axis=1)
+
+
+def _rk4_step(p, state, held, dt):
+    """One RK4 step of :func:`_derivatives`; ``held`` is constant over the step."""
+    k1 = _derivatives(p, state, *held)
+    k2 = _derivatives(p, state + 0.5 * dt * k1, *held)
+    k3 = _derivatives(p, state + 0.5 * dt * k2, *held)
+    k4 = _derivatives(p, state + dt * k3, *held)
+    return state + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
+    """Everything the loop needs, as NumPy arrays of ``dtype`` (done once, not timed).
+
+    Same arguments as :func:`rollout`; returns a dict of named constants.
+    """
+    if controller.fractional_method != "soe":
+        raise ValueError(
+            "the NumPy reference implements the 'soe' fractional method only, got "
+            f"{controller.fractional_method!r}"
+        )
+
+    def as_np(x):
+        return np.asarray(x, dtype)
+
+    params = controller.prepare(gains, model)
+    weights = params.surface_weights
+    operator = controller.operator
+    assert isinstance(operator, fractional.SumOfExponentials)
+    return {
+        "dtype": dtype,
+        "dt": controller.dt,
+        "switching": controller.switching,
+        "filter_frequency": controller.filter_frequency,
+        "filter_damping": controller.filter_damping,
+        "gains": {name: as_np(getattr(gains, name)) for name in gains._fields},
+        "nominal": {name: as_np(getattr(model, name)) for name in model._fields},
+        "mode_gains": as_np(weights.mode_gains),  # (12, 3, modes)
+        "readout": as_np(weights.readout),  # (2, modes)
+        "local": as_np(weights.local),  # (12, 2, 3)
+        "decay_m1": as_np(operator._tables["decay_m1"]),  # (modes,)
+        "filter_transition": as_np(params.filter_transition),  # (2, 2)
+        "filter_input": as_np(params.filter_input),  # (2,)
+        "plant": {name: as_np(getattr(draws.params, name)) for name in draws.params._fields},
+        "drag_table": as_np(draws.drag_multipliers),  # (n, rows, 6)
+        "noise_table": as_np(draws.noise_accel),  # (n, rows, 6)
+    }
+
+
+def rollout(controller, gains, model, scenario, draws, config, dtype=np.float64) -> NumpyRollout:
+    """Simulate every draw of ``draws`` (a batched :class:`fojax.scenarios.Draw`).
+
+    Same arguments as ``jax.vmap(fojax.simulator.rollout)`` over the draws:
+    ``controller`` an :class:`fojax.afonftsmc.AFONFTSMC` with the ``"soe"`` method,
+    ``gains`` its gains (shared), ``model`` the nominal plant, ``scenario`` scenario 1
+    or 2, ``config`` a :class:`fojax.simulator.SimulationConfig` with the controller's
+    ``dt``. ``dtype``: the floating type of every array in the loop.
+    """
+    return simulate(prepare(controller, gains, model, draws, dtype), scenario, config)
+
+
+def simulate(prepared: dict, scenario, config) -> NumpyRollout:
+    """The time loop of :func:`rollout`, from :func:`prepare`'s constants."""
+    if scenario.scenario_id not in (1, 2):
+        raise ValueError(
+            f"the NumPy reference implements scenarios 1 and 2 only, got {scenario.scenario_id}"
+        )
+    if abs(config.dt - prepared["dt"]) > 1e-15:
+        raise ValueError(
+            f"config.dt ({config.dt}) must equal the controller's dt ({prepared['dt']})"
+        )
+    dtype = prepared["dtype"]
+
+    def as_np(x):
+        return np.asarray(x, dtype)
+
+    dt = config.dt
+    g = prepared["gains"]
+    nominal = prepared["nominal"]
+    mode_gains = prepared["mode_gains"]
+    readout = prepared["readout"]
+    local = prepared["local"]
+    decay_m1 = prepared["decay_m1"]
+    filter_transition = prepared["filter_transition"]
+    filter_input = prepared["filter_input"]
+    w, zeta = prepared["filter_frequency"], prepared["filter_damping"]
+    switching = prepared["switching"]
+    plant_params = prepared["plant"]
+    n = plant_params["mass"].shape[0]
+    drag_table = prepared["drag_table"]
+    noise_table = prepared["noise_table"]
+    drag_hold = max(1, round(scenario.drag_hold / dt))
+    noise_hold = max(1, round(scenario.noise_hold / dt))
+
+    state = np.tile(
+        np.concatenate([scenario.initial_position, scenario.initial_attitude, np.zeros(6)]),
+        (n, 1),
+    ).astype(dtype)
+    n_modes = decay_m1.shape[0]
+    modes = np.zeros((n, 12, n_modes), dtype)
+    u_prev = np.zeros((n, 12), dtype)
+    u_prev2 = np.zeros((n, 12), dtype)
+    adaptive = np.zeros((n, 6, 3), dtype)
+    command_filter = np.zeros((n, 2, 2), dtype)
+    command_filter[:, :, 0] = state[:, 3:5]
+    last_inputs = np.zeros((n, 4), dtype)
+    last_inputs[:, 0] = nominal["mass"] * nominal["gravity"]
+    status = np.zeros(n, np.int32)
+    cost = np.zeros(n, dtype)
+
+    for k in range(config.steps):
+        t = k * dt
+        ref, ref_vel, ref_acc = (as_np(a) for a in reference_54_55(t))
+
+        # ---- controller: errors of the six axes
+        attitude_reference = np.concatenate(
+            [command_filter[:, :, 0], np.full((n, 1), ref[3], dtype)], axis=1
+        )
+        attitude_reference_rate = np.concatenate(
+            [command_filter[:, :, 1], np.full((n, 1), ref_vel[3], dtype)], axis=1
+        )
+        error = state[:, :6] - np.concatenate(
+            [np.broadcast_to(ref[:3], (n, 3)), attitude_reference], axis=1
+        )
+        error_rate = state[:, 6:12] - np.concatenate(
+            [np.broadcast_to(ref_vel[:3], (n, 3)), attitude_reference_rate], axis=1
+        )
+
+        # ---- fractional memory: 12 channels, integral and its rate
+        u = np.concatenate(
+            [
+                g["surface_c1"] * _signed_power(error, g["ratio"]),
+                g["surface_c2"] * _signed_power(error, g["power"]),
+            ],
+            axis=1,
+        )
+        if k == 0:
+            integral = rate = np.zeros((n, 12), dtype)
+        else:
+            u_before = u_prev2 if k > 1 else 2.0 * u_prev - u
+            history = modes @ readout.T  # (n, 12, 2)
+            samples = (u, u_prev, u_before)  # each (n, 12)
+            outputs = history + sum(local[:, :, i] * samples[i][:, :, None] for i in range(3))
+            integral, rate = outputs[..., 0], outputs[..., 1]
+            increment = sum(mode_gains[:, i] * samples[i][:, :, None] for i in range(3))
+            modes = modes + (decay_m1 * modes + increment)
+        u_prev2, u_prev = u_prev, u
+        surface = error_rate + integral[:, :6] + integral[:, 6:]
+        dsurface = rate[:, :6] + rate[:, 6:]
+
+        # ---- reaching law and adaptive bound
+        sw = _switching(switching, surface, g["boundary_layer"])
+        bound = (
+            adaptive[:, :, 0]
+            + adaptive[:, :, 1] * np.abs(error)
+            + adaptive[:, :, 2] * np.abs(error_rate)
+        )
+        reaching = -g["reaching_h1"] * sw - g["reaching_h2"] * surface - (bound + g["mu"]) * sw
+        regressor = np.stack([np.ones_like(error), np.abs(error), np.abs(error_rate)], axis=2)
+        adaptive = adaptive + dt * g["adaptation"] * regressor * np.abs(surface)[:, :, None]
+
+        # ---- position loop, eq. (13)
+        virtual = (
+            nominal["drag_position"] / nominal["mass"] * state[:, 6:9]
+            + ref_acc[:3]
+            - dsurface[:, :3]
+            + reaching[:, :3]
+        )
+        gravity = nominal["gravity"]
+        lift = np.maximum(virtual[:, 2] + gravity, 0.1 * gravity)
+        c_psi, s_psi = math.cos(ref[3]), math.sin(ref[3])
+        vx, vy = virtual[:, 0], virtual[:, 1]
+        theta_r = np.arctan((c_psi * vx + s_psi * vy) / lift)
+        phi_r = np.arctan(np.cos(theta_r) * (s_psi * vx - c_psi * vy) / lift)
+        thrust = nominal["mass"] * np.sqrt(vx * vx + vy * vy + lift * lift)
+        tilt_reference = np.stack([phi_r, theta_r], axis=1)
+
+        # ---- command filter and attitude loop
+        filtered_accel = (
+            w * w * (tilt_reference - command_filter[:, :, 0])
+            - 2.0 * zeta * w * command_filter[:, :, 1]
+        )
+        attitude_reference_accel = np.concatenate(
+            [filtered_accel, np.full((n, 1), ref_acc[3], dtype)], axis=1
+        )
+        command_filter = (
+            command_filter @ filter_transition.T + tilt_reference[:, :, None] * filter_input
+        )
+        omega_r_model = _rotor_speed_sum(
+            nominal["thrust_factor"], nominal["drag_factor"], nominal["arm_length"], last_inputs
+        )
+        rates = state[:, 9:12]
+        i_nom = nominal["inertia"]
+        p_, q_, r_ = rates[:, 0], rates[:, 1], rates[:, 2]
+        drift = np.stack(
+            [
+                (i_nom[1] - i_nom[2]) / i_nom[0] * q_ * r_
+                - nominal["rotor_inertia"] / i_nom[0] * q_ * omega_r_model,
+                (i_nom[2] - i_nom[0]) / i_nom[1] * p_ * r_
+                + nominal["rotor_inertia"] / i_nom[1] * p_ * omega_r_model,
+                (i_nom[0] - i_nom[1]) / i_nom[2] * p_ * q_,
+            ],
+            axis=1,
+        ) - nominal["drag_attitude"] / i_nom * (rates * np.abs(rates))
+        torque = i_nom * (-drift + attitude_reference_accel - dsurface[:, 3:] + reaching[:, 3:])
+        inputs = np.concatenate([thrust[:, None], torque], axis=1)
+        last_inputs = inputs
+
+        # ---- plant: RK4 with inputs, disturbance and drag held over the step
+        disturbance = (
+            as_np(disturbances_53(t))
+            + noise_table[:, min(k // noise_hold, noise_table.shape[1] - 1)]
+        )
+        multipliers = drag_table[:, min(k // drag_hold, drag_table.shape[1] - 1)]
+        drag_position = plant_params["drag_position"] * multipliers[:, :3]
+        drag_attitude = plant_params["drag_attitude"] * multipliers[:, 3:]
+        omega_r = _rotor_speed_sum(
+            plant_params["thrust_factor"],
+            plant_params["drag_factor"],
+            plant_params["arm_length"],
+            inputs,
+        )
+
+        held = (inputs, disturbance, drag_position, drag_attitude, omega_r)
+        next_state = _rk4_step(plant_params, state, held, dt)
+
+        # ---- status and cost
+        finite = (
+            np.all(np.isfinite(next_state), axis=1)
+            & np.all(np.isfinite(inputs), axis=1)
+            & np.all(np.isfinite(surface), axis=1)
+        )
+        tilt = np.any(np.abs(next_state[:, 3:5]) >= math.pi / 2, axis=1)
+        squared = _rotor_speeds_squared(
+            plant_params["thrust_factor"],
+            plant_params["drag_factor"],
+            plant_params["arm_length"],
+            inputs,
+        )
+        actuator = np.any(squared < 0, axis=1)
+        status |= np.where(finite, 0, 1) | np.where(tilt, 2, 0) | np.where(actuator, 4, 0)
+        position_error = state[:, :3] - ref[:3]
+        attitude_error = state[:, 3:6] - np.concatenate(
+            [tilt_reference, np.full((n, 1), ref[3], dtype)], axis=1
+        )
+        cost = cost + dt * (np.sum(position_error**2, axis=1) + np.sum(attitude_error**2, axis=1))
+        state = next_state
+
+    return NumpyRollout(state, status.astype(np.int32), cost)
