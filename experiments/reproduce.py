@@ -346,7 +346,7 @@ def evaluate_claims(summaries: dict, results_by_scenario: dict) -> list[dict]:
         entry.update(verdict=_verdict(counts), comparisons=comparisons, counts=counts)
         evaluated.append(entry)
     evaluated.append(_chatter_claim(summaries))
-    evaluated.append(_finite_time_claim(summaries))
+    evaluated.append(_finite_time_claim(summaries, results_by_scenario))
     return evaluated
 
 
@@ -390,29 +390,33 @@ def _chatter_claim(summaries: dict) -> dict:
     }
 
 
-def _finite_time_claim(summaries: dict) -> dict:
-    """Conclusions: 'fast finite-time convergence'. The AFONFTSMC's sliding variables
-    reach |S| <= 0.01 and stay there (reaching_time finite) in every draw and axis,
-    within the eq. (34) bound; 'fast' is judged by the settling-time comparisons."""
+def _finite_time_claim(summaries: dict, results_by_scenario: dict) -> dict:
+    """Conclusions: 'fast finite-time convergence'. Holds when, in every valid draw of
+    every scenario and on every axis, the AFONFTSMC's sliding variable reaches
+    |S| <= 0.01 and stays there from before half the run on (reaching_time < T / 2);
+    the eq. (34) bound is shown next to it; 'fast' is judged by the settling times."""
     from fojax import metrics as metrics_module
 
     rows = []
-    reached_everywhere = True
+    kept_everywhere = True
     for scenario_id, summary in summaries.items():
         entry = summary["controllers"][BASELINE]["metrics"]
-        for axis in metrics_module.AXES:
-            reach = entry[f"reaching_time_{axis}"]
-            bound = entry.get(f"reaching_time_bound_{axis}", {})
-            never = reach["n_nonfinite"]
-            reached_everywhere &= never == 0 and reach["n"] > 0
+        result = results_by_scenario[scenario_id][BASELINE]
+        reaching = np.asarray(result.per_draw["reaching_time"], dtype=float)[result.valid]
+        half = 0.5 * summary["horizon_s"]
+        for j, axis in enumerate(metrics_module.AXES):
+            times = reaching[:, j]
+            early = int(np.sum(times < half))
+            kept_everywhere &= times.size > 0 and early == times.size
             rows.append(
                 {
                     "scenario": scenario_id,
                     "axis": axis,
-                    "reached_in": reach["n"],
-                    "never_reached_in": never,
-                    "mean_reaching_time_s": reach["mean"],
-                    "mean_bound_34_s": bound.get("mean"),
+                    "valid_draws": int(times.size),
+                    "kept_from_first_half": early,
+                    "never_reached": int(np.sum(~np.isfinite(times))),
+                    "mean_reaching_time_s": entry[f"reaching_time_{axis}"]["mean"],
+                    "mean_bound_34_s": entry.get(f"reaching_time_bound_{axis}", {}).get("mean"),
                 }
             )
     return {
@@ -421,12 +425,14 @@ def _finite_time_claim(summaries: dict) -> dict:
         "text": "Conclusions: 'fast finite-time convergence'",
         "mapping": (
             "reaching_time_<axis> of the AFONFTSMC (the time after which |S| <= 0.01 holds "
-            "to the end) finite in every draw, next to its eq. (34) bound; the 'fast' part "
-            "is the settling-time comparison of the scenario claims."
+            "to the end of the run): the claim holds when it is below half the horizon in "
+            "every draw and axis, i.e. the sliding mode is reached and then kept despite "
+            "the disturbances; the eq. (34) bound is shown next to it. The 'fast' part is "
+            "the settling-time comparison of the scenario claims."
         ),
         "metrics": [f"reaching_time_{a}" for a in metrics_module.AXES],
         "rows": rows,
-        "verdict": "holds" if reached_everywhere else "does not hold",
+        "verdict": "holds" if kept_everywhere else "does not hold",
     }
 
 
@@ -554,19 +560,22 @@ def _claim_section(claim: dict) -> list[str]:
         lines.append("")
     if claim["id"] == "C-finite-time":
         lines += [
-            f"The {BASELINE}'s sliding variables. A draw counts as reached when "
-            "|S| <= 0.01 holds from some time to the end of the run; a mean reaching time "
-            "close to the horizon means |S| left the band until the last samples "
-            "(chattering), not convergence:",
+            f"The {BASELINE}'s sliding variables: in how many draws |S| <= 0.01 holds from "
+            "before half the run to its end, in how many it never holds at the last "
+            "sample, the mean reaching time (over the draws where it is finite; close to "
+            "the horizon means |S| left the band until the last samples) and the mean "
+            "eq. (34) bound (from S(0), which is near 0 here: the fractional terms start "
+            "at 0 and the initial velocity error is small):",
             "",
-            "| scenario | axis | reached and kept in | never | mean reaching time (s) | "
-            "mean eq. (34) bound (s) |",
+            "| scenario | axis | kept from the first half | never | mean reaching time (s) "
+            "| mean eq. (34) bound (s) |",
             "|---|---|---|---|---|---|",
         ]
         for row in claim["rows"]:
             lines.append(
-                f"| {row['scenario']} | {row['axis']} | {row['reached_in']} | "
-                f"{row['never_reached_in']} | {_fmt(row['mean_reaching_time_s'])} | "
+                f"| {row['scenario']} | {row['axis']} | "
+                f"{row['kept_from_first_half']}/{row['valid_draws']} | "
+                f"{row['never_reached']} | {_fmt(row['mean_reaching_time_s'])} | "
                 f"{_fmt(row['mean_bound_34_s'])} |"
             )
         lines.append("")
@@ -596,7 +605,8 @@ def write_report(
         f"{settings['seed']}, switching `{settings['switching']}` "
         f"({'the paper' if settings['switching'] == 'sign' else 'not the paper'}'s sgn), "
         f"fractional method `{settings['fractional']}`, dt = {settings['dt']:g} s, "
-        f"{settings['dtype']}. Wall time {wall_time:.0f} s.",
+        f"{settings['dtype']}. Wall time of this invocation {wall_time:.0f} s (chunks finished "
+        "by an earlier invocation are loaded, not recomputed).",
         "",
         "## Verdicts",
         "",
