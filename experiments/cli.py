@@ -2,6 +2,7 @@
 
 fojax accuracy --out DIR     accuracy and cost of the fractional operators
 fojax simulate ...           Monte Carlo study of a scenario (see fojax simulate --help)
+fojax reproduce --out DIR    the paper's Section V with Monte Carlo (report, JSON, figures)
 """
 
 from __future__ import annotations
@@ -13,6 +14,10 @@ COMMANDS = {
     "accuracy": (
         "experiments.fractional_accuracy",
         "accuracy and cost of the fractional operators",
+    ),
+    "reproduce": (
+        "experiments.reproduce",
+        "the paper's Section V with Monte Carlo: all scenarios and controllers, report",
     ),
     "simulate": (
         "experiments.simulate",

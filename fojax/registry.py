@@ -16,6 +16,9 @@ import dataclasses
 from typing import Any
 
 from fojax.afonftsmc import AFONFTSMC
+from fojax.anftsmc import ANFTSMC
+from fojax.backstepping import BSMC, FOBSMC
+from fojax.fl import FL
 
 __all__ = ["controller_names", "get_controller_class", "make_controller", "register"]
 
@@ -34,6 +37,11 @@ def register(cls: type) -> type:
 
 
 register(AFONFTSMC)
+# The paper's compared controllers (Section V), in the order of docs/model.md.
+register(ANFTSMC)
+register(FOBSMC)
+register(BSMC)
+register(FL)
 
 
 def controller_names() -> tuple[str, ...]:
