@@ -396,9 +396,7 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
         actuator = np.any(squared < 0, axis=1)
         status |= np.where(finite, 0, 1) | np.where(tilt, 2, 0) | np.where(actuator, 4, 0)
         position_error = state[:, :3] - ref[:3]
-        attitude_error = state[:, 3:6] - np.concatenate(
-            [tilt_reference, np.full((n, 1), ref[3], dtype)], axis=1
-        )
+        attitude_error = state[:, 3:6] - attitude_reference
         cost = cost + dt * (np.sum(position_error**2, axis=1) + np.sum(attitude_error**2, axis=1))
         state = next_state
 

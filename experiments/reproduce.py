@@ -623,10 +623,10 @@ def write_report(
         "*inconclusive* otherwise.",
         "",
         "Reading the metrics: errors are `actual - reference`; roll and pitch errors (in "
-        "`attitude_rmse`) are measured against the attitude each controller's position loop "
-        "commands through eq. (13), before the command filter, so a position loop whose "
-        "switching flips that command every step shows a large attitude error even when the "
-        "vehicle flies the path. Settling times use a 0.05 m band; `chattering_*` is the "
+        "`attitude_rmse`) are measured against the attitude reference each controller's "
+        "attitude loop tracks, its position loop's command of eq. (13) after the command "
+        "filter; how much that command chatters shows in `chattering_*` and "
+        "`actuator_saturation`. Settling times use a 0.05 m band; `chattering_*` is the "
         "total variation of an input over the run. Definitions: `docs/model.md`, *Metrics*.",
         "",
         "## Claims",

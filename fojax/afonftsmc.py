@@ -374,7 +374,7 @@ class AFONFTSMC:
         )
         info = ControlInfo(
             surfaces=surface,
-            attitude_reference=jnp.concatenate([tilt_reference, yaw_reference[None]]),
+            attitude_reference=attitude_reference,
             adaptive=adaptive,
         )
         return new_state, inputs, info

@@ -232,7 +232,7 @@ class Cascade:
         )
         info = ControlInfo(
             surfaces=jnp.concatenate([position_law.surface, attitude_law.surface]),
-            attitude_reference=jnp.concatenate([tilt_reference, yaw_reference[None]]),
+            attitude_reference=attitude_reference,
             adaptive=jnp.concatenate([position_law.adaptive, attitude_law.adaptive]),
         )
         return new_state, inputs, info

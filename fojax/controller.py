@@ -56,8 +56,10 @@ class ControlInfo(NamedTuple):
 
     surfaces: ``(6,)`` sliding variables ``(S_x, S_y, S_z, S_phi, S_theta, S_psi)``
         (controllers without surfaces return their error measure or zeros).
-    attitude_reference: ``(3,)`` ``(phi_r, theta_r, psi_r)`` commanded by the position
-        loop (rad).
+    attitude_reference: ``(3,)`` ``(phi_r, theta_r, psi_r)`` that the attitude loop
+        tracks at this step (rad): the position loop's command of eq. (13) after the
+        command filter, and the reference yaw. Attitude errors and metrics are taken
+        against it.
     adaptive: ``(6, 3)`` adaptive estimates ``(b0, b1, b2)`` per axis (zeros when the
         controller does not adapt).
     """

@@ -8,8 +8,9 @@ Errors are ``e = actual - reference``, sampled at the control instants
 ``t_k = k dt``, ``k = 0 ... steps - 1``; integrals are rectangle sums ``sum_k f(t_k) dt``
 over the horizon ``T = steps dt``. Axes are ordered ``(x, y, z, phi, theta, psi)``: the
 position error against the reference trajectory, the attitude error against the
-attitude the controller's position loop commands (``ControlInfo.attitude_reference``;
-``psi`` against the reference yaw). Inputs are ``(u_F, tau_x, tau_y, tau_z)``.
+attitude reference the attitude loop tracks (``ControlInfo.attitude_reference``: the
+position loop's command after the command filter; ``psi`` against the reference yaw).
+Inputs are ``(u_F, tau_x, tau_y, tau_z)``.
 
 Metrics (name: shape, unit):
 

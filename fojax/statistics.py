@@ -62,4 +62,6 @@ def paired_difference(values, baseline) -> dict:
     if values.shape != baseline.shape:
         raise ValueError(f"shapes differ: {values.shape} vs {baseline.shape}")
     both = np.isfinite(values) & np.isfinite(baseline)
-    return mean_ci(np.where(both, values - baseline, np.nan))
+    difference = np.full(values.shape, np.nan)
+    np.subtract(values, baseline, out=difference, where=both)
+    return mean_ci(difference)
