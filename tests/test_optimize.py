@@ -301,3 +301,31 @@ def test_failed_starts_never_write_or_overwrite(tmp_path):
         tuner_lib.prepare(SPEC, config, paper_gains(jnp.float64), "paper", out, resume=True)
     assert checkpoint.read_bytes() == before and os.stat(checkpoint).st_mtime_ns == stamp
     assert sorted(p.name for p in out.iterdir()) == [tuner_lib.CHECKPOINT]
+
+
+# ------------------------------------------------------------- derivative-free tuners
+
+
+def test_derivative_free_tuners_respect_the_budget():
+    from optimize import derivative_free
+
+    problem = small_problem()
+    per_eval = SPEC.draws * SPEC.steps
+    es = derivative_free.cma_es(problem, 3 * 4 * per_eval + per_eval - 1, popsize=4, seed=1)
+    assert es.evaluations == 12 and es.draw_steps == 12 * per_eval and len(es.history) == 3
+    check_gains(es.gains)
+    again = derivative_free.cma_es(problem, 12 * per_eval, popsize=4, seed=1)
+    for name in es.params:
+        np.testing.assert_array_equal(np.asarray(again.params[name]), np.asarray(es.params[name]))
+    size = problem.param_map.size
+    nm = derivative_free.nelder_mead(problem, (size + 12) * per_eval, callback_every=1)
+    assert nm.evaluations <= size + 12 and nm.draw_steps == nm.evaluations * per_eval
+    start = float(problem.value(problem.initial_params(), 1.0, problem.minibatch_keys(0)).objective)
+    assert nm.history[-1]["best_objective"] <= start
+    check_gains(nm.gains)
+    with pytest.raises(ValueError, match="positive number of draw-steps"):
+        derivative_free.cma_es(problem, 0)
+    with pytest.raises(ValueError, match="does not cover one CMA-ES generation"):
+        derivative_free.cma_es(problem, per_eval, popsize=4)
+    with pytest.raises(ValueError, match="does not cover the initial simplex"):
+        derivative_free.nelder_mead(problem, 3 * per_eval)
