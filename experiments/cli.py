@@ -18,6 +18,10 @@ COMMANDS = {
         "experiments.simulate",
         "Monte Carlo study of a scenario under one or all controllers",
     ),
+    "tune": (
+        "experiments.tune",
+        "gradient-based gain tuning over Monte Carlo draws",
+    ),
 }
 
 
