@@ -119,3 +119,21 @@ def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     text = (out / "gains.json").read_text()
     assert cli.main(["tune"] + argv + ["--resume", "--eval-draws", "0", "--out", str(out)]) == 0
     assert (out / "gains.json").read_text() == text
+
+
+def test_tuning_study_smoke(tmp_path):
+    from experiments import tune_paper_gains
+
+    out = tmp_path / "study"
+    assert tune_paper_gains.main(["--tiny", "--quiet", "--out", str(out)]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["evaluation"]) == {"scenario 2", "unseen reference", "scenario 3"}
+    for setting in results["evaluation"].values():
+        assert set(setting["gains"]) == {"paper", "naive", "gradient", "cma-es", "nelder-mead"}
+    tuners = results["tuners"]
+    budget = 40 * tuners["gradient"]["draw_steps"]
+    assert 0 < tuners["cma-es"]["draw_steps"] <= budget
+    assert 0 < tuners["nelder-mead"]["draw_steps"] <= budget
+    assert (out / "tuning.png").stat().st_size > 0 and "| gradient |" in (
+        out / "table.md"
+    ).read_text()
