@@ -10,7 +10,8 @@ working set the compiled program allocates besides its arguments and outputs); f
 horizons up to ``--execute-up-to`` s also run it once and record the process's peak
 resident memory (``ru_maxrss``, which includes JAX itself and the compiler). Blocks of
 the rollout (``save_every``) follow :func:`optimize.problem.checkpoint_interval`
-(about ``2 sqrt(steps)`` steps) and, for comparison, a fixed 100 steps. Writes
+(about ``0.75 sqrt(steps)`` steps) and, for comparison, a fixed 100 steps or one
+block over the whole horizon (``--blocks auto 100 full``). Writes
 ``memory.json`` and prints a table.
 """
 
@@ -29,8 +30,9 @@ from optimize import problem as P
 from fojax.afonftsmc import paper_gains
 horizon, draws = float(sys.argv[1]), int(sys.argv[2])
 block, execute = sys.argv[3], sys.argv[4] == "1"
-spec = P.ProblemSpec(horizon=horizon, draws=draws, dtype="float32",
-                     save_every=None if block == "auto" else int(block))
+steps = round(horizon / 1e-3)
+save_every = None if block == "auto" else steps if block == "full" else int(block)
+spec = P.ProblemSpec(horizon=horizon, draws=draws, dtype="float32", save_every=save_every)
 problem = P.TuningProblem(spec, paper_gains(jnp.float32))
 params = problem.initial_params()
 keys = problem.minibatch_keys(0)
@@ -68,12 +70,18 @@ def main(argv=None) -> int:
     parser.add_argument("--horizons", type=float, nargs="+", default=[5, 10, 20, 40, 80])
     parser.add_argument("--draws", type=int, default=256)
     parser.add_argument("--execute-up-to", type=float, default=10.0)
-    parser.add_argument("--fixed-block", type=int, default=100)
+    parser.add_argument(
+        "--blocks",
+        nargs="+",
+        default=["auto", "100"],
+        help="block choices: auto (checkpoint_interval), a number of steps, or full "
+        "(one block: no rematerialisation across the horizon)",
+    )
     parser.add_argument("--out", type=Path, default=Path("results/tune_memory"))
     args = parser.parse_args(argv)
     rows = []
     for horizon in args.horizons:
-        for block in ("auto", str(args.fixed_block)):
+        for block in args.blocks:
             row = measure(horizon, args.draws, block, horizon <= args.execute_up_to)
             rows.append(row)
             print(
@@ -84,7 +92,11 @@ def main(argv=None) -> int:
                 flush=True,
             )
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "memory.json").write_text(json.dumps(rows, indent=1) + "\n")
+    path = args.out / "memory.json"
+    previous = json.loads(path.read_text()) if path.exists() else []
+    keep = {(r["horizon_s"], r["draws"], r["save_every"]) for r in rows}
+    merged = [r for r in previous if (r["horizon_s"], r["draws"], r["save_every"]) not in keep]
+    path.write_text(json.dumps(merged + rows, indent=1) + "\n")
     return 0
 
 
