@@ -2,7 +2,7 @@
 by derivative-free baselines, and compare against the paper's gains on held-out draws.
 
     python -m experiments.tune_paper_gains [--out results/tune_paper_gains]
-                                           [--steps 60] [--draws 16] [--horizon 10] ...
+                                           [--steps 50] [--draws 16] [--horizon 10] ...
                                            [--tiny]   (a seconds-long smoke run)
 
 Protocol (every number in ``docs/tuning.md`` comes from this script):
@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--scenario", type=int, default=2)
     parser.add_argument("--horizon", type=float, default=10.0, help="tuning horizon (s)")
     parser.add_argument("--draws", type=int, default=16, help="draws per gradient step")
-    parser.add_argument("--steps", type=int, default=60, help="gradient steps")
+    parser.add_argument("--steps", type=int, default=50, help="gradient steps")
     parser.add_argument("--learning-rate", type=float, default=0.1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--dtype", default="float32")
