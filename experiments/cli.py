@@ -3,6 +3,8 @@
 fojax accuracy --out DIR     accuracy and cost of the fractional operators
 fojax simulate ...           Monte Carlo study of a scenario (see fojax simulate --help)
 fojax reproduce --out DIR    the paper's Section V with Monte Carlo (report, JSON, figures)
+fojax tune ...               gradient-based gain tuning (see fojax tune --help)
+fojax bench [--json FILE]    throughput, compile time and gradient cost
 """
 
 from __future__ import annotations
@@ -24,6 +26,10 @@ COMMANDS = {
         "Monte Carlo study of a scenario under one or all controllers",
     ),
     "bench": ("experiments.bench", "throughput, compile time and gradient cost of the closed loop"),
+    "tune": (
+        "experiments.tune",
+        "gradient-based gain tuning over Monte Carlo draws",
+    ),
 }
 
 

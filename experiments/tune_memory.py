@@ -1,0 +1,104 @@
+"""Peak memory of the tuning gradient against the horizon (scenario 2, 256 draws).
+
+    python -m experiments.tune_memory [--horizons 5 10 20 40 80] [--draws 256]
+                                      [--execute-up-to 10] [--out results/tune_memory]
+
+For each horizon, in a fresh subprocess: compile the gradient of the mean tuning cost
+(:meth:`optimize.problem.TuningProblem.value_and_grad`, float32, AFONFTSMC, the
+paper's gains) and read XLA's ``memory_analysis()`` (temporary buffers = the peak
+working set the compiled program allocates besides its arguments and outputs); for
+horizons up to ``--execute-up-to`` s also run it once and record the process's peak
+resident memory (``ru_maxrss``, which includes JAX itself and the compiler). Blocks of
+the rollout (``save_every``) follow :func:`optimize.problem.checkpoint_interval`
+(about ``0.75 sqrt(steps)`` steps) and, for comparison, a fixed 100 steps or one
+block over the whole horizon (``--blocks auto 100 full``). Writes
+``memory.json`` and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+CHILD = r"""
+import json, resource, sys, time
+import jax, jax.numpy as jnp
+from optimize import problem as P
+from fojax.afonftsmc import paper_gains
+horizon, draws = float(sys.argv[1]), int(sys.argv[2])
+block, execute = sys.argv[3], sys.argv[4] == "1"
+steps = round(horizon / 1e-3)
+save_every = None if block == "auto" else steps if block == "full" else int(block)
+spec = P.ProblemSpec(horizon=horizon, draws=draws, dtype="float32", save_every=save_every)
+problem = P.TuningProblem(spec, paper_gains(jnp.float32))
+params = problem.initial_params()
+keys = problem.minibatch_keys(0)
+scale = jnp.asarray(1.0, jnp.float32)
+t0 = time.perf_counter()
+compiled = problem._value_and_grad.lower(params, scale, keys).compile()
+compile_s = time.perf_counter() - t0
+m = compiled.memory_analysis()
+out = {"horizon_s": horizon, "draws": draws, "steps": spec.steps, "save_every": spec.block,
+       "blocks": spec.steps // spec.block, "temp_mb": m.temp_size_in_bytes / 2**20,
+       "argument_mb": m.argument_size_in_bytes / 2**20, "output_mb": m.output_size_in_bytes / 2**20,
+       "compile_s": round(compile_s, 1), "executed": execute}
+rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+out["rss_before_run_mb"] = rss_before
+if execute:
+    t0 = time.perf_counter()
+    jax.block_until_ready(compiled(params, scale, keys))
+    out["run_s"] = round(time.perf_counter() - t0, 1)
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print("RESULT " + json.dumps(out))
+"""
+
+
+def measure(horizon: float, draws: int, block: str, execute: bool) -> dict:
+    command = [sys.executable, "-c", CHILD, str(horizon), str(draws), block, str(int(execute))]
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    for line in done.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    raise RuntimeError(f"measurement failed for {horizon} s / {block}:\n{done.stderr[-2000:]}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m experiments.tune_memory")
+    parser.add_argument("--horizons", type=float, nargs="+", default=[5, 10, 20, 40, 80])
+    parser.add_argument("--draws", type=int, default=256)
+    parser.add_argument("--execute-up-to", type=float, default=10.0)
+    parser.add_argument(
+        "--blocks",
+        nargs="+",
+        default=["auto", "100"],
+        help="block choices: auto (checkpoint_interval), a number of steps, or full "
+        "(one block: no rematerialisation across the horizon)",
+    )
+    parser.add_argument("--out", type=Path, default=Path("results/tune_memory"))
+    args = parser.parse_args(argv)
+    rows = []
+    for horizon in args.horizons:
+        for block in args.blocks:
+            row = measure(horizon, args.draws, block, horizon <= args.execute_up_to)
+            rows.append(row)
+            print(
+                f"  {row['horizon_s']:5g} s  save_every {row['save_every']:5d}  blocks "
+                f"{row['blocks']:4d}  temp {row['temp_mb']:9.1f} MiB  args {row['argument_mb']:.1f}"
+                f"  peak RSS {row.get('peak_rss_mb', float('nan')):8.0f} MiB  run "
+                f"{row.get('run_s', '-')} s",
+                flush=True,
+            )
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "memory.json"
+    previous = json.loads(path.read_text()) if path.exists() else []
+    keep = {(r["horizon_s"], r["draws"], r["save_every"]) for r in rows}
+    merged = [r for r in previous if (r["horizon_s"], r["draws"], r["save_every"]) not in keep]
+    path.write_text(json.dumps(merged + rows, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,422 @@
+"""Reproduce the paper's gains: tune the AFONFTSMC from a naive guess, by gradient and
+by derivative-free baselines, and compare against the paper's gains on held-out draws.
+
+    python -m experiments.tune_paper_gains [--out results/tune_paper_gains]
+                                           [--steps 50] [--draws 16] [--horizon 10] ...
+                                           [--tiny]   (a seconds-long smoke run)
+
+Protocol (every number in ``docs/tuning.md`` comes from this script):
+
+1. Tuning problem: scenario ``--scenario`` (2: drag uncertainty, disturbances (53),
+   Gaussian disturbances), reference (54)-(55), ``--horizon`` seconds, the cost of
+   :mod:`optimize.cost` with the CLI defaults, draws from the tuning stream of seed
+   ``--seed``; start: :func:`optimize.params.naive_gains`.
+2. Tuners, same problem, same starting point:
+   * gradient (:mod:`optimize.tuner`): ``--steps`` steps of ``--draws`` draws;
+   * CMA-ES and Nelder-Mead (:mod:`optimize.derivative_free`) with
+     ``--df-budget-factor`` times the gradient tuner's simulated draw-steps (a
+     gradient step simulates its draws once forward; its reverse pass costs a few
+     forward passes more in wall time, which the wall-time axis shows).
+   Along the way each tuner's current answer is scored on ``--validation-draws``
+   held-out draws at the tuning horizon (``sat`` switching), not counted in any
+   budget or wall time.
+3. Evaluation of the paper's, the naive and the three tuned gain sets with the
+   evaluation switching (``sat``, the gains' boundary layers) on ``--eval-draws``
+   held-out draws at the scenario's full horizon, on: the tuning scenario; the same
+   disturbances with a reference not used in tuning (:func:`unseen_reference`); and
+   scenario 3 (other disturbances, 30 % mass/inertia uncertainty, reference (57)).
+   Paired differences against the paper's gains use the same draws (95 % Student-t).
+
+Writes ``results.json``, ``table.md``, ``curves.csv`` and ``tuning.png`` to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["main", "unseen_reference"]
+
+VALIDATION_OFFSET = 100_000  # validation draws: held-out indices from here on
+
+
+def unseen_reference(t):
+    """A reference not used in tuning: a figure-eight with a climb and a varying yaw.
+
+    ``x_r = 0.8 sin(pi t / 20)``, ``y_r = 0.4 sin(pi t / 10)``,
+    ``z_r = 1.5 (1 - cos(pi t / 40))`` (m), ``psi_r = 0.3 + 0.2 sin(pi t / 20)`` (rad).
+    Returns ``(4,)``.
+    """
+    import jax.numpy as jnp
+
+    t = jnp.asarray(t)
+    return jnp.stack(
+        [
+            0.8 * jnp.sin(jnp.pi * t / 20.0),
+            0.4 * jnp.sin(jnp.pi * t / 10.0),
+            1.5 * (1.0 - jnp.cos(jnp.pi * t / 40.0)),
+            0.3 + 0.2 * jnp.sin(jnp.pi * t / 20.0),
+        ]
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m experiments.tune_paper_gains")
+    parser.add_argument("--scenario", type=int, default=2)
+    parser.add_argument("--horizon", type=float, default=10.0, help="tuning horizon (s)")
+    parser.add_argument("--draws", type=int, default=16, help="draws per gradient step")
+    parser.add_argument("--steps", type=int, default=50, help="gradient steps")
+    parser.add_argument("--learning-rate", type=float, default=0.1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--dtype", default="float32")
+    parser.add_argument("--df-budget-factor", type=float, default=3.0)
+    parser.add_argument("--cma-sigma", type=float, default=0.5)
+    parser.add_argument("--validation-draws", type=int, default=32)
+    parser.add_argument("--validate-every", type=int, default=5, help="gradient steps")
+    parser.add_argument("--eval-draws", type=int, default=64)
+    parser.add_argument("--eval-horizon", type=float, help="s (default: each scenario's)")
+    parser.add_argument("--out", type=Path, default=Path("results/tune_paper_gains"))
+    parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
+    parser.add_argument("--quiet", action="store_true")
+    # Cost weights (default: the fojax tune defaults).
+    parser.add_argument("--effort-weight", type=float)
+    parser.add_argument("--chattering-weight", type=float)
+    parser.add_argument("--attitude-weight", type=float)
+    return parser
+
+
+def _log(args, text):
+    if not args.quiet:
+        print(text, file=sys.stderr, flush=True)
+
+
+def _summary(values, baseline=None) -> dict:
+    from fojax import statistics
+
+    out = statistics.mean_ci(values)
+    if baseline is not None:
+        out["minus_paper"] = statistics.paired_difference(values, baseline)
+        out["better_than_paper_fraction"] = float(np.mean(np.asarray(values) < baseline))
+    return out
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.tiny:
+        # The small problem of the tests (shares their compiled code).
+        args.horizon, args.draws, args.steps = 0.3, 3, 2
+        args.seed, args.dtype = 5, "float64"
+        args.effort_weight, args.chattering_weight, args.attitude_weight = 1e-3, 1e-3, 2.0
+        args.validation_draws, args.validate_every, args.eval_draws = 2, 1, 2
+        args.eval_horizon = args.eval_horizon or 0.3
+        args.df_budget_factor = max(args.df_budget_factor, 40.0)
+    if args.dtype == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    from fojax import scenarios
+    from fojax.afonftsmc import paper_gains
+    from optimize import cost as cost_lib
+    from optimize import derivative_free
+    from optimize import params as params_lib
+    from optimize import problem as problem_lib
+    from optimize import tuner as tuner_lib
+
+    start_all = time.perf_counter()
+    dtype = jnp.dtype(args.dtype)
+    overrides = {
+        k: v
+        for k, v in (
+            ("effort_weight", args.effort_weight),
+            ("chattering_weight", args.chattering_weight),
+            ("attitude_weight", args.attitude_weight),
+        )
+        if v is not None
+    }
+    cost_config = cost_lib.CostConfig(**overrides)
+    spec = problem_lib.ProblemSpec(
+        controller="afonftsmc",
+        scenario=args.scenario,
+        horizon=args.horizon,
+        draws=args.draws,
+        seed=args.seed,
+        cost=cost_config,
+        dtype=args.dtype,
+    )
+    config = tuner_lib.TunerConfig(steps=args.steps, learning_rate=args.learning_rate)
+    naive = params_lib.naive_gains("afonftsmc", dtype)
+    paper = paper_gains(dtype)
+    problem = problem_lib.TuningProblem(spec, naive)
+    validation_keys = np.asarray(
+        scenarios.draw_keys(
+            spec.seed,
+            problem_lib.HELDOUT_OFFSET + VALIDATION_OFFSET + np.arange(args.validation_draws),
+        )
+    )
+
+    def validate(gains) -> float:
+        return float(np.mean(problem_lib.evaluate(spec, gains, validation_keys).cost))
+
+    # Compile the tuners' functions first, so that no tuner's wall time counts them.
+    t0 = time.perf_counter()
+    warm = problem.initial_params()
+    problem.value_and_grad(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
+    problem.value(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
+    compile_s = time.perf_counter() - t0
+    _log(args, f"compiled the tuning cost and its gradient ({compile_s:.0f} s)")
+
+    curves = []  # (method, draw_steps, wall_time_s, validation cost)
+    references = {"paper": validate(paper), "naive": validate(naive)}
+    _log(args, f"validation cost: paper {references['paper']:.4g}, naive {references['naive']:.4g}")
+    for method in ("gradient", "cma-es", "nelder-mead"):
+        curves.append((method, 0, 0.0, references["naive"]))
+
+    # -- gradient tuner -----------------------------------------------------------------
+    def on_step(step, params, row):
+        if step % args.validate_every == 0 or step == config.steps:
+            value = validate(problem.gains(params))
+            curves.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
+
+    _log(args, f"gradient tuner: {config.steps} steps x {spec.draws} draws x {spec.horizon:g} s")
+    run = tuner_lib.prepare(spec, config, naive, "naive", None)
+    gradient = tuner_lib.tune(run, progress=not args.quiet, callback=on_step, problem=problem)
+    gradient_steps = gradient.history[-1]["draw_steps"]
+    gradient_wall = gradient.history[-1]["wall_time_s"]
+    budget = int(args.df_budget_factor * gradient_steps)
+
+    # -- derivative-free tuners -----------------------------------------------------------
+    def recorder(method):
+        def callback(draw_steps, params, row):
+            curves.append((method, draw_steps, row["wall_time_s"], validate(problem.gains(params))))
+            _log(args, f"  {method}: {draw_steps} draw-steps, best {row['best_objective']:.4g}")
+
+        return callback
+
+    _log(args, f"CMA-ES: budget {budget} draw-steps")
+    es = derivative_free.cma_es(
+        problem,
+        budget,
+        sigma0=args.cma_sigma,
+        seed=args.seed,
+        width_scale=config.anneal_end,
+        callback=recorder("cma-es"),
+    )
+    popsize = es.evaluations // max(len(es.history), 1)
+    _log(args, f"Nelder-Mead: budget {budget} draw-steps")
+    nm = derivative_free.nelder_mead(
+        problem,
+        budget,
+        width_scale=config.anneal_end,
+        callback=recorder("nelder-mead"),
+        callback_every=max(1, popsize),
+    )
+    curves.append(("nelder-mead", nm.draw_steps, nm.wall_time_s, validate(nm.gains)))
+
+    # -- evaluation on held-out draws --------------------------------------------------
+    gain_sets = {
+        "paper": paper,
+        "naive": naive,
+        "gradient": gradient.gains,
+        "cma-es": es.gains,
+        "nelder-mead": nm.gains,
+    }
+    tuned_scenario = scenarios.get_scenario(args.scenario)
+    settings = {
+        f"scenario {args.scenario}": tuned_scenario,
+        "unseen reference": dataclasses.replace(tuned_scenario, reference=unseen_reference),
+        "scenario 3": scenarios.get_scenario(3),
+    }
+    eval_keys = problem.heldout_keys(args.eval_draws)
+    evaluation = {}
+    for label, scenario in settings.items():
+        horizon = args.eval_horizon or scenario.horizon
+        t0 = time.perf_counter()
+        costs = {
+            name: problem_lib.evaluate(spec, gains, eval_keys, horizon=horizon, scenario=scenario)
+            for name, gains in gain_sets.items()
+        }
+        base = costs["paper"].cost
+        evaluation[label] = {
+            "horizon_s": horizon,
+            "draws": args.eval_draws,
+            "gains": {
+                name: {
+                    "cost": _summary(c.cost, None if name == "paper" else base),
+                    "terms_mean": np.mean(
+                        np.where(c.diverged[:, None], np.nan, c.terms), 0
+                    ).tolist(),
+                    "diverged": int(np.sum(c.diverged)),
+                }
+                for name, c in costs.items()
+            },
+        }
+        _log(args, f"evaluated {label} ({time.perf_counter() - t0:.0f} s)")
+
+    # -- where the gradient tuner reaches the derivative-free tuners' best --------------
+    reach = {}
+    gradient_curve = [(s, w, v) for m, s, w, v in curves if m == "gradient"]
+    for method in ("cma-es", "nelder-mead"):
+        points = [(s, w, v) for m, s, w, v in curves if m == method]
+        best = min(v for _, _, v in points)
+        first = next(((s, w) for s, w, v in gradient_curve if v <= best), None)
+        reach[method] = {
+            "best_validation_cost": best,
+            "draw_steps_used": max(s for s, _, _ in points),
+            "gradient_draw_steps_to_reach": first[0] if first else None,
+            "gradient_wall_time_to_reach_s": first[1] if first else None,
+        }
+
+    results = {
+        "problem": spec.as_dict(),
+        "tuner": dataclasses.asdict(config),
+        "validation": {
+            "draws": args.validation_draws,
+            "horizon_s": spec.horizon,
+            "switching": "sat",
+            "paper": references["paper"],
+            "naive": references["naive"],
+        },
+        "tuners": {
+            "gradient": {
+                "draw_steps": gradient_steps,
+                "wall_time_s": gradient_wall,
+                "steps": config.steps,
+                "final_objective": gradient.history[-1]["objective"],
+            },
+            "cma-es": {
+                "draw_steps": es.draw_steps,
+                "wall_time_s": round(es.wall_time_s, 3),
+                "evaluations": es.evaluations,
+                "generations": len(es.history),
+                "popsize": popsize,
+            },
+            "nelder-mead": {
+                "draw_steps": nm.draw_steps,
+                "wall_time_s": round(nm.wall_time_s, 3),
+                "evaluations": nm.evaluations,
+            },
+        },
+        "gradient_reaches": reach,
+        "evaluation": evaluation,
+        "gains": {
+            name: {k: np.asarray(v).tolist() for k, v in g._asdict().items()}
+            for name, g in gain_sets.items()
+        },
+        "compile_time_s": round(compile_s, 1),
+        "total_wall_time_s": round(time.perf_counter() - start_all, 1),
+    }
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    with open(out / "curves.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["method", "draw_steps", "wall_time_s", "validation_cost"])
+        writer.writerows(curves)
+    (out / "table.md").write_text(table(results) + "\n")
+    plot(curves, references, out / "tuning.png")
+    print(table(results))
+    print(
+        f"wrote {out}/results.json, table.md, curves.csv, tuning.png "
+        f"({results['total_wall_time_s']:.0f} s in all)"
+    )
+    return 0
+
+
+def _cell(entry: dict) -> str:
+    cost = entry["cost"]
+    if cost["mean"] is None:
+        return "n/a"
+    text = f"{cost['mean']:.4g}"
+    if cost.get("ci95"):
+        text += f" ± {(cost['ci95'][1] - cost['ci95'][0]) / 2:.2g}"
+    if entry["diverged"]:
+        text += f" ({entry['diverged']} div.)"
+    return text
+
+
+def table(results: dict) -> str:
+    """Markdown tables: held-out costs per gain set, and the tuners' budgets."""
+    evaluation = results["evaluation"]
+    labels = list(evaluation)
+    names = list(next(iter(evaluation.values()))["gains"])
+    head = (
+        "| gains | "
+        + " | ".join(f"{label} ({evaluation[label]['horizon_s']:g} s)" for label in labels)
+        + " | tuning draw-steps | tuning wall time (s) |"
+    )
+    lines = [head, "|" + "---|" * (len(labels) + 3)]
+    tuners = results["tuners"]
+    for name in names:
+        cells = [_cell(evaluation[label]["gains"][name]) for label in labels]
+        spent = tuners.get(name, {})
+        lines.append(
+            f"| {name} | "
+            + " | ".join(cells)
+            + f" | {spent.get('draw_steps', '-')} | {spent.get('wall_time_s', '-')} |"
+        )
+    lines.append("")
+    lines.append(
+        "| gains | " + " | ".join(f"{label}: minus paper (95 % CI)" for label in labels) + " |"
+    )
+    lines.append("|" + "---|" * (len(labels) + 1))
+    for name in names:
+        if name == "paper":
+            continue
+        cells = []
+        for label in labels:
+            diff = evaluation[label]["gains"][name]["cost"]["minus_paper"]
+            frac = evaluation[label]["gains"][name]["cost"]["better_than_paper_fraction"]
+            if diff["mean"] is None:
+                cells.append("n/a")
+            elif diff["ci95"]:
+                cells.append(
+                    f"{diff['mean']:+.3g} [{diff['ci95'][0]:+.3g}, {diff['ci95'][1]:+.3g}], "
+                    f"better on {100 * frac:.0f} %"
+                )
+            else:
+                cells.append(f"{diff['mean']:+.3g}")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(curves, references, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    colors = {"gradient": "C0", "cma-es": "C1", "nelder-mead": "C2"}
+    for method, color in colors.items():
+        points = sorted((s, w, v) for m, s, w, v in curves if m == method)
+        if not points:
+            continue
+        s, w, v = (np.asarray(x, float) for x in zip(*points, strict=True))
+        axes[0].plot(s, v, "o-", color=color, ms=3, label=method)
+        axes[1].plot(w, v, "o-", color=color, ms=3, label=method)
+    for ax in axes:
+        ax.axhline(references["paper"], color="k", ls="--", lw=1, label="paper's gains")
+        ax.axhline(references["naive"], color="gray", ls=":", lw=1, label="naive start")
+        ax.grid(alpha=0.3)
+    axes[0].set_xlabel("simulated draw-steps (forward)")
+    axes[1].set_xlabel("tuning wall time (s)")
+    axes[0].set_ylabel("held-out validation cost (mean)")
+    axes[0].set_yscale("log")
+    axes[1].legend(fontsize=8)
+    fig.suptitle("AFONFTSMC tuned from a naive start: validation cost on held-out draws")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

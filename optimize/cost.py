@@ -1,0 +1,223 @@
+"""The tuning cost: per-draw tracking, effort and chattering terms through
+:func:`fojax.simulator.rollout`, and the mean or CVaR over a minibatch of draws.
+
+Per draw (rectangle sums at the control instants ``t_k = k dt``, as
+:mod:`fojax.metrics`; errors ``e = actual - reference``, roll and pitch against the
+attitude reference the attitude loop tracks, ``ControlInfo.attitude_reference``):
+
+* tracking, ``error="ise"``: ``P = int |e_pos|^2 dt`` (m^2 s), ``A = int |e_att|^2 dt``
+  (rad^2 s); ``error="itae"``: ``P = int t sum_i |e_pos,i| dt``, ``A`` likewise;
+* effort ``E = int |a|^2 dt`` and chattering ``C = sum_k |a_k - a_(k-1)|_1`` (total
+  variation) of the commanded accelerations ``a = ((u_F - m g) / m, tau_x / I_11,
+  tau_y / I_22, tau_z / I_33)`` of the controller's nominal model (m/s^2, rad/s^2:
+  the four inputs on comparable scales, zero at hover);
+* ``J = w_pos P + w_att A + w_effort E + w_chattering C``.
+
+A draw that diverges (status ``nonfinite`` or ``tilt_limit``, or a non-finite ``J``)
+costs ``divergence_cost`` and contributes no gradient. Over a minibatch of ``n``
+draws, ``objective="mean"`` is the mean of ``J``, ``objective="cvar"`` the mean of the
+``ceil(cvar_fraction n)`` largest (the conditional value at risk of the worst tail).
+Gradients are per draw (``vmap`` of ``grad``), so one diverged draw cannot poison the
+others with NaN; the objective's gradient is ``sum_i w_i grad J_i`` with the mean's or
+the tail's weights ``w_i``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from fojax import plant, scenarios, simulator
+
+Array = jax.Array
+
+__all__ = [
+    "DIVERGED",
+    "ERRORS",
+    "OBJECTIVES",
+    "CostConfig",
+    "CostTerms",
+    "DrawCosts",
+    "combine",
+    "make_draw_cost",
+]
+
+ERRORS = ("ise", "itae")
+OBJECTIVES = ("mean", "cvar")
+DIVERGED = simulator.NONFINITE | simulator.TILT_LIMIT
+
+
+@dataclasses.dataclass(frozen=True)
+class CostConfig:
+    """Static settings of the tuning cost (see the module docstring).
+
+    error: ``"ise"`` or ``"itae"``. position_weight, attitude_weight, effort_weight,
+    chattering_weight: ``w_pos, w_att, w_effort, w_chattering`` (>= 0, not all 0).
+    objective: ``"mean"`` or ``"cvar"``. cvar_fraction: the worst fraction of draws
+    CVaR averages, in ``(0, 1]``. divergence_cost: the cost of a diverged draw (> 0).
+    """
+
+    error: str = "ise"
+    position_weight: float = 1.0
+    attitude_weight: float = 1.0
+    effort_weight: float = 1e-5
+    chattering_weight: float = 1e-5
+    objective: str = "mean"
+    cvar_fraction: float = 0.25
+    divergence_cost: float = 1e3
+
+    def __post_init__(self) -> None:
+        if self.error not in ERRORS:
+            raise ValueError(f"unknown error measure {self.error!r}; choose one of {ERRORS}")
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"unknown objective {self.objective!r}; choose one of {OBJECTIVES}")
+        weights = self.weights
+        for label, value in zip(
+            ("position_weight", "attitude_weight", "effort_weight", "chattering_weight"),
+            weights,
+            strict=True,
+        ):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{label} must be a finite number >= 0, got {value!r}")
+        if not any(w > 0 for w in weights):
+            raise ValueError("at least one cost weight must be > 0")
+        if not (isinstance(self.cvar_fraction, int | float) and 0 < self.cvar_fraction <= 1):
+            raise ValueError(f"cvar_fraction must be in (0, 1], got {self.cvar_fraction!r}")
+        if not (math.isfinite(self.divergence_cost) and self.divergence_cost > 0):
+            raise ValueError(
+                f"divergence_cost must be a finite number > 0, got {self.divergence_cost!r}"
+            )
+
+    @property
+    def weights(self) -> tuple[float, float, float, float]:
+        return (
+            self.position_weight,
+            self.attitude_weight,
+            self.effort_weight,
+            self.chattering_weight,
+        )
+
+    def tail_count(self, draws: int) -> int:
+        """Draws averaged by the CVaR objective out of ``draws``."""
+        return max(1, math.ceil(self.cvar_fraction * draws - 1e-9))
+
+
+class CostTerms(NamedTuple):
+    """Running sums of one draw (the accumulator of :func:`fojax.simulator.rollout`).
+
+    position, attitude: ``()`` tracking terms ``P``, ``A``. effort: ``()`` ``E``.
+    chattering: ``()`` ``C``. previous: ``(4,)`` the last commanded accelerations.
+    started: ``()`` bool, a previous command exists.
+    """
+
+    position: Array
+    attitude: Array
+    effort: Array
+    chattering: Array
+    previous: Array
+    started: Array
+
+
+class DrawCosts(NamedTuple):
+    """Costs of a minibatch of ``n`` draws.
+
+    cost: ``(n,)`` ``J`` per draw (``divergence_cost`` for diverged draws).
+    terms: ``(n, 4)`` ``(P, A, E, C)`` per draw (as simulated; may be non-finite).
+    status: ``(n,)`` int32 rollout status bits. diverged: ``(n,)`` bool.
+    """
+
+    cost: Array
+    terms: Array
+    status: Array
+    diverged: Array
+
+
+def _accumulator(config: CostConfig, model: plant.PlantParams, dt: float, dtype):
+    scale = jnp.concatenate([model.mass[None], model.inertia]).astype(dtype)
+    hover = plant.hover_inputs(model).astype(dtype)
+    itae = config.error == "itae"
+
+    def init() -> CostTerms:
+        zero = jnp.zeros((), dtype)
+        return CostTerms(zero, zero, zero, zero, jnp.zeros(4, dtype), jnp.zeros((), bool))
+
+    def update(acc: CostTerms, t, state, reference, inputs, info) -> CostTerms:
+        position_error = state[:3] - reference[:3]
+        attitude_error = state[3:6] - info.attitude_reference.astype(state.dtype)
+        if itae:
+            position = t * jnp.sum(jnp.abs(position_error))
+            attitude = t * jnp.sum(jnp.abs(attitude_error))
+        else:
+            position = jnp.sum(position_error**2)
+            attitude = jnp.sum(attitude_error**2)
+        accel = (inputs - hover) / scale
+        jump = jnp.where(acc.started, jnp.sum(jnp.abs(accel - acc.previous)), 0.0)
+        return CostTerms(
+            position=acc.position + dt * position,
+            attitude=acc.attitude + dt * attitude,
+            effort=acc.effort + dt * jnp.sum(accel**2),
+            chattering=acc.chattering + jump,
+            previous=accel,
+            started=jnp.ones((), bool),
+        )
+
+    return init, update
+
+
+def make_draw_cost(
+    controller: Any,
+    scenario: scenarios.Scenario,
+    sim_config: simulator.SimulationConfig,
+    cost_config: CostConfig,
+    dtype: Any = None,
+):
+    """``cost(gains, key) -> (J (), terms (4,), status ())`` of one draw (pure; vmap it).
+
+    ``controller`` is built for the run (its ``horizon`` should equal
+    ``sim_config.horizon``); the controller's nominal model is
+    :func:`fojax.plant.nominal_params`; ``key`` comes from
+    :func:`fojax.scenarios.draw_keys`. ``J`` is the raw weighted sum (non-finite when
+    the draw diverged; :func:`combine` handles that).
+    """
+    dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
+    model = plant.nominal_params(dtype)
+    accumulator = _accumulator(cost_config, model, sim_config.dt, dtype)
+    weights = jnp.asarray(cost_config.weights, dtype)
+
+    def cost(gains, key):
+        draw = scenarios.sample_draw(scenario, key, sim_config.dt, dtype)
+        result = simulator.rollout(
+            controller, gains, model, scenario, draw, sim_config, accumulator
+        )
+        acc = result.extra
+        terms = jnp.stack([acc.position, acc.attitude, acc.effort, acc.chattering])
+        return jnp.sum(weights * terms), terms, result.status
+
+    return cost
+
+
+def guard(cost_config: CostConfig, cost: Array, status: Array) -> tuple[Array, Array]:
+    """``(effective cost (n,), diverged (n,))``: diverged draws cost
+    ``divergence_cost``."""
+    diverged = ((status & DIVERGED) != 0) | ~jnp.isfinite(cost)
+    return jnp.where(diverged, cost_config.divergence_cost, cost), diverged
+
+
+def combine(cost_config: CostConfig, cost: Array) -> tuple[Array, Array]:
+    """``(objective (), weights (n,))`` from effective per-draw costs ``(n,)``.
+
+    The objective is ``sum_i weights_i cost_i``: the mean (``1/n``) or the CVaR (``1/k``
+    on the ``k`` largest costs, :meth:`CostConfig.tail_count`; ties broken by index).
+    """
+    n = cost.shape[0]
+    if cost_config.objective == "mean":
+        weights = jnp.full((n,), 1.0 / n, cost.dtype)
+    else:
+        k = cost_config.tail_count(n)
+        _, worst = jax.lax.top_k(cost, k)
+        weights = jnp.zeros((n,), cost.dtype).at[worst].set(1.0 / k)
+    return jnp.sum(weights * cost), weights

@@ -1,0 +1,243 @@
+"""Derivative-free baselines at a fixed budget of simulated draw-steps.
+
+Stand-ins for the MATLAB optimisation toolbox of the paper's Remark 3, on exactly the
+gradient tuner's problem: the same unconstrained parameters (so every candidate is
+feasible), the same cost and objective (:class:`optimize.problem.TuningProblem`) with
+the switching at a fixed width (``width_scale``, by default the gradient tuner's final
+one), draws from the same tuning stream (never the held-out ones).
+
+* :func:`cma_es`: CMA-ES (the ``cma`` package). Every generation evaluates all its
+  candidates on one fresh minibatch (common random numbers within a generation); the
+  answer is the distribution mean (``xfavorite``), the robust choice for a noisy
+  objective.
+* :func:`nelder_mead`: SciPy's Nelder-Mead on one fixed minibatch (a sample-average
+  approximation: a deterministic objective, as the simplex method needs), initial
+  simplex ``x0 + step e_i``.
+
+The budget counts forward-simulated draw-steps (draws x steps per evaluation); an
+evaluation that would exceed it is not started. ``callback(draw_steps, params, row)``
+is called after each generation (CMA-ES) or every ``callback_every`` evaluations
+(Nelder-Mead); its time is not counted in ``wall_time_s``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from optimize.problem import TuningProblem
+
+__all__ = ["Budget", "DFResult", "cma_es", "nelder_mead"]
+
+
+class Budget:
+    """A counter of simulated draw-steps with a limit."""
+
+    def __init__(self, draw_steps: int):
+        if not isinstance(draw_steps, int | np.integer) or draw_steps < 1:
+            raise ValueError(
+                f"the budget must be a positive number of draw-steps, got {draw_steps!r}"
+            )
+        self.limit = int(draw_steps)
+        self.used = 0
+
+    def affords(self, draw_steps: int) -> bool:
+        return self.used + draw_steps <= self.limit
+
+    def charge(self, draw_steps: int) -> None:
+        if not self.affords(draw_steps):
+            raise RuntimeError("budget exceeded")
+        self.used += draw_steps
+
+
+class DFResult(NamedTuple):
+    """method: name. params: final unconstrained parameters. gains: evaluation gains.
+    history: one dict per generation / callback point (``evaluations``,
+    ``draw_steps``, ``wall_time_s``, ``objective``, ``best_objective``).
+    evaluations, draw_steps: totals. wall_time_s: tuning time (callbacks excluded)."""
+
+    method: str
+    params: dict
+    gains: Any
+    history: list
+    evaluations: int
+    draw_steps: int
+    wall_time_s: float
+
+
+class _Objective:
+    """Candidate vector -> objective on ``keys``, with counters and timing."""
+
+    def __init__(self, problem: TuningProblem, width_scale: float, budget: Budget):
+        self.problem = problem
+        self.width_scale = width_scale
+        self.budget = budget
+        params = problem.initial_params()
+        self.x0, self.unravel = problem.param_map.ravel(params)
+        self.x0 = np.asarray(self.x0, np.float64)
+        self.dtype = problem.spec.jnp_dtype
+        self.evaluations = 0
+        self.start = time.perf_counter()
+        self.excluded = 0.0
+
+    def params(self, x) -> dict:
+        return self.unravel(jnp.asarray(x, self.dtype))
+
+    def __call__(self, x, keys) -> float:
+        self.budget.charge(int(keys.shape[0]) * self.problem.spec.steps)
+        self.evaluations += 1
+        return float(self.problem.value(self.params(x), self.width_scale, keys).objective)
+
+    @property
+    def wall(self) -> float:
+        return time.perf_counter() - self.start - self.excluded
+
+    def report(self, callback, x, row) -> None:
+        if callback is None:
+            return
+        t0 = time.perf_counter()
+        callback(self.budget.used, self.params(x), row)
+        self.excluded += time.perf_counter() - t0
+
+
+def cma_es(
+    problem: TuningProblem,
+    budget_draw_steps: int,
+    draws_per_candidate: int | None = None,
+    sigma0: float = 0.5,
+    popsize: int | None = None,
+    seed: int = 0,
+    width_scale: float = 1.0,
+    callback: Callable | None = None,
+) -> DFResult:
+    """CMA-ES from the problem's initial parameters with step ``sigma0`` (in the
+    unconstrained parameters), ``popsize`` candidates per generation (default the
+    ``cma`` package's ``4 + 3 ln n``), each on ``draws_per_candidate`` draws (default
+    the problem's minibatch size)."""
+    import cma
+
+    budget = Budget(budget_draw_steps)
+    objective = _Objective(problem, width_scale, budget)
+    n = problem.spec.draws if draws_per_candidate is None else int(draws_per_candidate)
+    if n < 1:
+        raise ValueError(f"draws_per_candidate must be >= 1, got {draws_per_candidate!r}")
+    options = {
+        "seed": int(seed) + 1,
+        "verbose": -9,
+        "tolx": 0,
+        "tolfun": 0,
+        "tolflatfitness": 10**9,
+    }
+    if popsize is not None:
+        options["popsize"] = int(popsize)
+    es = cma.CMAEvolutionStrategy(objective.x0.tolist(), float(sigma0), options)
+    per_generation = es.popsize * n * problem.spec.steps
+    if not budget.affords(per_generation):
+        raise ValueError(
+            f"the budget ({budget.limit} draw-steps) does not cover one CMA-ES generation "
+            f"({per_generation} draw-steps)"
+        )
+    history = []
+    best = np.inf
+    generation = 0
+    while budget.affords(per_generation):
+        candidates = es.ask()
+        keys = problem.minibatch_keys(generation, draws=n)
+        values = [objective(x, keys) for x in candidates]
+        es.tell(candidates, values)
+        generation += 1
+        best = min(best, min(values))
+        row = {
+            "evaluations": objective.evaluations,
+            "draw_steps": budget.used,
+            "wall_time_s": round(objective.wall, 3),
+            "objective": float(np.min(values)),
+            "best_objective": float(best),
+        }
+        history.append(row)
+        objective.report(callback, es.result.xfavorite, row)
+    x = np.asarray(es.result.xfavorite)
+    params = objective.params(x)
+    return DFResult(
+        "cma-es",
+        params,
+        problem.gains(params),
+        history,
+        objective.evaluations,
+        budget.used,
+        objective.wall,
+    )
+
+
+def nelder_mead(
+    problem: TuningProblem,
+    budget_draw_steps: int,
+    draws: int | None = None,
+    step: float = 0.5,
+    width_scale: float = 1.0,
+    callback: Callable | None = None,
+    callback_every: int = 20,
+    minibatch: int = 0,
+) -> DFResult:
+    """SciPy Nelder-Mead on minibatch ``minibatch`` of ``draws`` draws (default the
+    problem's size), initial simplex ``x0 + step e_i``, until the budget is spent."""
+    from scipy import optimize as scipy_optimize
+
+    budget = Budget(budget_draw_steps)
+    objective = _Objective(problem, width_scale, budget)
+    n = problem.spec.draws if draws is None else int(draws)
+    per_evaluation = n * problem.spec.steps
+    max_evaluations = budget.limit // per_evaluation
+    size = objective.x0.shape[0]
+    if max_evaluations < size + 1:
+        raise ValueError(
+            f"the budget ({budget.limit} draw-steps) does not cover the initial simplex "
+            f"({size + 1} evaluations of {per_evaluation} draw-steps)"
+        )
+    keys = problem.minibatch_keys(minibatch, draws=n)
+    history = []
+    state = {"best": np.inf, "x": objective.x0}
+
+    def fun(x):
+        value = objective(x, keys)
+        if value < state["best"]:
+            state["best"], state["x"] = value, np.array(x)
+        if objective.evaluations % callback_every == 0:
+            row = {
+                "evaluations": objective.evaluations,
+                "draw_steps": budget.used,
+                "wall_time_s": round(objective.wall, 3),
+                "objective": value,
+                "best_objective": float(state["best"]),
+            }
+            history.append(row)
+            objective.report(callback, state["x"], row)
+        return value
+
+    simplex = objective.x0[None, :] + np.vstack([np.zeros(size), step * np.eye(size)])
+    scipy_optimize.minimize(
+        fun,
+        objective.x0,
+        method="Nelder-Mead",
+        options={
+            "maxfev": max_evaluations,
+            "maxiter": 10**9,
+            "initial_simplex": simplex,
+            "xatol": 0.0,
+            "fatol": 0.0,
+        },
+    )
+    params = objective.params(state["x"])
+    return DFResult(
+        "nelder-mead",
+        params,
+        problem.gains(params),
+        history,
+        objective.evaluations,
+        budget.used,
+        objective.wall,
+    )

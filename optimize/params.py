@@ -1,0 +1,316 @@
+"""Unconstrained tuning parameters mapped onto a controller's feasible gains.
+
+A gradient (or derivative-free) tuner moves unconstrained real parameters ``u``; a
+:class:`ParameterMap` turns them into gains that always satisfy the controller's
+constraints (``gains_bounds``: field -> :class:`fojax.controller.Bounds`), and back:
+
+* ``low < g`` (``high = inf``): ``g = low + exp(u)``, ``u = log(g - low)`` (log map: a
+  step in ``u`` is a relative change of the gain, whatever its scale);
+* ``low < g < high``: ``g = low + (high - low) sigmoid(u)``, ``u = logit((g - low) /
+  (high - low))`` (``1 < p/q < 2``, ``0 < gamma < 1``: the fractional orders are tuned
+  like any other gain);
+* ``g < high`` (``low = -inf``): ``g = high - exp(u)``; no bound: ``g = u``.
+
+``u`` is clipped to ``[-U_MAX, U_MAX]`` and the gain to the open interval (by one ulp)
+so that finite precision never produces an infeasible gain (``sigmoid(17)`` is ``1.0``
+in float32). Inside those limits the maps invert each other to rounding.
+
+Axis sharing: fields whose leading axis is the six control axes ``(x, y, z, phi,
+theta, psi)`` can share one parameter per group of axes. ``share="paper"`` ties
+``x = y`` and ``phi = theta = psi`` as the paper's Section V does (its gains are in
+the family); ``share="none"`` tunes every axis on its own. Other fields (any shape)
+are tuned elementwise.
+
+Parameters are a ``dict`` field -> array of shape ``(n_groups, *shape[1:])`` (or the
+field's shape when it is not per-axis): a pytree with array leaves, ready for optax.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from fojax import registry
+from fojax.controller import Bounds
+
+Array = jax.Array
+
+__all__ = [
+    "AXIS_NAMES",
+    "SHARING",
+    "UNTUNED_BY_DEFAULT",
+    "FieldMap",
+    "ParameterMap",
+    "default_fields",
+    "make_parameter_map",
+    "naive_gains",
+]
+
+AXIS_NAMES = ("x", "y", "z", "phi", "theta", "psi")
+SHARING = {
+    "paper": ((0, 1), (2,), (3, 4, 5)),
+    "none": ((0,), (1,), (2,), (3,), (4,), (5,)),
+}
+"""Axis groups of each sharing mode (indices into :data:`AXIS_NAMES`)."""
+
+UNTUNED_BY_DEFAULT = ("mu", "boundary_layer")
+"""Fields left out by default: ``mu`` is the paper's "small constant" (not a design
+gain), ``boundary_layer`` the switching smoothing the tuner anneals itself."""
+
+U_MAX = 30.0
+"""Unconstrained parameters are clipped to ``[-U_MAX, U_MAX]``."""
+
+
+def _kind(bounds: Bounds) -> str:
+    low_finite, high_finite = math.isfinite(bounds.low), math.isfinite(bounds.high)
+    if low_finite and high_finite:
+        return "logit"
+    if low_finite:
+        return "log"
+    if high_finite:
+        return "neglog"
+    return "identity"
+
+
+@dataclasses.dataclass(frozen=True)
+class FieldMap:
+    """How one gain field is parameterised.
+
+    name: the field. shape: the field's shape. bounds: its feasible set.
+    groups: axis groups over the leading axis (``None``: elementwise).
+    """
+
+    name: str
+    shape: tuple[int, ...]
+    bounds: Bounds
+    groups: tuple[tuple[int, ...], ...] | None
+
+    @property
+    def kind(self) -> str:
+        return _kind(self.bounds)
+
+    @property
+    def param_shape(self) -> tuple[int, ...]:
+        if self.groups is None:
+            return self.shape
+        return (len(self.groups), *self.shape[1:])
+
+    @property
+    def group_index(self) -> np.ndarray:
+        """``(6,)`` group of each axis."""
+        index = np.zeros(len(AXIS_NAMES), np.int32)
+        for g, axes in enumerate(self.groups):
+            index[list(axes)] = g
+        return index
+
+    def labels(self) -> list[str]:
+        """One readable name per scalar parameter, in ``ravel`` order."""
+        if self.groups is None:
+            return [f"{self.name}{list(i)}" for i in np.ndindex(*self.shape)] or [self.name]
+        names = ["=".join(AXIS_NAMES[a] for a in axes) for axes in self.groups]
+        rest = list(np.ndindex(*self.shape[1:]))
+        return [
+            f"{self.name}[{n}]" + (f"[{','.join(map(str, r))}]" if r else "")
+            for n in names
+            for r in rest
+        ]
+
+    # -- elementwise maps ------------------------------------------------------------
+    def _interior(self, value: Array) -> Array:
+        """Clamp to the open interval, one ulp inside each finite bound."""
+        low, high = self.bounds.low, self.bounds.high
+        dtype = value.dtype
+        if math.isfinite(low):
+            value = jnp.maximum(value, jnp.nextafter(jnp.asarray(low, dtype), jnp.inf))
+        if math.isfinite(high):
+            value = jnp.minimum(value, jnp.nextafter(jnp.asarray(high, dtype), -jnp.inf))
+        return value
+
+    def forward(self, u: Array) -> Array:
+        """Unconstrained ``u`` -> feasible values (same shape)."""
+        u = jnp.clip(u, -U_MAX, U_MAX)
+        low, high = self.bounds.low, self.bounds.high
+        kind = self.kind
+        if kind == "log":
+            value = low + jnp.exp(u)
+        elif kind == "logit":
+            value = low + (high - low) * jax.nn.sigmoid(u)
+        elif kind == "neglog":
+            value = high - jnp.exp(u)
+        else:
+            value = u
+        return self._interior(value)
+
+    def inverse(self, value: np.ndarray) -> np.ndarray:
+        """Feasible values -> unconstrained (NumPy float64, before tracing)."""
+        value = np.asarray(value, np.float64)
+        low, high = self.bounds.low, self.bounds.high
+        kind = self.kind
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if kind == "log":
+                u = np.log(value - low)
+            elif kind == "logit":
+                s = (value - low) / (high - low)
+                u = np.log(s) - np.log1p(-s)
+            elif kind == "neglog":
+                u = np.log(high - value)
+            else:
+                u = value
+        return u
+
+    def expand(self, grouped: Array) -> Array:
+        """Parameters of shape ``param_shape`` -> the field's shape (axes of a group
+        share the group's value)."""
+        if self.groups is None:
+            return grouped
+        return jnp.take(grouped, jnp.asarray(self.group_index), axis=0)
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterMap:
+    """The tuned fields of one controller's gains and their maps (static, hashable).
+
+    controller: the registry name. fields: one :class:`FieldMap` per tuned field.
+    share: the axis-sharing mode (:data:`SHARING`).
+    """
+
+    controller: str
+    fields: tuple[FieldMap, ...]
+    share: str
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(f.name for f in self.fields)
+
+    @property
+    def size(self) -> int:
+        """Number of scalar parameters."""
+        return int(sum(np.prod(f.param_shape, dtype=int) for f in self.fields))
+
+    def labels(self) -> list[str]:
+        """Readable names of the scalar parameters, in :meth:`ravel` order."""
+        return [label for f in sorted(self.fields, key=lambda f: f.name) for label in f.labels()]
+
+    def to_gains(self, params: dict[str, Array], base: Any) -> Any:
+        """Unconstrained ``params`` -> gains: the tuned fields from ``params``, the
+        others from ``base`` (a gains NamedTuple). Traceable, differentiable."""
+        values = {}
+        for f in self.fields:
+            reference = jnp.asarray(getattr(base, f.name))
+            u = jnp.asarray(params[f.name], reference.dtype)
+            values[f.name] = f.expand(f.forward(u)).astype(reference.dtype)
+        return base._replace(**values)
+
+    def to_params(self, gains: Any, dtype: Any = None) -> dict[str, Array]:
+        """Gains -> unconstrained parameters (the exact inverse of :meth:`to_gains`).
+
+        Validated in Python: raises ``ValueError`` when the gains are infeasible, lie
+        on a bound the maps cannot reach (``include_low`` fields at ``low``), or differ
+        between axes that share a parameter.
+        """
+        cls = registry.get_controller_class(self.controller)
+        cls.check_gains(gains)
+        dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
+        problems = []
+        params = {}
+        for f in self.fields:
+            value = np.asarray(getattr(gains, f.name), np.float64)
+            if f.groups is not None:
+                grouped = []
+                for axes in f.groups:
+                    block = value[list(axes)]
+                    if not np.all(block == block[0]):
+                        names = ", ".join(AXIS_NAMES[a] for a in axes)
+                        problems.append(
+                            f"{f.name} differs between the axes ({names}) that share one "
+                            f"parameter under share={self.share!r}, got {block.tolist()}: "
+                            "make them equal or use share='none'"
+                        )
+                    grouped.append(block[0])
+                value = np.stack(grouped)
+            u = f.inverse(value)
+            if not np.all(np.isfinite(u)) or np.any(np.abs(u) > U_MAX):
+                problems.append(
+                    f"{f.name} = {value.tolist()} lies on or too close to a bound of its "
+                    f"feasible set ({f.bounds.describe(f.name)}), which the tuner's "
+                    "parameter map cannot represent: start it strictly inside or leave it "
+                    "untuned"
+                )
+            params[f.name] = jnp.asarray(u, dtype)
+        if problems:
+            raise ValueError("cannot start tuning from these gains:\n  " + "\n  ".join(problems))
+        return params
+
+    def ravel(self, params: dict[str, Array]) -> tuple[Array, Any]:
+        """Flatten to a ``(size,)`` vector and the function that undoes it."""
+        return ravel_pytree(params)
+
+
+def default_fields(controller: str) -> tuple[str, ...]:
+    """Fields tuned by default: every field with bounds except
+    :data:`UNTUNED_BY_DEFAULT`."""
+    cls = registry.get_controller_class(controller)
+    return tuple(name for name in cls.gains_bounds if name not in UNTUNED_BY_DEFAULT)
+
+
+def make_parameter_map(
+    controller: str, fields: tuple[str, ...] | None = None, share: str = "paper"
+) -> ParameterMap:
+    """The :class:`ParameterMap` of ``controller`` for ``fields`` (default
+    :func:`default_fields`), with axis sharing ``share``; ``ValueError`` on unknown
+    names."""
+    cls = registry.get_controller_class(controller)
+    if share not in SHARING:
+        raise ValueError(f"unknown sharing mode {share!r}; choose one of {', '.join(SHARING)}")
+    bounds = cls.gains_bounds
+    template = cls.default_gains()
+    fields = default_fields(controller) if fields is None else tuple(fields)
+    if not fields:
+        raise ValueError("no gain fields to tune: name at least one")
+    unknown = [f for f in fields if f not in template._fields]
+    if unknown:
+        raise ValueError(
+            f"unknown gain fields for {controller}: {', '.join(unknown)} "
+            f"(valid: {', '.join(template._fields)})"
+        )
+    unbounded = [f for f in fields if f not in bounds]
+    if unbounded:
+        raise ValueError(f"{controller} declares no bounds for {', '.join(unbounded)}")
+    if len(set(fields)) != len(fields):
+        raise ValueError(f"gain fields named twice: {', '.join(fields)}")
+    maps = []
+    for name in sorted(fields):
+        shape = tuple(np.shape(getattr(template, name)))
+        per_axis = len(shape) >= 1 and shape[0] == len(AXIS_NAMES)
+        maps.append(FieldMap(name, shape, bounds[name], SHARING[share] if per_axis else None))
+    return ParameterMap(controller, tuple(maps), share)
+
+
+def naive_gains(controller: str, dtype: Any = None) -> Any:
+    """A knowledge-free starting point: every bounded field at ``low + 1`` (positive
+    gains at 1), ``(low + high) / 2`` for two-sided bounds (``p/q = 1.5``, ``gamma =
+    0.5``); fields in :data:`UNTUNED_BY_DEFAULT` keep the controller's defaults."""
+    cls = registry.get_controller_class(controller)
+    template = cls.default_gains(dtype)
+    values = {}
+    for name, bounds in cls.gains_bounds.items():
+        if name in UNTUNED_BY_DEFAULT:
+            continue
+        reference = jnp.asarray(getattr(template, name))
+        kind = _kind(bounds)
+        if kind == "logit":
+            fill = 0.5 * (bounds.low + bounds.high)
+        elif kind == "log":
+            fill = bounds.low + 1.0
+        elif kind == "neglog":
+            fill = bounds.high - 1.0
+        else:
+            fill = 0.0
+        values[name] = jnp.full(reference.shape, fill, reference.dtype)
+    return template._replace(**values)

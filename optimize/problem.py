@@ -1,0 +1,351 @@
+"""A tuning problem: one controller, one scenario, the cost, the draws, compiled.
+
+:class:`ProblemSpec` is the static description (a frozen dataclass, validated in
+Python before anything is traced); :class:`TuningProblem` binds it to compiled
+functions of the unconstrained parameters that the gradient tuner
+(:mod:`optimize.tuner`) and the derivative-free tuners
+(:mod:`optimize.derivative_free`) share, so every tuner sees the same cost and the
+same draws.
+
+Draws (``scenarios.draw_keys(seed, i)``): minibatch ``b`` of the tuning stream holds
+draw indices ``b n ... (b + 1) n - 1`` (``n`` = ``draws``), fresh draws every step;
+held-out evaluation draws are indices ``HELDOUT_OFFSET + j``, a disjoint index range
+of the same seed (a run would need over 2^31 tuning draws to reach it).
+
+During tuning the sliding-mode controllers switch with ``tanh(S / (scale w))``, ``w``
+the gains' ``boundary_layer``: ``scale`` is annealed by the tuner from
+``anneal_start`` down to ``anneal_end`` (1: the evaluation width of ``sat``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fojax import registry, scenarios, simulator
+from optimize import cost as cost_lib
+from optimize import params as params_lib
+
+Array = jax.Array
+
+__all__ = [
+    "HELDOUT_OFFSET",
+    "ProblemSpec",
+    "Step",
+    "TuningProblem",
+    "checkpoint_interval",
+    "evaluate",
+]
+
+HELDOUT_OFFSET = 2**31
+"""Held-out draws are indices ``HELDOUT_OFFSET + j`` of the tuning seed."""
+
+DTYPES = ("float32", "float64")
+
+
+def checkpoint_interval(steps: int, target: float | None = None) -> int:
+    """Steps per checkpointed block of the rollout: the divisor of ``steps`` nearest
+    to ``target`` (default ``0.75 sqrt(steps)``).
+
+    Reverse mode keeps one carry per block and rematerialises one block at a time,
+    so memory goes as ``(steps / L) c + L r`` for blocks of ``L`` steps, ``c`` the
+    carry and ``r`` the residuals of one step; ``L = sqrt(steps c / r)`` minimises it
+    and makes it grow like the square root of the horizon. For the AFONFTSMC,
+    ``c / r`` is about 0.55 (1.8 kB and 3.1 kB per draw in float32, measured with
+    ``experiments/tune_memory.py``), hence ``0.75 sqrt(steps)``.
+    """
+    target = 0.75 * math.sqrt(steps) if target is None else target
+    best = 1
+    for d in range(1, int(math.isqrt(steps)) + 1):
+        if steps % d == 0:
+            for c in (d, steps // d):
+                if abs(c - target) < abs(best - target) or (
+                    abs(c - target) == abs(best - target) and c < best
+                ):
+                    best = c
+    return best
+
+
+@dataclasses.dataclass(frozen=True)
+class ProblemSpec:
+    """Everything that fixes a tuning cost (validated on construction).
+
+    controller: registry name. scenario: 1, 2 or 3. horizon: tuning horizon (s).
+    dt: step (s). draws: draws per minibatch. seed: the draws' seed.
+    cost: :class:`optimize.cost.CostConfig`. fields: tuned gain fields (``None``: the
+    default, :func:`optimize.params.default_fields`). share: axis sharing
+    (:data:`optimize.params.SHARING`). fractional: fractional method of the
+    controller. dtype: ``"float32"`` or ``"float64"``. save_every: steps per
+    checkpointed block (``None``: :func:`checkpoint_interval`).
+    """
+
+    controller: str = "afonftsmc"
+    scenario: int = 2
+    horizon: float = 10.0
+    dt: float = 1e-3
+    draws: int = 16
+    seed: int = 0
+    cost: cost_lib.CostConfig = cost_lib.CostConfig()
+    fields: tuple[str, ...] | None = None
+    share: str = "paper"
+    fractional: str = "soe"
+    dtype: str = "float32"
+    save_every: int | None = None
+
+    def __post_init__(self) -> None:
+        registry.get_controller_class(self.controller)
+        scenarios.get_scenario(self.scenario)
+        for label in ("horizon", "dt"):
+            value = getattr(self, label)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
+        steps = self.horizon / self.dt
+        if abs(steps - round(steps)) > 1e-6 * steps or round(steps) < 1:
+            raise ValueError(
+                f"the horizon ({self.horizon} s) must be a whole, positive number of steps "
+                f"of {self.dt} s"
+            )
+        if not isinstance(self.draws, int) or self.draws < 1:
+            raise ValueError(f"draws must be a positive integer, got {self.draws!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        if self.dtype not in DTYPES:
+            raise ValueError(f"dtype must be one of {DTYPES}, got {self.dtype!r}")
+        if self.save_every is not None and (
+            not isinstance(self.save_every, int)
+            or self.save_every < 1
+            or self.steps % self.save_every
+        ):
+            raise ValueError(
+                f"save_every must be a positive divisor of the {self.steps} steps, got "
+                f"{self.save_every!r}"
+            )
+        if self.fields is not None:
+            object.__setattr__(self, "fields", tuple(self.fields))
+        params_lib.make_parameter_map(self.controller, self.fields, self.share)  # validates
+        self.make_controller("tanh", self.horizon)  # validates fractional method etc.
+
+    @property
+    def steps(self) -> int:
+        """Simulated steps per draw."""
+        return int(round(self.horizon / self.dt))
+
+    @property
+    def block(self) -> int:
+        return self.save_every or checkpoint_interval(self.steps)
+
+    @property
+    def draw_steps_per_minibatch(self) -> int:
+        return self.draws * self.steps
+
+    @property
+    def jnp_dtype(self):
+        return jnp.dtype(self.dtype)
+
+    def make_controller(self, switching: str, horizon: float):
+        return registry.make_controller(
+            self.controller,
+            dt=self.dt,
+            horizon=horizon,
+            fractional_method=self.fractional,
+            switching=switching,
+        )
+
+    def as_dict(self) -> dict:
+        """JSON-ready description (the tuning fingerprint)."""
+        out = dataclasses.asdict(self)
+        out["fields"] = list(
+            params_lib.make_parameter_map(self.controller, self.fields, self.share).names
+        )
+        out["save_every"] = self.block
+        return out
+
+
+class Step(NamedTuple):
+    """One evaluation of the objective on a minibatch.
+
+    objective: ``()``. costs: :class:`optimize.cost.DrawCosts`.
+    gradient: parameters dict (``None`` for value-only evaluations).
+    bad_gradients: ``()`` int, draws whose gradient was not finite (left out).
+    """
+
+    objective: Array
+    costs: cost_lib.DrawCosts
+    gradient: Any
+    bad_gradients: Array
+
+
+def _scenario_for(scenario: scenarios.Scenario, horizon: float) -> scenarios.Scenario:
+    """The scenario with random tables covering at least ``horizon``.
+
+    The tables keep the scenario's own length when it is longer, so draw ``i`` over a
+    short tuning horizon is the beginning of the same draw over the full horizon.
+    """
+    if horizon <= scenario.horizon:
+        return scenario
+    return dataclasses.replace(scenario, horizon=horizon)
+
+
+def _scale_width(gains, base, width_scale):
+    if "boundary_layer" in gains._fields:
+        return gains._replace(boundary_layer=base.boundary_layer * width_scale)
+    return gains
+
+
+class TuningProblem:
+    """:class:`ProblemSpec` + base gains, compiled (one compilation per shape).
+
+    base_gains: the gains the tuned fields start from and the untuned fields keep
+    (validated by the controller's ``check_gains``).
+
+    Attributes: ``spec``, ``param_map``, ``base_gains``, ``sim_config``,
+    ``controller`` (``tanh`` switching when the controller has a switching function).
+    """
+
+    def __init__(self, spec: ProblemSpec, base_gains: Any):
+        self.spec = spec
+        dtype = spec.jnp_dtype
+        cls = registry.get_controller_class(spec.controller)
+        base_gains = type(base_gains)(*(jnp.asarray(g, dtype) for g in base_gains))
+        cls.check_gains(base_gains)
+        self.base_gains = base_gains
+        self.param_map = params_lib.make_parameter_map(spec.controller, spec.fields, spec.share)
+        self.scenario = _scenario_for(scenarios.get_scenario(spec.scenario), spec.horizon)
+        self.sim_config = simulator.SimulationConfig(
+            dt=spec.dt, horizon=spec.horizon, save_every=spec.block
+        )
+        self.controller = spec.make_controller("tanh", spec.horizon)
+        draw_cost = cost_lib.make_draw_cost(
+            self.controller, self.scenario, self.sim_config, spec.cost, dtype
+        )
+        cost_config = spec.cost
+        param_map = self.param_map
+
+        def gains_of(params, width_scale):
+            gains = param_map.to_gains(params, base_gains)
+            return _scale_width(gains, base_gains, width_scale)
+
+        def one(params, width_scale, key):
+            j, terms, status = draw_cost(gains_of(params, width_scale), key)
+            return j, (terms, status)
+
+        def value(params, width_scale, keys):
+            j, (terms, status) = jax.vmap(one, in_axes=(None, None, 0))(params, width_scale, keys)
+            effective, diverged = cost_lib.guard(cost_config, j, status)
+            objective, _ = cost_lib.combine(cost_config, effective)
+            costs = cost_lib.DrawCosts(effective, terms, status, diverged)
+            return Step(objective, costs, None, jnp.zeros((), jnp.int32))
+
+        def value_and_grad(params, width_scale, keys):
+            grad_one = jax.value_and_grad(one, has_aux=True)
+            (j, (terms, status)), grads = jax.vmap(grad_one, in_axes=(None, None, 0))(
+                params, width_scale, keys
+            )
+            effective, diverged = cost_lib.guard(cost_config, j, status)
+            objective, weights = cost_lib.combine(cost_config, effective)
+            finite = jnp.all(
+                jnp.stack(
+                    [
+                        jnp.all(jnp.isfinite(g.reshape(g.shape[0], -1)), axis=1)
+                        for g in jax.tree.leaves(grads)
+                    ]
+                ),
+                axis=0,
+            )
+            usable = finite & ~diverged
+            weights = jnp.where(usable, weights, 0.0)
+            gradient = jax.tree.map(
+                lambda g: jnp.tensordot(
+                    weights, jnp.where(usable.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0.0), axes=1
+                ),
+                grads,
+            )
+            bad = jnp.sum(~finite & ~diverged).astype(jnp.int32)
+            costs = cost_lib.DrawCosts(effective, terms, status, diverged)
+            return Step(objective, costs, gradient, bad)
+
+        self._value = jax.jit(value)
+        self._value_and_grad = jax.jit(value_and_grad)
+        self._gains_of = gains_of
+
+    # -- draws ------------------------------------------------------------------------
+    def minibatch_keys(self, index: int, draws: int | None = None) -> Array:
+        """Keys ``(n, 2)`` of minibatch ``index`` of the tuning stream."""
+        n = self.spec.draws if draws is None else draws
+        return scenarios.draw_keys(self.spec.seed, np.arange(index * n, (index + 1) * n))
+
+    def heldout_keys(self, draws: int) -> Array:
+        """Keys ``(draws, 2)`` of the held-out draws (disjoint from every minibatch)."""
+        return scenarios.draw_keys(self.spec.seed, HELDOUT_OFFSET + np.arange(draws))
+
+    # -- parameters -------------------------------------------------------------------
+    def initial_params(self) -> dict:
+        return self.param_map.to_params(self.base_gains, self.spec.jnp_dtype)
+
+    def gains(self, params) -> Any:
+        """Evaluation gains of ``params`` (the base boundary layer, not the annealed one)."""
+        return self.param_map.to_gains(params, self.base_gains)
+
+    # -- evaluations ------------------------------------------------------------------
+    def value(self, params, width_scale: float, keys: Array) -> Step:
+        return self._value(params, jnp.asarray(width_scale, self.spec.jnp_dtype), keys)
+
+    def value_and_grad(self, params, width_scale: float, keys: Array) -> Step:
+        return self._value_and_grad(params, jnp.asarray(width_scale, self.spec.jnp_dtype), keys)
+
+
+@functools.lru_cache(maxsize=16)
+def _evaluator(spec: ProblemSpec, scenario: scenarios.Scenario, horizon: float, switching: str):
+    dtype = spec.jnp_dtype
+    steps = int(round(horizon / spec.dt))
+    sim_config = simulator.SimulationConfig(
+        dt=spec.dt, horizon=horizon, save_every=checkpoint_interval(steps, 100.0)
+    )
+    scenario = _scenario_for(scenario, horizon)
+    controller = spec.make_controller(switching, horizon)
+    draw_cost = cost_lib.make_draw_cost(controller, scenario, sim_config, spec.cost, dtype)
+
+    def run(gains, keys):
+        j, terms, status = jax.vmap(draw_cost, in_axes=(None, 0))(gains, keys)
+        effective, diverged = cost_lib.guard(spec.cost, j, status)
+        return cost_lib.DrawCosts(effective, terms, status, diverged)
+
+    return jax.jit(run)
+
+
+def evaluate(
+    spec: ProblemSpec,
+    gains: Any,
+    keys: Array,
+    horizon: float | None = None,
+    switching: str = "sat",
+    scenario: scenarios.Scenario | None = None,
+    chunk: int = 64,
+) -> cost_lib.DrawCosts:
+    """Per-draw costs (NumPy) of ``gains`` under ``spec.cost`` on ``keys``, with the
+    evaluation ``switching`` (default ``sat``), at ``horizon`` (default the spec's) on
+    ``scenario`` (default the spec's; pass a modified one for an unseen reference).
+
+    Runs in chunks of ``chunk`` draws (one compilation per setting). Forward only.
+    """
+    horizon = spec.horizon if horizon is None else float(horizon)
+    scenario = scenarios.get_scenario(spec.scenario) if scenario is None else scenario
+    run = _evaluator(spec, scenario, horizon, switching)
+    dtype = spec.jnp_dtype
+    gains = type(gains)(*(jnp.asarray(g, dtype) for g in gains))
+    keys = np.asarray(keys)
+    n = keys.shape[0]
+    chunk = min(chunk, n)
+    parts = []
+    for first in range(0, n, chunk):
+        index = np.minimum(np.arange(first, first + chunk), n - 1)
+        out = run(gains, jnp.asarray(keys[index]))
+        size = min(chunk, n - first)
+        parts.append([np.asarray(x)[:size] for x in out])
+    return cost_lib.DrawCosts(*(np.concatenate(leaves) for leaves in zip(*parts, strict=True)))

@@ -1,0 +1,139 @@
+"""``fojax tune``: input checks before compiling or writing, one tiny end-to-end run,
+resume and its refusals."""
+
+import json
+
+import numpy as np
+import pytest
+
+from experiments import cli, simulate, tune
+from fojax import gains_io
+from fojax.afonftsmc import paper_gains
+
+# The same small problem as tests/test_optimize.py (shares its compiled code through
+# the persistent compilation cache).
+SMALL = [
+    "--scenario", "2", "--controller", "afonftsmc", "--draws", "3", "--horizon", "0.3",
+    "--seed", "5", "--dtype", "float64", "--effort-weight", "1e-3",
+    "--chattering-weight", "1e-3", "--attitude-weight", "2", "--init", "naive",
+]  # fmt: skip
+
+
+def _error(capsys, argv):
+    with pytest.raises(SystemExit) as info:
+        tune.parse_args(argv)
+    assert info.value.code == 2
+    return capsys.readouterr().err
+
+
+def _write(path, document):
+    path.write_text(json.dumps(document))
+    return path
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--objective", "median"], "invalid choice: 'median'"),
+        (["--steps", "0"], "expected a positive integer, got 0"),
+        (["--draws", "0"], "expected a positive integer, got 0"),
+        (["--controller", "pid"], "unknown controller 'pid'"),
+        (["--scenario", "4"], "invalid choice"),
+        (["--horizon", "0.0005"], "whole, positive number of steps"),
+        (["--cvar-fraction", "2"], "cvar_fraction must be in (0, 1]"),
+        (["--fields", "surface_c1,kp"], "unknown gain fields for afonftsmc: kp"),
+        (["--share", "pairs"], "invalid choice"),
+        (["--position-weight", "0", "--attitude-weight", "0", "--effort-weight", "0",
+          "--chattering-weight", "0"], "at least one cost weight"),
+        (["--learning-rate", "-1"], "finite number > 0"),
+        (["--resume"], "nothing to resume"),
+    ],
+)  # fmt: skip
+def test_bad_arguments_fail_before_anything_is_written(capsys, tmp_path, extra, message):
+    out = tmp_path / "run"
+    argv = SMALL + ["--steps", "2"] + extra + ["--out", str(out)]  # later options win
+    err = _error(capsys, argv)
+    assert message in err, err
+    assert not out.exists()
+
+
+def test_initial_gains_files_are_validated(capsys, tmp_path):
+    good = gains_io.gains_to_dict(paper_gains())
+    out = tmp_path / "run"
+    cases = {
+        "ratio": ({"controller": "afonftsmc", "gains": {**good, "ratio": 2.5}}, "1 < p/q < 2"),
+        "gamma": ({"controller": "afonftsmc", "gains": {**good, "gamma2": 1.0}}, "0 < gamma2 < 1"),
+        "tied": (
+            {"controller": "afonftsmc", "gains": {**good, "surface_c1": [1, 2, 3, 4, 4, 4]}},
+            "differs between the axes (x, y)",
+        ),
+        "bound": (
+            {"controller": "afonftsmc", "gains": {**good, "adaptation": 0.0}},
+            "adaptation = ",
+        ),
+        "missing": ({"controller": "afonftsmc", "gains": {}}, "missing entries"),
+    }
+    for label, (document, message) in cases.items():
+        path = _write(tmp_path / f"{label}.json", document)
+        err = _error(capsys, SMALL + ["--steps", "2", "--init", str(path), "--out", str(out)])
+        assert message in err, (label, err)
+    err = _error(
+        capsys, SMALL + ["--steps", "2", "--init", str(tmp_path / "no.json"), "--out", str(out)]
+    )
+    assert "does not exist" in err
+    assert not out.exists()
+
+
+def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
+    out = tmp_path / "run"
+    argv = SMALL + ["--steps", "2", "--checkpoint-every", "1", "--eval-draws", "2", "--quiet"]
+    assert cli.main(["tune"] + argv + ["--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "held-out cost" in printed
+    name, gains, metadata = gains_io.load_gains(out / "gains.json")
+    assert name == "afonftsmc" and metadata["tuned_by"] == "fojax tune"
+    assert metadata["problem"]["draws"] == 3 and metadata["init"] == "naive"
+    rows = (out / "history.csv").read_text().strip().splitlines()
+    assert len(rows) == 3 and rows[0].startswith("step,objective,")
+    evaluation = json.loads((out / "evaluation.json").read_text())
+    assert evaluation["tuned"]["diverged"] == 0
+    # fojax simulate reads the tuned gains.
+    study, _ = simulate.parse_args(
+        ["--scenario", "2", "--controller", "afonftsmc", "--draws", "2",
+         "--gains", str(out / "gains.json"), "--out", str(tmp_path / "sim")]
+    )  # fmt: skip
+    np.testing.assert_allclose(
+        np.asarray(study.gains["afonftsmc"].surface_c1), np.asarray(gains.surface_c1), rtol=1e-7
+    )
+    checkpoint = out / "checkpoint.npz"
+    before = checkpoint.read_bytes()
+    # A fresh start over the checkpoint, or a resume with other settings, is refused.
+    err = _error(capsys, argv + ["--out", str(out)])
+    assert "pass --resume" in err
+    err = _error(capsys, argv + ["--resume", "--learning-rate", "0.2", "--out", str(out)])
+    assert "another configuration" in err and "tuner.learning_rate: checkpoint 0.05, now 0.2" in err
+    err = _error(capsys, argv + ["--resume", "--objective", "cvar", "--out", str(out)])
+    assert "problem.cost.objective: checkpoint 'mean', now 'cvar'" in err
+    assert checkpoint.read_bytes() == before
+    # Resuming a finished run changes nothing.
+    text = (out / "gains.json").read_text()
+    assert cli.main(["tune"] + argv + ["--resume", "--eval-draws", "0", "--out", str(out)]) == 0
+    assert (out / "gains.json").read_text() == text
+
+
+def test_tuning_study_smoke(tmp_path):
+    from experiments import tune_paper_gains
+
+    out = tmp_path / "study"
+    assert tune_paper_gains.main(["--tiny", "--quiet", "--out", str(out)]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["evaluation"]) == {"scenario 2", "unseen reference", "scenario 3"}
+    for setting in results["evaluation"].values():
+        assert set(setting["gains"]) == {"paper", "naive", "gradient", "cma-es", "nelder-mead"}
+    tuners = results["tuners"]
+    budget = 40 * tuners["gradient"]["draw_steps"]
+    assert 0 < tuners["cma-es"]["draw_steps"] <= budget
+    assert 0 < tuners["nelder-mead"]["draw_steps"] <= budget
+    assert (out / "tuning.png").stat().st_size > 0 and "| gradient |" in (
+        out / "table.md"
+    ).read_text()
