@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import simulate
+from experiments import arguments, simulate
 
 __all__ = [
     "CLAIMS",
@@ -91,11 +91,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", required=True, type=Path, metavar="DIR")
     parser.add_argument(
         "--draws",
-        type=simulate._positive_int,
+        type=arguments.positive_int,
         default=DEFAULT_DRAWS,
         help=f"draws per scenario and controller (default {DEFAULT_DRAWS}: < 10 min on 2 cores)",
     )
-    parser.add_argument("--seed", type=simulate._nonnegative_int, default=0)
+    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument(
         "--switching",
         choices=SWITCHING_FUNCTIONS,
@@ -113,14 +113,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--horizon",
-        type=simulate._positive_float,
+        type=arguments.positive_float,
         help="simulated time (s) for every scenario (default: each scenario's, 80/80/50 s)",
     )
-    parser.add_argument("--dt", type=simulate._positive_float, default=1e-3, help="step, s")
-    parser.add_argument("--chunk", type=simulate._positive_int, default=32, help="draws per batch")
+    parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s")
+    parser.add_argument("--chunk", type=arguments.positive_int, default=32, help="draws per batch")
     parser.add_argument(
         "--keep",
-        type=simulate._nonnegative_int,
+        type=arguments.nonnegative_int,
         default=32,
         help="draws whose trajectories are kept for the figures (32)",
     )

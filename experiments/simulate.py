@@ -27,43 +27,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import shutil
 import sys
 import time
 from pathlib import Path
 
+from experiments import arguments
+
 __all__ = ["main", "parse_args", "run_study"]
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def _nonnegative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,10 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
         required=True,
         help=f"one of {', '.join(registry.controller_names())}, or 'all'",
     )
-    parser.add_argument("--draws", type=_positive_int, required=True)
-    parser.add_argument("--seed", type=_nonnegative_int, default=0)
-    parser.add_argument("--horizon", type=_positive_float, help="s (default: the scenario's)")
-    parser.add_argument("--dt", type=_positive_float, default=1e-3, help="step, s (1e-3)")
+    parser.add_argument("--draws", type=arguments.positive_int, required=True)
+    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
+    parser.add_argument(
+        "--horizon", type=arguments.positive_float, help="s (default: the scenario's)"
+    )
+    parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s (1e-3)")
     parser.add_argument(
         "--gains",
         action="append",
@@ -103,10 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
         default="sign",
         help="switching function of the sliding-mode controllers (default sign, the paper's)",
     )
-    parser.add_argument("--chunk", type=_positive_int, default=256, help="draws per batch")
+    parser.add_argument("--chunk", type=arguments.positive_int, default=256, help="draws per batch")
     parser.add_argument(
         "--keep",
-        type=_nonnegative_int,
+        type=arguments.nonnegative_int,
         default=64,
         help="draws whose trajectories are kept for figures (64)",
     )

@@ -27,52 +27,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
 
+from experiments import arguments
+
 __all__ = ["build_parser", "main", "parse_args"]
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def _nonnegative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text}")
-    return value
-
-
-def _nonnegative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text}")
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -91,12 +52,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--controller", required=True, help=f"one of {', '.join(registry.controller_names())}"
     )
-    parser.add_argument("--draws", type=_positive_int, required=True, help="draws per step")
-    parser.add_argument("--steps", type=_positive_int, required=True, help="optimisation steps")
     parser.add_argument(
-        "--horizon", type=_positive_float, default=10.0, help="tuning horizon, s (10)"
+        "--draws", type=arguments.positive_int, required=True, help="draws per step"
     )
-    parser.add_argument("--dt", type=_positive_float, default=1e-3, help="step, s (1e-3)")
+    parser.add_argument(
+        "--steps", type=arguments.positive_int, required=True, help="optimisation steps"
+    )
+    parser.add_argument(
+        "--horizon", type=arguments.positive_float, default=10.0, help="tuning horizon, s (10)"
+    )
+    parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s (1e-3)")
     parser.add_argument(
         "--init",
         default="paper",
@@ -107,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--objective", choices=cost.OBJECTIVES, default=defaults.objective)
     parser.add_argument(
         "--cvar-fraction",
-        type=_positive_float,
+        type=arguments.positive_float,
         default=defaults.cvar_fraction,
         help=f"worst fraction of draws averaged by --objective cvar ({defaults.cvar_fraction})",
     )
@@ -115,9 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
     for name in ("position", "attitude", "effort", "chattering"):
         value = getattr(defaults, f"{name}_weight")
         parser.add_argument(
-            f"--{name}-weight", type=_nonnegative_float, default=value, help=f"({value:g})"
+            f"--{name}-weight", type=arguments.nonnegative_float, default=value, help=f"({value:g})"
         )
-    parser.add_argument("--seed", type=_nonnegative_int, default=0, help="draws' seed (0)")
+    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0, help="draws' seed (0)")
     parser.add_argument(
         "--fields",
         default="default",
@@ -126,21 +91,32 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--share", choices=tuple(params.SHARING), default="paper")
     parser.add_argument(
-        "--learning-rate", type=_positive_float, default=tuner.learning_rate, help="Adam step"
+        "--learning-rate",
+        type=arguments.positive_float,
+        default=tuner.learning_rate,
+        help="Adam step",
     )
     parser.add_argument(
-        "--clip-norm", type=_positive_float, default=tuner.clip_norm, help="gradient-norm clip"
+        "--clip-norm",
+        type=arguments.positive_float,
+        default=tuner.clip_norm,
+        help="gradient-norm clip",
     )
-    parser.add_argument("--anneal-start", type=_positive_float, default=tuner.anneal_start)
-    parser.add_argument("--anneal-end", type=_positive_float, default=tuner.anneal_end)
-    parser.add_argument("--checkpoint-every", type=_positive_int, default=tuner.checkpoint_every)
+    parser.add_argument("--anneal-start", type=arguments.positive_float, default=tuner.anneal_start)
+    parser.add_argument("--anneal-end", type=arguments.positive_float, default=tuner.anneal_end)
+    parser.add_argument(
+        "--checkpoint-every", type=arguments.positive_int, default=tuner.checkpoint_every
+    )
     parser.add_argument("--fractional", choices=fractional.METHODS, default="soe")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument(
-        "--eval-draws", type=_nonnegative_int, default=32, help="held-out draws (32; 0: none)"
+        "--eval-draws",
+        type=arguments.nonnegative_int,
+        default=32,
+        help="held-out draws (32; 0: none)",
     )
     parser.add_argument(
-        "--eval-horizon", type=_positive_float, help="s (default: the tuning horizon)"
+        "--eval-horizon", type=arguments.positive_float, help="s (default: the tuning horizon)"
     )
     parser.add_argument("--eval-switching", choices=SWITCHING_FUNCTIONS, default="sat")
     parser.add_argument("--resume", action="store_true", help="continue the run in DIR")
