@@ -9,6 +9,16 @@ The time loop is a ``lax.scan`` over blocks of ``save_every`` steps (an inner sc
 one snapshot per block is kept, and each block is rematerialised under ``grad``
 (``jax.checkpoint``), so reverse-mode memory grows with the number of blocks, not the
 number of steps.
+
+Loop layout (the arithmetic above, in another order): the controller's update for
+step ``k + 1`` runs at the end of iteration ``k``, right after the plant step, and
+its command and diagnostics travel in the loop carry (the first update runs before
+the loop). The plant and the per-step bookkeeping then read the command from the
+carry, where it is computed once; when both ran in the same iteration, XLA's CPU
+backend recomputed the whole control law inside each of the ~20 kernels that read
+the command (every RK4 stage, the rotor speeds, the status flags; see
+docs/performance.md). The plant state is carried as its 12 entries (one contiguous
+array per entry under ``vmap``) and stacked only where a ``(12,)`` array is needed.
 """
 
 from __future__ import annotations
@@ -173,33 +183,53 @@ def rollout(
     params = controller.prepare(gains, model)
     state0 = scenarios.initial_state(scenario, dtype)
 
-    def observe(t, state):
-        ref, ref_vel, ref_acc = scenarios.reference_with_derivatives(scenario.reference, t)
-        return Observation(
-            t, state, ref.astype(dtype), ref_vel.astype(dtype), ref_acc.astype(dtype)
-        )
+    def reference_at(k):
+        """The reference and its two derivatives at step ``k`` (time only: shared by
+        every draw under ``vmap``)."""
+        t = k.astype(dtype) * dt
+        derivatives = scenarios.reference_with_derivatives(scenario.reference, t)
+        return t, tuple(d.astype(dtype) for d in derivatives)
 
-    control0 = controller.init(params, observe(jnp.zeros((), dtype), state0))
+    def observe(k, state):
+        t, (ref, ref_vel, ref_acc) = reference_at(k)
+        return Observation(t, state, ref, ref_vel, ref_acc)
+
+    obs0 = observe(jnp.zeros((), jnp.int32), state0)
+    control0 = controller.init(params, obs0)
+    # The first control update; later ones run at the end of the iteration before.
+    control1, inputs0, info0 = controller.step(params, control0, obs0)
     acc0 = accumulator[0]() if accumulator is not None else None
     disturbance_at, drag_at = _table_lookups(scenario, draw, config)
 
     def one_step(carry, k):
-        state, control, status, cost, acc = carry
-        t = k.astype(dtype) * dt
-        obs = observe(t, state)
-        control, inputs, info = controller.step(params, control, obs)
+        # state: x_k (12 scalars); inputs, info: the update at t_k; control: the
+        # controller state after it.
+        state, control, inputs, info, status, cost, acc = carry
+        t, (reference, _, _) = reference_at(k)
         disturbance = disturbance_at(k, t).astype(dtype)
         drag_position, drag_attitude = drag_at(k)
-        next_state = plant.rk4_step(
-            draw.params, state, inputs, disturbance, dt, drag_position, drag_attitude
+        next_state = plant.rk4_step_parts(
+            draw.params,
+            state,
+            tuple(inputs[i] for i in range(4)),
+            tuple(disturbance[i] for i in range(6)),
+            dt,
+            tuple(drag_position[i] for i in range(3)),
+            tuple(drag_attitude[i] for i in range(3)),
         )
-        status = status | _status(next_state, inputs, info, draw.params)
-        position_error = state[:3] - obs.reference[:3]
-        attitude_error = state[3:6] - info.attitude_reference
+        state_array = jnp.stack(state)
+        status = status | _status(jnp.stack(next_state), inputs, info, draw.params)
+        position_error = state_array[:3] - reference[:3]
+        attitude_error = state_array[3:6] - info.attitude_reference
         cost = cost + dt * (jnp.sum(position_error**2) + jnp.sum(attitude_error**2))
         if accumulator is not None:
-            acc = accumulator[1](acc, t, state, obs.reference, inputs, info)
-        return (next_state, control, status, cost, acc), (obs.reference, inputs, info)
+            acc = accumulator[1](acc, t, state_array, reference, inputs, info)
+        # The control update of step k + 1, from the new state.
+        control, next_inputs, next_info = controller.step(
+            params, control, observe(k + 1, jnp.stack(next_state))
+        )
+        carry = (next_state, control, next_inputs, next_info, status, cost, acc)
+        return carry, (reference, inputs, info)
 
     @jax.checkpoint
     def block(carry, block_index):
@@ -207,8 +237,18 @@ def rollout(
         carry, (refs, inputs, infos) = lax.scan(one_step, carry, ks)
         t_end = (block_index + 1).astype(dtype) * config.save_every * dt
         last = jax.tree.map(lambda x: x[-1], (refs, inputs, infos))
-        return carry, Snapshot(t_end, carry[0], last[0], last[1], last[2])
+        return carry, Snapshot(t_end, jnp.stack(carry[0]), last[0], last[1], last[2])
 
-    carry0 = (state0, control0, jnp.zeros((), jnp.int32), jnp.zeros((), dtype), acc0)
-    (final, _, status, cost, acc), trajectory = lax.scan(block, carry0, jnp.arange(config.blocks))
-    return Rollout(final, status, cost, acc, trajectory)
+    carry0 = (
+        tuple(state0[i] for i in range(12)),
+        control1,
+        inputs0,
+        info0,
+        jnp.zeros((), jnp.int32),
+        jnp.zeros((), dtype),
+        acc0,
+    )
+    (final, _, _, _, status, cost, acc), trajectory = lax.scan(
+        block, carry0, jnp.arange(config.blocks)
+    )
+    return Rollout(jnp.stack(final), status, cost, acc, trajectory)
