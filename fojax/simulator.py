@@ -18,7 +18,9 @@ carry, where it is computed once; when both ran in the same iteration, XLA's CPU
 backend recomputed the whole control law inside each of the ~20 kernels that read
 the command (every RK4 stage, the rotor speeds, the status flags; see
 docs/performance.md). The plant state is carried as its 12 entries (one contiguous
-array per entry under ``vmap``) and stacked only where a ``(12,)`` array is needed.
+array per entry under ``vmap``), stacked only where a ``(12,)`` array is needed, and
+with it the sines and cosines of its attitude, evaluated once per step
+(:func:`fojax.plant.rk4_step_parts`).
 """
 
 from __future__ import annotations
@@ -204,7 +206,7 @@ def rollout(
     def one_step(carry, k):
         # state: x_k (12 scalars); inputs, info: the update at t_k; control: the
         # controller state after it.
-        state, control, inputs, info, status, cost, acc = carry
+        state, trig, control, inputs, info, status, cost, acc = carry
         t, (reference, _, _) = reference_at(k)
         disturbance = disturbance_at(k, t).astype(dtype)
         drag_position, drag_attitude = drag_at(k)
@@ -216,7 +218,9 @@ def rollout(
             dt,
             tuple(drag_position[i] for i in range(3)),
             tuple(drag_attitude[i] for i in range(3)),
+            trig,
         )
+        next_trig = plant.attitude_trig(*next_state[3:6])
         state_array = jnp.stack(state)
         status = status | _status(jnp.stack(next_state), inputs, info, draw.params)
         position_error = state_array[:3] - reference[:3]
@@ -228,7 +232,7 @@ def rollout(
         control, next_inputs, next_info = controller.step(
             params, control, observe(k + 1, jnp.stack(next_state))
         )
-        carry = (next_state, control, next_inputs, next_info, status, cost, acc)
+        carry = (next_state, next_trig, control, next_inputs, next_info, status, cost, acc)
         return carry, (reference, inputs, info)
 
     @jax.checkpoint
@@ -239,8 +243,10 @@ def rollout(
         last = jax.tree.map(lambda x: x[-1], (refs, inputs, infos))
         return carry, Snapshot(t_end, jnp.stack(carry[0]), last[0], last[1], last[2])
 
+    state0_parts = tuple(state0[i] for i in range(12))
     carry0 = (
-        tuple(state0[i] for i in range(12)),
+        state0_parts,
+        plant.attitude_trig(*state0_parts[3:6]),
         control1,
         inputs0,
         info0,
@@ -248,7 +254,7 @@ def rollout(
         jnp.zeros((), dtype),
         acc0,
     )
-    (final, _, _, _, status, cost, acc), trajectory = lax.scan(
+    (final, _, _, _, _, status, cost, acc), trajectory = lax.scan(
         block, carry0, jnp.arange(config.blocks)
     )
     return Rollout(jnp.stack(final), status, cost, acc, trajectory)
