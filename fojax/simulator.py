@@ -127,39 +127,36 @@ def _hold_row(k: Array, horizon: float, hold: float, dt: float, n_rows: int) -> 
     return jnp.clip(k // hold_steps, 0, n_rows - 1)
 
 
-def _table_lookups(scenario: scenarios.Scenario, draw: scenarios.Draw, config: SimulationConfig):
-    """``disturbance_at(k, t)`` and ``drag_at(k)``: :func:`fojax.scenarios.disturbance_at`
-    and :func:`fojax.scenarios.drag_at` at step ``k`` (time ``t = k dt``).
+def _held_values(scenario: scenarios.Scenario, draw: scenarios.Draw, config: SimulationConfig):
+    """``held(k) -> (noise, drag_position, drag_attitude)``: the draw's held values at step
+    ``k`` (time ``t = k dt``), as tuples of scalars (``noise``: 6, or ``None`` without
+    noise; the drag coefficients: 3 each), those of :func:`fojax.scenarios.disturbance_at`
+    and :func:`fojax.scenarios.drag_at`.
 
     The draw's tables are laid out for ``config.dt`` (``sample_draw(..., dt=config.dt)``),
     so the row of step ``k`` is ``k // hold_steps`` with ``hold_steps`` known before
     tracing (the same row as ``round(t / dt) // hold_steps``). The row then does not
     depend on the draw, and under ``vmap`` each lookup is one slice of the batched
-    table instead of a gather per draw.
+    table instead of a gather per draw. The rollout reads each step's values once, at
+    the end of the step before, and carries them: a row of a ``(draws, rows, 6)`` table
+    is a strided read that XLA otherwise repeated inside every kernel using it.
     """
     dt = config.dt
 
-    def disturbance_at(k, t):
-        deterministic = scenario.disturbance(t)
-        if not scenario.has_noise:
-            return deterministic
-        table = draw.noise_accel
-        row = _hold_row(k, scenario.horizon, scenario.noise_hold, dt, table.shape[0])
-        noise = lax.dynamic_index_in_dim(table, row, keepdims=False)
-        return deterministic + noise.astype(deterministic.dtype)
+    def row_of(table, k, hold):
+        row = _hold_row(k, scenario.horizon, hold, dt, table.shape[0])
+        values = lax.dynamic_index_in_dim(table, row, keepdims=False)
+        return tuple(values[i] for i in range(6))
 
-    def drag_at(k):
-        if not scenario.has_drag_variation:
-            return draw.params.drag_position, draw.params.drag_attitude
-        table = draw.drag_multipliers
-        row = _hold_row(k, scenario.horizon, scenario.drag_hold, dt, table.shape[0])
-        multipliers = lax.dynamic_index_in_dim(table, row, keepdims=False)
-        return (
-            draw.params.drag_position * multipliers[:3],
-            draw.params.drag_attitude * multipliers[3:],
-        )
+    def held(k):
+        noise = row_of(draw.noise_accel, k, scenario.noise_hold) if scenario.has_noise else None
+        k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
+        if scenario.has_drag_variation:
+            m = row_of(draw.drag_multipliers, k, scenario.drag_hold)
+            k_p, k_phi = k_p * jnp.stack(m[:3]), k_phi * jnp.stack(m[3:])
+        return noise, tuple(k_p[i] for i in range(3)), tuple(k_phi[i] for i in range(3))
 
-    return disturbance_at, drag_at
+    return held
 
 
 def rollout(
@@ -201,23 +198,27 @@ def rollout(
     # The first control update; later ones run at the end of the iteration before.
     control1, inputs0, info0 = controller.step(params, control0, obs0)
     acc0 = accumulator[0]() if accumulator is not None else None
-    disturbance_at, drag_at = _table_lookups(scenario, draw, config)
+    held_at = _held_values(scenario, draw, config)
 
     def one_step(carry, k):
         # state: x_k (12 scalars); inputs, info: the update at t_k; control: the
         # controller state after it.
-        state, trig, control, inputs, info, status, cost, acc = carry
+        state, trig, held, control, inputs, info, status, cost, acc = carry
         t, (reference, _, _) = reference_at(k)
-        disturbance = disturbance_at(k, t).astype(dtype)
-        drag_position, drag_attitude = drag_at(k)
+        noise, drag_position, drag_attitude = held
+        deterministic = scenario.disturbance(t).astype(dtype)  # time only
+        disturbance = tuple(
+            deterministic[i] if noise is None else deterministic[i] + noise[i].astype(dtype)
+            for i in range(6)
+        )
         next_state = plant.rk4_step_parts(
             draw.params,
             state,
             tuple(inputs[i] for i in range(4)),
-            tuple(disturbance[i] for i in range(6)),
+            disturbance,
             dt,
-            tuple(drag_position[i] for i in range(3)),
-            tuple(drag_attitude[i] for i in range(3)),
+            drag_position,
+            drag_attitude,
             trig,
         )
         next_trig = plant.attitude_trig(*next_state[3:6])
@@ -232,7 +233,17 @@ def rollout(
         control, next_inputs, next_info = controller.step(
             params, control, observe(k + 1, jnp.stack(next_state))
         )
-        carry = (next_state, next_trig, control, next_inputs, next_info, status, cost, acc)
+        carry = (
+            next_state,
+            next_trig,
+            held_at(k + 1),
+            control,
+            next_inputs,
+            next_info,
+            status,
+            cost,
+            acc,
+        )
         return carry, (reference, inputs, info)
 
     @jax.checkpoint
@@ -247,6 +258,7 @@ def rollout(
     carry0 = (
         state0_parts,
         plant.attitude_trig(*state0_parts[3:6]),
+        held_at(jnp.zeros((), jnp.int32)),
         control1,
         inputs0,
         info0,
@@ -254,7 +266,7 @@ def rollout(
         jnp.zeros((), dtype),
         acc0,
     )
-    (final, _, _, _, _, status, cost, acc), trajectory = lax.scan(
+    (final, _, _, _, _, _, status, cost, acc), trajectory = lax.scan(
         block, carry0, jnp.arange(config.blocks)
     )
     return Rollout(jnp.stack(final), status, cost, acc, trajectory)
