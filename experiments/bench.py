@@ -5,11 +5,17 @@ exponentials), RK4, 1 ms, float32. Measured in one run, on every device JAX sees
 (draws sharded with :mod:`fojax.sharding`):
 
 * forward rollouts at several draw counts: draw-steps per second (median of
-  ``--repeats`` runs) and compile time, apart;
+  ``--repeats`` runs) and compile time, apart; batches larger than ``--chunk`` draws
+  run as consecutive calls of ``--chunk`` draws each (as the Monte Carlo layer runs
+  them; one call of a big batch streams the fractional memory from DRAM every step),
+  and are also timed as one call for comparison;
 * reverse-mode gradient of the rollout cost with respect to the gains (``tanh``
   switching) at several horizons: draw-steps per second, its cost relative to the
   forward pass of the same rollout, compile time, and peak memory (XLA's buffer
-  assignment: arguments + outputs + temporaries of the compiled program);
+  assignment: arguments + outputs + temporaries of the compiled program). The gains
+  are broadcast to one copy per draw before the rollout, so the sum of the draws'
+  gradients happens once, after the time loop (with shared gains it happened at every
+  step, an all-reduce across devices each step on a mesh: 20-100x slower);
 * the same closed loop in plain NumPy vectorised over draws
   (:mod:`experiments.numpy_reference`) and the ratio JAX / NumPy;
 * crazyflow's simulator at the same world counts, where it is installed.
@@ -36,6 +42,7 @@ import time
 from pathlib import Path
 
 DEFAULT_DRAWS = (1, 64, 1024, 4096)
+DEFAULT_CHUNK = 1024  # draws per call: 512 per core keeps each core's modes in its L2
 
 
 def _log(message: str) -> None:
@@ -110,6 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="batches up to this size run the long horizon",
     )
     parser.add_argument("--repeats", type=_positive_int, default=3, help="timed runs (median)")
+    parser.add_argument(
+        "--chunk",
+        type=_positive_int,
+        default=DEFAULT_CHUNK,
+        help="draws per compiled call for bigger forward batches (Monte Carlo chunks)",
+    )
     parser.add_argument(
         "--gradient-draws", type=_positive_int, default=64, help="draws of the gradient runs"
     )
@@ -245,25 +258,47 @@ def _memory(compiled) -> dict:
     return out
 
 
-def measure_forward(count: int, horizon: float, repeats: int, mesh) -> dict:
-    """Forward rollouts of ``count`` draws over ``horizon`` seconds."""
+def measure_forward(
+    count: int, horizon: float, repeats: int, mesh, chunk: int | None = None
+) -> dict:
+    """Forward rollouts of ``count`` draws over ``horizon`` seconds.
+
+    With ``chunk`` smaller than ``count``, the draws run as consecutive calls of
+    ``chunk`` draws each (one compiled function), the way :mod:`fojax.montecarlo` runs
+    them; the batch is also timed as one call (``one_call_*``).
+    """
+    import jax
+
     from fojax import sharding
 
     work = _Workload(horizon)
     devices = mesh.devices.size
-    padded = _padded_count(count, devices)
-    draws = sharding.shard_draws(work.draws(padded), mesh)
+    chunk = count if chunk is None or chunk >= count else chunk
+    padded_chunk = _padded_count(chunk, devices)
+    n_chunks = math.ceil(count / chunk)
+    all_draws = work.draws(n_chunks * padded_chunk)
     gains = sharding.replicate(work.gains, mesh)
     run = sharding.sharded_vmap(work.one_draw, mesh, in_axes=(None, 0))
-    compiled, compile_s = _compile(run, gains, draws)
-    import jax
 
-    jax.block_until_ready(compiled(gains, draws))  # warm
-    run_s, times = _median_time(lambda: compiled(gains, draws), repeats)
+    def place(first, size):
+        return sharding.shard_draws(
+            jax.tree.map(lambda x: x[first : first + size], all_draws), mesh
+        )
+
+    chunks = [place(i * padded_chunk, padded_chunk) for i in range(n_chunks)]
+    compiled, compile_s = _compile(run, gains, chunks[0])
+    jax.block_until_ready(compiled(gains, chunks[0]))  # warm
+
+    def run_all():
+        return [compiled(gains, c) for c in chunks]
+
+    run_s, times = _median_time(run_all, repeats)
     steps = work.config.steps
-    return {
+    entry = {
         "draws": count,
-        "draws_computed": padded,
+        "draws_computed": n_chunks * padded_chunk,
+        "chunk": chunk,
+        "calls": n_chunks,
         "horizon_s": horizon,
         "steps": steps,
         "compile_s": compile_s,
@@ -271,6 +306,18 @@ def measure_forward(count: int, horizon: float, repeats: int, mesh) -> dict:
         "run_s_all": times,
         "draw_steps_per_s": count * steps / run_s,
     }
+    if n_chunks > 1:
+        padded = _padded_count(count, devices)
+        whole = place(0, padded)
+        one_call, one_compile_s = _compile(run, gains, whole)
+        jax.block_until_ready(one_call(gains, whole))
+        one_s, _ = _median_time(lambda: one_call(gains, whole), repeats)
+        entry.update(
+            one_call_compile_s=one_compile_s,
+            one_call_run_s=one_s,
+            one_call_draw_steps_per_s=count * steps / one_s,
+        )
+    return entry
 
 
 def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
@@ -287,7 +334,11 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
     gains = sharding.replicate(work.gains, mesh)
 
     def forward(gains, draws):
-        return jnp.mean(jax.vmap(lambda d: work.one_draw(gains, d).cost)(draws))
+        # One copy of the gains per draw: their cotangents stay per draw inside the time
+        # loop and are summed once, after it (see the module docstring).
+        n = draws.time_step.shape[0]
+        per_draw = jax.tree.map(lambda g: jnp.broadcast_to(g, (n,) + g.shape), gains)
+        return jnp.mean(jax.vmap(lambda g, d: work.one_draw(g, d).cost)(per_draw, draws))
 
     replicated = sharding.replicated_sharding(mesh)
     in_shardings = (replicated, sharding.draw_sharding(mesh))
@@ -382,6 +433,7 @@ UNITS = {
     "steps": "steps of 1 ms",
     "*_bytes": "bytes (XLA buffer assignment of the compiled program, all devices' share)",
     "gradient_over_forward": "gradient wall time / forward wall time, same draws and horizon",
+    "chunk": "draws per compiled call (bigger batches run as consecutive calls)",
     "jax_over_numpy": "JAX draw-steps/s / NumPy draw-steps/s at the same draw count",
 }
 
@@ -442,11 +494,17 @@ def main(argv=None) -> dict:
     for count in args.draws:
         horizon = args.long_horizon if count <= args.long_max_draws else args.short_horizon
         _log(f"forward: {count} draws x {horizon} s ...")
-        entry = measure_forward(count, horizon, args.repeats, mesh)
+        entry = measure_forward(count, horizon, args.repeats, mesh, args.chunk)
         result["forward"].append(entry)
         _log(
             f"  {entry['draw_steps_per_s']:.3g} draw-steps/s "
-            f"(run {entry['run_s']:.3f} s, compile {entry['compile_s']:.1f} s)"
+            f"(run {entry['run_s']:.3f} s in {entry['calls']} call(s), "
+            f"compile {entry['compile_s']:.1f} s)"
+            + (
+                f"; as one call {entry['one_call_draw_steps_per_s']:.3g}"
+                if "one_call_draw_steps_per_s" in entry
+                else ""
+            )
         )
 
     for count in args.numpy_draws or args.draws:
@@ -478,11 +536,11 @@ def main(argv=None) -> dict:
         base_draws = 8 if args.small else 256
         _log("scaling: cost against draws and horizon ...")
         result["scaling"]["draws"] = [
-            measure_forward(base_draws * m, args.short_horizon, args.repeats, mesh)
+            measure_forward(base_draws * m, args.short_horizon, args.repeats, mesh, args.chunk)
             for m in (1, 4, 16)
         ]
         result["scaling"]["horizon"] = [
-            measure_forward(base_draws * 4, args.short_horizon * m, args.repeats, mesh)
+            measure_forward(base_draws * 4, args.short_horizon * m, args.repeats, mesh, args.chunk)
             for m in (0.5, 1, 2)
         ]
         for kind, entries in result["scaling"].items():
@@ -520,6 +578,12 @@ def _print_summary(result: dict) -> None:
         print(
             f"  {e['draws']:6d} draws x {e['horizon_s']:g} s: "
             f"{e['draw_steps_per_s']:10.3g} draw-steps/s   compile {e['compile_s']:5.1f} s"
+            + (
+                f"   ({e['calls']} calls of {e['chunk']}; one call: "
+                f"{e['one_call_draw_steps_per_s']:.3g})"
+                if "one_call_draw_steps_per_s" in e
+                else ""
+            )
         )
     print("numpy reference:")
     for e in result["numpy"]:

@@ -191,7 +191,8 @@ def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
         "filter_damping": controller.filter_damping,
         "gains": {name: as_np(getattr(gains, name)) for name in gains._fields},
         "nominal": {name: as_np(getattr(model, name)) for name in model._fields},
-        "mode_gains": as_np(weights.mode_gains),  # (12, 3, modes)
+        "mode_weights": as_np(weights.mode_weights),  # (12, modes)
+        "taps": as_np(weights.taps),  # (3, modes)
         "readout": as_np(weights.readout),  # (2, modes)
         "local": as_np(weights.local),  # (12, 2, 3)
         "decay_m1": as_np(operator._tables["decay_m1"]),  # (modes,)
@@ -233,7 +234,7 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
     dt = config.dt
     g = prepared["gains"]
     nominal = prepared["nominal"]
-    mode_gains = prepared["mode_gains"]
+    mode_weights, taps = prepared["mode_weights"], prepared["taps"]
     readout = prepared["readout"]
     local = prepared["local"]
     decay_m1 = prepared["decay_m1"]
@@ -298,7 +299,7 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
             samples = (u, u_prev, u_before)  # each (n, 12)
             outputs = history + sum(local[:, :, i] * samples[i][:, :, None] for i in range(3))
             integral, rate = outputs[..., 0], outputs[..., 1]
-            increment = sum(mode_gains[:, i] * samples[i][:, :, None] for i in range(3))
+            increment = mode_weights * sum(taps[i] * samples[i][:, :, None] for i in range(3))
             modes = modes + (decay_m1 * modes + increment)
         u_prev2, u_prev = u_prev, u
         surface = error_rate + integral[:, :6] + integral[:, 6:]

@@ -34,11 +34,11 @@ from fojax.controller import (
     Bounds,
     ControlInfo,
     Observation,
-    attitude_drift,
+    attitude_drift_parts,
     check_bounds,
     signed_power,
     switching,
-    thrust_and_attitude,
+    thrust_and_attitude_parts,
 )
 
 Array = jax.Array
@@ -278,18 +278,27 @@ class AFONFTSMC:
             last_inputs=plant.hover_inputs(params.model).astype(dtype),
         )
 
+    # The step works on scalars, one per axis (tuples of six), and stacks only what it
+    # returns or stores: under ``vmap`` each scalar is one contiguous ``(draws,)`` array,
+    # which XLA's CPU backend computes in one vectorised loop, where a small stacked
+    # vector became a branchy loop recomputing its shared operands per element
+    # (docs/performance.md, "Where the time goes").
+
     def _surface(self, params, memory, error, error_rate):
         """Surfaces (16)-(18)/(37)-(39) of the six axes and the fractional part of dS/dt.
 
-        error, error_rate: ``(6,)`` ``e1``, ``e2`` over ``(x, y, z, phi, theta, psi)``.
+        error, error_rate: six scalars each, ``e1``, ``e2`` over
+        ``(x, y, z, phi, theta, psi)``. Returns the memory and six scalars each of ``S``
+        and of the fractional terms of ``dS/dt``.
         """
         g = params.gains
-        p_term = g.surface_c1 * signed_power(error, g.ratio)
-        phi_term = g.surface_c2 * signed_power(error, g.power)
-        signals = jnp.concatenate([p_term, phi_term])
+        p_terms = [g.surface_c1[i] * signed_power(e, g.ratio[i]) for i, e in enumerate(error)]
+        phi_terms = [g.surface_c2[i] * signed_power(e, g.power[i]) for i, e in enumerate(error)]
+        signals = jnp.stack(p_terms + phi_terms)
         memory, (integral, rate) = self._memory.step(params.surface_weights, memory, signals)
-        surface = error_rate + integral[:6] + integral[6:]
-        return memory, surface, rate[:6] + rate[6:]
+        surface = tuple(error_rate[i] + integral[i] + integral[6 + i] for i in range(6))
+        dsurface = tuple(rate[i] + rate[6 + i] for i in range(6))
+        return memory, surface, dsurface
 
     def _adapt(self, params, state):
         """The adaptive update (25)-(27)/(45)-(47) owed by the previous step (Euler)."""
@@ -305,76 +314,101 @@ class AFONFTSMC:
         return state.adaptive + self.dt * params.gains.adaptation * regressor * magnitude[:, None]
 
     def _reaching(self, params, adaptive, surface, error, error_rate):
-        """Reaching law (24)/(42)-(44) with the adaptive bound."""
+        """Reaching law (24)/(42)-(44) with the adaptive bound, six scalars."""
         g = params.gains
-        sw = switching(self.switching, surface, g.boundary_layer)
-        bound = (
-            adaptive[:, 0] + adaptive[:, 1] * jnp.abs(error) + adaptive[:, 2] * jnp.abs(error_rate)
-        )
-        return -g.reaching_h1 * sw - g.reaching_h2 * surface - (bound + g.mu) * sw
+        out = []
+        for i in range(6):
+            sw = switching(self.switching, surface[i], g.boundary_layer[i])
+            bound = (
+                adaptive[i, 0]
+                + adaptive[i, 1] * jnp.abs(error[i])
+                + adaptive[i, 2] * jnp.abs(error_rate[i])
+            )
+            out.append(
+                -g.reaching_h1[i] * sw - g.reaching_h2[i] * surface[i] - (bound + g.mu[i]) * sw
+            )
+        return tuple(out)
 
     def step(
         self, params: AFONFTSMCParams, state: AFONFTSMCState, observation: Observation
     ) -> tuple[AFONFTSMCState, Array, ControlInfo]:
         model = params.model
         x = observation.state
-        velocity, attitude_rate = x[6:9], x[9:12]
-        yaw_reference = observation.reference[3]
+        ref, ref_vel, ref_acc = (
+            observation.reference,
+            observation.reference_velocity,
+            observation.reference_acceleration,
+        )
+        yaw_reference = ref[3]
 
         # Errors of both loops, eqs. (14)-(15), (40)-(41). The attitude loop tracks the
         # command filter's output (notes item 11), known at the start of the step.
         filt = state.command_filter
-        attitude_reference = jnp.concatenate([filt[:, 0], yaw_reference[None]])
-        attitude_reference_rate = jnp.concatenate([filt[:, 1], observation.reference_velocity[3:4]])
-        reference = jnp.concatenate([observation.reference[:3], attitude_reference])
-        reference_rate = jnp.concatenate(
-            [observation.reference_velocity[:3], attitude_reference_rate]
-        )
-        error = x[:6] - reference
-        error_rate = x[6:12] - reference_rate
+        reference = (ref[0], ref[1], ref[2], filt[0, 0], filt[1, 0], yaw_reference)
+        reference_rate = (ref_vel[0], ref_vel[1], ref_vel[2], filt[0, 1], filt[1, 1], ref_vel[3])
+        error = tuple(x[i] - reference[i] for i in range(6))
+        error_rate = tuple(x[6 + i] - reference_rate[i] for i in range(6))
 
-        # Surfaces and reaching laws of the six axes at once.
+        # Surfaces and reaching laws of the six axes.
         memory, surface, dsurface = self._surface(params, state.surface_memory, error, error_rate)
         adaptive = self._adapt(params, state)
         reaching = self._reaching(params, adaptive, surface, error, error_rate)
 
         # Position loop, eqs. (23)-(28), (12)-(13).
-        virtual = (
-            model.drag_position / model.mass * velocity
-            + observation.reference_acceleration[:3]
-            - dsurface[:3]
-            + reaching[:3]
+        virtual = [
+            model.drag_position[i] / model.mass * x[6 + i] + ref_acc[i] - dsurface[i] + reaching[i]
+            for i in range(3)
+        ]
+        thrust, phi_r, theta_r = thrust_and_attitude_parts(
+            model, *virtual, jnp.cos(yaw_reference), jnp.sin(yaw_reference)
         )
-        thrust, tilt_reference = thrust_and_attitude(model, virtual, yaw_reference)
 
         # Command filter (notes item 11): phi_r, theta_r and two derivatives.
         w, zeta = self.filter_frequency, self.filter_damping
-        filtered_accel = w * w * (tilt_reference - filt[:, 0]) - 2.0 * zeta * w * filt[:, 1]
-        attitude_reference_accel = jnp.concatenate(
-            [filtered_accel, observation.reference_acceleration[3:4]]
-        )
-        command_filter = (
-            filt @ params.filter_transition.T + tilt_reference[:, None] * params.filter_input
+        tilt_reference = (phi_r, theta_r)
+        filtered_accel = [
+            w * w * (tilt_reference[i] - filt[i, 0]) - 2.0 * zeta * w * filt[i, 1] for i in range(2)
+        ]
+        transition, gain = params.filter_transition, params.filter_input
+        command_filter = jnp.stack(
+            [
+                jnp.stack(
+                    [
+                        filt[i, 0] * transition[j, 0]
+                        + filt[i, 1] * transition[j, 1]
+                        + tilt_reference[i] * gain[j]
+                        for j in range(2)
+                    ]
+                )
+                for i in range(2)
+            ]
         )
 
         # Attitude loop, eqs. (42)-(44).
-        omega_r = plant.rotor_speed_sum(model, state.last_inputs)
-        drift = attitude_drift(model, attitude_rate, omega_r)
-        torque = model.inertia * (-drift + attitude_reference_accel - dsurface[3:] + reaching[3:])
+        last = state.last_inputs
+        omega_r = plant.rotor_speed_sum(model, last)
+        drift = attitude_drift_parts(model, x[9], x[10], x[11], omega_r)
+        attitude_reference_accel = (filtered_accel[0], filtered_accel[1], ref_acc[3])
+        torque = [
+            model.inertia[i]
+            * (-drift[i] + attitude_reference_accel[i] - dsurface[3 + i] + reaching[3 + i])
+            for i in range(3)
+        ]
 
-        inputs = jnp.concatenate([thrust[None], torque])
+        inputs = jnp.stack([thrust, *torque])
+        surfaces = jnp.stack(surface)
         new_state = AFONFTSMCState(
             surface_memory=memory,
             adaptive=adaptive,
-            previous_surface=surface,
-            previous_error=error,
-            previous_error_rate=error_rate,
+            previous_surface=surfaces,
+            previous_error=jnp.stack(error),
+            previous_error_rate=jnp.stack(error_rate),
             command_filter=command_filter,
             last_inputs=inputs,
         )
         info = ControlInfo(
-            surfaces=surface,
-            attitude_reference=attitude_reference,
+            surfaces=surfaces,
+            attitude_reference=jnp.stack([filt[0, 0], filt[1, 0], yaw_reference]),
             adaptive=adaptive,
         )
         return new_state, inputs, info

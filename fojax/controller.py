@@ -165,26 +165,44 @@ def signed_square(rate: Array) -> Array:
     return rate * jnp.abs(rate)
 
 
+def attitude_drift_parts(model: Any, p: Array, q: Array, r: Array, rotor_speed_sum: Array):
+    """:func:`attitude_drift` from the three rates ``(phi', theta', psi')`` as scalars.
+
+    Returns the three accelerations as a tuple (each of the rates' shape).
+    """
+    i11, i22, i33 = model.inertia[0], model.inertia[1], model.inertia[2]
+    k = model.drag_attitude
+    j_r = model.rotor_inertia
+    return (
+        (i22 - i33) / i11 * q * r - j_r / i11 * q * rotor_speed_sum - k[0] / i11 * signed_square(p),
+        (i33 - i11) / i22 * p * r + j_r / i22 * p * rotor_speed_sum - k[1] / i22 * signed_square(q),
+        (i11 - i22) / i33 * p * q - k[2] / i33 * signed_square(r),
+    )
+
+
 def attitude_drift(model: Any, attitude_rate: Array, rotor_speed_sum: Array) -> Array:
     """The model's coupling and drag accelerations ``(3,)`` of eq. (11a)-(11c).
 
     ``{a_phi1 theta' psi' - a_phi2 theta' Omega_r - a_phi3 drag(phi'), ...}``: the
     bracket of eqs. (42)-(44) (notes items 1 and 10), without the torques.
     """
-    i11, i22, i33 = model.inertia[0], model.inertia[1], model.inertia[2]
     p, q, r = attitude_rate[0], attitude_rate[1], attitude_rate[2]
-    drag = model.drag_attitude / model.inertia * signed_square(attitude_rate)
-    j_r = model.rotor_inertia
-    return (
-        jnp.stack(
-            [
-                (i22 - i33) / i11 * q * r - j_r / i11 * q * rotor_speed_sum,
-                (i33 - i11) / i22 * p * r + j_r / i22 * p * rotor_speed_sum,
-                (i11 - i22) / i33 * p * q,
-            ]
-        )
-        - drag
-    )
+    return jnp.stack(attitude_drift_parts(model, p, q, r, rotor_speed_sum))
+
+
+def thrust_and_attitude_parts(
+    model: Any, vx: Array, vy: Array, vz: Array, cos_yaw: Array, sin_yaw: Array
+) -> tuple[Array, Array, Array]:
+    """:func:`thrust_and_attitude` on scalars: ``v = (vx, vy, vz)`` and ``cos/sin(psi_r)``.
+
+    Returns ``(u_F, phi_r, theta_r)``.
+    """
+    g = model.gravity
+    lift = jnp.maximum(vz + g, 0.1 * g)
+    theta_r = jnp.arctan((cos_yaw * vx + sin_yaw * vy) / lift)
+    phi_r = jnp.arctan(jnp.cos(theta_r) * (sin_yaw * vx - cos_yaw * vy) / lift)
+    thrust = model.mass * jnp.sqrt(vx * vx + vy * vy + lift * lift)
+    return thrust, phi_r, theta_r
 
 
 def thrust_and_attitude(model: Any, virtual: Array, yaw_reference: Array) -> tuple[Array, Array]:
@@ -194,11 +212,12 @@ def thrust_and_attitude(model: Any, virtual: Array, yaw_reference: Array) -> tup
     vertical term ``v_z + g`` is kept above ``0.1 g`` so the quadrotor never asks to
     fly upside down (a documented guard; it is inactive in the paper's scenarios).
     """
-    g = model.gravity
-    vx, vy = virtual[0], virtual[1]
-    lift = jnp.maximum(virtual[2] + g, 0.1 * g)
-    c_psi, s_psi = jnp.cos(yaw_reference), jnp.sin(yaw_reference)
-    theta_r = jnp.arctan((c_psi * vx + s_psi * vy) / lift)
-    phi_r = jnp.arctan(jnp.cos(theta_r) * (s_psi * vx - c_psi * vy) / lift)
-    thrust = model.mass * jnp.sqrt(vx * vx + vy * vy + lift * lift)
+    thrust, phi_r, theta_r = thrust_and_attitude_parts(
+        model,
+        virtual[0],
+        virtual[1],
+        virtual[2],
+        jnp.cos(yaw_reference),
+        jnp.sin(yaw_reference),
+    )
     return thrust, jnp.stack([phi_r, theta_r])

@@ -731,14 +731,22 @@ class RatePairCoefficients(NamedTuple):
 
     For channel orders of shape ``S`` (``S`` broadcast against the signal):
 
-    mode_gains: ``S + (3, modes)`` gains of ``(u_k, u_{k-1}, u_{k-2})`` into the
-        scaled modes ``z_j = w_j exp(-s_j dt) y_j``.
+    mode_weights: ``S + (modes,)`` the scales ``w_j(b) exp(-s_j dt)`` of the modes
+        ``z_j = w_j exp(-s_j dt) y_j``: the only order-dependent part of the update.
+    taps: ``(3, modes)`` gains of ``(u_k, u_{k-1}, u_{k-2})`` into the unscaled modes
+        ``y_j`` (the same for every order): ``z_j`` grows by
+        ``mode_weights_j * sum_i taps_ij u_(k-i)``.
     readout: ``(2, modes)`` ``(1, -s_j)``: the integral's history is ``sum_j z_j``, the
         rate's history ``-sum_j s_j z_j`` (the same for every order).
     local: ``S + (2, 3)`` weights of ``(u_k, u_{k-1}, u_{k-2})`` for (integral, rate).
+
+    Keeping the order-dependent weights apart from the fixed taps makes the gradient
+    with respect to the orders accumulate one ``S + (modes,)`` array per step instead of
+    ``S + (3, modes)`` (docs/performance.md).
     """
 
-    mode_gains: Array
+    mode_weights: Array
+    taps: Array
     readout: Array
     local: Array
 
@@ -811,7 +819,8 @@ class IntegralWithRate:
         )  # (3, modes)
         rates = jnp.asarray(tb["rates"], dtype)
         return RatePairCoefficients(
-            mode_gains=integral.history[..., None, :] * gains,
+            mode_weights=integral.history,
+            taps=gains,
             readout=jnp.stack([jnp.ones_like(rates), -rates]),
             local=jnp.stack([integral.local, rate.local], axis=-2),
         )
@@ -842,9 +851,9 @@ class IntegralWithRate:
         u_before = jnp.where(count > 2, state.u_prev3, 2.0 * state.u_prev2 - state.u_prev)
         # Written as explicit multiply-adds (not contractions over the 3 samples), so
         # that they fuse with their neighbours instead of becoming small matrix products.
-        gains = coeffs.mode_gains
-        increment = sum(
-            gains[..., i, :] * sample[..., None]
+        taps = coeffs.taps
+        increment = coeffs.mode_weights * sum(
+            taps[i] * sample[..., None]
             for i, sample in enumerate((state.u_prev, state.u_prev2, u_before))
         )
         increment = jnp.where(count > 1, increment, 0.0)

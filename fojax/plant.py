@@ -48,6 +48,7 @@ default, float64 when ``jax_enable_x64`` is on); ``jit``, ``vmap`` and ``grad`` 
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -62,6 +63,7 @@ __all__ = [
     "STATE_SIZE",
     "VELOCITY",
     "PlantParams",
+    "attitude_trig",
     "derivatives",
     "hover_inputs",
     "hover_state",
@@ -69,6 +71,7 @@ __all__ = [
     "mixer",
     "nominal_params",
     "rk4_step",
+    "rk4_step_parts",
     "rotor_speed_sum",
     "rotor_speeds_squared",
     "split_state",
@@ -249,8 +252,7 @@ def rotor_speed_sum(params: PlantParams, inputs: Array) -> Array:
     at ``w_i^2 = 0`` the one-sided infinite derivative of the square root is replaced
     by zero).
     """
-    speeds = _safe_sqrt_nonnegative(rotor_speeds_squared(params, inputs))
-    return speeds[0] - speeds[1] + speeds[2] - speeds[3]
+    return _rotor_speed_sum_parts(params, inputs[0], inputs[1], inputs[2], inputs[3])
 
 
 def hover_inputs(params: PlantParams) -> Array:
@@ -268,11 +270,121 @@ def hover_state(position=(0.0, 0.0, 0.0), yaw=0.0, dtype=None) -> Array:
 
 
 # ------------------------------------------------------------------------- dynamics
+#
+# The dynamics are written on scalars (``(12,)`` states unpacked into their entries)
+# and stacked once at the end. Under ``vmap`` each scalar becomes one contiguous
+# ``(draws,)`` array, so XLA's CPU backend emits one vectorised loop over the draws
+# per value. Built as small stacked vectors instead, every element of such a vector
+# became one branch of a loop fusion that recomputed the shared operands (all six
+# sin/cos of the attitude, for each thrust-direction component) and did not vectorise
+# (docs/performance.md). Each acceleration ends with its division by the mass or the
+# inertia: XLA keeps a division it would have to duplicate as a kernel of its own, so
+# an RK4 stage's accelerations are computed once and read by the next stage.
 
 
 def _signed_square(w: Array) -> Array:
     """``drag(w) = w |w|`` (notes item 1): the aerodynamic drag pushes against ``w``."""
     return w * jnp.abs(w)
+
+
+def _unstack(vector: Array, size: int) -> tuple:
+    return tuple(vector[i] for i in range(size))
+
+
+def _drag_parts(params: PlantParams, drag_position, drag_attitude) -> tuple[tuple, tuple]:
+    k_p = params.drag_position if drag_position is None else drag_position
+    k_phi = params.drag_attitude if drag_attitude is None else drag_attitude
+    return _unstack(k_p, 3), _unstack(k_phi, 3)
+
+
+def _rotor_speed_sum_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z) -> Array:
+    """:func:`rotor_speed_sum` from the four scalar inputs."""
+    b = params.thrust_factor
+    c = params.drag_factor
+    bd = b * params.arm_length
+    common = thrust / (4.0 * b)
+    yaw = tau_z / (4.0 * c)
+    roll = tau_x / (2.0 * bd)
+    pitch = tau_y / (2.0 * bd)
+    speeds = [
+        _safe_sqrt_nonnegative(w2)
+        for w2 in (
+            common - pitch - yaw,
+            common - roll + yaw,
+            common + pitch - yaw,
+            common + roll + yaw,
+        )
+    ]
+    return speeds[0] - speeds[1] + speeds[2] - speeds[3]
+
+
+def attitude_trig(phi: Array, theta: Array, psi: Array) -> tuple:
+    """``(cos phi, sin phi, cos theta, sin theta, cos psi, sin psi)`` of the Euler angles."""
+    return (jnp.cos(phi), jnp.sin(phi), jnp.cos(theta), jnp.sin(theta), jnp.cos(psi), jnp.sin(psi))
+
+
+# Taylor coefficients of (cos d - 1) / d^2 and sin(d) / d in powers of d^2, to d^14 and
+# d^15: the next terms are below 1e-13 for |d| <= 1 and below float64 rounding for
+# |d| <= 0.3.
+_COS_M1_SERIES = tuple((-1) ** n / math.factorial(2 * n) for n in range(1, 8))
+_SIN_SERIES = tuple((-1) ** n / math.factorial(2 * n + 1) for n in range(8))
+
+
+def _horner(x: Array, coefficients: tuple) -> Array:
+    result = coefficients[-1]
+    for c in reversed(coefficients[:-1]):
+        result = c + x * result
+    return result
+
+
+def _rotate(trig: tuple, increments: tuple) -> tuple:
+    """:func:`attitude_trig` of the angles shifted by small ``increments``, from ``trig``.
+
+    ``cos(a + d) = cos a + (cos a (cos d - 1) - sin a sin d)`` and likewise for ``sin``,
+    with ``cos d - 1`` and ``sin d`` from their Taylor series (:data:`_SIN_SERIES`):
+    float64-exact for ``|d| <= 0.3``, within ``1e-13`` for ``|d| <= 1`` (an angular rate
+    of 1000 rad/s over a 1 ms step). Multiply-adds instead of the sine and cosine that
+    XLA's CPU backend evaluates at ~2 ns each, and again in every kernel reading them.
+    """
+    out = []
+    for i, d in enumerate(increments):
+        c, s = trig[2 * i], trig[2 * i + 1]
+        d2 = d * d
+        cos_m1 = d2 * _horner(d2, _COS_M1_SERIES)
+        sin_d = d * _horner(d2, _SIN_SERIES)
+        out += [c + (c * cos_m1 - s * sin_d), s + (s * cos_m1 + c * sin_d)]
+    return tuple(out)
+
+
+def _derivative_parts(
+    params: PlantParams, x: tuple, trig: tuple, inputs: tuple, omega_r, d: tuple, k_p, k_phi
+):
+    """:func:`derivatives` on scalars: ``x`` 12, ``trig`` 6 (:func:`attitude_trig` of
+    ``x``), ``inputs`` 4, ``d`` 6, ``k_p``/``k_phi`` 3 entries; ``omega_r`` the rotor
+    speed sum of ``inputs``. Returns 12 scalars."""
+    vx, vy, vz = x[6], x[7], x[8]
+    p, q, r = x[9], x[10], x[11]
+    thrust, tau_x, tau_y, tau_z = inputs
+    i11, i22, i33 = params.inertia[0], params.inertia[1], params.inertia[2]
+    j_r = params.rotor_inertia
+    m = params.mass
+
+    # Eq. (11a)-(11c) multiplied through by the inertia, divided once at the end.
+    roll_accel = (
+        (i22 - i33) * q * r - j_r * q * omega_r - k_phi[0] * _signed_square(p) + tau_x
+    ) / i11 + d[3]
+    pitch_accel = (
+        (i33 - i11) * p * r + j_r * p * omega_r - k_phi[1] * _signed_square(q) + tau_y
+    ) / i22 + d[4]
+    yaw_accel = ((i11 - i22) * p * q - k_phi[2] * _signed_square(r) + tau_z) / i33 + d[5]
+
+    # Eq. (11d)-(11f), forces divided by the mass at the end.
+    c_phi, s_phi, c_theta, s_theta, c_psi, s_psi = trig
+    s_theta_c_phi = s_theta * c_phi
+    x_accel = ((c_psi * s_theta_c_phi + s_psi * s_phi) * thrust - k_p[0] * vx) / m + d[0]
+    y_accel = ((s_psi * s_theta_c_phi - c_psi * s_phi) * thrust - k_p[1] * vy) / m + d[1]
+    z_accel = (c_theta * c_phi * thrust - k_p[2] * vz) / m - params.gravity + d[2]
+    return (vx, vy, vz, p, q, r, x_accel, y_accel, z_accel, roll_accel, pitch_accel, yaw_accel)
 
 
 def derivatives(
@@ -295,50 +407,64 @@ def derivatives(
 
     Returns ``(x', y', z', phi', theta', psi', x'', y'', z'', phi'', theta'', psi'')``.
     """
-    k_p = params.drag_position if drag_position is None else drag_position
-    k_phi = params.drag_attitude if drag_attitude is None else drag_attitude
-    _, attitude, velocity, attitude_rate = split_state(state)
-    phi, theta, psi = attitude[0], attitude[1], attitude[2]
-    roll_rate, pitch_rate, yaw_rate = attitude_rate[0], attitude_rate[1], attitude_rate[2]
-    i11, i22, i33 = params.inertia[0], params.inertia[1], params.inertia[2]
-    thrust, torque = inputs[0], inputs[1:]
-    omega_r = rotor_speed_sum(params, inputs)
-    j_r = params.rotor_inertia
+    k_p, k_phi = _drag_parts(params, drag_position, drag_attitude)
+    u = _unstack(inputs, 4)
+    omega_r = _rotor_speed_sum_parts(params, *u)
+    x = _unstack(state, 12)
+    parts = _derivative_parts(
+        params, x, attitude_trig(*x[3:6]), u, omega_r, _unstack(disturbance_accel, 6), k_p, k_phi
+    )
+    return jnp.stack([v.astype(state.dtype) for v in parts])
 
-    rate_drag = _signed_square(attitude_rate)
-    roll_accel = (
-        (i22 - i33) / i11 * pitch_rate * yaw_rate
-        - j_r / i11 * pitch_rate * omega_r
-        - k_phi[0] / i11 * rate_drag[0]
-        + torque[0] / i11
-    )
-    pitch_accel = (
-        (i33 - i11) / i22 * roll_rate * yaw_rate
-        + j_r / i22 * roll_rate * omega_r
-        - k_phi[1] / i22 * rate_drag[1]
-        + torque[1] / i22
-    )
-    yaw_accel = (
-        (i11 - i22) / i33 * roll_rate * pitch_rate - k_phi[2] / i33 * rate_drag[2] + torque[2] / i33
-    )
 
-    c_phi, s_phi = jnp.cos(phi), jnp.sin(phi)
-    c_theta, s_theta = jnp.cos(theta), jnp.sin(theta)
-    c_psi, s_psi = jnp.cos(psi), jnp.sin(psi)
-    specific_thrust = thrust / params.mass
-    thrust_direction = jnp.stack(
-        [
-            c_psi * s_theta * c_phi + s_psi * s_phi,
-            s_psi * s_theta * c_phi - c_psi * s_phi,
-            c_theta * c_phi,
-        ]
-    )
-    linear_accel = thrust_direction * specific_thrust - k_p / params.mass * velocity
-    linear_accel = linear_accel.at[2].add(-params.gravity)
+def rk4_step_parts(
+    params: PlantParams,
+    state: tuple,
+    inputs: tuple,
+    disturbance_accel: tuple,
+    dt,
+    drag_position: tuple | None = None,
+    drag_attitude: tuple | None = None,
+    trig: tuple | None = None,
+) -> tuple:
+    """:func:`rk4_step` on unstacked values: ``state`` a tuple of 12 scalars, ``inputs``
+    of 4, ``disturbance_accel`` of 6, the drag overrides of 3 each (or ``None``);
+    ``trig``, if given, is :func:`attitude_trig` of ``state`` (computed when ``None``).
 
-    accel = jnp.concatenate([linear_accel, jnp.stack([roll_accel, pitch_accel, yaw_accel])])
-    accel = accel + disturbance_accel
-    return jnp.concatenate([velocity, attitude_rate, accel.astype(state.dtype)])
+    Returns the 12 scalars of the next state. The closed-loop simulator keeps its state
+    unstacked this way (see the note above :func:`derivatives`), and with it the trig
+    of the attitude, computed once per step. The stages' trig follows from it by
+    :func:`_rotate` (the attitude moves by at most ``dt`` times the rates in a stage),
+    so a step evaluates no sine or cosine itself.
+    """
+    dtype = state[0].dtype
+    if drag_position is None:
+        drag_position = _unstack(params.drag_position, 3)
+    if drag_attitude is None:
+        drag_attitude = _unstack(params.drag_attitude, 3)
+    if trig is None:
+        trig = attitude_trig(*state[3:6])
+    omega_r = _rotor_speed_sum_parts(params, *inputs)  # inputs are held over the step
+    dt = jnp.asarray(dt, dtype=dtype)
+
+    def f(x, x_trig):
+        return _derivative_parts(
+            params, x, x_trig, inputs, omega_r, disturbance_accel, drag_position, drag_attitude
+        )
+
+    def stage(h, k):
+        """The state ``x + h k`` and its attitude trig."""
+        x = tuple(xi + h * ki for xi, ki in zip(state, k, strict=True))
+        return f(x, _rotate(trig, tuple(h * ki for ki in k[3:6])))
+
+    k1 = f(state, trig)
+    k2 = stage(0.5 * dt, k1)
+    k3 = stage(0.5 * dt, k2)
+    k4 = stage(dt, k3)
+    return tuple(
+        (xi + dt / 6.0 * (a + 2.0 * b + 2.0 * c + e)).astype(dtype)
+        for xi, a, b, c, e in zip(state, k1, k2, k3, k4, strict=True)
+    )
 
 
 def rk4_step(
@@ -356,13 +482,14 @@ def rk4_step(
     step (zero-order hold), so the step is fourth-order accurate in ``dt`` for smooth
     dynamics. Pure: ``jit``, ``vmap`` and ``grad`` apply.
     """
-
-    def f(x):
-        return derivatives(params, x, inputs, disturbance_accel, drag_position, drag_attitude)
-
-    dt = jnp.asarray(dt, dtype=state.dtype)
-    k1 = f(state)
-    k2 = f(state + 0.5 * dt * k1)
-    k3 = f(state + 0.5 * dt * k2)
-    k4 = f(state + dt * k3)
-    return state + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    k_p, k_phi = _drag_parts(params, drag_position, drag_attitude)
+    parts = rk4_step_parts(
+        params,
+        _unstack(state, 12),
+        _unstack(inputs, 4),
+        _unstack(disturbance_accel, 6),
+        dt,
+        k_p,
+        k_phi,
+    )
+    return jnp.stack(parts)

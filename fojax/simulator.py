@@ -9,6 +9,18 @@ The time loop is a ``lax.scan`` over blocks of ``save_every`` steps (an inner sc
 one snapshot per block is kept, and each block is rematerialised under ``grad``
 (``jax.checkpoint``), so reverse-mode memory grows with the number of blocks, not the
 number of steps.
+
+Loop layout (the arithmetic above, in another order): the controller's update for
+step ``k + 1`` runs at the end of iteration ``k``, right after the plant step, and
+its command and diagnostics travel in the loop carry (the first update runs before
+the loop). The plant and the per-step bookkeeping then read the command from the
+carry, where it is computed once; when both ran in the same iteration, XLA's CPU
+backend recomputed the whole control law inside each of the ~20 kernels that read
+the command (every RK4 stage, the rotor speeds, the status flags; see
+docs/performance.md). The plant state is carried as its 12 entries (one contiguous
+array per entry under ``vmap``), stacked only where a ``(12,)`` array is needed, and
+with it the sines and cosines of its attitude, evaluated once per step
+(:func:`fojax.plant.rk4_step_parts`).
 """
 
 from __future__ import annotations
@@ -115,39 +127,36 @@ def _hold_row(k: Array, horizon: float, hold: float, dt: float, n_rows: int) -> 
     return jnp.clip(k // hold_steps, 0, n_rows - 1)
 
 
-def _table_lookups(scenario: scenarios.Scenario, draw: scenarios.Draw, config: SimulationConfig):
-    """``disturbance_at(k, t)`` and ``drag_at(k)``: :func:`fojax.scenarios.disturbance_at`
-    and :func:`fojax.scenarios.drag_at` at step ``k`` (time ``t = k dt``).
+def _held_values(scenario: scenarios.Scenario, draw: scenarios.Draw, config: SimulationConfig):
+    """``held(k) -> (noise, drag_position, drag_attitude)``: the draw's held values at step
+    ``k`` (time ``t = k dt``), as tuples of scalars (``noise``: 6, or ``None`` without
+    noise; the drag coefficients: 3 each), those of :func:`fojax.scenarios.disturbance_at`
+    and :func:`fojax.scenarios.drag_at`.
 
     The draw's tables are laid out for ``config.dt`` (``sample_draw(..., dt=config.dt)``),
     so the row of step ``k`` is ``k // hold_steps`` with ``hold_steps`` known before
     tracing (the same row as ``round(t / dt) // hold_steps``). The row then does not
     depend on the draw, and under ``vmap`` each lookup is one slice of the batched
-    table instead of a gather per draw.
+    table instead of a gather per draw. The rollout reads each step's values once, at
+    the end of the step before, and carries them: a row of a ``(draws, rows, 6)`` table
+    is a strided read that XLA otherwise repeated inside every kernel using it.
     """
     dt = config.dt
 
-    def disturbance_at(k, t):
-        deterministic = scenario.disturbance(t)
-        if not scenario.has_noise:
-            return deterministic
-        table = draw.noise_accel
-        row = _hold_row(k, scenario.horizon, scenario.noise_hold, dt, table.shape[0])
-        noise = lax.dynamic_index_in_dim(table, row, keepdims=False)
-        return deterministic + noise.astype(deterministic.dtype)
+    def row_of(table, k, hold):
+        row = _hold_row(k, scenario.horizon, hold, dt, table.shape[0])
+        values = lax.dynamic_index_in_dim(table, row, keepdims=False)
+        return tuple(values[i] for i in range(6))
 
-    def drag_at(k):
-        if not scenario.has_drag_variation:
-            return draw.params.drag_position, draw.params.drag_attitude
-        table = draw.drag_multipliers
-        row = _hold_row(k, scenario.horizon, scenario.drag_hold, dt, table.shape[0])
-        multipliers = lax.dynamic_index_in_dim(table, row, keepdims=False)
-        return (
-            draw.params.drag_position * multipliers[:3],
-            draw.params.drag_attitude * multipliers[3:],
-        )
+    def held(k):
+        noise = row_of(draw.noise_accel, k, scenario.noise_hold) if scenario.has_noise else None
+        k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
+        if scenario.has_drag_variation:
+            m = row_of(draw.drag_multipliers, k, scenario.drag_hold)
+            k_p, k_phi = k_p * jnp.stack(m[:3]), k_phi * jnp.stack(m[3:])
+        return noise, tuple(k_p[i] for i in range(3)), tuple(k_phi[i] for i in range(3))
 
-    return disturbance_at, drag_at
+    return held
 
 
 def rollout(
@@ -173,33 +182,69 @@ def rollout(
     params = controller.prepare(gains, model)
     state0 = scenarios.initial_state(scenario, dtype)
 
-    def observe(t, state):
-        ref, ref_vel, ref_acc = scenarios.reference_with_derivatives(scenario.reference, t)
-        return Observation(
-            t, state, ref.astype(dtype), ref_vel.astype(dtype), ref_acc.astype(dtype)
-        )
+    def reference_at(k):
+        """The reference and its two derivatives at step ``k`` (time only: shared by
+        every draw under ``vmap``)."""
+        t = k.astype(dtype) * dt
+        derivatives = scenarios.reference_with_derivatives(scenario.reference, t)
+        return t, tuple(d.astype(dtype) for d in derivatives)
 
-    control0 = controller.init(params, observe(jnp.zeros((), dtype), state0))
+    def observe(k, state):
+        t, (ref, ref_vel, ref_acc) = reference_at(k)
+        return Observation(t, state, ref, ref_vel, ref_acc)
+
+    obs0 = observe(jnp.zeros((), jnp.int32), state0)
+    control0 = controller.init(params, obs0)
+    # The first control update; later ones run at the end of the iteration before.
+    control1, inputs0, info0 = controller.step(params, control0, obs0)
     acc0 = accumulator[0]() if accumulator is not None else None
-    disturbance_at, drag_at = _table_lookups(scenario, draw, config)
+    held_at = _held_values(scenario, draw, config)
 
     def one_step(carry, k):
-        state, control, status, cost, acc = carry
-        t = k.astype(dtype) * dt
-        obs = observe(t, state)
-        control, inputs, info = controller.step(params, control, obs)
-        disturbance = disturbance_at(k, t).astype(dtype)
-        drag_position, drag_attitude = drag_at(k)
-        next_state = plant.rk4_step(
-            draw.params, state, inputs, disturbance, dt, drag_position, drag_attitude
+        # state: x_k (12 scalars); inputs, info: the update at t_k; control: the
+        # controller state after it.
+        state, trig, held, control, inputs, info, status, cost, acc = carry
+        t, (reference, _, _) = reference_at(k)
+        noise, drag_position, drag_attitude = held
+        deterministic = scenario.disturbance(t).astype(dtype)  # time only
+        disturbance = tuple(
+            deterministic[i] if noise is None else deterministic[i] + noise[i].astype(dtype)
+            for i in range(6)
         )
-        status = status | _status(next_state, inputs, info, draw.params)
-        position_error = state[:3] - obs.reference[:3]
-        attitude_error = state[3:6] - info.attitude_reference
+        next_state = plant.rk4_step_parts(
+            draw.params,
+            state,
+            tuple(inputs[i] for i in range(4)),
+            disturbance,
+            dt,
+            drag_position,
+            drag_attitude,
+            trig,
+        )
+        next_trig = plant.attitude_trig(*next_state[3:6])
+        state_array = jnp.stack(state)
+        status = status | _status(jnp.stack(next_state), inputs, info, draw.params)
+        position_error = state_array[:3] - reference[:3]
+        attitude_error = state_array[3:6] - info.attitude_reference
         cost = cost + dt * (jnp.sum(position_error**2) + jnp.sum(attitude_error**2))
         if accumulator is not None:
-            acc = accumulator[1](acc, t, state, obs.reference, inputs, info)
-        return (next_state, control, status, cost, acc), (obs.reference, inputs, info)
+            acc = accumulator[1](acc, t, state_array, reference, inputs, info)
+        # The control update of step k + 1, from the new state.
+        control, next_inputs, next_info = controller.step(
+            params, control, observe(k + 1, jnp.stack(next_state))
+        )
+        carry = (
+            next_state,
+            next_trig,
+            held_at(k + 1),
+            control,
+            next_inputs,
+            next_info,
+            status,
+            cost,
+            acc,
+        )
+        return carry, (reference, inputs, info)
 
     @jax.checkpoint
     def block(carry, block_index):
@@ -207,8 +252,21 @@ def rollout(
         carry, (refs, inputs, infos) = lax.scan(one_step, carry, ks)
         t_end = (block_index + 1).astype(dtype) * config.save_every * dt
         last = jax.tree.map(lambda x: x[-1], (refs, inputs, infos))
-        return carry, Snapshot(t_end, carry[0], last[0], last[1], last[2])
+        return carry, Snapshot(t_end, jnp.stack(carry[0]), last[0], last[1], last[2])
 
-    carry0 = (state0, control0, jnp.zeros((), jnp.int32), jnp.zeros((), dtype), acc0)
-    (final, _, status, cost, acc), trajectory = lax.scan(block, carry0, jnp.arange(config.blocks))
-    return Rollout(final, status, cost, acc, trajectory)
+    state0_parts = tuple(state0[i] for i in range(12))
+    carry0 = (
+        state0_parts,
+        plant.attitude_trig(*state0_parts[3:6]),
+        held_at(jnp.zeros((), jnp.int32)),
+        control1,
+        inputs0,
+        info0,
+        jnp.zeros((), jnp.int32),
+        jnp.zeros((), dtype),
+        acc0,
+    )
+    (final, _, _, _, _, _, status, cost, acc), trajectory = lax.scan(
+        block, carry0, jnp.arange(config.blocks)
+    )
+    return Rollout(jnp.stack(final), status, cost, acc, trajectory)

@@ -96,12 +96,31 @@ def _run(name, kind, amplitude=0.0, disturbance=(0.0,) * 6):
     return np.asarray(errors), np.asarray(inputs)
 
 
+# Compiled code need not return exactly m g / m - g = 0 at hover: a residual of about
+# 4e-16 m/s^2 remains. Exact sign switching turns it into a limit cycle: with the z
+# switching gain of 16.1 m/s^2 at a 1 kHz step it settles at about 1.6 mm. With a
+# boundary layer or no switching hover is held to rounding, except that the
+# ANFTSMC's |e'|^(2 - beta) term (infinite slope at e' = 0) answers the residual with
+# a thrust chatter of about 0.01 N around m g while the position stays within 1e-8 m.
+HOVER_POSITION_TOLERANCE = {"sign": 2e-3, "sat": 1e-8, None: 1e-9}
+HOVER_THRUST_TOLERANCE = {("anftsmc", "sat"): 5e-3}  # relative; default 1e-9
+
+
 @pytest.mark.parametrize("name,kind", CONFIGS, ids=IDS)
 def test_hover_equilibrium_is_held(name, kind):
     errors, inputs = _run(name, kind)
-    assert np.max(np.abs(errors)) < 1e-9
+    assert np.max(np.abs(errors)) < HOVER_POSITION_TOLERANCE[kind]
+    # The band does not grow: the last second is no worse than the first three.
+    assert np.max(np.abs(errors[-1000:])) <= 1.5 * np.max(np.abs(errors[:3000])) + 1e-12
     model = plant.nominal_params(jnp.float64)
-    np.testing.assert_allclose(inputs[:, 0], float(model.mass * model.gravity), rtol=1e-9)
+    hover = float(model.mass * model.gravity)
+    if kind == "sign":
+        # Chattering thrust, but hover on average.
+        assert np.mean(inputs[:, 0]) == pytest.approx(hover, rel=1e-2)
+    else:
+        rtol = HOVER_THRUST_TOLERANCE.get((name, kind), 1e-9)
+        np.testing.assert_allclose(inputs[:, 0], hover, rtol=rtol)
+        assert np.mean(inputs[:, 0]) == pytest.approx(hover, rel=1e-5)
     assert np.max(np.abs(inputs[:, 1:])) < 1e-9
 
 

@@ -179,3 +179,11 @@ def test_bench_smoke(tmp_path):
     assert gradient["gradient_draw_steps_per_s"] > 0
     assert gradient["gradient_memory"].get("peak_bytes", 1) > 0
     assert result["forward"][0]["draws"] == forward["draws"]
+
+
+def test_bench_forward_runs_big_batches_in_chunks():
+    mesh = sharding.draw_mesh(jax.devices()[:1])
+    entry = bench.measure_forward(5, 0.01, 1, mesh, chunk=2)
+    assert entry["calls"] == 3 and entry["chunk"] == 2 and entry["draws_computed"] == 6
+    assert entry["draw_steps_per_s"] > 0 and entry["one_call_draw_steps_per_s"] > 0
+    assert bench.measure_forward(2, 0.01, 1, mesh, chunk=8)["calls"] == 1
