@@ -128,10 +128,10 @@ def _hold_row(k: Array, horizon: float, hold: float, dt: float, n_rows: int) -> 
 
 
 def _held_values(scenario: scenarios.Scenario, draw: scenarios.Draw, config: SimulationConfig):
-    """``held(k) -> (noise, drag_position, drag_attitude)``: the draw's held values at step
-    ``k`` (time ``t = k dt``), as tuples of scalars (``noise``: 6, or ``None`` without
-    noise; the drag coefficients: 3 each), those of :func:`fojax.scenarios.disturbance_at`
-    and :func:`fojax.scenarios.drag_at`.
+    """``held(k) -> (noise, drag)``: the rows of the draw's tables in force at step ``k``
+    (time ``t = k dt``): ``noise`` ``(6,)`` the Gaussian part of
+    :func:`fojax.scenarios.disturbance_at`, ``drag`` ``(6,)`` the multipliers of
+    :func:`fojax.scenarios.drag_at` (each ``None`` when the scenario has no such table).
 
     The draw's tables are laid out for ``config.dt`` (``sample_draw(..., dt=config.dt)``),
     so the row of step ``k`` is ``k // hold_steps`` with ``hold_steps`` known before
