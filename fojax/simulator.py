@@ -128,10 +128,10 @@ def _hold_row(k: Array, horizon: float, hold: float, dt: float, n_rows: int) -> 
 
 
 def _held_values(scenario: scenarios.Scenario, draw: scenarios.Draw, config: SimulationConfig):
-    """``held(k) -> (noise, drag_position, drag_attitude)``: the draw's held values at step
-    ``k`` (time ``t = k dt``), as tuples of scalars (``noise``: 6, or ``None`` without
-    noise; the drag coefficients: 3 each), those of :func:`fojax.scenarios.disturbance_at`
-    and :func:`fojax.scenarios.drag_at`.
+    """``held(k) -> (noise, drag)``: the rows of the draw's tables in force at step ``k``
+    (time ``t = k dt``): ``noise`` ``(6,)`` the Gaussian part of
+    :func:`fojax.scenarios.disturbance_at`, ``drag`` ``(6,)`` the multipliers of
+    :func:`fojax.scenarios.drag_at` (each ``None`` when the scenario has no such table).
 
     The draw's tables are laid out for ``config.dt`` (``sample_draw(..., dt=config.dt)``),
     so the row of step ``k`` is ``k // hold_steps`` with ``hold_steps`` known before
@@ -145,16 +145,16 @@ def _held_values(scenario: scenarios.Scenario, draw: scenarios.Draw, config: Sim
 
     def row_of(table, k, hold):
         row = _hold_row(k, scenario.horizon, hold, dt, table.shape[0])
-        values = lax.dynamic_index_in_dim(table, row, keepdims=False)
-        return tuple(values[i] for i in range(6))
+        return lax.dynamic_index_in_dim(table, row, keepdims=False)
 
     def held(k):
         noise = row_of(draw.noise_accel, k, scenario.noise_hold) if scenario.has_noise else None
-        k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
-        if scenario.has_drag_variation:
-            m = row_of(draw.drag_multipliers, k, scenario.drag_hold)
-            k_p, k_phi = k_p * jnp.stack(m[:3]), k_phi * jnp.stack(m[3:])
-        return noise, tuple(k_p[i] for i in range(3)), tuple(k_phi[i] for i in range(3))
+        drag = (
+            row_of(draw.drag_multipliers, k, scenario.drag_hold)
+            if scenario.has_drag_variation
+            else None
+        )
+        return noise, drag
 
     return held
 
@@ -205,7 +205,12 @@ def rollout(
         # controller state after it.
         state, trig, held, control, inputs, info, status, cost, acc = carry
         t, (reference, _, _) = reference_at(k)
-        noise, drag_position, drag_attitude = held
+        noise, drag = held
+        k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
+        drag_position = tuple(k_p[i] if drag is None else k_p[i] * drag[i] for i in range(3))
+        drag_attitude = tuple(
+            k_phi[i] if drag is None else k_phi[i] * drag[3 + i] for i in range(3)
+        )
         deterministic = scenario.disturbance(t).astype(dtype)  # time only
         disturbance = tuple(
             deterministic[i] if noise is None else deterministic[i] + noise[i].astype(dtype)
@@ -219,9 +224,9 @@ def rollout(
             dt,
             drag_position,
             drag_attitude,
-            trig,
+            tuple(trig[i] for i in range(6)),
         )
-        next_trig = plant.attitude_trig(*next_state[3:6])
+        next_trig = jnp.stack(plant.attitude_trig(*next_state[3:6]))
         state_array = jnp.stack(state)
         status = status | _status(jnp.stack(next_state), inputs, info, draw.params)
         position_error = state_array[:3] - reference[:3]
@@ -257,7 +262,7 @@ def rollout(
     state0_parts = tuple(state0[i] for i in range(12))
     carry0 = (
         state0_parts,
-        plant.attitude_trig(*state0_parts[3:6]),
+        jnp.stack(plant.attitude_trig(*state0_parts[3:6])),
         held_at(jnp.zeros((), jnp.int32)),
         control1,
         inputs0,
