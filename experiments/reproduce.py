@@ -117,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulated time (s) for every scenario (default: each scenario's, 80/80/50 s)",
     )
     parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s")
-    parser.add_argument("--chunk", type=arguments.positive_int, default=32, help="draws per batch")
+    parser.add_argument("--chunk", type=arguments.positive_int, default=50, help="draws per batch")
     parser.add_argument(
         "--keep",
         type=arguments.nonnegative_int,

@@ -76,7 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
         default="sign",
         help="switching function of the sliding-mode controllers (default sign, the paper's)",
     )
-    parser.add_argument("--chunk", type=arguments.positive_int, default=256, help="draws per batch")
+    parser.add_argument(
+        "--chunk", type=arguments.positive_int, default=1024, help="draws per compiled call"
+    )
     parser.add_argument(
         "--keep",
         type=arguments.nonnegative_int,

@@ -227,7 +227,7 @@ def run(
     config: simulator.SimulationConfig,
     draws: int,
     seed: int = 0,
-    chunk: int = 256,
+    chunk: int = 1024,
     keep: int = 64,
     progress: bool = True,
     dtype=None,
