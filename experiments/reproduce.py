@@ -47,10 +47,10 @@ __all__ = [
 
 DEFAULT_DRAWS = 100
 """Draws per scenario and controller by default, sized to finish within 10 minutes on
-a 2-core CPU: 3 scenarios x 5 controllers x 64 draws took 298 s on the project's
-2-core machine (float32; about 120 s of it compiling the 15 (scenario, controller)
-rollouts), 100 draws about 6-7 minutes (the measured time of the committed example is
-in ``docs/reproduction.md``)."""
+a 2-core CPU: 3 scenarios x 5 controllers x 100 draws took 196 s on the project's
+2-core machine (float32, chunks of 50, load average about 1; about 100 s of it
+compiling the 15 (scenario, controller) rollouts); the measured time of the committed
+example is in ``docs/reproduction.md``."""
 
 BASELINE = "afonftsmc"
 CHATTER_THRESHOLD = 0.1
