@@ -195,10 +195,13 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
 
 def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = False) -> dict:
     """Run every controller of ``study`` on the same draws; returns the results by name."""
+    import jax
     import jax.numpy as jnp
 
-    from fojax import montecarlo, registry, scenarios, simulator
+    from fojax import montecarlo, registry, scenarios, sharding, simulator
 
+    # Every local device (GPUs, or one CPU device per core: see experiments.cli).
+    mesh = sharding.draw_mesh(jax.local_devices()) if jax.local_device_count() > 1 else None
     scenario = dataclasses.replace(scenarios.get_scenario(study.scenario_id), horizon=study.horizon)
     config = simulator.SimulationConfig(
         dt=study.dt, horizon=study.horizon, save_every=study.save_every
@@ -232,6 +235,7 @@ def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = 
             progress=progress,
             dtype=dtype,
             store=chunks / name,
+            mesh=mesh,
         )
     return results
 

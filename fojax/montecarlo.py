@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import metrics, plant, scenarios, simulator, statistics
+from fojax import metrics, plant, scenarios, sharding, simulator, statistics
 
 Array = jax.Array
 
@@ -92,11 +92,14 @@ def make_chunk_runner(
     config: simulator.SimulationConfig,
     metrics_config: metrics.MetricsConfig | None = None,
     dtype=None,
+    mesh=None,
 ) -> Callable:
     """A jitted ``(gains, keys (n, 2)) -> (status (n,), metrics, snapshots)``.
 
     ``gains`` is shared by every draw of the chunk; the compiled function is reused for
-    any gains and keys of the same shapes.
+    any gains and keys of the same shapes. With ``mesh`` (a :func:`fojax.sharding.draw_mesh`
+    of more than one device) the draws of each call are split over its devices; ``n``
+    must then be a multiple of the mesh's size (:func:`run` rounds its chunk up to one).
     """
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
@@ -108,6 +111,8 @@ def make_chunk_runner(
         result = simulator.rollout(controller, gains, model, scenario, draw, config, accumulator)
         return result.status, metrics.finalize(metrics_config, result.extra), result.trajectory
 
+    if mesh is not None and mesh.devices.size > 1:
+        return sharding.sharded_vmap(one, mesh, in_axes=(None, 0))
     return jax.jit(jax.vmap(one, in_axes=(None, 0)))
 
 
@@ -234,6 +239,7 @@ def run(
     metrics_config: metrics.MetricsConfig | None = None,
     store: str | os.PathLike | None = None,
     runner: Callable | None = None,
+    mesh=None,
 ) -> MonteCarloResult:
     """Roll out draws ``0 ... draws - 1`` of ``scenario`` with seed ``seed``.
 
@@ -251,7 +257,14 @@ def run(
         store: a directory: each finished chunk is saved there, and chunks already
             there (from an interrupted run with the same settings) are loaded, not rerun.
         runner: a function from :func:`make_chunk_runner` for these settings, to share
-            one compiled function between calls.
+            one compiled function between calls (made with the same ``mesh``).
+        mesh: a :func:`fojax.sharding.draw_mesh`: each chunk's draws are split over its
+            devices (one per core on a CPU with
+            ``XLA_FLAGS=--xla_force_host_platform_device_count=N``, or the GPUs), the
+            chunk rounded up to a multiple of its size. Each draw's result is the same
+            as on one device up to floating-point rounding (XLA may vectorise batches
+            of other sizes differently), as it is between chunk sizes; a chattering
+            closed loop (``sign`` switching) amplifies that rounding in single draws.
 
     Returns a :class:`MonteCarloResult`.
     """
@@ -263,7 +276,9 @@ def run(
         raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
+    devices = 1 if mesh is None else int(mesh.devices.size)
     chunk = int(min(chunk, draws))
+    chunk = -(-chunk // devices) * devices  # whole draws per device
     keep = int(min(max(keep, 0), draws))
     chunk_store = None
     if store is not None:
@@ -272,7 +287,7 @@ def run(
         )
         chunk_store = _ChunkStore(Path(store), fingerprint)
     if runner is None:
-        runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype)
+        runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
 
     statuses, per_draw, kept = [], [], []
     start = time.perf_counter()

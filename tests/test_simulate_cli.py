@@ -1,11 +1,14 @@
 """``fojax simulate``: input checks before compiling, gains files, one tiny end-to-end run."""
 
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from experiments import cli, simulate
+from experiments import arguments, cli, simulate
 from fojax import gains_io
 from fojax.afonftsmc import paper_gains
 
@@ -144,3 +147,32 @@ def test_simulate_end_to_end_tiny(tmp_path, capsys):
     assert cli.main(argv) == 0
     again = json.loads((out / "summary.json").read_text())
     assert again["controllers"]["afonftsmc"]["metrics"] == entry["metrics"]
+
+
+_HOST_DEVICES_SCRIPT = """
+import os, sys
+from experiments import arguments
+assert arguments.use_host_devices(3) == 3
+import jax
+assert arguments.use_host_devices(5) is None  # JAX has started: nothing changes
+print(jax.local_device_count(), os.environ["XLA_FLAGS"])
+"""
+
+
+def test_host_devices_are_set_before_jax_starts_and_never_after():
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["JAX_PLATFORMS"] = "cpu"
+    done = subprocess.run(
+        [sys.executable, "-c", _HOST_DEVICES_SCRIPT],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split()[0] == "3"
+    # In this process JAX has started: the flag is left as it is.
+    before = os.environ.get("XLA_FLAGS")
+    assert arguments.use_host_devices() is None
+    assert os.environ.get("XLA_FLAGS") == before
+    assert "simulate" in cli.HOST_DEVICE_COMMANDS and "reproduce" not in cli.HOST_DEVICE_COMMANDS
