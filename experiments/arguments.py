@@ -50,6 +50,24 @@ def nonnegative_float(text: str) -> float:
     return _real(text, True, "a finite number >= 0")
 
 
+def scenario_ids(text: str) -> tuple[int, ...]:
+    """Comma-separated scenario ids, e.g. ``1,3``: sorted, without repeats."""
+    from fojax import scenarios
+
+    try:
+        ids = tuple(sorted({int(part) for part in text.split(",") if part.strip()}))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected scenario ids like 1,2,3, got {text!r}"
+        ) from None
+    bad = [i for i in ids if i not in scenarios.SCENARIO_IDS]
+    if not ids or bad:
+        raise argparse.ArgumentTypeError(
+            f"scenarios must be among {scenarios.SCENARIO_IDS}, got {text!r}"
+        )
+    return ids
+
+
 def use_host_devices(requested: int | None = None) -> int | None:
     """Ask XLA for one CPU device per core (or ``requested``) unless JAX has started.
 

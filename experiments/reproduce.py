@@ -60,23 +60,6 @@ every step (a ratio near 1); a smooth one by a small fraction (a full-amplitude 
 reaches 0.1 only at about 18 Hz with a 1 ms step)."""
 
 
-def _scenario_list(text: str) -> tuple[int, ...]:
-    from fojax import scenarios
-
-    try:
-        ids = tuple(sorted({int(part) for part in text.split(",") if part.strip()}))
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected scenario ids like 1,2,3, got {text!r}"
-        ) from None
-    bad = [i for i in ids if i not in scenarios.SCENARIO_IDS]
-    if not ids or bad:
-        raise argparse.ArgumentTypeError(
-            f"scenarios must be among {scenarios.SCENARIO_IDS}, got {text!r}"
-        )
-    return ids
-
-
 def build_parser() -> argparse.ArgumentParser:
     from fojax import fractional
     from fojax.controller import SWITCHING_FUNCTIONS
@@ -109,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="fractional operator method (default soe; oustaloup is the paper's CRONE)",
     )
     parser.add_argument(
-        "--scenarios", type=_scenario_list, default=(1, 2, 3), help="subset, e.g. 1,3"
+        "--scenarios", type=arguments.scenario_ids, default=(1, 2, 3), help="subset, e.g. 1,3"
     )
     parser.add_argument(
         "--horizon",
