@@ -147,7 +147,8 @@ _SHARDED_SCRIPT = textwrap.dedent(
 
 def test_sharded_run_is_identical_to_single_device_run():
     env = dict(os.environ)
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    # Keep the suite's flags (conftest), add the four host devices.
+    env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"
     env["JAX_PLATFORMS"] = "cpu"
     done = subprocess.run(
         [sys.executable, "-c", _SHARDED_SCRIPT],
