@@ -274,36 +274,26 @@ def table(results: dict) -> str:
         for which in ("default", "tuned"):
             cells = [_mean_ci(evaluation[label]["controllers"][name][which]) for label in labels]
             lines.append(f"| {name} | {which} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        f"Tuned cost minus the tuned {BASELINE}'s on the same draw (mean [95 % CI]):",
-        "",
-        "| controller | " + " | ".join(labels) + " |",
-        "|" + "---|" * (len(labels) + 1),
-    ]
-    for name in names[1:]:
-        cells = [
-            _difference(
-                evaluation[label]["controllers"][name]["tuned_minus_baseline"],
-                evaluation[label]["controllers"][name]["baseline_better_fraction"],
-            )
-            for label in labels
-        ]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        f"Position term alone (ISE of the position error, m^2 s), tuned minus the tuned "
-        f"{BASELINE}'s:",
-        "",
-        "| controller | " + " | ".join(labels) + " |",
-        "|" + "---|" * (len(labels) + 1),
-    ]
-    for name in names[1:]:
-        cells = [
-            _difference(evaluation[label]["controllers"][name]["position_term_minus_baseline"])
-            for label in labels
-        ]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    paired = (
+        (
+            f"Tuned cost minus the tuned {BASELINE}'s on the same draw (mean [95 % CI]):",
+            "tuned_minus_baseline",
+            "baseline_better_fraction",
+        ),
+        (
+            "Position term alone (ISE of the position error, m^2 s), tuned minus the tuned "
+            f"{BASELINE}'s:",
+            "position_term_minus_baseline",
+            None,
+        ),
+    )
+    for title, key, fraction in paired:
+        lines += ["", title, "", "| controller | " + " | ".join(labels) + " |"]
+        lines.append("|" + "---|" * (len(labels) + 1))
+        for name in names[1:]:
+            records = [evaluation[label]["controllers"][name] for label in labels]
+            cells = [_difference(r[key], r[fraction] if fraction else None) for r in records]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
     tuning = results["tuning"]
     lines += [
         "",

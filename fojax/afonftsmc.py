@@ -36,6 +36,7 @@ from fojax.controller import (
     Observation,
     attitude_drift_parts,
     check_bounds,
+    command_filter_update,
     signed_power,
     switching,
     thrust_and_attitude_parts,
@@ -252,17 +253,15 @@ class AFONFTSMC:
         # 1 - gamma2. All twelve share one memory (one array of modes).
         integral_orders = jnp.concatenate([1.0 - gains.gamma1, gains.gamma2])
         surface_weights = self._memory.coefficients(integral_orders, dtype)
-        w, zeta = self.filter_frequency, self.filter_damping
-        augmented = jnp.asarray(
-            [[0.0, 1.0, 0.0], [-w * w, -2.0 * zeta * w, w * w], [0.0, 0.0, 0.0]], dtype
+        transition, gain = command_filter_update(
+            self.filter_frequency, self.filter_damping, self.dt, dtype
         )
-        exp = jax.scipy.linalg.expm(augmented * self.dt)
         return AFONFTSMCParams(
             gains=gains,
             model=model,
             surface_weights=surface_weights,
-            filter_transition=exp[:2, :2],
-            filter_input=exp[:2, 2],
+            filter_transition=transition,
+            filter_input=gain,
         )
 
     def init(self, params: AFONFTSMCParams, observation: Observation) -> AFONFTSMCState:

@@ -43,6 +43,7 @@ from fojax.controller import (
     ControlInfo,
     Observation,
     attitude_drift,
+    command_filter_update,
     signed_power,
     thrust_and_attitude,
 )
@@ -156,17 +157,15 @@ class Cascade:
     # -- the protocol of fojax.controller ------------------------------------------------
     def prepare(self, gains: Any, model: plant.PlantParams) -> CascadeParams:
         dtype = jnp.asarray(jax.tree.leaves(gains)[0]).dtype
-        w, zeta = self.filter_frequency, self.filter_damping
-        augmented = jnp.asarray(
-            [[0.0, 1.0, 0.0], [-w * w, -2.0 * zeta * w, w * w], [0.0, 0.0, 0.0]], dtype
+        transition, gain = command_filter_update(
+            self.filter_frequency, self.filter_damping, self.dt, dtype
         )
-        exp = jax.scipy.linalg.expm(augmented * self.dt)
         return CascadeParams(
             gains=gains,
             model=model,
             law=self._prepare_law(gains, dtype),
-            filter_transition=exp[:2, :2],
-            filter_input=exp[:2, 2],
+            filter_transition=transition,
+            filter_input=gain,
         )
 
     def init(self, params: CascadeParams, observation: Observation) -> CascadeState:

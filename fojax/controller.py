@@ -134,6 +134,22 @@ def check_bounds(gains: Any, bounds: dict, shapes: dict, label: str) -> None:
 
 # ------------------------------------------------------------------ shared helpers
 
+
+def command_filter_update(frequency: float, damping: float, dt: float, dtype: Any):
+    """Exact zero-order-hold update of the second-order attitude command filter.
+
+    The filter ``x'' = w^2 (u - x) - 2 zeta w x'`` (``w = frequency``, ``zeta = damping``)
+    on ``(x, x')`` with ``u`` held over a step of ``dt``: ``(x, x')_(k+1) = A (x, x')_k
+    + b u_k``. Returns ``A`` ``(2, 2)`` and ``b`` ``(2,)`` from the matrix exponential of
+    the augmented system.
+    """
+    w, zeta = frequency, damping
+    augmented = jnp.asarray(
+        [[0.0, 1.0, 0.0], [-w * w, -2.0 * zeta * w, w * w], [0.0, 0.0, 0.0]], dtype
+    )
+    exp = jax.scipy.linalg.expm(augmented * dt)
+    return exp[:2, :2], exp[:2, 2]
+
 SWITCHING_FUNCTIONS = ("sign", "sat", "tanh")
 
 
