@@ -74,9 +74,7 @@ def _gradient(case) -> dict[str, np.ndarray]:
 
     name, scenario_id, switching, method = case
     scenario = scenarios.get_scenario(scenario_id)
-    config = simulator.SimulationConfig(
-        dt=1e-3, horizon=GRADIENT_HORIZON, save_every=SAVE_EVERY
-    )
+    config = simulator.SimulationConfig(dt=1e-3, horizon=GRADIENT_HORIZON, save_every=SAVE_EVERY)
     controller = registry.make_controller(
         name, dt=1e-3, horizon=GRADIENT_HORIZON, switching=switching, fractional_method=method
     )
@@ -130,7 +128,10 @@ def _compare(prefix: str, computed: dict, rtol: float) -> None:
         # rounding do not demand relative precision of their own.
         scale = np.max(np.abs(expected[finite])) if finite.any() else 0.0
         np.testing.assert_allclose(
-            got[finite], expected[finite], rtol=rtol, atol=rtol * scale * 1e-3,
+            got[finite],
+            expected[finite],
+            rtol=rtol,
+            atol=rtol * scale * 1e-3,
             err_msg=f"{prefix}/{name}",
         )
 
