@@ -89,7 +89,10 @@ class MetricsConfig:
     attitude_band: settling band of the attitude errors (rad).
     overshoot_threshold: an error must exceed this (m or rad) to fix the direction
         that later counts as overshoot.
-    reaching_band: ``|S|`` below this counts as having reached the sliding surface.
+    reaching_band: ``|S|`` below this counts as having reached the sliding surface:
+        one number for every axis, or a tuple of six, one per axis ``(x, y, z, phi,
+        theta, psi)`` (for instance proportional to each axis' switching gain times
+        ``dt``, the band that switching at a fixed step leaves).
     """
 
     dt: float
@@ -97,15 +100,26 @@ class MetricsConfig:
     position_band: float = 0.05
     attitude_band: float = 0.05
     overshoot_threshold: float = 1e-3
-    reaching_band: float = 0.01
+    reaching_band: float | tuple[float, ...] = 0.01
 
     def __post_init__(self) -> None:
         for label in ("dt", "position_band", "attitude_band", "overshoot_threshold"):
             value = getattr(self, label)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
-        if not (math.isfinite(self.reaching_band) and self.reaching_band > 0):
-            raise ValueError(f"reaching_band must be a finite number > 0, got {self.reaching_band}")
+        band = self.reaching_band
+        if isinstance(band, list | tuple):
+            values = tuple(band)
+            if len(values) != 6:
+                raise ValueError(
+                    f"reaching_band must be one number or six (one per axis), got {len(values)}"
+                )
+            object.__setattr__(self, "reaching_band", tuple(float(v) for v in values))
+        else:
+            values = (band,)
+        for value in values:
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"reaching_band must be finite and > 0, got {band!r}")
         if not isinstance(self.steps, int) or self.steps < 1:
             raise ValueError(f"steps must be a positive integer, got {self.steps!r}")
 
@@ -116,6 +130,10 @@ class MetricsConfig:
     def bands(self, dtype) -> Array:
         """``(6,)`` settling bands per axis."""
         return jnp.asarray([self.position_band] * 3 + [self.attitude_band] * 3, dtype)
+
+    def reaching_bands(self, dtype) -> Array:
+        """``(6,)`` reaching bands per axis (``()`` when one band serves every axis)."""
+        return jnp.asarray(self.reaching_band, dtype)
 
 
 class MetricsState(NamedTuple):
@@ -194,7 +212,7 @@ def update(
 
     variation = acc.variation + jnp.where(first, 0.0, jnp.abs(inputs - acc.previous_input))
     infeasible = jnp.any(plant.rotor_speeds_squared(mixer_params, inputs) < 0)
-    surface_outside = jnp.abs(surfaces) > config.reaching_band
+    surface_outside = jnp.abs(surfaces) > config.reaching_bands(dtype)
     surface_last_outside = jnp.where(surface_outside, t, acc.surface_last_outside)
 
     return MetricsState(

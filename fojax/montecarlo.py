@@ -177,6 +177,8 @@ def _flatten_snapshot(snapshot) -> dict[str, np.ndarray]:
         "state": snapshot.state,
         "reference": snapshot.reference,
         "inputs": snapshot.inputs,
+        "inputs_low": snapshot.inputs_low,
+        "inputs_high": snapshot.inputs_high,
     }
     leaves.update({f"info.{k}": v for k, v in snapshot.info._asdict().items()})
     return {k: np.asarray(v) for k, v in leaves.items()}
@@ -192,6 +194,8 @@ def _unflatten_snapshot(flat: dict[str, np.ndarray]) -> simulator.Snapshot:
         reference=flat["reference"],
         inputs=flat["inputs"],
         info=info,
+        inputs_low=flat["inputs_low"],
+        inputs_high=flat["inputs_high"],
     )
 
 

@@ -81,13 +81,20 @@ class SimulationConfig:
 
 
 class Snapshot(NamedTuple):
-    """Saved every ``save_every`` steps (after the step)."""
+    """Saved every ``save_every`` steps (after the step).
+
+    inputs_low, inputs_high: ``(4,)`` the smallest and largest command held over the
+    block's ``save_every`` steps (the full-rate envelope, so that a command switching
+    at every step shows as the band it fills, not as aliased samples).
+    """
 
     time: Array  # ()
     state: Array  # (12,)
     reference: Array  # (4,)
     inputs: Array  # (4,)
     info: ControlInfo
+    inputs_low: Array  # (4,)
+    inputs_high: Array  # (4,)
 
 
 class Rollout(NamedTuple):
@@ -257,7 +264,16 @@ def rollout(
         carry, (refs, inputs, infos) = lax.scan(one_step, carry, ks)
         t_end = (block_index + 1).astype(dtype) * config.save_every * dt
         last = jax.tree.map(lambda x: x[-1], (refs, inputs, infos))
-        return carry, Snapshot(t_end, jnp.stack(carry[0]), last[0], last[1], last[2])
+        snapshot = Snapshot(
+            t_end,
+            jnp.stack(carry[0]),
+            last[0],
+            last[1],
+            last[2],
+            jnp.min(inputs, axis=0),
+            jnp.max(inputs, axis=0),
+        )
+        return carry, snapshot
 
     state0_parts = tuple(state0[i] for i in range(12))
     carry0 = (
