@@ -179,7 +179,7 @@ class _Workload:
 
     def __init__(self, horizon: float, switching: str = "sat", save_every: int | None = None):
         from fojax import plant, scenarios, simulator
-        from fojax.afonftsmc import AFONFTSMC, paper_gains
+        from fojax.controllers import make_controller, paper_gains
 
         self.dt = 1e-3
         steps = int(round(horizon / self.dt))
@@ -188,7 +188,9 @@ class _Workload:
         self.scenario = scenarios.get_scenario(2)
         self.config = simulator.SimulationConfig(dt=self.dt, horizon=horizon, save_every=save_every)
         # The fractional memory is sized for the scenario's 80 s, whatever the horizon.
-        self.controller = AFONFTSMC(dt=self.dt, horizon=80.0, switching=switching)
+        self.controller = make_controller(
+            "afonftsmc", dt=self.dt, horizon=80.0, switching=switching
+        )
         self.gains = paper_gains("float32")
         self.model = plant.nominal_params("float32")
 
@@ -200,11 +202,11 @@ class _Workload:
         keys = scenarios.draw_keys(0, range(count))
         return jax.vmap(lambda k: scenarios.sample_draw(self.scenario, k, self.dt, "float32"))(keys)
 
-    def one_draw(self, gains, draw):
+    def one_draw(self, gains, draw, observer=None):
         from fojax import simulator
 
         return simulator.rollout(
-            self.controller, gains, self.model, self.scenario, draw, self.config
+            self.controller, gains, self.model, self.scenario, draw, self.config, observer
         )
 
 
@@ -264,7 +266,7 @@ def measure_forward(
     """Forward rollouts of ``count`` draws over ``horizon`` seconds.
 
     With ``chunk`` smaller than ``count``, the draws run as consecutive calls of
-    ``chunk`` draws each (one compiled function), the way :mod:`fojax.montecarlo` runs
+    ``chunk`` draws each (one compiled function), the way :mod:`fojax.study` runs
     them; the batch is also timed as one call (``one_call_*``).
     """
     import jax
@@ -325,7 +327,7 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from fojax import sharding
+    from fojax import observers, sharding
 
     work = _Workload(horizon, switching="tanh")
     devices = mesh.devices.size
@@ -338,7 +340,8 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
         # loop and are summed once, after it (see the module docstring).
         n = draws.time_step.shape[0]
         per_draw = jax.tree.map(lambda g: jnp.broadcast_to(g, (n,) + g.shape), gains)
-        return jnp.mean(jax.vmap(lambda g, d: work.one_draw(g, d).cost)(per_draw, draws))
+        cost = observers.TrackingISE(work.dt)
+        return jnp.mean(jax.vmap(lambda g, d: work.one_draw(g, d, cost).outputs)(per_draw, draws))
 
     replicated = sharding.replicated_sharding(mesh)
     in_shardings = (replicated, sharding.draw_sharding(mesh))

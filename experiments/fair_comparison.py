@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_args(argv) -> argparse.Namespace:
     """Validated arguments; exits with a message naming what to change."""
-    from fojax import registry
+    from fojax.controllers import registry
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -116,7 +116,8 @@ def main(argv=None) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from fojax import registry, scenarios, statistics
+    from fojax import scenarios, statistics
+    from fojax.controllers import registry
     from optimize import params as params_lib
     from optimize import problem as problem_lib
     from optimize import tuner as tuner_lib

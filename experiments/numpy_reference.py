@@ -25,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from fojax import fractional
+from fojax.controllers import as_controller
 
 __all__ = ["NumpyRollout", "disturbances_53", "prepare", "reference_54_55", "rollout", "simulate"]
 
@@ -170,23 +171,25 @@ def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
 
     Same arguments as :func:`rollout`; returns a dict of named constants.
     """
-    if controller.fractional_method != "soe":
+    controller = as_controller(controller)
+    law = controller.law
+    if law.fractional_method != "soe":
         raise ValueError(
             "the NumPy reference implements the 'soe' fractional method only, got "
-            f"{controller.fractional_method!r}"
+            f"{law.fractional_method!r}"
         )
 
     def as_np(x):
         return np.asarray(x, dtype)
 
     params = controller.prepare(gains, model)
-    weights = params.surface_weights
-    operator = controller.operator
+    weights = params.law.surface_weights
+    operator = law.memory.operator
     assert isinstance(operator, fractional.SumOfExponentials)
     return {
         "dtype": dtype,
         "dt": controller.dt,
-        "switching": controller.switching,
+        "switching": law.switching,
         "filter_frequency": controller.filter_frequency,
         "filter_damping": controller.filter_damping,
         "gains": {name: as_np(getattr(gains, name)) for name in gains._fields},
@@ -208,7 +211,7 @@ def rollout(controller, gains, model, scenario, draws, config, dtype=np.float64)
     """Simulate every draw of ``draws`` (a batched :class:`fojax.scenarios.Draw`).
 
     Same arguments as ``jax.vmap(fojax.simulator.rollout)`` over the draws:
-    ``controller`` an :class:`fojax.afonftsmc.AFONFTSMC` with the ``"soe"`` method,
+    ``controller`` a :class:`fojax.controllers.Cascade` of the AFONFTSMC with the ``"soe"`` method,
     ``gains`` its gains (shared), ``model`` the nominal plant, ``scenario`` scenario 1
     or 2, ``config`` a :class:`fojax.simulator.SimulationConfig` with the controller's
     ``dt``. ``dtype``: the floating type of every array in the loop.

@@ -62,7 +62,7 @@ reaches 0.1 only at about 18 Hz with a 1 ms step)."""
 
 def build_parser() -> argparse.ArgumentParser:
     from fojax import fractional
-    from fojax.controller import SWITCHING_FUNCTIONS
+    from fojax.controllers import SWITCHING_FUNCTIONS
 
     parser = argparse.ArgumentParser(
         prog="fojax reproduce",
@@ -118,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_args(argv) -> tuple[list[simulate.Study], argparse.Namespace]:
     """One validated :class:`experiments.simulate.Study` per scenario; exits on bad input."""
-    from fojax import registry, scenarios
+    from fojax import scenarios
+    from fojax.controllers import registry
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -275,16 +276,17 @@ def _verdict(counts: dict) -> str:
 
 
 def _difference_of_differences(results_by_scenario, metric, baseline, other):
-    from fojax import montecarlo, statistics
+    from fojax import statistics
+    from fojax import study as monte_carlo
 
     s1, s2 = results_by_scenario[1], results_by_scenario[2]
     delta_base = (
-        montecarlo.metric_table(s2[baseline])[metric][0]
-        - (montecarlo.metric_table(s1[baseline])[metric][0])
+        monte_carlo.metric_table(s2[baseline])[metric][0]
+        - (monte_carlo.metric_table(s1[baseline])[metric][0])
     )
     delta_other = (
-        montecarlo.metric_table(s2[other])[metric][0]
-        - (montecarlo.metric_table(s1[other])[metric][0])
+        monte_carlo.metric_table(s2[other])[metric][0]
+        - (monte_carlo.metric_table(s1[other])[metric][0])
     )
     return statistics.paired_difference(delta_other, delta_base)
 

@@ -38,8 +38,8 @@ __all__ = ["main", "parse_args", "run_study"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fojax import fractional, registry, scenarios
-    from fojax.controller import SWITCHING_FUNCTIONS
+    from fojax import fractional, scenarios
+    from fojax.controllers import SWITCHING_FUNCTIONS, registry
 
     parser = argparse.ArgumentParser(
         prog="fojax simulate",
@@ -123,7 +123,8 @@ def snapshot_interval(steps: int, dt: float, target: float = 0.1) -> int:
 
 def parse_args(argv) -> tuple[Study, argparse.Namespace]:
     """Parse and validate; raises ``SystemExit`` with a message on bad input."""
-    from fojax import gains_io, registry, scenarios
+    from fojax import scenarios
+    from fojax.controllers import gains_io, registry
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -198,7 +199,9 @@ def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = 
     import jax
     import jax.numpy as jnp
 
-    from fojax import montecarlo, registry, scenarios, sharding, simulator
+    from fojax import scenarios, sharding, simulator
+    from fojax import study as monte_carlo
+    from fojax.controllers import registry
 
     # Every local device (GPUs, or one CPU device per core: see experiments.cli).
     mesh = sharding.draw_mesh(jax.local_devices()) if jax.local_device_count() > 1 else None
@@ -223,7 +226,7 @@ def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = 
         if gains is None:
             gains = controller.default_gains(dtype)
         gains = type(gains)(*(jnp.asarray(g, dtype) for g in gains))
-        results[name] = montecarlo.run(
+        results[name] = monte_carlo.run(
             controller,
             gains,
             scenario,
@@ -245,14 +248,15 @@ def _reaching_bounds(name: str, study: Study, result) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    from fojax import metrics, registry
+    from fojax import metrics
+    from fojax.controllers import registry
 
-    controller = registry.make_controller(name, dt=study.dt, horizon=study.horizon)
-    if not hasattr(controller, "reaching_time_bound"):
+    law = registry.make_controller(name, dt=study.dt, horizon=study.horizon).law
+    if not hasattr(law, "reaching_time_bound"):
         return {}
-    gains = study.gains.get(name) or controller.default_gains(jnp.dtype(study.dtype))
+    gains = study.gains.get(name) or law.default_gains(jnp.dtype(study.dtype))
     bound = np.asarray(
-        controller.reaching_time_bound(gains, jnp.asarray(result.per_draw["initial_surface"]))
+        law.reaching_time_bound(gains, jnp.asarray(result.per_draw["initial_surface"]))
     )
     names = metrics.component_names("reaching_time_bound", bound.shape[1:])
     return {component: bound[:, j] for j, component in enumerate(names)}
@@ -262,7 +266,8 @@ def write_outputs(study: Study, results: dict, out: Path, figures: bool = True) 
     """summary.json, draws.npz, trajectories.npz and figures; returns the summary."""
     import numpy as np
 
-    from fojax import montecarlo, statistics
+    from fojax import statistics
+    from fojax import study as monte_carlo
 
     summary = {
         "scenario": study.scenario_id,
@@ -280,7 +285,7 @@ def write_outputs(study: Study, results: dict, out: Path, figures: bool = True) 
     arrays = {}
     for name, result in results.items():
         bounds = _reaching_bounds(name, study, result)
-        entry = montecarlo.summarize(result, extra=bounds)
+        entry = monte_carlo.summarize(result, extra=bounds)
         entry["wall_time_s"] = round(result.wall_time, 2)
         summary["controllers"][name] = entry
         arrays[f"{name}.status"] = result.status
@@ -291,10 +296,10 @@ def write_outputs(study: Study, results: dict, out: Path, figures: bool = True) 
     names = list(results)
     if len(names) > 1:
         baseline = names[0]
-        base_table = montecarlo.metric_table(results[baseline])
+        base_table = monte_carlo.metric_table(results[baseline])
         paired = {}
         for name in names[1:]:
-            table = montecarlo.metric_table(results[name])
+            table = monte_carlo.metric_table(results[name])
             paired[name] = {
                 metric: statistics.paired_difference(table[metric][0], base_table[metric][0])
                 for metric in table

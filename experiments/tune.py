@@ -37,8 +37,8 @@ __all__ = ["build_parser", "main", "parse_args"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fojax import fractional, registry, scenarios
-    from fojax.controller import SWITCHING_FUNCTIONS
+    from fojax import fractional, scenarios
+    from fojax.controllers import SWITCHING_FUNCTIONS, registry
     from optimize import cost, params
     from optimize.tuner import TunerConfig
 
@@ -87,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--fields",
         default="default",
         help="comma-separated gain fields to tune; 'default': every bounded field except "
-        f"{', '.join(params.UNTUNED_BY_DEFAULT)}; 'all': every bounded field",
+        "the constant and smoothing ones (mu, boundary_layer); 'all': every field",
     )
     parser.add_argument("--share", choices=tuple(params.SHARING), default="paper")
     parser.add_argument(
@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _initial_gains(parser, args, dtype):
-    from fojax import gains_io, registry
+    from fojax.controllers import gains_io, registry
     from optimize import params
 
     if args.init == "paper":
@@ -145,7 +145,7 @@ def _initial_gains(parser, args, dtype):
 def parse_args(argv):
     """Parse and validate; returns ``(PreparedRun, args)``. Raises ``SystemExit`` with
     a message on bad input, before anything is compiled or written."""
-    from fojax import registry
+    from fojax.controllers import registry
     from optimize import cost, params, problem, tuner
 
     parser = build_parser()
@@ -165,7 +165,7 @@ def parse_args(argv):
     if args.fields == "default":
         fields = None
     elif args.fields == "all":
-        fields = tuple(registry.get_controller_class(args.controller).gains_bounds)
+        fields = registry.get_controller_class(args.controller).GAINS.names
     else:
         fields = tuple(f.strip() for f in args.fields.split(",") if f.strip())
     try:

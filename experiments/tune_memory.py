@@ -27,7 +27,7 @@ CHILD = r"""
 import json, resource, sys, time
 import jax, jax.numpy as jnp
 from optimize import problem as P
-from fojax.afonftsmc import paper_gains
+from fojax.controllers.afonftsmc import paper_gains
 horizon, draws = float(sys.argv[1]), int(sys.argv[2])
 block, execute = sys.argv[3], sys.argv[4] == "1"
 steps = round(horizon / 1e-3)

@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
 
     from fojax import scenarios
-    from fojax.afonftsmc import paper_gains
+    from fojax.controllers.afonftsmc import paper_gains
     from optimize import cost as cost_lib
     from optimize import derivative_free
     from optimize import params as params_lib

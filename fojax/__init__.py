@@ -1,85 +1,81 @@
 """fojax: differentiable, vectorised quadrotor simulation with fractional-order control.
 
-Modules: :mod:`fojax.fractional` (fractional operators), :mod:`fojax.plant` (the
-quadrotor, eqs. (8)-(11)), :mod:`fojax.scenarios` (Section V's scenarios as data),
-:mod:`fojax.controller` (the controller interface), :mod:`fojax.afonftsmc` (the paper's
-controller), :mod:`fojax.anftsmc`, :mod:`fojax.backstepping` (BSMC, FOBSMC) and
-:mod:`fojax.fl` (the compared controllers, on :mod:`fojax.cascade`),
-:mod:`fojax.registry` (controllers by name), :mod:`fojax.simulator` (one
-closed-loop rollout), :mod:`fojax.metrics`, :mod:`fojax.montecarlo` (batched draws),
-:mod:`fojax.statistics`, :mod:`fojax.gains_io` (gains files).
+Read top to bottom, each layer uses only those below it:
+
+* :mod:`fojax.study`: Monte Carlo studies (chunked, vmapped rollouts, a resumable
+  store, summaries); :mod:`fojax.statistics` their intervals; :mod:`fojax.sharding`
+  draws over devices;
+* :mod:`fojax.simulator`: one closed-loop rollout (plant + controller + scenario,
+  ``lax.scan``), whose records are folded by :mod:`fojax.observers` (status flags,
+  :mod:`fojax.metrics`, tuning costs);
+* :mod:`fojax.controllers`: the cascade every controller shares and the control laws
+  it runs (the paper's AFONFTSMC; FL, BSMC, FOBSMC, ANFTSMC), their declared gains,
+  the registry and gains files;
+* :mod:`fojax.scenarios` (Section V as data), :mod:`fojax.plant` (eqs. (8)-(11)),
+  :mod:`fojax.fractional` (fractional operators).
 """
 
 from fojax import (
-    afonftsmc,
-    anftsmc,
-    backstepping,
-    cascade,
-    controller,
-    fl,
+    controllers,
     fractional,
-    gains_io,
     metrics,
-    montecarlo,
+    observers,
     plant,
-    registry,
     scenarios,
+    sharding,
     simulator,
     statistics,
+    study,
 )
-from fojax.afonftsmc import AFONFTSMC, AFONFTSMCGains, paper_gains
-from fojax.anftsmc import ANFTSMC, ANFTSMCGains
-from fojax.backstepping import BSMC, FOBSMC, BSMCGains, FOBSMCGains
-from fojax.fl import FL, FLGains
+from fojax.controllers import (
+    Cascade,
+    ControlLaw,
+    GainField,
+    GainSpec,
+    controller_names,
+    load_gains,
+    make_controller,
+    paper_gains,
+    register,
+    save_gains,
+)
 from fojax.fractional import differintegrate
-from fojax.gains_io import load_gains, save_gains
-from fojax.montecarlo import MonteCarloResult
-from fojax.montecarlo import run as run_monte_carlo
 from fojax.plant import PlantParams, nominal_params
-from fojax.registry import controller_names, make_controller
 from fojax.scenarios import Scenario, get_scenario
 from fojax.simulator import Rollout, SimulationConfig, rollout
+from fojax.study import MonteCarloResult
+from fojax.study import run as run_monte_carlo
 
 __all__ = [
-    "AFONFTSMC",
-    "AFONFTSMCGains",
-    "ANFTSMC",
-    "ANFTSMCGains",
-    "BSMC",
-    "BSMCGains",
-    "FL",
-    "FLGains",
-    "FOBSMC",
-    "FOBSMCGains",
+    "Cascade",
+    "ControlLaw",
+    "GainField",
+    "GainSpec",
     "MonteCarloResult",
     "PlantParams",
     "Rollout",
     "Scenario",
     "SimulationConfig",
-    "afonftsmc",
-    "anftsmc",
-    "backstepping",
-    "cascade",
-    "controller",
     "controller_names",
+    "controllers",
     "differintegrate",
-    "fl",
     "fractional",
-    "gains_io",
     "get_scenario",
     "load_gains",
     "make_controller",
     "metrics",
-    "montecarlo",
     "nominal_params",
+    "observers",
     "paper_gains",
     "plant",
-    "registry",
+    "register",
     "rollout",
     "run_monte_carlo",
     "save_gains",
     "scenarios",
+    "sharding",
     "simulator",
     "statistics",
+    "study",
 ]
 __version__ = "0.1.0"

@@ -1,16 +1,15 @@
 """Per-draw performance metrics, accumulated online inside the rollout's time loop.
 
-Nothing of the full-rate trajectory is stored: :func:`init` gives a small pytree that
-:func:`update` folds every control step into, and :func:`finalize` turns it into the
-metrics of one draw. Under ``vmap`` every leaf gains a leading ``(draws,)`` axis.
+:class:`Metrics` is an observer (:mod:`fojax.observers`): nothing of the full-rate
+trajectory is stored; a small pytree (:class:`MetricsState`) folds in every control
+step and becomes the metrics of one draw at the end. Under ``vmap`` every leaf gains a
+leading ``(draws,)`` axis.
 
-Errors are ``e = actual - reference``, sampled at the control instants
-``t_k = k dt``, ``k = 0 ... steps - 1``; integrals are rectangle sums ``sum_k f(t_k) dt``
-over the horizon ``T = steps dt``. Axes are ordered ``(x, y, z, phi, theta, psi)``: the
-position error against the reference trajectory, the attitude error against the
-attitude reference the attitude loop tracks (``ControlInfo.attitude_reference``: the
-position loop's command after the command filter; ``psi`` against the reference yaw).
-Inputs are ``(u_F, tau_x, tau_y, tau_z)``.
+Errors are :func:`fojax.observers.tracking_error` (``e = actual - reference``; the
+attitude against the attitude reference the attitude loop tracks), sampled at the
+control instants ``t_k = k dt``, ``k = 0 ... steps - 1``; integrals are rectangle sums
+``sum_k f(t_k) dt`` over the horizon ``T = steps dt``. Axes are ordered ``(x, y, z, phi,
+theta, psi)``, inputs ``(u_F, tau_x, tau_y, tau_z)``.
 
 Metrics (name: shape, unit):
 
@@ -52,11 +51,11 @@ __all__ = [
     "AXES",
     "INPUTS",
     "METRIC_UNITS",
+    "Metrics",
     "MetricsConfig",
     "MetricsState",
-    "finalize",
-    "init",
-    "update",
+    "component_names",
+    "component_units",
 ]
 
 AXES = ("x", "y", "z", "phi", "theta", "psi")
@@ -155,7 +154,7 @@ class MetricsState(NamedTuple):
     initial_surface: Array  # (6,)
 
 
-def init(dtype=None) -> MetricsState:
+def _init(dtype=None) -> MetricsState:
     """Empty running sums."""
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     zeros6 = jnp.zeros(6, dtype)
@@ -178,7 +177,7 @@ def init(dtype=None) -> MetricsState:
     )
 
 
-def update(
+def _update(
     config: MetricsConfig,
     acc: MetricsState,
     t: Array,
@@ -233,7 +232,7 @@ def update(
     )
 
 
-def finalize(config: MetricsConfig, acc: MetricsState) -> dict[str, Array]:
+def _finalize(config: MetricsConfig, acc: MetricsState) -> dict[str, Array]:
     """The metrics of one draw (see the module docstring), as a dict of arrays."""
     horizon = config.horizon
     dt = config.dt
@@ -264,6 +263,29 @@ def finalize(config: MetricsConfig, acc: MetricsState) -> dict[str, Array]:
         "reaching_time": reaching.astype(acc.max_error.dtype),
         "initial_surface": acc.initial_surface,
     }
+
+
+@dataclasses.dataclass(frozen=True)
+class Metrics:
+    """The metrics as an observer of the rollout (:mod:`fojax.observers`).
+
+    config: :class:`MetricsConfig`. Feasibility of a command (``actuator_saturation``)
+    is judged by the mixer (10) of the controller's nominal plant.
+    """
+
+    config: MetricsConfig
+
+    def init(self, dtype) -> MetricsState:
+        return _init(dtype)
+
+    def update(self, acc: MetricsState, record) -> MetricsState:
+        mixer = plant.nominal_params(record.state.dtype)
+        return _update(
+            self.config, acc, record.time, record.error, record.inputs, record.info.surfaces, mixer
+        )
+
+    def finalize(self, acc: MetricsState) -> dict[str, Array]:
+        return _finalize(self.config, acc)
 
 
 def component_names(name: str, value_shape: tuple[int, ...]) -> list[str]:

@@ -21,12 +21,15 @@ Disturbances
 ------------
 ``disturbance_accel`` has shape ``(6,)``: ``(d_px, d_py, d_pz)`` in m/s^2, then
 ``(d_phi1, d_phi2, d_phi3)`` in rad/s^2. They are the accelerations ``d_p / m`` and
-``d_eta / I`` of eq. (11) (paper notes, item 4): added as they are, never divided
-again by the mass or the inertia.
+``d_eta / I`` of eq. (11): (53) and (56) give them in m/s^2 and rad/s^2, which is what
+Assumption 3 bounds, so they are added as they are, never divided again by the mass
+or the inertia.
 
-Model (paper notes, items 1-2)
-------------------------------
-With ``drag(w) = w |w|`` (the paper prints ``w^2``) and the coefficients under (11)::
+Model
+-----
+(11a)-(11c) as printed mix up the rates; the standard model the paper cites is used,
+with ``drag(w) = w |w|`` (the paper prints ``w^2``, which pushes the wrong way for
+``w < 0``) and the coefficients under (11)::
 
     phi''   = a_phi1 theta' psi' - a_phi2 theta' Omega_r - a_phi3 drag(phi')
               + tau_x / I11 + d_phi1                                          (11a)
@@ -74,6 +77,7 @@ __all__ = [
     "rk4_step_parts",
     "rotor_speed_sum",
     "rotor_speeds_squared",
+    "signed_square",
     "split_state",
 ]
 
@@ -87,7 +91,9 @@ VELOCITY = slice(6, 9)
 ATTITUDE_RATE = slice(9, 12)
 """``(phi', theta', psi')`` in the state vector."""
 
-# Nominal constants (Section V; rotor inertia from the notes, item 2).
+# Nominal constants (Section V). The rotor inertia is not given: 2.8385e-5 kg m^2 is the
+# value of the parameter set the paper's constants come from (its rho_b and rho_c are
+# that set's thrust and drag factors scaled by 100).
 _NOMINAL_MASS = 0.74  # kg
 _NOMINAL_INERTIA = (0.4e-2, 0.4e-2, 0.84e-2)  # kg m^2
 _NOMINAL_DRAG_POSITION = (1e-2, 1e-2, 1e-2)  # N s / m
@@ -132,7 +138,7 @@ class PlantParams(NamedTuple):
 
 
 def nominal_params(dtype=None) -> PlantParams:
-    """The paper's nominal constants (Section V; notes items 2-3).
+    """The paper's nominal constants (Section V).
 
     ``m = 0.74``, ``I = diag(0.4, 0.4, 0.84) 1e-2``, ``K_p = diag(1, 1, 1) 1e-2``,
     ``K_phi = diag(1.2, 1.2, 1.2) 1e-2``, ``rho_b = 3e-3``, ``rho_c = 3.24e-2``,
@@ -222,19 +228,23 @@ def rotor_speeds_squared(params: PlantParams, inputs: Array) -> Array:
 
     inputs: ``(4,)`` ``(u_F, tau_x, tau_y, tau_z)``.
     """
+    return jnp.stack(_rotor_speeds_squared_parts(params, *_unstack(inputs, 4)))
+
+
+def _rotor_speeds_squared_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z) -> tuple:
+    """:func:`rotor_speeds_squared` from the four scalar inputs (four scalars)."""
     b = params.thrust_factor
     c = params.drag_factor
     bd = b * params.arm_length
-    thrust, tau_x, tau_y, tau_z = inputs[0], inputs[1], inputs[2], inputs[3]
     common = thrust / (4.0 * b)
     yaw = tau_z / (4.0 * c)
-    return jnp.stack(
-        [
-            common - tau_y / (2.0 * bd) - yaw,
-            common - tau_x / (2.0 * bd) + yaw,
-            common + tau_y / (2.0 * bd) - yaw,
-            common + tau_x / (2.0 * bd) + yaw,
-        ]
+    roll = tau_x / (2.0 * bd)
+    pitch = tau_y / (2.0 * bd)
+    return (
+        common - pitch - yaw,
+        common - roll + yaw,
+        common + pitch - yaw,
+        common + roll + yaw,
     )
 
 
@@ -245,7 +255,7 @@ def _safe_sqrt_nonnegative(x: Array) -> Array:
 
 
 def rotor_speed_sum(params: PlantParams, inputs: Array) -> Array:
-    """``Omega_r = w1 - w2 + w3 - w4`` (rad/s, ``()``) of eq. (11) (notes item 2).
+    """``Omega_r = w1 - w2 + w3 - w4`` (rad/s, ``()``) of eq. (11).
 
     ``w_i = sqrt(max(w_i^2, 0))`` with ``w_i^2`` from :func:`rotor_speeds_squared`.
     Gradient-safe: the gradient is finite everywhere (zero where a rotor is clipped;
@@ -282,8 +292,9 @@ def hover_state(position=(0.0, 0.0, 0.0), yaw=0.0, dtype=None) -> Array:
 # an RK4 stage's accelerations are computed once and read by the next stage.
 
 
-def _signed_square(w: Array) -> Array:
-    """``drag(w) = w |w|`` (notes item 1): the aerodynamic drag pushes against ``w``."""
+def signed_square(w: Array) -> Array:
+    """``drag(w) = w |w|``: the aerodynamic drag pushes against ``w`` (the paper prints
+    ``w^2``); the same form in the plant and in the controllers' nominal model."""
     return w * jnp.abs(w)
 
 
@@ -299,22 +310,8 @@ def _drag_parts(params: PlantParams, drag_position, drag_attitude) -> tuple[tupl
 
 def _rotor_speed_sum_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z) -> Array:
     """:func:`rotor_speed_sum` from the four scalar inputs."""
-    b = params.thrust_factor
-    c = params.drag_factor
-    bd = b * params.arm_length
-    common = thrust / (4.0 * b)
-    yaw = tau_z / (4.0 * c)
-    roll = tau_x / (2.0 * bd)
-    pitch = tau_y / (2.0 * bd)
-    speeds = [
-        _safe_sqrt_nonnegative(w2)
-        for w2 in (
-            common - pitch - yaw,
-            common - roll + yaw,
-            common + pitch - yaw,
-            common + roll + yaw,
-        )
-    ]
+    squared = _rotor_speeds_squared_parts(params, thrust, tau_x, tau_y, tau_z)
+    speeds = [_safe_sqrt_nonnegative(w2) for w2 in squared]
     return speeds[0] - speeds[1] + speeds[2] - speeds[3]
 
 
@@ -371,12 +368,12 @@ def _derivative_parts(
 
     # Eq. (11a)-(11c) multiplied through by the inertia, divided once at the end.
     roll_accel = (
-        (i22 - i33) * q * r - j_r * q * omega_r - k_phi[0] * _signed_square(p) + tau_x
+        (i22 - i33) * q * r - j_r * q * omega_r - k_phi[0] * signed_square(p) + tau_x
     ) / i11 + d[3]
     pitch_accel = (
-        (i33 - i11) * p * r + j_r * p * omega_r - k_phi[1] * _signed_square(q) + tau_y
+        (i33 - i11) * p * r + j_r * p * omega_r - k_phi[1] * signed_square(q) + tau_y
     ) / i22 + d[4]
-    yaw_accel = ((i11 - i22) * p * q - k_phi[2] * _signed_square(r) + tau_z) / i33 + d[5]
+    yaw_accel = ((i11 - i22) * p * q - k_phi[2] * signed_square(r) + tau_z) / i33 + d[5]
 
     # Eq. (11d)-(11f), forces divided by the mass at the end.
     c_phi, s_phi, c_theta, s_theta, c_psi, s_psi = trig
@@ -395,13 +392,13 @@ def derivatives(
     drag_position: Array | None = None,
     drag_attitude: Array | None = None,
 ) -> Array:
-    """Time derivative ``(12,)`` of the state under eq. (11) (corrected, notes item 1).
+    """Time derivative ``(12,)`` of the state under eq. (11) (read as in the module docstring).
 
     params: :class:`PlantParams`.
     state: ``(12,)`` ``(x, y, z, phi, theta, psi, x', y', z', phi', theta', psi')``.
     inputs: ``(4,)`` ``(u_F, tau_x, tau_y, tau_z)``.
     disturbance_accel: ``(6,)`` ``(d_px, d_py, d_pz)`` m/s^2 and
-        ``(d_phi1, d_phi2, d_phi3)`` rad/s^2, added directly (notes item 4).
+        ``(d_phi1, d_phi2, d_phi3)`` rad/s^2, added directly (see the module docstring).
     drag_position: optional ``(3,)`` override of ``K_p`` (time-varying drag).
     drag_attitude: optional ``(3,)`` override of ``K_phi`` (time-varying drag).
 

@@ -7,7 +7,7 @@ drawn up front by :func:`sample_draw` into a :class:`Draw`, a NamedTuple of arra
 :func:`disturbance_at` and :func:`drag_at`, which index piecewise-constant tables:
 no key is split inside the simulation loop.
 
-Scenarios (paper notes, items 13-15; every choice is listed in ``docs/model.md``):
+Scenarios (every choice is listed in ``docs/model.md``):
 
 1. Reference (54)-(55), deterministic disturbances (53), drag coefficients
    ``K_p``, ``K_phi`` varying randomly in time, horizon 80 s.
@@ -53,6 +53,8 @@ __all__ = [
     "drag_at",
     "draw_keys",
     "get_scenario",
+    "held_row",
+    "hold_layout",
     "initial_state",
     "reference_54_55",
     "reference_57",
@@ -74,7 +76,7 @@ def _as_time(t) -> Array:
 
 
 def reference_54_55(t) -> Array:
-    """Scenario 1-2 reference, eqs. (54)-(55) with the time restored (notes item 13).
+    """Scenario 1-2 reference, eqs. (54)-(55), whose time variable is missing as printed.
 
     ``x_r = 0.5 cos(pi t / 20)``, ``y_r = 0.5 sin(pi t / 20)``,
     ``z_r = 2 - 2 cos(pi t / 20)`` (m), ``psi_r = 0.5`` rad.
@@ -122,7 +124,8 @@ def reference_with_derivatives(
 ) -> tuple[Array, Array, Array]:
     """Reference and its first two time derivatives, by forward-mode autodiff.
 
-    Exact derivatives of ``reference_fn`` itself (notes item 9), no differencing.
+    Exact derivatives of ``reference_fn`` itself (the paper's ``x_r'`` and ``x_r''``),
+    never differences of samples.
 
     reference_fn: scalar ``t`` -> ``(4,)``. t: scalar time.
     Returns ``(position (4,), velocity (4,), acceleration (4,))``, each ordered
@@ -146,7 +149,8 @@ def _window(t: Array, start: float, stop: float) -> Array:
 
 
 def disturbances_53(t) -> Array:
-    """Scenario 1-2 deterministic disturbances, eq. (53), as accelerations (notes item 4).
+    """Scenario 1-2 deterministic disturbances, eq. (53), as accelerations
+    (m/s^2, rad/s^2: added to the plant's accelerations as they are).
 
     ``d_px = -(0.08 sin(0.11 t - 3.0403) + 0.04 sin(0.5 t - 13.5)
     + 0.008 sin(1.6 t - 15 pi) + 0.006 sin(0.3 t - 8.6))`` on ``[10, 30]``,
@@ -341,7 +345,7 @@ def draw_keys(seed: int, indices: Iterable[int] | Array) -> Array:
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(indices)
 
 
-def _hold_layout(horizon: float, hold: float, dt: float) -> tuple[int, int]:
+def hold_layout(horizon: float, hold: float, dt: float) -> tuple[int, int]:
     """``(steps per hold, number of holds)`` covering steps ``0 ... ceil(horizon/dt)``."""
     hold_steps = max(1, round(hold / dt))
     n_steps = math.ceil(horizon / dt - 1e-9)
@@ -373,14 +377,14 @@ def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None) -> Draw:
         mass=nominal.mass * mass_factor, inertia=nominal.inertia * inertia_factor
     )
 
-    drag_hold_steps, n_drag = _hold_layout(scenario.horizon, scenario.drag_hold, dt)
+    drag_hold_steps, n_drag = hold_layout(scenario.horizon, scenario.drag_hold, dt)
     if scenario.has_drag_variation:
         a = scenario.drag_variation
         drag_multipliers = jax.random.uniform(key_drag, (n_drag, 6), float_dtype, 1.0 - a, 1.0 + a)
     else:
         drag_multipliers = jnp.ones((1, 6), float_dtype)
 
-    noise_hold_steps, n_noise = _hold_layout(scenario.horizon, scenario.noise_hold, dt)
+    noise_hold_steps, n_noise = hold_layout(scenario.horizon, scenario.noise_hold, dt)
     if scenario.has_noise:
         std = jnp.asarray(
             [scenario.noise_std_position] * 3 + [scenario.noise_std_attitude] * 3, float_dtype
@@ -399,9 +403,17 @@ def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None) -> Draw:
     )
 
 
-def _hold_index(t: Array, time_step: Array, hold_steps: Array, n_rows: int) -> Array:
-    step = jnp.round(t / time_step).astype(jnp.int32)
-    return jnp.clip(step // hold_steps, 0, n_rows - 1)
+def held_row(table: Array, step: Array, hold_steps) -> Array:
+    """The row of a hold table (``(rows, 6)``) in force at step ``step``: row
+    ``step // hold_steps``, past the end the last. The one lookup of the draw's tables,
+    by the rollout (``hold_steps`` known before tracing) and by :func:`disturbance_at`
+    and :func:`drag_at` (from the draw)."""
+    row = jnp.clip(step // hold_steps, 0, table.shape[0] - 1)
+    return jax.lax.dynamic_index_in_dim(table, row, keepdims=False)
+
+
+def _step_of(t: Array, draw: Draw) -> Array:
+    return jnp.round(t / draw.time_step).astype(jnp.int32)
 
 
 def disturbance_at(scenario: Scenario, draw: Draw, t) -> Array:
@@ -415,8 +427,8 @@ def disturbance_at(scenario: Scenario, draw: Draw, t) -> Array:
     deterministic = scenario.disturbance(t)
     if not scenario.has_noise:
         return deterministic
-    row = _hold_index(t, draw.time_step, draw.noise_hold_steps, draw.noise_accel.shape[0])
-    return deterministic + draw.noise_accel[row].astype(deterministic.dtype)
+    noise = held_row(draw.noise_accel, _step_of(t, draw), draw.noise_hold_steps)
+    return deterministic + noise.astype(deterministic.dtype)
 
 
 def drag_at(scenario: Scenario, draw: Draw, t) -> tuple[Array, Array]:
@@ -428,8 +440,7 @@ def drag_at(scenario: Scenario, draw: Draw, t) -> tuple[Array, Array]:
     if not scenario.has_drag_variation:
         return draw.params.drag_position, draw.params.drag_attitude
     t = _as_time(t)
-    row = _hold_index(t, draw.time_step, draw.drag_hold_steps, draw.drag_multipliers.shape[0])
-    multipliers = draw.drag_multipliers[row]
+    multipliers = held_row(draw.drag_multipliers, _step_of(t, draw), draw.drag_hold_steps)
     return (
         draw.params.drag_position * multipliers[:3],
         draw.params.drag_attitude * multipliers[3:],

@@ -3,7 +3,9 @@
 Per step ``k`` (time ``t_k = k dt``): the reference and its exact derivatives at
 ``t_k`` (autodiff of the reference function), the controller's update from the
 sampled state, then one RK4 step of the plant with the inputs, the disturbance and
-the drag coefficients held over the step (zero-order hold).
+the drag coefficients held over the step (zero-order hold). What the rollout records
+beyond its snapshots (metrics, a tuning cost, the status flags) is folded in by
+observers (:mod:`fojax.observers`).
 
 The time loop is a ``lax.scan`` over blocks of ``save_every`` steps (an inner scan);
 one snapshot per block is kept, and each block is rematerialised under ``grad``
@@ -33,16 +35,31 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from fojax import plant, scenarios
-from fojax.controller import ControlInfo, Observation
+from fojax import observers, plant, scenarios
+from fojax.controllers.base import ControlInfo, Observation
+from fojax.controllers.cascade import as_controller
 
 Array = jax.Array
 
-# Status flags per draw, as bits of ``Rollout.status``.
-NONFINITE = 1  # a state, input or surface became NaN/inf
-TILT_LIMIT = 2  # |roll| or |pitch| reached pi/2 (Assumption 1)
-ACTUATOR_LIMIT = 4  # the command needed a negative squared rotor speed (mixer (10))
-STATUS_NAMES = {NONFINITE: "nonfinite", TILT_LIMIT: "tilt_limit", ACTUATOR_LIMIT: "actuator_limit"}
+# Status bits, re-exported from :mod:`fojax.observers`.
+NONFINITE = observers.NONFINITE
+TILT_LIMIT = observers.TILT_LIMIT
+ACTUATOR_LIMIT = observers.ACTUATOR_LIMIT
+STATUS_NAMES = observers.STATUS_NAMES
+
+
+def divisor_near(n: int, target: float) -> int:
+    """The divisor of ``n`` nearest to ``target`` (the smaller one on a tie): a block
+    length that splits ``n`` steps evenly (snapshots, checkpointed blocks)."""
+    best = 1
+    for d in range(1, int(math.isqrt(n)) + 1):
+        if n % d == 0:
+            for c in (d, n // d):
+                if abs(c - target) < abs(best - target) or (
+                    abs(c - target) == abs(best - target) and c < best
+                ):
+                    best = c
+    return best
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,7 +85,8 @@ class SimulationConfig:
             raise ValueError(f"save_every must be a positive integer, got {self.save_every!r}")
         if self.steps % self.save_every:
             raise ValueError(
-                f"save_every ({self.save_every}) must divide the number of steps ({self.steps})"
+                f"save_every ({self.save_every}) must divide the number of steps ({self.steps}); "
+                f"{divisor_near(self.steps, self.save_every)} does"
             )
 
     @property
@@ -100,64 +118,59 @@ class Snapshot(NamedTuple):
 class Rollout(NamedTuple):
     """Result of one draw.
 
-    final_state: ``(12,)``. status: ``()`` int32 bit flags (:data:`STATUS_NAMES`).
-    cost: ``()`` integral of squared position and attitude errors (for gradients).
-    extra: whatever the per-step accumulator returned (metrics), or ``None``.
-    trajectory: :class:`Snapshot` with a leading ``(blocks,)`` axis.
+    final_state: ``(12,)``. status: ``()`` int32 bit flags
+    (:data:`fojax.observers.STATUS_NAMES`). outputs: what the rollout's observer
+    finalized (``None`` without one). trajectory: :class:`Snapshot` with a leading
+    ``(blocks,)`` axis.
     """
 
     final_state: Array
     status: Array
-    cost: Array
-    extra: Any
+    outputs: Any
     trajectory: Snapshot
 
 
-def _status(state: Array, inputs: Array, info: ControlInfo, params: plant.PlantParams) -> Array:
-    finite = (
-        jnp.all(jnp.isfinite(state))
-        & jnp.all(jnp.isfinite(inputs))
-        & jnp.all(jnp.isfinite(info.surfaces))
-    )
-    tilt = jnp.any(jnp.abs(state[3:5]) >= jnp.pi / 2)
-    actuator = jnp.any(plant.rotor_speeds_squared(params, inputs) < 0)
-    return (
-        jnp.where(finite, 0, NONFINITE)
-        | jnp.where(tilt, TILT_LIMIT, 0)
-        | jnp.where(actuator, ACTUATOR_LIMIT, 0)
-    ).astype(jnp.int32)
+class LoopState(NamedTuple):
+    """The time loop's carry, at the start of step ``k``.
 
+    state: the plant state ``x_k`` as 12 scalars (one contiguous array each under
+    ``vmap``). trig: ``(6,)`` :func:`fojax.plant.attitude_trig` of ``x_k``. held: the
+    draw's ``(noise, drag)`` table rows in force at step ``k`` (each ``(6,)`` or
+    ``None``). control: the controller's state after its update at ``t_k``. inputs,
+    info: that update's command ``(4,)`` and :class:`ControlInfo`. status: ``()`` the
+    :class:`fojax.observers.Status` flags so far. observed: the observer's state.
+    """
 
-def _hold_row(k: Array, horizon: float, hold: float, dt: float, n_rows: int) -> Array:
-    """Row of a hold table at step ``k``, from the static layout of ``sample_draw``."""
-    hold_steps, _ = scenarios._hold_layout(horizon, hold, dt)
-    return jnp.clip(k // hold_steps, 0, n_rows - 1)
+    state: tuple
+    trig: Array
+    held: tuple
+    control: Any
+    inputs: Array
+    info: ControlInfo
+    status: Array
+    observed: Any
 
 
 def _held_values(scenario: scenarios.Scenario, draw: scenarios.Draw, config: SimulationConfig):
     """``held(k) -> (noise, drag)``: the rows of the draw's tables in force at step ``k``
-    (time ``t = k dt``): ``noise`` ``(6,)`` the Gaussian part of
-    :func:`fojax.scenarios.disturbance_at`, ``drag`` ``(6,)`` the multipliers of
-    :func:`fojax.scenarios.drag_at` (each ``None`` when the scenario has no such table).
+    (:func:`fojax.scenarios.held_rows`; each ``None`` when the scenario has no such
+    table).
 
     The draw's tables are laid out for ``config.dt`` (``sample_draw(..., dt=config.dt)``),
     so the row of step ``k`` is ``k // hold_steps`` with ``hold_steps`` known before
-    tracing (the same row as ``round(t / dt) // hold_steps``). The row then does not
-    depend on the draw, and under ``vmap`` each lookup is one slice of the batched
-    table instead of a gather per draw. The rollout reads each step's values once, at
-    the end of the step before, and carries them: a row of a ``(draws, rows, 6)`` table
-    is a strided read that XLA otherwise repeated inside every kernel using it.
+    tracing. The row then does not depend on the draw, and under ``vmap`` each lookup
+    is one slice of the batched table instead of a gather per draw. The rollout reads
+    each step's values once, at the end of the step before, and carries them: a row of
+    a ``(draws, rows, 6)`` table is a strided read that XLA otherwise repeated inside
+    every kernel using it.
     """
-    dt = config.dt
-
-    def row_of(table, k, hold):
-        row = _hold_row(k, scenario.horizon, hold, dt, table.shape[0])
-        return lax.dynamic_index_in_dim(table, row, keepdims=False)
+    noise_steps, _ = scenarios.hold_layout(scenario.horizon, scenario.noise_hold, config.dt)
+    drag_steps, _ = scenarios.hold_layout(scenario.horizon, scenario.drag_hold, config.dt)
 
     def held(k):
-        noise = row_of(draw.noise_accel, k, scenario.noise_hold) if scenario.has_noise else None
+        noise = scenarios.held_row(draw.noise_accel, k, noise_steps) if scenario.has_noise else None
         drag = (
-            row_of(draw.drag_multipliers, k, scenario.drag_hold)
+            scenarios.held_row(draw.drag_multipliers, k, drag_steps)
             if scenario.has_drag_variation
             else None
         )
@@ -173,21 +186,28 @@ def rollout(
     scenario: scenarios.Scenario,
     draw: scenarios.Draw,
     config: SimulationConfig,
-    accumulator: Any = None,
+    observer: Any = None,
 ) -> Rollout:
     """Simulate one draw of ``scenario`` under ``controller`` with ``gains``.
 
-    ``model`` is the nominal plant the controller uses; ``draw.params`` is the
-    simulated plant; ``draw`` must be sampled for ``config.dt`` (its tables are read by
-    step index). ``accumulator``, if given, is a pair ``(init, update)`` with
-    ``init() -> acc`` and ``update(acc, t, state, reference, inputs, info) -> acc``,
-    evaluated every step (online metrics). Pure; ``vmap`` over ``draw`` (and
-    ``gains``) for Monte Carlo, ``grad`` through ``cost`` or ``extra``.
+    ``controller``: a :class:`fojax.controllers.Cascade` (:func:`fojax.make_controller`),
+    a bare :class:`fojax.controllers.ControlLaw` (run in a default cascade) or any
+    object with the controller interface. ``model`` is the nominal plant the
+    controller uses; ``draw.params`` is the simulated plant; ``draw`` must be sampled
+    for ``config.dt`` (its tables are read by step index). ``observer``, if given, is
+    an :class:`fojax.observers.Observer` (or a :class:`fojax.observers.Chain` of
+    them) folded over every step; its finalized outputs are ``Rollout.outputs``.
+
+    Pure and traceable: ``vmap`` over ``draw`` (and ``gains``) for Monte Carlo,
+    ``grad`` through ``outputs``. Gains are not checked here (they may be traced);
+    :func:`run` checks them.
     """
+    controller = as_controller(controller)
     dt = config.dt
     dtype = jnp.asarray(draw.params.mass).dtype
     params = controller.prepare(gains, model)
     state0 = scenarios.initial_state(scenario, dtype)
+    status_observer = observers.Status()
 
     def reference_at(k):
         """The reference and its two derivatives at step ``k`` (time only: shared by
@@ -204,15 +224,11 @@ def rollout(
     control0 = controller.init(params, obs0)
     # The first control update; later ones run at the end of the iteration before.
     control1, inputs0, info0 = controller.step(params, control0, obs0)
-    acc0 = accumulator[0]() if accumulator is not None else None
     held_at = _held_values(scenario, draw, config)
 
-    def one_step(carry, k):
-        # state: x_k (12 scalars); inputs, info: the update at t_k; control: the
-        # controller state after it.
-        state, trig, held, control, inputs, info, status, cost, acc = carry
+    def one_step(loop: LoopState, k):
         t, (reference, _, _) = reference_at(k)
-        noise, drag = held
+        noise, drag = loop.held
         k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
         drag_position = tuple(k_p[i] if drag is None else k_p[i] * drag[i] for i in range(3))
         drag_attitude = tuple(
@@ -225,69 +241,71 @@ def rollout(
         )
         next_state = plant.rk4_step_parts(
             draw.params,
-            state,
-            tuple(inputs[i] for i in range(4)),
+            loop.state,
+            tuple(loop.inputs[i] for i in range(4)),
             disturbance,
             dt,
             drag_position,
             drag_attitude,
-            tuple(trig[i] for i in range(6)),
+            tuple(loop.trig[i] for i in range(6)),
         )
-        next_trig = jnp.stack(plant.attitude_trig(*next_state[3:6]))
-        state_array = jnp.stack(state)
-        status = status | _status(jnp.stack(next_state), inputs, info, draw.params)
-        position_error = state_array[:3] - reference[:3]
-        attitude_error = state_array[3:6] - info.attitude_reference
-        cost = cost + dt * (jnp.sum(position_error**2) + jnp.sum(attitude_error**2))
-        if accumulator is not None:
-            acc = accumulator[1](acc, t, state_array, reference, inputs, info)
+        state_array = jnp.stack(loop.state)
+        record = observers.StepRecord(
+            time=t,
+            state=state_array,
+            next_state=jnp.stack(next_state),
+            reference=reference,
+            inputs=loop.inputs,
+            info=loop.info,
+            error=observers.tracking_error(state_array, reference, loop.info.attitude_reference),
+            plant=draw.params,
+        )
+        status = status_observer.update(loop.status, record)
+        observed = observer.update(loop.observed, record) if observer is not None else None
         # The control update of step k + 1, from the new state.
         control, next_inputs, next_info = controller.step(
-            params, control, observe(k + 1, jnp.stack(next_state))
+            params, loop.control, observe(k + 1, record.next_state)
         )
-        carry = (
-            next_state,
-            next_trig,
-            held_at(k + 1),
-            control,
-            next_inputs,
-            next_info,
-            status,
-            cost,
-            acc,
+        loop = LoopState(
+            state=next_state,
+            trig=jnp.stack(plant.attitude_trig(*next_state[3:6])),
+            held=held_at(k + 1),
+            control=control,
+            inputs=next_inputs,
+            info=next_info,
+            status=status,
+            observed=observed,
         )
-        return carry, (reference, inputs, info)
+        return loop, (reference, record.inputs, record.info)
 
     @jax.checkpoint
-    def block(carry, block_index):
+    def block(loop: LoopState, block_index):
         ks = block_index * config.save_every + jnp.arange(config.save_every)
-        carry, (refs, inputs, infos) = lax.scan(one_step, carry, ks)
+        loop, (refs, inputs, infos) = lax.scan(one_step, loop, ks)
         t_end = (block_index + 1).astype(dtype) * config.save_every * dt
         last = jax.tree.map(lambda x: x[-1], (refs, inputs, infos))
         snapshot = Snapshot(
             t_end,
-            jnp.stack(carry[0]),
+            jnp.stack(loop.state),
             last[0],
             last[1],
             last[2],
             jnp.min(inputs, axis=0),
             jnp.max(inputs, axis=0),
         )
-        return carry, snapshot
+        return loop, snapshot
 
     state0_parts = tuple(state0[i] for i in range(12))
-    carry0 = (
-        state0_parts,
-        jnp.stack(plant.attitude_trig(*state0_parts[3:6])),
-        held_at(jnp.zeros((), jnp.int32)),
-        control1,
-        inputs0,
-        info0,
-        jnp.zeros((), jnp.int32),
-        jnp.zeros((), dtype),
-        acc0,
+    loop0 = LoopState(
+        state=state0_parts,
+        trig=jnp.stack(plant.attitude_trig(*state0_parts[3:6])),
+        held=held_at(jnp.zeros((), jnp.int32)),
+        control=control1,
+        inputs=inputs0,
+        info=info0,
+        status=status_observer.init(dtype),
+        observed=observer.init(dtype) if observer is not None else None,
     )
-    (final, _, _, _, _, _, status, cost, acc), trajectory = lax.scan(
-        block, carry0, jnp.arange(config.blocks)
-    )
-    return Rollout(jnp.stack(final), status, cost, acc, trajectory)
+    final, trajectory = lax.scan(block, loop0, jnp.arange(config.blocks))
+    outputs = observer.finalize(final.observed) if observer is not None else None
+    return Rollout(jnp.stack(final.state), final.status, outputs, trajectory)

@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from fojax import plant, scenarios, simulator
+from fojax import observers, plant, scenarios, simulator
 
 Array = jax.Array
 
@@ -40,6 +40,7 @@ __all__ = [
     "ERRORS",
     "OBJECTIVES",
     "CostConfig",
+    "CostObserver",
     "CostTerms",
     "DrawCosts",
     "combine",
@@ -48,7 +49,7 @@ __all__ = [
 
 ERRORS = ("ise", "itae")
 OBJECTIVES = ("mean", "cvar")
-DIVERGED = simulator.NONFINITE | simulator.TILT_LIMIT
+DIVERGED = observers.NONFINITE | observers.TILT_LIMIT
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,7 +108,7 @@ class CostConfig:
 
 
 class CostTerms(NamedTuple):
-    """Running sums of one draw (the accumulator of :func:`fojax.simulator.rollout`).
+    """Running sums of one draw (the state of :class:`CostObserver`).
 
     position, attitude: ``()`` tracking terms ``P``, ``A``. effort: ``()`` ``E``.
     chattering: ``()`` ``C``. previous: ``(4,)`` the last commanded accelerations.
@@ -136,26 +137,36 @@ class DrawCosts(NamedTuple):
     diverged: Array
 
 
-def _accumulator(config: CostConfig, model: plant.PlantParams, dt: float, dtype):
-    scale = jnp.concatenate([model.mass[None], model.inertia]).astype(dtype)
-    hover = plant.hover_inputs(model).astype(dtype)
-    itae = config.error == "itae"
+@dataclasses.dataclass(frozen=True)
+class CostObserver:
+    """The cost's running sums as an observer of the rollout (:mod:`fojax.observers`).
 
-    def init() -> CostTerms:
+    config: :class:`CostConfig`. dt: the step. Accelerations are scaled by the
+    controller's nominal plant (:func:`fojax.plant.nominal_params`).
+    """
+
+    config: CostConfig
+    dt: float
+
+    def init(self, dtype) -> CostTerms:
         zero = jnp.zeros((), dtype)
         return CostTerms(zero, zero, zero, zero, jnp.zeros(4, dtype), jnp.zeros((), bool))
 
-    def update(acc: CostTerms, t, state, reference, inputs, info) -> CostTerms:
-        position_error = state[:3] - reference[:3]
-        attitude_error = state[3:6] - info.attitude_reference.astype(state.dtype)
-        if itae:
-            position = t * jnp.sum(jnp.abs(position_error))
-            attitude = t * jnp.sum(jnp.abs(attitude_error))
+    def update(self, acc: CostTerms, record) -> CostTerms:
+        dtype = record.state.dtype
+        model = plant.nominal_params(dtype)
+        scale = jnp.concatenate([model.mass[None], model.inertia]).astype(dtype)
+        hover = plant.hover_inputs(model).astype(dtype)
+        position_error, attitude_error = record.error[:3], record.error[3:]
+        if self.config.error == "itae":
+            position = record.time * jnp.sum(jnp.abs(position_error))
+            attitude = record.time * jnp.sum(jnp.abs(attitude_error))
         else:
             position = jnp.sum(position_error**2)
             attitude = jnp.sum(attitude_error**2)
-        accel = (inputs - hover) / scale
+        accel = (record.inputs - hover) / scale
         jump = jnp.where(acc.started, jnp.sum(jnp.abs(accel - acc.previous)), 0.0)
+        dt = self.dt
         return CostTerms(
             position=acc.position + dt * position,
             attitude=acc.attitude + dt * attitude,
@@ -165,7 +176,9 @@ def _accumulator(config: CostConfig, model: plant.PlantParams, dt: float, dtype)
             started=jnp.ones((), bool),
         )
 
-    return init, update
+    def finalize(self, acc: CostTerms) -> Array:
+        """``(4,)`` the terms ``(P, A, E, C)``."""
+        return jnp.stack([acc.position, acc.attitude, acc.effort, acc.chattering])
 
 
 def make_draw_cost(
@@ -185,16 +198,13 @@ def make_draw_cost(
     """
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     model = plant.nominal_params(dtype)
-    accumulator = _accumulator(cost_config, model, sim_config.dt, dtype)
+    observer = CostObserver(cost_config, sim_config.dt)
     weights = jnp.asarray(cost_config.weights, dtype)
 
     def cost(gains, key):
         draw = scenarios.sample_draw(scenario, key, sim_config.dt, dtype)
-        result = simulator.rollout(
-            controller, gains, model, scenario, draw, sim_config, accumulator
-        )
-        acc = result.extra
-        terms = jnp.stack([acc.position, acc.attitude, acc.effort, acc.chattering])
+        result = simulator.rollout(controller, gains, model, scenario, draw, sim_config, observer)
+        terms = result.outputs
         return jnp.sum(weights * terms), terms, result.status
 
     return cost

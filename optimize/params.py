@@ -2,7 +2,7 @@
 
 A gradient (or derivative-free) tuner moves unconstrained real parameters ``u``; a
 :class:`ParameterMap` turns them into gains that always satisfy the controller's
-constraints (``gains_bounds``: field -> :class:`fojax.controller.Bounds`), and back:
+constraints (each field's declared :class:`fojax.controllers.Bounds`), and back:
 
 * ``low < g`` (``high = inf``): ``g = low + exp(u)``, ``u = log(g - low)`` (log map: a
   step in ``u`` is a relative change of the gain, whatever its scale);
@@ -36,15 +36,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from fojax import registry
-from fojax.controller import Bounds
+from fojax.controllers import registry
+from fojax.controllers.gains import Bounds
 
 Array = jax.Array
 
 __all__ = [
     "AXIS_NAMES",
     "SHARING",
-    "UNTUNED_BY_DEFAULT",
+    "TUNED_ROLES",
     "FieldMap",
     "ParameterMap",
     "default_fields",
@@ -59,9 +59,10 @@ SHARING = {
 }
 """Axis groups of each sharing mode (indices into :data:`AXIS_NAMES`)."""
 
-UNTUNED_BY_DEFAULT = ("mu", "boundary_layer")
-"""Fields left out by default: ``mu`` is the paper's "small constant" (not a design
-gain), ``boundary_layer`` the switching smoothing the tuner anneals itself."""
+TUNED_ROLES = ("design",)
+"""Roles of the fields tuned by default (:data:`fojax.controllers.gains.ROLES`): not the
+``"constant"`` ones (the paper's "small constant" ``mu``, not a design gain) nor the
+``"smoothing"`` width, which the tuner anneals itself."""
 
 U_MAX = 30.0
 """Unconstrained parameters are clipped to ``[-U_MAX, U_MAX]``."""
@@ -214,8 +215,7 @@ class ParameterMap:
         on a bound the maps cannot reach (``include_low`` fields at ``low``), or differ
         between axes that share a parameter.
         """
-        cls = registry.get_controller_class(self.controller)
-        cls.check_gains(gains)
+        registry.get_controller_class(self.controller).check_gains(gains)
         dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
         problems = []
         params = {}
@@ -253,10 +253,8 @@ class ParameterMap:
 
 
 def default_fields(controller: str) -> tuple[str, ...]:
-    """Fields tuned by default: every field with bounds except
-    :data:`UNTUNED_BY_DEFAULT`."""
-    cls = registry.get_controller_class(controller)
-    return tuple(name for name in cls.gains_bounds if name not in UNTUNED_BY_DEFAULT)
+    """Fields tuned by default: those whose declared role is in :data:`TUNED_ROLES`."""
+    return registry.get_controller_class(controller).GAINS.with_role(*TUNED_ROLES)
 
 
 def make_parameter_map(
@@ -268,39 +266,36 @@ def make_parameter_map(
     cls = registry.get_controller_class(controller)
     if share not in SHARING:
         raise ValueError(f"unknown sharing mode {share!r}; choose one of {', '.join(SHARING)}")
-    bounds = cls.gains_bounds
-    template = cls.default_gains()
+    spec = cls.GAINS
     fields = default_fields(controller) if fields is None else tuple(fields)
     if not fields:
         raise ValueError("no gain fields to tune: name at least one")
-    unknown = [f for f in fields if f not in template._fields]
+    unknown = [f for f in fields if f not in spec.names]
     if unknown:
         raise ValueError(
             f"unknown gain fields for {controller}: {', '.join(unknown)} "
-            f"(valid: {', '.join(template._fields)})"
+            f"(valid: {', '.join(spec.names)})"
         )
-    unbounded = [f for f in fields if f not in bounds]
-    if unbounded:
-        raise ValueError(f"{controller} declares no bounds for {', '.join(unbounded)}")
     if len(set(fields)) != len(fields):
         raise ValueError(f"gain fields named twice: {', '.join(fields)}")
     maps = []
     for name in sorted(fields):
-        shape = tuple(np.shape(getattr(template, name)))
+        shape = spec.shapes[name]
         per_axis = len(shape) >= 1 and shape[0] == len(AXIS_NAMES)
-        maps.append(FieldMap(name, shape, bounds[name], SHARING[share] if per_axis else None))
+        maps.append(FieldMap(name, shape, spec.bounds[name], SHARING[share] if per_axis else None))
     return ParameterMap(controller, tuple(maps), share)
 
 
 def naive_gains(controller: str, dtype: Any = None) -> Any:
     """A knowledge-free starting point: every bounded field at ``low + 1`` (positive
     gains at 1), ``(low + high) / 2`` for two-sided bounds (``p/q = 1.5``, ``gamma =
-    0.5``); fields in :data:`UNTUNED_BY_DEFAULT` keep the controller's defaults."""
-    cls = registry.get_controller_class(controller)
-    template = cls.default_gains(dtype)
+    0.5``) for the fields tuned by default (:data:`TUNED_ROLES`); the others keep the
+    controller's defaults."""
+    spec = registry.get_controller_class(controller).GAINS
+    template = spec.default(dtype)
     values = {}
-    for name, bounds in cls.gains_bounds.items():
-        if name in UNTUNED_BY_DEFAULT:
+    for name, bounds in spec.bounds.items():
+        if name not in spec.with_role(*TUNED_ROLES):
             continue
         reference = jnp.asarray(getattr(template, name))
         kind = _kind(bounds)

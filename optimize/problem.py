@@ -13,7 +13,8 @@ held-out evaluation draws are indices ``HELDOUT_OFFSET + j``, a disjoint index r
 of the same seed (a run would need over 2^31 tuning draws to reach it).
 
 During tuning the sliding-mode controllers switch with ``tanh(S / (scale w))``, ``w``
-the gains' ``boundary_layer``: ``scale`` is annealed by the tuner from
+the gains' smoothing width (the field declared with role ``"smoothing"``,
+``boundary_layer``): ``scale`` is annealed by the tuner from
 ``anneal_start`` down to ``anneal_end`` (1: the evaluation width of ``sat``).
 """
 
@@ -28,7 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import registry, scenarios, simulator
+from fojax import scenarios, simulator
+from fojax.controllers import registry
 from optimize import cost as cost_lib
 from optimize import params as params_lib
 
@@ -51,7 +53,7 @@ DTYPES = ("float32", "float64")
 
 def checkpoint_interval(steps: int, target: float | None = None) -> int:
     """Steps per checkpointed block of the rollout: the divisor of ``steps`` nearest
-    to ``target`` (default ``0.75 sqrt(steps)``).
+    to ``target`` (default ``0.75 sqrt(steps)``; :func:`fojax.simulator.divisor_near`).
 
     Reverse mode keeps one carry per block and rematerialises one block at a time,
     so memory goes as ``(steps / L) c + L r`` for blocks of ``L`` steps, ``c`` the
@@ -61,15 +63,7 @@ def checkpoint_interval(steps: int, target: float | None = None) -> int:
     ``experiments/tune_memory.py``), hence ``0.75 sqrt(steps)``.
     """
     target = 0.75 * math.sqrt(steps) if target is None else target
-    best = 1
-    for d in range(1, int(math.isqrt(steps)) + 1):
-        if steps % d == 0:
-            for c in (d, steps // d):
-                if abs(c - target) < abs(best - target) or (
-                    abs(c - target) == abs(best - target) and c < best
-                ):
-                    best = c
-    return best
+    return simulator.divisor_near(steps, target)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,10 +186,9 @@ def _scenario_for(scenario: scenarios.Scenario, horizon: float) -> scenarios.Sce
     return dataclasses.replace(scenario, horizon=horizon)
 
 
-def _scale_width(gains, base, width_scale):
-    if "boundary_layer" in gains._fields:
-        return gains._replace(boundary_layer=base.boundary_layer * width_scale)
-    return gains
+def _scale_width(gains, base, widths, width_scale):
+    """``gains`` with the smoothing widths ``widths`` (field names) of ``base`` scaled."""
+    return gains._replace(**{name: getattr(base, name) * width_scale for name in widths})
 
 
 class TuningProblem:
@@ -226,10 +219,11 @@ class TuningProblem:
         )
         cost_config = spec.cost
         param_map = self.param_map
+        widths = cls.GAINS.with_role("smoothing")
 
         def gains_of(params, width_scale):
             gains = param_map.to_gains(params, base_gains)
-            return _scale_width(gains, base_gains, width_scale)
+            return _scale_width(gains, base_gains, widths, width_scale)
 
         def one(params, width_scale, key):
             j, terms, status = draw_cost(gains_of(params, width_scale), key)

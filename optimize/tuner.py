@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from fojax import gains_io
+from fojax.controllers import gains_io
 from optimize.problem import ProblemSpec, TuningProblem
 
 __all__ = [
@@ -280,7 +280,7 @@ def prepare(
     overwritten), when ``resume`` is true and there is no checkpoint, or when the
     checkpoint belongs to another configuration (the message lists what differs).
     """
-    from fojax import registry
+    from fojax.controllers import registry
     from optimize import params as params_lib
 
     cls = registry.get_controller_class(spec.controller)
@@ -347,7 +347,7 @@ def tune(
     functions.
 
     With ``run.out``, writes ``checkpoint.npz``, ``history.csv`` and, when all steps
-    are done, ``gains.json`` (:func:`fojax.gains_io.save_gains`).
+    are done, ``gains.json`` (:func:`fojax.controllers.gains_io.save_gains`).
     """
     spec, config = run.spec, run.config
     if problem is None:

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 from jax import lax
 
-from fojax import plant, registry, scenarios, simulator
-from fojax.anftsmc import ANFTSMC
-from fojax.backstepping import BSMC, FOBSMC
-from fojax.controller import Bounds, Observation
-from fojax.fl import FL
+from fojax import observers, plant, scenarios, simulator
+from fojax.controllers import Bounds, Observation, registry
+from fojax.controllers.anftsmc import ANFTSMC
+from fojax.controllers.backstepping import BSMC, FOBSMC
+from fojax.controllers.fl import FL
 
 DT = 1e-3
 STEPS = 4000  # 4 s
@@ -162,8 +162,8 @@ def _documented(name, kind):
     gains = controller.default_gains(jnp.float64)
     disturbance = np.add(POSITION_DISTURBANCE, ATTITUDE_DISTURBANCE)
     if name == "fl":
-        return np.abs(np.asarray(controller.steady_state_error(gains, disturbance)))
-    return np.asarray(controller.steady_state_error_bound(gains, disturbance))
+        return np.abs(np.asarray(controller.law.steady_state_error(gains, disturbance)))
+    return np.asarray(controller.law.steady_state_error_bound(gains, disturbance))
 
 
 # FOBSMC with sat: its bound (0) is asymptotic, a power-law tail; tested on its own below.
@@ -190,12 +190,14 @@ def test_fobsmc_removes_a_constant_disturbance_as_its_fractional_tail():
     errors, _ = _run("fobsmc", "sat", disturbance=POSITION_DISTURBANCE)
     controller = _controller("fobsmc", "sat")
     gains = controller.default_gains(jnp.float64)
-    tail = np.asarray(controller.disturbance_error_tail(gains, POSITION_DISTURBANCE, STEPS * DT))
+    tail = np.asarray(
+        controller.law.disturbance_error_tail(gains, POSITION_DISTURBANCE, STEPS * DT)
+    )
     assert abs(errors[-1, 2]) == pytest.approx(tail[2], rel=0.1)
     assert abs(errors[-1, 2]) < abs(errors[-1001, 2])  # still decreasing
     bsmc = _controller("bsmc", "sat")
     equilibrium = np.asarray(
-        bsmc.steady_state_error_bound(bsmc.default_gains(jnp.float64), POSITION_DISTURBANCE)
+        bsmc.law.steady_state_error_bound(bsmc.default_gains(jnp.float64), POSITION_DISTURBANCE)
     )
     assert abs(errors[-1, 2]) < 0.9 * equilibrium[2]
 
@@ -211,9 +213,9 @@ def test_registry_order_and_default_gains():
     for name, cls in CLASSES.items():
         assert registry.get_controller_class(name) is cls
         gains = cls.default_gains(jnp.float64)
-        assert isinstance(gains, cls.gains_type)
-        assert set(cls.gains_bounds) == set(gains._fields)  # every field is bounded
-        assert all(isinstance(b, Bounds) for b in cls.gains_bounds.values())
+        assert isinstance(gains, cls.GAINS.type)
+        assert cls.GAINS.names == gains._fields  # every field is declared, with bounds
+        assert all(isinstance(b, Bounds) for b in cls.GAINS.bounds.values())
         cls.check_gains(gains)
         for field, value in gains._asdict().items():
             assert value.shape[0] == 6, field
@@ -248,11 +250,16 @@ def test_bad_configuration_is_rejected():
     with pytest.raises(ValueError, match="dt"):
         FL(dt=0.0)
     with pytest.raises(ValueError, match="filter_frequency"):
-        ANFTSMC(filter_frequency=-1.0)
+        registry.make_controller("anftsmc", filter_frequency=-1.0)
     with pytest.raises(ValueError, match="unknown method"):
         FOBSMC(fractional_method="crone")
-    # Options a controller lacks are ignored by the registry (one command line for all).
-    assert registry.make_controller("fl", fractional_method="oustaloup", switching="sat") == FL()
+    # Options only other controllers have are ignored (one command line for all) ...
+    assert (
+        registry.make_controller("fl", fractional_method="oustaloup", switching="sat").law == FL()
+    )
+    # ... but an option no controller has is an error that names the likely one.
+    with pytest.raises(TypeError, match="did you mean 'switching'"):
+        registry.make_controller("afonftsmc", swiching="sat")
 
 
 SHORT = simulator.SimulationConfig(dt=DT, horizon=0.3, save_every=50)
@@ -271,10 +278,63 @@ def test_gradient_with_respect_to_gains_matches_finite_differences(name):
     def cost(scale):
         gains = jax.tree.map(lambda g, d: g + scale * 1e-2 * d, base, direction)
         model = plant.nominal_params(jnp.float64)
-        return simulator.rollout(controller, gains, model, SCENARIO_2, draw, SHORT).cost
+        cost = observers.TrackingISE(DT)
+        return simulator.rollout(controller, gains, model, SCENARIO_2, draw, SHORT, cost).outputs
 
     grad = float(jax.jit(jax.grad(cost))(0.0))
     eps = 1e-4
     fd = float((cost(eps) - cost(-eps)) / (2 * eps))
     assert np.isfinite(grad) and abs(grad) > 0
     assert grad == pytest.approx(fd, rel=1e-4)
+
+
+# ------------------------------------------------------------- registry and gains
+
+
+def test_a_law_in_a_module_of_its_own_is_reached_by_module_and_class(tmp_path, monkeypatch):
+    (tmp_path / "my_laws.py").write_text(
+        "import dataclasses\n"
+        "import jax.numpy as jnp\n"
+        "from fojax.controllers import Bounds, ControlLaw, GainField, GainSpec, LawOutput\n"
+        "@dataclasses.dataclass(frozen=True)\n"
+        "class PD(ControlLaw):\n"
+        "    name = 'my_pd'\n"
+        "    GAINS = GainSpec('PDGains', [GainField('k', [1.0] * 6, Bounds(0.0))], 'PD')\n"
+        "    def step(self, params, state, e1, e2):\n"
+        "        e1, e2 = jnp.stack(e1), jnp.stack(e2)\n"
+        "        return state, LawOutput(-params.k * e1 - 2 * e2, e2)\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    controller = registry.make_controller("my_laws:PD", dt=DT, horizon=1.0, filter_frequency=30.0)
+    assert controller.name == "my_pd" and controller.filter_frequency == 30.0
+    assert "my_pd" in registry.controller_names()
+    assert registry.get_controller_class("my_pd").__name__ == "PD"
+    with pytest.raises(ValueError, match="has no 'Nope'"):
+        registry.get_controller_class("my_laws:Nope")
+    with pytest.raises(ValueError, match="cannot import"):
+        registry.get_controller_class("no_such_module_here:PD")
+    with pytest.raises(ValueError, match="did you mean 'afonftsmc'"):
+        registry.get_controller_class("afonftmsc")
+
+
+def test_gain_checks_say_what_is_wrong_in_words():
+    afonftsmc = registry.get_controller_class("afonftsmc")
+    gains = afonftsmc.default_gains()
+    with pytest.raises(ValueError, match=r"surface_c1 must have shape \(6,\): one value per axis"):
+        afonftsmc.check_gains(gains._replace(surface_c1=jnp.ones(3)))
+    with pytest.raises(ValueError, match="expected AFONFTSMCGains .* got FLGains"):
+        afonftsmc.check_gains(FL.default_gains())
+    with pytest.raises(ValueError, match="gamma1 must satisfy 0 < gamma1 < 1"):
+        afonftsmc.check_gains(gains._replace(gamma1=jnp.full(6, 1.5)))
+    # The roles the tuner reads.
+    assert afonftsmc.GAINS.with_role("smoothing") == ("boundary_layer",)
+    assert afonftsmc.GAINS.with_role("constant") == ("mu",)
+
+
+def test_the_simulator_says_what_to_pass_instead_of_a_name():
+    from fojax.controllers import as_controller
+
+    with pytest.raises(TypeError, match=r"fojax.make_controller\('afonftsmc'"):
+        as_controller("afonftsmc")
+    with pytest.raises(TypeError, match="has no name, prepare, init, step"):
+        as_controller(object())

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from experiments import fair_comparison
-from fojax import registry
+from fojax.controllers import registry
 
 
 @pytest.mark.parametrize(
@@ -43,11 +43,11 @@ def test_tiny_study_end_to_end_and_resume(tmp_path):
         assert tuning["draw_steps"] == 2 * 3 * 300, name  # same budget for every controller
         cls = registry.get_controller_class(name)
         gains = {k: np.asarray(v) for k, v in results["gains"][name]["tuned"].items()}
-        cls.check_gains(cls.gains_type(**gains))  # tuned gains stay feasible
+        cls.check_gains(cls.GAINS.type(**gains))  # tuned gains stay feasible
         default = results["gains"][name]["default"]
-        assert any(
-            not np.allclose(gains[k], default[k]) for k in gains
-        ), f"{name}: tuning changed no gain"
+        assert any(not np.allclose(gains[k], default[k]) for k in gains), (
+            f"{name}: tuning changed no gain"
+        )
     assert set(results["evaluation"]) == {"scenario 2"}  # --tiny: the tuning scenario
     for setting in results["evaluation"].values():
         fl = setting["controllers"]["fl"]

@@ -361,10 +361,10 @@ def test_init_step_in_scan_matches_differintegrate(operator):
 def test_no_recompilation_for_new_orders():
     u = jnp.asarray(SHORT_U)
     differintegrate(u, 0.3, SHORT_DT)
-    size = fractional._apply._cache_size()
+    size = fractional._api._apply._cache_size()
     differintegrate(u, 0.45, SHORT_DT)
     differintegrate(u, -0.2, SHORT_DT)
-    assert fractional._apply._cache_size() == size
+    assert fractional._api._apply._cache_size() == size
 
 
 # -------------------------------------------------------------- input validation
@@ -389,10 +389,10 @@ def test_no_recompilation_for_new_orders():
 def test_bad_input_is_rejected_before_compiling(kwargs, match):
     args = {"u": jnp.asarray(SHORT_U), "alpha": 0.5, "dt": SHORT_DT, "method": "soe"}
     args.update(kwargs)
-    size = fractional._apply._cache_size()
+    size = fractional._api._apply._cache_size()
     with pytest.raises(ValueError, match=match):
         differintegrate(**args)
-    assert fractional._apply._cache_size() == size
+    assert fractional._api._apply._cache_size() == size
 
 
 def test_unknown_option_is_rejected():

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fojax import metrics, montecarlo, plant, scenarios, simulator, statistics
-from fojax.afonftsmc import AFONFTSMC, paper_gains
+from fojax import metrics, plant, scenarios, simulator, statistics, study
+from fojax.controllers.afonftsmc import AFONFTSMC, paper_gains
 
 HORIZON = 0.3
 SCENARIO = dataclasses.replace(scenarios.get_scenario(2), horizon=HORIZON)
@@ -24,7 +24,7 @@ METRICS = metrics.MetricsConfig(
 
 @functools.cache
 def runner():
-    return montecarlo.make_chunk_runner(CONTROLLER, SCENARIO, CONFIG, METRICS)
+    return study.make_chunk_runner(CONTROLLER, SCENARIO, CONFIG, METRICS)
 
 
 def offline_metrics(tr, dt, cfg):
@@ -111,7 +111,7 @@ def test_online_metrics_match_offline_evaluation():
 
 def test_chunking_does_not_change_draws_and_store_resumes(tmp_path):
     gains = paper_gains()
-    whole = montecarlo.run(
+    whole = study.run(
         CONTROLLER,
         gains,
         SCENARIO,
@@ -125,14 +125,14 @@ def test_chunking_does_not_change_draws_and_store_resumes(tmp_path):
         runner=None,
     )
     calls = []
-    compiled = montecarlo.make_chunk_runner(CONTROLLER, SCENARIO, CONFIG, METRICS)
+    compiled = study.make_chunk_runner(CONTROLLER, SCENARIO, CONFIG, METRICS)
 
     def counting(g, keys):
         calls.append(keys.shape[0])
         return compiled(g, keys)
 
     store = tmp_path / "chunks"
-    chunked = montecarlo.run(
+    chunked = study.run(
         CONTROLLER,
         gains,
         SCENARIO,
@@ -156,7 +156,7 @@ def test_chunking_does_not_change_draws_and_store_resumes(tmp_path):
     # Interrupted after two chunks: the third is recomputed, the first two are loaded.
     (store / "chunk_0000004.npz").unlink()
     calls.clear()
-    resumed = montecarlo.run(
+    resumed = study.run(
         CONTROLLER,
         gains,
         SCENARIO,
@@ -176,7 +176,7 @@ def test_chunking_does_not_change_draws_and_store_resumes(tmp_path):
 
     # Other settings in the same store are refused, not mixed in.
     with pytest.raises(ValueError, match="other settings"):
-        montecarlo.run(
+        study.run(
             CONTROLLER,
             gains,
             SCENARIO,
@@ -199,8 +199,8 @@ def test_summary_excludes_diverged_draws_and_counts_flags():
     status = np.array(
         [0, simulator.NONFINITE, simulator.ACTUATOR_LIMIT, simulator.TILT_LIMIT, 0, 0], np.int32
     )
-    result = montecarlo.MonteCarloResult("test", status, per_draw, None, 0.0, 0.0)
-    summary = montecarlo.summarize(result)
+    result = study.MonteCarloResult("test", status, per_draw, None, 0.0, 0.0)
+    summary = study.summarize(result)
     assert summary["draws"] == 6 and summary["valid"] == 4 and summary["diverged"] == 2
     assert summary["status_counts"] == {"nonfinite": 1, "tilt_limit": 1, "actuator_limit": 1}
     kept = values[[0, 2, 4, 5]]
@@ -268,4 +268,4 @@ def test_metrics_config_rejects_bad_values():
     with pytest.raises(ValueError, match="steps"):
         metrics.MetricsConfig(dt=1e-3, steps=0)
     with pytest.raises(ValueError, match="draws"):
-        montecarlo.run(CONTROLLER, paper_gains(), SCENARIO, CONFIG, draws=0)
+        study.run(CONTROLLER, paper_gains(), SCENARIO, CONFIG, draws=0)

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fojax import registry
-from fojax.afonftsmc import GAINS_BOUNDS, check_gains, paper_gains
+from fojax.controllers import registry
+from fojax.controllers.afonftsmc import AFONFTSMC, GAINS, paper_gains
 from optimize import cost as cost_lib
 from optimize import params as params_lib
 from optimize import problem as problem_lib
@@ -22,14 +22,14 @@ from optimize import tuner as tuner_lib
 @pytest.mark.parametrize("share", ["paper", "none"])
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_maps_give_only_feasible_gains(share, dtype):
-    pmap = params_lib.make_parameter_map("afonftsmc", tuple(GAINS_BOUNDS), share)
+    pmap = params_lib.make_parameter_map("afonftsmc", GAINS.names, share)
     base = paper_gains(dtype)
     template = pmap.to_params(base, dtype)
     rng = np.random.default_rng(1)
     for scale in (1.0, 10.0, 100.0, 1e4):
         params = {k: jnp.asarray(rng.normal(0, scale, v.shape), dtype) for k, v in template.items()}
         gains = pmap.to_gains(params, base)
-        check_gains(gains)  # raises on any infeasible entry
+        AFONFTSMC.check_gains(gains)  # raises on any infeasible entry
         for f in pmap.fields:
             value = np.asarray(getattr(gains, f.name))
             assert value.dtype == dtype
@@ -37,12 +37,12 @@ def test_maps_give_only_feasible_gains(share, dtype):
     # The extremes, where sigmoid and exp saturate in float32.
     for extreme in (-1e30, 1e30):
         params = {k: jnp.full(v.shape, extreme, dtype) for k, v in template.items()}
-        check_gains(pmap.to_gains(params, base))
+        AFONFTSMC.check_gains(pmap.to_gains(params, base))
 
 
 @pytest.mark.parametrize("share", ["paper", "none"])
 def test_maps_invert_exactly(share):
-    pmap = params_lib.make_parameter_map("afonftsmc", tuple(GAINS_BOUNDS), share)
+    pmap = params_lib.make_parameter_map("afonftsmc", GAINS.names, share)
     base = paper_gains(jnp.float64)
     # gains -> params -> gains
     params = pmap.to_params(base, jnp.float64)
@@ -238,7 +238,7 @@ def test_short_tuning_lowers_cost_on_heldout_draws():
     assert not set(map(tuple, np.asarray(keys).tolist())) & set(map(tuple, train.tolist()))
     before = problem_lib.evaluate(SPEC, NAIVE, keys, switching="sat")
     after = problem_lib.evaluate(SPEC, result.gains, keys, switching="sat")
-    check_gains(result.gains)
+    AFONFTSMC.check_gains(result.gains)
     assert not before.diverged.any() and not after.diverged.any()
     assert after.cost.mean() < 0.8 * before.cost.mean()
     assert np.mean(after.cost < before.cost) >= 0.75  # better on most draws, not on average only
@@ -313,7 +313,7 @@ def test_derivative_free_tuners_respect_the_budget():
     per_eval = SPEC.draws * SPEC.steps
     es = derivative_free.cma_es(problem, 3 * 4 * per_eval + per_eval - 1, popsize=4, seed=1)
     assert es.evaluations == 12 and es.draw_steps == 12 * per_eval and len(es.history) == 3
-    check_gains(es.gains)
+    AFONFTSMC.check_gains(es.gains)
     again = derivative_free.cma_es(problem, 12 * per_eval, popsize=4, seed=1)
     for name in es.params:
         np.testing.assert_array_equal(np.asarray(again.params[name]), np.asarray(es.params[name]))
@@ -322,7 +322,7 @@ def test_derivative_free_tuners_respect_the_budget():
     assert nm.evaluations <= size + 12 and nm.draw_steps == nm.evaluations * per_eval
     start = float(problem.value(problem.initial_params(), 1.0, problem.minibatch_keys(0)).objective)
     assert nm.history[-1]["best_objective"] <= start
-    check_gains(nm.gains)
+    AFONFTSMC.check_gains(nm.gains)
     with pytest.raises(ValueError, match="positive number of draw-steps"):
         derivative_free.cma_es(problem, 0)
     with pytest.raises(ValueError, match="does not cover one CMA-ES generation"):

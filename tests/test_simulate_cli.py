@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from experiments import arguments, cli, simulate
-from fojax import gains_io
-from fojax.afonftsmc import paper_gains
+from fojax.controllers import gains_io
+from fojax.controllers.afonftsmc import paper_gains
 
 BASE = ["--scenario", "2", "--controller", "afonftsmc", "--draws", "3"]
 

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fojax import plant, scenarios, simulator
-from fojax.afonftsmc import AFONFTSMC, check_gains, paper_gains
+from fojax import observers, plant, scenarios, simulator
+from fojax.controllers.afonftsmc import AFONFTSMC, paper_gains
 
 
 def _undisturbed(scenario_id):
@@ -24,10 +24,22 @@ def _undisturbed(scenario_id):
     )
 
 
+def _ise(config):
+    return observers.TrackingISE(config.dt)
+
+
 def _run(scenario, controller, config, gains, keys):
     draws = jax.vmap(lambda k: scenarios.sample_draw(scenario, k, config.dt))(keys)
     return jax.vmap(
-        lambda g, d: simulator.rollout(controller, g, plant.nominal_params(), scenario, d, config),
+        lambda g, d: simulator.rollout(
+            controller,
+            g,
+            plant.nominal_params(),
+            scenario,
+            d,
+            config,
+            observers.TrackingISE(config.dt),
+        ),
         in_axes=(None, 0),
     )(gains, draws)
 
@@ -63,7 +75,7 @@ def test_vmap_equals_loop_and_draws_do_not_depend_on_batch():
     for i in (0, 5):
         alone = _short_run(SCENARIO_2, SHORT_CONTROLLER, SHORT, gains, scenarios.draw_keys(7, [i]))
         np.testing.assert_allclose(batch.final_state[i], alone.final_state[0], rtol=1e-12)
-        np.testing.assert_allclose(batch.cost[i], alone.cost[0], rtol=1e-12)
+        np.testing.assert_allclose(batch.outputs[i], alone.outputs[0], rtol=1e-12)
     # Draw 5 among 1000 draws equals draw 5 among 8.
     keys = scenarios.draw_keys(7, range(1000))
     wide = _short_run(SCENARIO_2, SHORT_CONTROLLER, SHORT, gains, keys)
@@ -93,9 +105,10 @@ def test_gradient_with_respect_to_gains_matches_finite_differences():
 
     def cost(scale):
         gains = jax.tree.map(lambda g, d: g + scale * 1e-2 * d, base, direction)
+        cost = observers.TrackingISE(SHORT.dt)
         return simulator.rollout(
-            SHORT_CONTROLLER, gains, plant.nominal_params(), scenario, draw, SHORT
-        ).cost
+            SHORT_CONTROLLER, gains, plant.nominal_params(), scenario, draw, SHORT, cost
+        ).outputs
 
     grad = jax.jit(jax.grad(cost))(0.0)
     eps = 1e-4
@@ -119,7 +132,7 @@ def test_bad_gains_are_rejected(field, value, match):
     gains = paper_gains()
     gains = gains._replace(**{field: getattr(gains, field).at[0].set(value)})
     with pytest.raises(ValueError, match=match):
-        check_gains(gains)
+        AFONFTSMC.check_gains(gains)
 
 
 def test_bad_configuration_is_rejected():
@@ -133,4 +146,4 @@ def test_bad_configuration_is_rejected():
         simulator.SimulationConfig(horizon=-1.0)
     with pytest.raises(ValueError, match="dt"):
         simulator.SimulationConfig(dt=0.0)
-    check_gains(paper_gains())  # the paper's gains are valid
+    AFONFTSMC.check_gains(paper_gains())  # the paper's gains are valid

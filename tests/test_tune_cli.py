@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from experiments import cli, simulate, tune
-from fojax import gains_io
-from fojax.afonftsmc import paper_gains
+from fojax.controllers import gains_io
+from fojax.controllers.afonftsmc import paper_gains
 
 # The same small problem as tests/test_optimize.py (shares its compiled code through
 # the persistent compilation cache).

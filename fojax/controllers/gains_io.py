@@ -8,10 +8,11 @@ Format::
       "metadata": {...}            # optional, free-form (how the gains were obtained)
     }
 
-Each entry of ``"gains"`` is one field of the controller's gains NamedTuple; its value
-is a number (applied to every component) or a nested list of the field's exact shape.
-Every field must be present, no other may be, and every value must be a finite
-number. The controller's own constraints (:meth:`check_gains`) apply on top.
+Each entry of ``"gains"`` is one field of the controller's gains (its
+:class:`fojax.controllers.GainSpec`); its value is a number (applied to every
+component) or a nested list of the field's exact shape. Every field must be present,
+no other may be, and every value must be a finite number. The declared bounds of each
+field apply on top.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import registry
+from fojax.controllers import registry
 
 __all__ = ["gains_from_dict", "gains_to_dict", "load_gains", "save_gains"]
 

@@ -14,8 +14,6 @@ started again with the same settings picks up where it stopped.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import os
 import sys
 import time
@@ -27,19 +25,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import metrics, plant, scenarios, sharding, simulator, statistics
+from fojax import metrics, observers, plant, scenarios, sharding, simulator
+from fojax.controllers.cascade import as_controller
+from fojax.study._store import ChunkStore, flatten_snapshot, unflatten_snapshot
 
 Array = jax.Array
 
-__all__ = [
-    "DIVERGED",
-    "MonteCarloResult",
-    "make_chunk_runner",
-    "run",
-    "summarize",
-]
-
-DIVERGED = simulator.NONFINITE | simulator.TILT_LIMIT
+DIVERGED = observers.NONFINITE | observers.TILT_LIMIT
 """Status bits that make a draw count as diverged (excluded from the metrics)."""
 
 
@@ -47,7 +39,7 @@ class MonteCarloResult(NamedTuple):
     """Per-draw results on the host.
 
     controller: the controller's name.
-    status: ``(draws,)`` int32 bit flags (:data:`fojax.simulator.STATUS_NAMES`).
+    status: ``(draws,)`` int32 bit flags (:data:`fojax.observers.STATUS_NAMES`).
     per_draw: metric name -> ``(draws,)`` or ``(draws, k)`` array (:mod:`fojax.metrics`).
     trajectories: :class:`fojax.simulator.Snapshot` of the first ``keep`` draws, leaves
         ``(keep, blocks, ...)``.
@@ -73,19 +65,6 @@ class MonteCarloResult(NamedTuple):
         return (self.status & DIVERGED) == 0
 
 
-def _accumulator(metrics_config: metrics.MetricsConfig, mixer_params, dtype):
-    def init():
-        return metrics.init(dtype)
-
-    def update(acc, t, state, reference, inputs, info):
-        error = jnp.concatenate(
-            [state[:3] - reference[:3], state[3:6] - info.attitude_reference.astype(state.dtype)]
-        )
-        return metrics.update(metrics_config, acc, t, error, inputs, info.surfaces, mixer_params)
-
-    return init, update
-
-
 def make_chunk_runner(
     controller,
     scenario: scenarios.Scenario,
@@ -104,102 +83,17 @@ def make_chunk_runner(
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
     model = plant.nominal_params(dtype)
-    accumulator = _accumulator(metrics_config, model, dtype)
+    controller = as_controller(controller)
+    observer = metrics.Metrics(metrics_config)
 
     def one(gains, key):
         draw = scenarios.sample_draw(scenario, key, config.dt, dtype)
-        result = simulator.rollout(controller, gains, model, scenario, draw, config, accumulator)
-        return result.status, metrics.finalize(metrics_config, result.extra), result.trajectory
+        result = simulator.rollout(controller, gains, model, scenario, draw, config, observer)
+        return result.status, result.outputs, result.trajectory
 
     if mesh is not None and mesh.devices.size > 1:
         return sharding.sharded_vmap(one, mesh, in_axes=(None, 0))
     return jax.jit(jax.vmap(one, in_axes=(None, 0)))
-
-
-# ---------------------------------------------------------------------------- store
-
-
-def _fingerprint_hash(fingerprint: dict) -> str:
-    text = json.dumps(fingerprint, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-class _ChunkStore:
-    """One ``.npz`` per finished chunk under ``directory``, keyed by a fingerprint."""
-
-    def __init__(self, directory: Path, fingerprint: dict):
-        self.directory = Path(directory)
-        self.key = _fingerprint_hash(fingerprint)
-        manifest = self.directory / "manifest.json"
-        if manifest.exists():
-            stored = json.loads(manifest.read_text())
-            if stored.get("key") != self.key:
-                raise ValueError(
-                    f"{self.directory} holds chunks of a run with other settings "
-                    f"({stored.get('fingerprint')}); remove it or choose another output "
-                    "directory"
-                )
-        else:
-            self.directory.mkdir(parents=True, exist_ok=True)
-            tmp = manifest.with_suffix(".tmp")
-            tmp.write_text(
-                json.dumps({"key": self.key, "fingerprint": fingerprint}, indent=1, default=str)
-            )
-            os.replace(tmp, manifest)
-
-    def _path(self, first: int) -> Path:
-        return self.directory / f"chunk_{first:07d}.npz"
-
-    def load(self, first: int):
-        path = self._path(first)
-        if not path.exists():
-            return None
-        with np.load(path) as data:
-            status = data["status"]
-            per_draw = {k[2:]: data[k] for k in data.files if k.startswith("m.")}
-            snaps = {k[2:]: data[k] for k in data.files if k.startswith("s.")}
-        return status, per_draw, snaps or None
-
-    def save(self, first: int, status, per_draw, snapshots) -> None:
-        arrays = {"status": status}
-        arrays.update({f"m.{k}": v for k, v in per_draw.items()})
-        if snapshots is not None:
-            arrays.update({f"s.{k}": v for k, v in snapshots.items()})
-        path = self._path(first)
-        tmp = path.with_name(path.stem + ".tmp.npz")
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
-
-
-def _flatten_snapshot(snapshot) -> dict[str, np.ndarray]:
-    leaves = {
-        "time": snapshot.time,
-        "state": snapshot.state,
-        "reference": snapshot.reference,
-        "inputs": snapshot.inputs,
-        "inputs_low": snapshot.inputs_low,
-        "inputs_high": snapshot.inputs_high,
-    }
-    leaves.update({f"info.{k}": v for k, v in snapshot.info._asdict().items()})
-    return {k: np.asarray(v) for k, v in leaves.items()}
-
-
-def _unflatten_snapshot(flat: dict[str, np.ndarray]) -> simulator.Snapshot:
-    from fojax.controller import ControlInfo
-
-    info = ControlInfo(**{k[5:]: v for k, v in flat.items() if k.startswith("info.")})
-    return simulator.Snapshot(
-        time=flat["time"],
-        state=flat["state"],
-        reference=flat["reference"],
-        inputs=flat["inputs"],
-        info=info,
-        inputs_low=flat["inputs_low"],
-        inputs_high=flat["inputs_high"],
-    )
-
-
-# ------------------------------------------------------------------------------ run
 
 
 def _config_fingerprint(controller, gains, scenario, config, seed, chunk, keep, dtype, mcfg):
@@ -248,7 +142,8 @@ def run(
     """Roll out draws ``0 ... draws - 1`` of ``scenario`` with seed ``seed``.
 
     Args:
-        controller, gains: the controller (see :mod:`fojax.controller`) and its gains.
+        controller, gains: the controller (:func:`fojax.make_controller`) and its gains
+            (checked against the controller's declared gains before anything runs).
         scenario: the scenario; its ``horizon`` should cover ``config.horizon`` (the
             random tables are laid out for it).
         config: simulation settings.
@@ -272,6 +167,9 @@ def run(
 
     Returns a :class:`MonteCarloResult`.
     """
+    controller = as_controller(controller)
+    if hasattr(controller, "check_gains"):
+        controller.check_gains(gains)
     if not isinstance(draws, int | np.integer) or draws < 1:
         raise ValueError(f"draws must be a positive integer, got {draws!r}")
     if not isinstance(seed, int | np.integer) or seed < 0:
@@ -289,7 +187,7 @@ def run(
         fingerprint = _config_fingerprint(
             controller, gains, scenario, config, seed, chunk, keep, dtype, metrics_config
         )
-        chunk_store = _ChunkStore(Path(store), fingerprint)
+        chunk_store = ChunkStore(Path(store), fingerprint)
     if runner is None:
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
 
@@ -312,7 +210,7 @@ def run(
             values = {k: np.asarray(v)[:n] for k, v in values.items()}
             snaps = None
             if first < keep:
-                snaps = {k: v[:n] for k, v in _flatten_snapshot(snapshots).items()}
+                snaps = {k: v[:n] for k, v in flatten_snapshot(snapshots).items()}
             chunk_times.append(time.perf_counter() - t0)
             computed += n
             if chunk_store is not None:
@@ -347,7 +245,7 @@ def run(
     trajectories = None
     if kept:
         merged = {k: np.concatenate([c[k] for c in kept])[:keep] for k in kept[0]}
-        trajectories = _unflatten_snapshot(merged)
+        trajectories = unflatten_snapshot(merged)
     return MonteCarloResult(
         controller=controller.name,
         status=np.concatenate(statuses).astype(np.int32),
@@ -356,56 +254,3 @@ def run(
         wall_time=wall,
         compile_time=compile_time,
     )
-
-
-# -------------------------------------------------------------------------- summary
-
-
-def status_counts(status: np.ndarray) -> dict[str, int]:
-    """Number of draws with each status flag set (a draw may have several)."""
-    status = np.asarray(status)
-    return {name: int(np.sum((status & bit) > 0)) for bit, name in simulator.STATUS_NAMES.items()}
-
-
-def metric_table(result: MonteCarloResult) -> dict[str, tuple[np.ndarray, str]]:
-    """Scalar components of every metric: name -> (``(draws,)`` values, unit).
-
-    Diverged draws (:data:`DIVERGED`) are set to NaN, so that no statistic uses them.
-    """
-    valid = result.valid
-    table = {}
-    for name, values in result.per_draw.items():
-        values = np.asarray(values, dtype=np.float64)
-        shape = values.shape[1:]
-        names = metrics.component_names(name, shape)
-        units = metrics.component_units(name, shape)
-        flat = values.reshape(values.shape[0], -1)
-        for j, (component, unit) in enumerate(zip(names, units, strict=True)):
-            table[component] = (np.where(valid, flat[:, j], np.nan), unit)
-    return table
-
-
-def summarize(result: MonteCarloResult, extra: dict[str, np.ndarray] | None = None) -> dict:
-    """JSON-ready summary of one controller's run.
-
-    ``{"draws", "valid", "diverged", "status_counts", "metrics": {name: {"mean",
-    "std", "ci95", "n", "n_nonfinite", "unit"}}}``; ``diverged`` counts the draws
-    flagged non-finite or beyond the tilt limit, whose metrics are left out. ``inf``
-    values (a surface never reached) are left out of the mean and counted in
-    ``n_nonfinite``. ``extra`` adds per-draw series (name -> ``(draws,)``).
-    """
-    table = metric_table(result)
-    out_metrics = {}
-    for name, (values, unit) in table.items():
-        out_metrics[name] = {**statistics.mean_ci(values), "unit": unit}
-    for name, values in (extra or {}).items():
-        values = np.where(result.valid, np.asarray(values, dtype=np.float64), np.nan)
-        out_metrics[name] = {**statistics.mean_ci(values), "unit": "s"}
-    valid = int(np.sum(result.valid))
-    return {
-        "draws": result.draws,
-        "valid": valid,
-        "diverged": result.draws - valid,
-        "status_counts": status_counts(result.status),
-        "metrics": out_metrics,
-    }

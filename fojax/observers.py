@@ -1,0 +1,174 @@
+"""What a rollout records: observers folded over the time loop, chained.
+
+An observer is a static object (a frozen dataclass, settled before tracing) with three
+pure functions, in the style of optax's transformations:
+
+``init(dtype) -> acc``
+    Its running state, a pytree of arrays (fixed shapes).
+``update(acc, record) -> acc``
+    Fold in one step, a :class:`StepRecord`.
+``finalize(acc) -> outputs``
+    What it reports for the draw (a pytree of arrays).
+
+:func:`fojax.simulator.rollout` calls them at every control step; under ``vmap`` every
+leaf gains a leading ``(draws,)`` axis. :class:`Chain` runs several under names
+(``Chain(metrics=..., cost=...)``), :class:`Status` (the per-draw failure flags) runs
+in every rollout. The per-draw metrics (:mod:`fojax.metrics`) and the tuning cost
+(:mod:`optimize.cost`) are observers; :func:`tracking_error` is the one definition of
+the tracking error they share.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple, Protocol
+
+import jax
+import jax.numpy as jnp
+
+from fojax import plant
+from fojax.controllers.base import ControlInfo
+
+Array = jax.Array
+
+__all__ = [
+    "ACTUATOR_LIMIT",
+    "NONFINITE",
+    "STATUS_NAMES",
+    "TILT_LIMIT",
+    "Chain",
+    "Observer",
+    "Status",
+    "StepRecord",
+    "TrackingISE",
+    "tracking_error",
+]
+
+# Status flags per draw, as bits (:class:`Status`).
+NONFINITE = 1  # a state, input or surface became NaN/inf
+TILT_LIMIT = 2  # |roll| or |pitch| reached pi/2 (Assumption 1)
+ACTUATOR_LIMIT = 4  # the command needed a negative squared rotor speed (mixer (10))
+STATUS_NAMES = {NONFINITE: "nonfinite", TILT_LIMIT: "tilt_limit", ACTUATOR_LIMIT: "actuator_limit"}
+
+
+class StepRecord(NamedTuple):
+    """One control step ``k`` as the observers see it.
+
+    time: ``()`` ``t_k``. state: ``(12,)`` ``x_k``. next_state: ``(12,)`` ``x_(k+1)``,
+    after the plant step. reference: ``(4,)`` ``(x_r, y_r, z_r, psi_r)`` at ``t_k``.
+    inputs: ``(4,)`` the command held over ``[t_k, t_(k+1))``. info: the controller's
+    :class:`fojax.controllers.ControlInfo` of that command. error: ``(6,)``
+    :func:`tracking_error`. plant: the simulated plant's
+    :class:`fojax.plant.PlantParams` (the draw's).
+    """
+
+    time: Array
+    state: Array
+    next_state: Array
+    reference: Array
+    inputs: Array
+    info: ControlInfo
+    error: Array
+    plant: plant.PlantParams
+
+
+def tracking_error(state: Array, reference: Array, attitude_reference: Array) -> Array:
+    """``(6,)`` tracking errors ``e = actual - reference`` over ``(x, y, z, phi, theta,
+    psi)``: the position against the reference trajectory, the attitude against the
+    attitude reference the attitude loop tracks (``ControlInfo.attitude_reference``:
+    the position loop's command after the command filter; ``psi`` against the
+    reference yaw).
+    """
+    return jnp.concatenate(
+        [state[:3] - reference[:3], state[3:6] - attitude_reference.astype(state.dtype)]
+    )
+
+
+class Observer(Protocol):
+    def init(self, dtype: Any) -> Any: ...
+
+    def update(self, acc: Any, record: StepRecord) -> Any: ...
+
+    def finalize(self, acc: Any) -> Any: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class Status:
+    """Per-draw failure flags (bits of :data:`STATUS_NAMES`), or-ed over the run.
+
+    ``NONFINITE``: the state after a step, the command or a surface is NaN or inf;
+    ``TILT_LIMIT``: ``|phi|`` or ``|theta|`` reached ``pi/2`` after a step (Assumption 1);
+    ``ACTUATOR_LIMIT``: the command needed a negative squared rotor speed of the
+    simulated plant's mixer (10).
+    """
+
+    def init(self, dtype: Any) -> Array:
+        return jnp.zeros((), jnp.int32)
+
+    def update(self, acc: Array, record: StepRecord) -> Array:
+        state, inputs = record.next_state, record.inputs
+        finite = (
+            jnp.all(jnp.isfinite(state))
+            & jnp.all(jnp.isfinite(inputs))
+            & jnp.all(jnp.isfinite(record.info.surfaces))
+        )
+        tilt = jnp.any(jnp.abs(state[3:5]) >= jnp.pi / 2)
+        actuator = jnp.any(plant.rotor_speeds_squared(record.plant, inputs) < 0)
+        flags = (
+            jnp.where(finite, 0, NONFINITE)
+            | jnp.where(tilt, TILT_LIMIT, 0)
+            | jnp.where(actuator, ACTUATOR_LIMIT, 0)
+        )
+        return acc | flags.astype(jnp.int32)
+
+    def finalize(self, acc: Array) -> Array:
+        return acc
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingISE:
+    """``()`` the integral of the squared tracking errors (position and attitude),
+    ``sum_k dt |e(t_k)|^2``: a plain differentiable cost."""
+
+    dt: float
+
+    def init(self, dtype: Any) -> Array:
+        return jnp.zeros((), dtype)
+
+    def update(self, acc: Array, record: StepRecord) -> Array:
+        error = record.error
+        return acc + self.dt * (jnp.sum(error[:3] ** 2) + jnp.sum(error[3:] ** 2))
+
+    def finalize(self, acc: Array) -> Array:
+        return acc
+
+
+class Chain:
+    """Several observers under names; ``init``/``update``/``finalize`` act on dicts.
+
+    ``Chain(metrics=MetricsObserver(...), cost=CostObserver(...))``: the outputs are
+    ``{"metrics": ..., "cost": ...}``. Hashable and comparable by its observers, like
+    the frozen dataclasses it holds.
+    """
+
+    def __init__(self, **observers: Any):
+        for name, observer in observers.items():
+            missing = [f for f in ("init", "update", "finalize") if not hasattr(observer, f)]
+            if missing:
+                raise TypeError(f"observer {name!r} has no {', '.join(missing)}")
+        self.observers = tuple(observers.items())
+
+    def __hash__(self) -> int:
+        return hash(self.observers)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Chain) and self.observers == other.observers
+
+    def init(self, dtype: Any) -> dict:
+        return {name: o.init(dtype) for name, o in self.observers}
+
+    def update(self, acc: dict, record: StepRecord) -> dict:
+        return {name: o.update(acc[name], record) for name, o in self.observers}
+
+    def finalize(self, acc: dict) -> dict:
+        return {name: o.finalize(acc[name]) for name, o in self.observers}
