@@ -112,6 +112,8 @@ class Study:
     chunk: int
     keep: int
     dtype: str
+    reaching_band: float | tuple[float, ...] = 0.01
+    """``fojax.metrics.MetricsConfig.reaching_band``: one band, or six (one per axis)."""
 
 
 def snapshot_interval(steps: int, dt: float, target: float = 0.1) -> int:
@@ -198,13 +200,16 @@ def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = 
     import jax
     import jax.numpy as jnp
 
-    from fojax import montecarlo, registry, scenarios, sharding, simulator
+    from fojax import metrics, montecarlo, registry, scenarios, sharding, simulator
 
     # Every local device (GPUs, or one CPU device per core: see experiments.cli).
     mesh = sharding.draw_mesh(jax.local_devices()) if jax.local_device_count() > 1 else None
     scenario = dataclasses.replace(scenarios.get_scenario(study.scenario_id), horizon=study.horizon)
     config = simulator.SimulationConfig(
         dt=study.dt, horizon=study.horizon, save_every=study.save_every
+    )
+    metrics_config = metrics.MetricsConfig(
+        dt=study.dt, steps=config.steps, reaching_band=study.reaching_band
     )
     dtype = jnp.dtype(study.dtype)
     chunks = out / "chunks"
@@ -234,6 +239,7 @@ def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = 
             keep=study.keep,
             progress=progress,
             dtype=dtype,
+            metrics_config=metrics_config,
             store=chunks / name,
             mesh=mesh,
         )
