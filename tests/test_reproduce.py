@@ -212,3 +212,18 @@ def test_reproduce_end_to_end_tiny(tmp_path):
 
     assert numbers(again) == numbers(report)
     assert [c["verdict"] for c in again["claims"]] == [c["verdict"] for c in report["claims"]]
+
+
+def test_regeneration_replaces_only_what_follows_the_marker(tmp_path):
+    from experiments.reproduce import regenerate
+
+    document = tmp_path / "reproduction.md"
+    document.write_text(f"# Title\n\nReading, by hand.\n\n{regenerate.MARKER}\n\nold report\n")
+    report = tmp_path / "report.md"
+    report.write_text("new report\n\n![fig05](figures/fig05.png)\n")
+    regenerate.splice(document, report, "reproduction")
+    text = document.read_text()
+    assert text.startswith("# Title\n\nReading, by hand.\n\n" + regenerate.MARKER)
+    assert "old report" not in text and "![fig05](reproduction/fig05.png)" in text
+    with pytest.raises(SystemExit):
+        regenerate.splice(report, report, "reproduction")
