@@ -220,10 +220,11 @@ def test_regeneration_replaces_only_what_follows_the_marker(tmp_path):
     document = tmp_path / "reproduction.md"
     document.write_text(f"# Title\n\nReading, by hand.\n\n{regenerate.MARKER}\n\nold report\n")
     report = tmp_path / "report.md"
-    report.write_text("new report\n\n![fig05](figures/fig05.png)\n")
+    report.write_text("# Report title\n\nnew report\n\n![fig05](figures/fig05.png)\n")
     regenerate.splice(document, report, "reproduction")
     text = document.read_text()
     assert text.startswith("# Title\n\nReading, by hand.\n\n" + regenerate.MARKER)
     assert "old report" not in text and "![fig05](reproduction/fig05.png)" in text
+    assert text.endswith(regenerate.MARKER + "\n\nnew report\n\n![fig05](reproduction/fig05.png)\n")
     with pytest.raises(SystemExit):
         regenerate.splice(report, report, "reproduction")

@@ -29,12 +29,15 @@ RUNS = {
 
 
 def splice(document: Path, report: Path, figures_name: str) -> None:
-    """Replace what follows :data:`MARKER` in ``document`` with ``report``."""
+    """Replace what follows :data:`MARKER` in ``document`` with ``report`` (less its
+    title line)."""
     text = document.read_text()
     if MARKER not in text:
         raise SystemExit(f"{document}: no line {MARKER!r} to regenerate below")
     head = text[: text.index(MARKER) + len(MARKER)]
     body = report.read_text().replace("](figures/", f"]({figures_name}/")
+    if body.startswith("# "):  # the document has its own title
+        body = body.split("\n", 1)[1].lstrip("\n")
     document.write_text(head + "\n\n" + body)
 
 
