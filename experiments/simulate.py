@@ -112,6 +112,8 @@ class Study:
     chunk: int
     keep: int
     dtype: str
+    reaching_band: float | tuple[float, ...] = 0.01
+    """``fojax.metrics.MetricsConfig.reaching_band``: one band, or six (one per axis)."""
 
 
 def snapshot_interval(steps: int, dt: float, target: float = 0.1) -> int:
@@ -199,7 +201,7 @@ def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = 
     import jax
     import jax.numpy as jnp
 
-    from fojax import scenarios, sharding, simulator
+    from fojax import metrics, scenarios, sharding, simulator
     from fojax import study as monte_carlo
     from fojax.controllers import registry
 
@@ -208,6 +210,9 @@ def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = 
     scenario = dataclasses.replace(scenarios.get_scenario(study.scenario_id), horizon=study.horizon)
     config = simulator.SimulationConfig(
         dt=study.dt, horizon=study.horizon, save_every=study.save_every
+    )
+    metrics_config = metrics.MetricsConfig(
+        dt=study.dt, steps=config.steps, reaching_band=study.reaching_band
     )
     dtype = jnp.dtype(study.dtype)
     chunks = out / "chunks"
@@ -237,6 +242,7 @@ def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = 
             keep=study.keep,
             progress=progress,
             dtype=dtype,
+            metrics_config=metrics_config,
             store=chunks / name,
             mesh=mesh,
         )

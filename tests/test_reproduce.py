@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from experiments import cli, paper_figures, reproduce
 
@@ -42,22 +43,116 @@ def test_default_run_covers_every_scenario_and_controller(tmp_path):
         assert study.seed == 0 and study.save_every == 100
 
 
-def _difference(low, high):
-    return {"mean": (low + high) / 2, "ci95": [low, high], "n": 10}
+def test_default_reaching_band_is_twice_the_switching_step():
+    from fojax.controllers.afonftsmc import paper_gains
+
+    studies, _ = reproduce.parse_args(["--out", "unused"])
+    gains = paper_gains()
+    want = 2.0 * (np.asarray(gains.reaching_h1) + np.asarray(gains.mu)) * 1e-3
+    for study in studies:
+        np.testing.assert_allclose(study.reaching_band, want, rtol=1e-6)
+    # The band sgn switching leaves at 1 ms: about 0.0052 (x, y), 0.032 (z), 0.31 (attitude).
+    assert study.reaching_band[2] == pytest.approx(0.0323, abs=1e-4)
 
 
-def test_verdict_rule():
-    assert reproduce._pair_verdict(_difference(0.1, 0.3)) == "better"  # other is higher
-    assert reproduce._pair_verdict(_difference(-0.3, -0.1)) == "worse"
-    assert reproduce._pair_verdict(_difference(-0.1, 0.3)) == "n.s."
-    assert reproduce._pair_verdict({"mean": 1.0, "ci95": None, "n": 1}) == "n.s."
-    assert reproduce._verdict({"better": 4, "worse": 0, "n.s.": 0}) == "holds"
-    assert reproduce._verdict({"better": 3, "worse": 1, "n.s.": 0}) == "does not hold"
-    assert reproduce._verdict({"better": 3, "worse": 0, "n.s.": 1}) == "inconclusive"
-    assert reproduce._verdict({"better": 0, "worse": 0, "n.s.": 4}) == "inconclusive"
+# ------------------------------------------------------------ the verdict rule, constructed
 
 
-VERDICTS = {"holds", "does not hold", "inconclusive"}
+def _sample(mean, std, n=20):
+    """``n`` values with exactly this mean and sample standard deviation."""
+    z = np.linspace(-1.0, 1.0, n)
+    z = (z - z.mean()) / z.std(ddof=1)
+    return mean + std * z
+
+
+def _family(differences, delta):
+    comparisons = [reproduce.compare(d, delta) for d in differences]
+    return comparisons
+
+
+def _one_sided_mean(p, delta, std=1.0, n=20):
+    """A mean whose 'worse' test (mean < -delta) has exactly the one-sided p-value p."""
+    return -delta + stats.t.ppf(p, n - 1) * std / np.sqrt(n)
+
+
+def test_margins():
+    assert reproduce.margin("m", [0.001, 0.003], 80.0) == pytest.approx(1e-3)  # floor
+    assert reproduce.margin("m", [0.1, 0.3], 80.0) == pytest.approx(0.01)  # 5 % of 0.2
+    assert reproduce.margin("rad", [np.nan, 0.0], 80.0) == pytest.approx(1e-3)
+    assert reproduce.margin("s", [1.0, 3.0], 80.0) == pytest.approx(0.1)
+    assert reproduce.margin("s", [0.1], 80.0) == pytest.approx(0.05)
+    assert reproduce.margin("m s^2", [0.0], 80.0) == pytest.approx(1e-3 * 80**2 / 2)
+    assert reproduce.margin("m s", [0.0], 50.0) == pytest.approx(0.05)
+    assert reproduce.margin("N", [2.0, 2.0], 80.0) == pytest.approx(0.1)  # relative only
+    assert reproduce.margin("m", [np.nan], 80.0) == pytest.approx(1e-3)
+    with pytest.raises(ValueError):
+        reproduce.margin("furlong", [1.0], 80.0)
+
+
+def test_tiny_difference_within_the_margin_is_equivalent():
+    # 30 micrometres with a tiny spread (common random numbers): the earlier rule calls
+    # it significant, the margin of 1 mm calls it equivalent.
+    delta = 1e-3
+    family = reproduce.decide(_family([_sample(-3e-5, 1e-6)] * 4, delta))
+    assert [c["outcome"] for c in family] == ["equivalent"] * 4
+    assert [c["ci_rule"] for c in family] == ["worse"] * 4
+    assert reproduce.claim_verdict(c["outcome"] for c in family) == ("equivalent within the margin")
+
+
+def test_large_difference_does_not_hold():
+    delta = 1e-3
+    differences = [_sample(0.05, 0.01)] * 3 + [_sample(-0.02, 0.001)]
+    family = reproduce.decide(_family(differences, delta))
+    assert [c["outcome"] for c in family] == ["better"] * 3 + ["worse"]
+    assert reproduce.claim_verdict(c["outcome"] for c in family) == "does not hold"
+
+
+def test_claim_outcomes():
+    verdict = reproduce.claim_verdict
+    assert verdict(["better"] * 4) == "holds"
+    assert verdict(["better", "better", "equivalent"]) == "equivalent within the margin"
+    assert verdict(["better", "worse", "equivalent"]) == "does not hold"
+    assert verdict(["better", "inconclusive", "equivalent"]) == "inconclusive"
+    assert verdict([]) == "inconclusive"
+    delta = 0.01
+    family = reproduce.decide(_family([_sample(0.05, 0.01)] * 3 + [_sample(0.0, 1e-3)], delta))
+    assert [c["outcome"] for c in family] == ["better"] * 3 + ["equivalent"]
+    # Better, but not demonstrably by more than the margin: undecided.
+    family = reproduce.decide(_family([_sample(0.012, 0.01)], delta))
+    assert family[0]["outcome"] == "inconclusive" and family[0]["ci_rule"] == "better"
+
+
+def test_holm_changes_a_borderline_verdict():
+    delta, n = 1e-3, 20
+    # One comparison worse beyond the margin with a one-sided p-value of 0.01, three
+    # clearly equivalent: 12 p-values in the family; the 0.01 is the 4th smallest and
+    # Holm multiplies it by 12 - 4 + 1 = 9 (0.09 > 0.05).
+    borderline = _sample(_one_sided_mean(0.01, delta), 1.0, n)
+    equivalent = [_sample(0.0, 1e-4, n)] * 3
+    raw = reproduce.decide(_family([borderline, *equivalent], delta), adjust=False)
+    assert raw[0]["p"]["worse"] == pytest.approx(0.01, rel=1e-6)
+    assert raw[0]["outcome"] == "worse"
+    assert reproduce.claim_verdict(c["outcome"] for c in raw) == "does not hold"
+    adjusted = reproduce.decide(_family([borderline, *equivalent], delta))
+    assert adjusted[0]["p_adjusted"]["worse"] == pytest.approx(0.09, rel=1e-6)
+    assert [c["outcome"] for c in adjusted] == ["inconclusive"] + ["equivalent"] * 3
+    assert reproduce.claim_verdict(c["outcome"] for c in adjusted) == "inconclusive"
+    # A clear one survives the adjustment: p = 0.001 -> 0.009.
+    clear = _sample(_one_sided_mean(0.001, delta), 1.0, n)
+    adjusted = reproduce.decide(_family([clear, *equivalent], delta))
+    assert adjusted[0]["outcome"] == "worse"
+    assert reproduce.claim_verdict(c["outcome"] for c in adjusted) == "does not hold"
+
+
+def test_degenerate_comparisons_are_inconclusive_or_exact():
+    delta = 0.05
+    family = reproduce.decide(
+        _family([np.full(10, np.nan), np.zeros(10), np.full(10, 2.0), np.full(10, -2.0)], delta)
+    )
+    assert [c["outcome"] for c in family] == ["inconclusive", "equivalent", "better", "worse"]
+
+
+VERDICTS = set(reproduce.claims.VERDICTS)
 
 
 def test_reproduce_end_to_end_tiny(tmp_path):
@@ -73,6 +168,15 @@ def test_reproduce_end_to_end_tiny(tmp_path):
     for claim in report["claims"]:
         assert claim["verdict"] in VERDICTS, claim["id"]
         assert claim["text"] in text
+        for comparison in claim.get("comparisons", []):
+            assert comparison["outcome"] in reproduce.claims.OUTCOMES
+            assert comparison["margin"] > 0
+            assert set(comparison["p_adjusted"]) == {"better", "worse", "equivalent"}
+    assert report["settings"]["reaching_band"] == pytest.approx(reproduce.reaching_band(1e-3))
+    finite_time = report["claims"][-1]
+    assert len(finite_time["rows"]) == 3 * 6
+    assert {row["band"] for row in finite_time["rows"]} == set(reproduce.reaching_band(1e-3))
+    assert "### The verdict rule" in text and "Holm" in text
     for scenario_id in ("1", "2", "3"):
         tables = report["scenarios"][scenario_id]
         assert list(tables["metrics"]) == ["afonftsmc", "anftsmc", "fobsmc", "bsmc", "fl"]
@@ -84,7 +188,7 @@ def test_reproduce_end_to_end_tiny(tmp_path):
         # Paired differences are computed on the same draws: check one by hand.
         with np.load(out / f"s{scenario_id}" / "draws.npz") as draws:
             want = np.mean(draws["fl.position_rmse"] - draws["afonftsmc.position_rmse"])
-        got = tables["paired_differences"]["fl"]["position_rmse"]["mean"]
+        got = tables["paired_differences"]["fl"]["position_rmse"]["difference"]["mean"]
         assert got == pytest.approx(float(want), rel=1e-5)
     numbers = [n for numbers in paper_figures.FIGURE_NUMBERS.values() for n in numbers]
     assert report["figures"] == [
@@ -108,3 +212,19 @@ def test_reproduce_end_to_end_tiny(tmp_path):
 
     assert numbers(again) == numbers(report)
     assert [c["verdict"] for c in again["claims"]] == [c["verdict"] for c in report["claims"]]
+
+
+def test_regeneration_replaces_only_what_follows_the_marker(tmp_path):
+    from experiments.reproduce import regenerate
+
+    document = tmp_path / "reproduction.md"
+    document.write_text(f"# Title\n\nReading, by hand.\n\n{regenerate.MARKER}\n\nold report\n")
+    report = tmp_path / "report.md"
+    report.write_text("# Report title\n\nnew report\n\n![fig05](figures/fig05.png)\n")
+    regenerate.splice(document, report, "reproduction")
+    text = document.read_text()
+    assert text.startswith("# Title\n\nReading, by hand.\n\n" + regenerate.MARKER)
+    assert "old report" not in text and "![fig05](reproduction/fig05.png)" in text
+    assert text.endswith(regenerate.MARKER + "\n\nnew report\n\n![fig05](reproduction/fig05.png)\n")
+    with pytest.raises(SystemExit):
+        regenerate.splice(report, report, "reproduction")

@@ -1,0 +1,233 @@
+"""``fojax reproduce``: the command line (argparse, validation, the run, the outputs).
+
+See :mod:`experiments.reproduce` for what it writes, :mod:`.claims` for the claims and
+the verdict rule, :mod:`.report` for the report.
+
+The studies (one :class:`experiments.simulate.Study` per scenario) are made, run and
+summarised through :func:`_make_study`, :func:`_run_study` and :func:`_write_outputs`
+only, the one place that knows where that layer lives.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from experiments import arguments, simulate
+from experiments.reproduce import claims as claims_module
+from experiments.reproduce.claims import BASELINE
+from experiments.reproduce.report import TABLE_METRICS, write_report
+
+__all__ = ["DEFAULT_DRAWS", "build_parser", "main", "parse_args"]
+
+DEFAULT_DRAWS = 100
+"""Draws per scenario and controller by default, sized to finish within 10 minutes on
+a 2-core CPU: 3 scenarios x 5 controllers x 100 draws took 196 s on the project's
+2-core machine (float32, chunks of 50, load average about 1; about 100 s of it
+compiling the 15 (scenario, controller) rollouts); the measured time of the committed
+example is in ``docs/reproduction.md``."""
+
+
+# ------------------------------------------------------------------- the study layer
+
+
+def _make_study(**fields) -> simulate.Study:
+    return simulate.Study(**fields)
+
+
+def _run_study(study, directory: Path, progress: bool, overwrite: bool) -> dict:
+    return simulate.run_study(study, directory, progress, overwrite)
+
+
+def _write_outputs(study, results: dict, directory: Path) -> dict:
+    summary = simulate.write_outputs(study, results, directory, figures=False)
+    summary["reaching_band"] = list(study.reaching_band)
+    (directory / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    return summary
+
+
+# ----------------------------------------------------------------------- arguments
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from fojax import fractional
+    from fojax.controllers import SWITCHING_FUNCTIONS
+
+    parser = argparse.ArgumentParser(
+        prog="fojax reproduce",
+        description=(
+            "The paper's Section V with Monte Carlo: 3 scenarios x 5 controllers on the same "
+            "draws; report, JSON and Figs. 5-16."
+        ),
+    )
+    parser.add_argument("--out", required=True, type=Path, metavar="DIR")
+    parser.add_argument(
+        "--draws",
+        type=arguments.positive_int,
+        default=DEFAULT_DRAWS,
+        help=f"draws per scenario and controller (default {DEFAULT_DRAWS}: < 10 min on 2 cores)",
+    )
+    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
+    parser.add_argument(
+        "--switching",
+        choices=SWITCHING_FUNCTIONS,
+        default="sign",
+        help="switching function of the sliding-mode controllers (default sign, the paper's)",
+    )
+    parser.add_argument(
+        "--fractional",
+        choices=fractional.METHODS,
+        default="soe",
+        help="fractional operator method (default soe; oustaloup is the paper's CRONE)",
+    )
+    parser.add_argument(
+        "--scenarios", type=arguments.scenario_ids, default=(1, 2, 3), help="subset, e.g. 1,3"
+    )
+    parser.add_argument(
+        "--horizon",
+        type=arguments.positive_float,
+        help="simulated time (s) for every scenario (default: each scenario's, 80/80/50 s)",
+    )
+    parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s")
+    parser.add_argument("--chunk", type=arguments.positive_int, default=50, help="draws per batch")
+    parser.add_argument(
+        "--keep",
+        type=arguments.nonnegative_int,
+        default=32,
+        help="draws whose trajectories are kept for the figures (32)",
+    )
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument("--no-figures", action="store_true", help="skip the figures")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="discard finished chunks of an earlier run"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress display")
+    return parser
+
+
+def parse_args(argv) -> tuple[list, argparse.Namespace]:
+    """One validated :class:`experiments.simulate.Study` per scenario; exits on bad input."""
+    from fojax import scenarios
+    from fojax.controllers import registry
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    names = registry.controller_names()
+    if BASELINE not in names:
+        parser.error(f"the baseline controller {BASELINE!r} is not registered")
+    if args.dtype == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    band = claims_module.reaching_band(args.dt)
+    studies = []
+    for scenario_id in args.scenarios:
+        scenario = scenarios.get_scenario(scenario_id)
+        horizon = args.horizon if args.horizon is not None else scenario.horizon
+        if args.dt > horizon:
+            parser.error(f"--dt ({args.dt}) must not exceed the horizon ({horizon})")
+        steps = horizon / args.dt
+        if abs(steps - round(steps)) > 1e-6 * steps:
+            parser.error(f"the horizon ({horizon} s) must be a whole number of steps of {args.dt}")
+        steps = round(steps)
+        studies.append(
+            _make_study(
+                scenario_id=scenario_id,
+                controllers=(BASELINE,) + tuple(n for n in names if n != BASELINE),
+                draws=args.draws,
+                seed=args.seed,
+                horizon=float(horizon),
+                dt=float(args.dt),
+                save_every=simulate.snapshot_interval(steps, args.dt),
+                gains={},
+                fractional=args.fractional,
+                switching=args.switching,
+                chunk=args.chunk,
+                keep=min(args.keep, args.draws),
+                dtype=args.dtype,
+                reaching_band=band,
+            )
+        )
+    for name in studies[0].controllers:
+        try:
+            registry.make_controller(
+                name,
+                dt=args.dt,
+                horizon=studies[0].horizon,
+                fractional_method=args.fractional,
+                switching=args.switching,
+            )
+        except ValueError as error:
+            parser.error(f"{name}: {error}")
+    return studies, args
+
+
+# ------------------------------------------------------------------------------- main
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    studies, args = parse_args(argv)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    progress = not args.quiet
+    start = time.perf_counter()
+    results_by_scenario, summaries = {}, {}
+    try:
+        for index, study in enumerate(studies):
+            if progress:
+                print(
+                    f"scenario {study.scenario_id} ({index + 1}/{len(studies)}): "
+                    f"{len(study.controllers)} controllers x {study.draws} draws, "
+                    f"{study.horizon:g} s; {time.perf_counter() - start:.0f} s so far",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            directory = out / f"s{study.scenario_id}"
+            results = _run_study(study, directory, progress, args.overwrite)
+            results_by_scenario[study.scenario_id] = results
+            summaries[study.scenario_id] = _write_outputs(study, results, directory)
+    except KeyboardInterrupt:
+        print(
+            f"\ninterrupted: finished chunks are kept under {out}/s*/chunks; run the same "
+            "command again to continue",
+            file=sys.stderr,
+        )
+        return 130
+    except ValueError as error:
+        print(f"fojax reproduce: error: {error}", file=sys.stderr)
+        return 2
+    figures = []
+    if not args.no_figures:
+        from experiments import paper_figures
+
+        if progress:
+            print("figures ...", file=sys.stderr, flush=True)
+        figures = paper_figures.plot_all(results_by_scenario, out / "figures")
+    claims = claims_module.evaluate_claims(summaries, results_by_scenario)
+    tables = claims_module.paired_tables(summaries, results_by_scenario, TABLE_METRICS)
+    settings = {
+        "draws": args.draws,
+        "seed": args.seed,
+        "scenarios": list(args.scenarios),
+        "switching": args.switching,
+        "fractional": args.fractional,
+        "dt": args.dt,
+        "dtype": args.dtype,
+        "horizons_s": {str(s.scenario_id): s.horizon for s in studies},
+        "controllers": list(studies[0].controllers),
+        "reaching_band": list(studies[0].reaching_band),
+    }
+    wall = time.perf_counter() - start
+    report_md, _ = write_report(out, summaries, claims, settings, figures, wall, tables)
+    print(f"wrote {report_md}, report.json, figures/ and s*/ in {wall:.0f} s")
+    for claim in claims:
+        print(f"  {claim['verdict']:>28}: {claim['text']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
