@@ -53,7 +53,7 @@ def _finish(fig, axes, path, title, caption, handles):
         ax.set_xlabel("t (s)")
     for ax in axes.flat:
         ax.grid(alpha=0.3)
-    fig.suptitle(f"{title}\n{caption}", fontsize=10)
+    style.suptitle(fig, title, caption)
     style.legend_below(fig, handles)
     return style.save(fig, path)
 
@@ -132,7 +132,7 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
     band; one that does not is a line."""
     plt = style.pyplot()
     n = len(results)
-    fig = plt.figure(figsize=(max(8.0, 2.6 * n + 1.5), 8), layout="constrained")
+    fig = plt.figure(figsize=(max(10.0, 2.6 * n + 1.5), 8), layout="constrained")
     axes = fig.subplots(4, n, sharex=True, sharey="row", squeeze=False)
     for i, (name, result) in enumerate(results.items()):
         low, high = _inputs_envelope(result)
@@ -157,7 +157,7 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
         f"band: each command's range (min to max over every step) within each {block:g} s "
         "block, median",
     )
-    fig.suptitle(f"{title}\n{caption}", fontsize=10)
+    style.suptitle(fig, title, caption)
     return style.save(fig, path)
 
 
@@ -189,9 +189,11 @@ def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) ->
     ax2.set_aspect("equal", adjustable="datalim")
     ax2.grid(alpha=0.3)
     total = first.draws
-    fig.suptitle(
-        f"{title}\nthe first {shown} non-diverged draws of {total} per controller, one line each",
-        fontsize=10,
+    style.suptitle(
+        fig,
+        title,
+        f"one line per draw: the first {shown} of {total} draws per controller "
+        "(diverged draws left out)",
     )
     style.legend_below(fig, _controller_handles(results) + [line])
     return style.save(fig, path)
@@ -228,19 +230,20 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
 
 
 FIGURES = (
-    ("tracking", plot_tracking),
-    ("errors", plot_errors),
-    ("inputs", plot_inputs),
-    ("path3d", plot_path),
-    ("adaptive", plot_adaptive),
+    ("tracking", plot_tracking, "Tracking"),
+    ("errors", plot_errors, "Tracking errors"),
+    ("inputs", plot_inputs, "Control inputs"),
+    ("path3d", plot_path, "Path"),
+    ("adaptive", plot_adaptive, "Adaptive estimates"),
 )
 
 
-def plot_all(results: dict, directory: Path, prefix: str = "") -> list[Path]:
+def plot_all(results: dict, directory: Path, prefix: str = "", context: str = "") -> list[Path]:
     """All figures above into ``directory``; returns the paths of the PNGs drawn.
 
-    A figure that fails is reported as a warning naming it (:func:`style.attempt`);
-    the others are still drawn.
+    ``context``: appended to each title (e.g. the scenario and switching). A figure
+    that fails is reported as a warning naming it (:func:`style.attempt`); the others
+    are still drawn.
     """
     directory = Path(directory)
     results = {k: r for k, r in results.items() if r.trajectories is not None}
@@ -248,10 +251,11 @@ def plot_all(results: dict, directory: Path, prefix: str = "") -> list[Path]:
         return []
     adapts = any(np.any(np.asarray(r.trajectories.info.adaptive)) for r in results.values())
     paths = []
-    for stem, maker in FIGURES:
+    for stem, maker, title in FIGURES:
         if stem == "adaptive" and not adapts:
             continue  # no controller here adapts: nothing to draw
         path = directory / f"{prefix}{stem}.png"
-        if style.attempt(path.name, maker, results, path) is not None:
+        title = f"{title}: {context}" if context else title
+        if style.attempt(path.name, maker, results, path, title) is not None:
             paths.append(path)
     return paths

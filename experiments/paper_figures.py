@@ -80,7 +80,7 @@ def _finish(fig, path: Path, title: str, results: dict, handles, spread: str | N
     spread = spread or style.draws_caption(results).replace(
         "the statistics in summary.json", "the tables"
     )
-    fig.suptitle(f"{title}\n{spread}", fontsize=10)
+    style.suptitle(fig, title, spread)
     style.legend_below(fig, handles)
     return style.save(fig, path, quantize=True)
 

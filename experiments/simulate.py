@@ -35,7 +35,6 @@ import time
 from pathlib import Path
 
 from experiments import arguments
-from experiments import study as study_layer
 from experiments.study import Study, run_study, snapshot_interval, write_outputs
 
 __all__ = ["Study", "main", "parse_args", "run_study", "snapshot_interval", "write_outputs"]
@@ -222,13 +221,7 @@ def main(argv=None) -> int:
     study, args = parse_args(argv)
     out: Path = args.out
     command = ["fojax", "simulate", *argv]
-    try:
-        if not args.overwrite and (out / "chunks").exists():
-            study_layer.check_stores(study, out)  # before anything compiles
-        out.mkdir(parents=True, exist_ok=True)
-    except ValueError as error:
-        print(f"fojax simulate: error: {error}", file=sys.stderr)
-        return 2
+    out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     try:
         results = run_study(study, out, progress=not args.quiet, overwrite=args.overwrite)
@@ -239,7 +232,7 @@ def main(argv=None) -> int:
             file=sys.stderr,
         )
         return 130
-    except ValueError as error:
+    except ValueError as error:  # e.g. study.StoreMismatch, raised before compiling
         print(f"fojax simulate: error: {error}", file=sys.stderr)
         return 2
     wall = round(time.perf_counter() - start, 1)

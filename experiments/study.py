@@ -504,7 +504,11 @@ def write_outputs(
         from experiments import figures as figs
         from experiments import style
 
-        drawn = style.attempt("(all)", figs.plot_all, results, out) or []
+        context = (
+            f"scenario {study.scenario_id}, {study.switching} switching, "
+            f"{study.fractional} fractional operators, dt {study.dt * 1e3:g} ms"
+        )
+        drawn = style.attempt("(all)", figs.plot_all, results, out, "", context) or []
         if drawn:
             summary["figures"] = [p.name for p in drawn]
             write_json(out / "summary.json", summary)

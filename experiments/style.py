@@ -32,6 +32,7 @@ __all__ = [
     "pyplot",
     "reference",
     "save",
+    "suptitle",
 ]
 
 CONTROLLER_COLORS = {
@@ -137,6 +138,16 @@ def legend_below(fig, handles, labels=None, ncol=None, fontsize=9):
     return fig.legend(
         handles, labels, loc="outside lower center", ncol=ncol, fontsize=fontsize, frameon=False
     )
+
+
+def suptitle(fig, title: str, caption: str = "", fontsize: int = 10):
+    """The figure's title and, below it, its caption wrapped to the figure's width."""
+    import textwrap
+
+    # About 0.6 em per character; half an inch of margin.
+    width = max(40, int((fig.get_figwidth() - 0.5) * 72 / (0.62 * fontsize)))
+    lines = [title] + (textwrap.wrap(caption, width) if caption else [])
+    return fig.suptitle("\n".join(lines), fontsize=fontsize)
 
 
 def draws_caption(results: dict) -> str:
