@@ -193,9 +193,15 @@ def plot(results: dict, path: pathlib.Path) -> pathlib.Path:
         (axes[0], -1, "integral of order a"),
         (axes[1], 1, "derivative of order a"),
     ):
-        for label, r in results["methods"].items():
+        markers = ("o", "s", "^", "D", "v", "P", "X")
+        for index, (label, r) in enumerate(results["methods"].items()):
             errs = [max(r["errors"][f"{sign * o:+.2f}"][s] for s in smooth) for o in orders]
-            ax.semilogy(orders, errs, marker="o", label=label)
+            # Hollow markers shrinking with the index: methods whose errors coincide
+            # (e.g. full and short GL memory at short horizons) stay visible.
+            ax.semilogy(
+                orders, errs, marker=markers[index % len(markers)], ms=10 - index, mfc="none",
+                mew=1.3, lw=1.2, label=label,
+            )  # fmt: skip
         ax.axhline(1e-4, color="k", ls="--", lw=0.8, label="1e-4")
         ax.set_xlabel("order a")
         ax.set_title(title)
