@@ -1,4 +1,11 @@
-"""Argument types shared by the ``fojax`` subcommands: checked before anything compiles."""
+"""Argument types shared by the ``fojax`` subcommands: checked before anything compiles.
+
+Each type raises :class:`argparse.ArgumentTypeError` with a message that says what was
+wrong and what to give instead; argparse turns it into ``fojax CMD: error: argument
+--flag: ...`` and exit status 2. The path checks (:func:`check_output_directory`,
+:func:`check_output_file`, :func:`check_input_file`) raise ``ValueError`` for use
+outside argparse.
+"""
 
 from __future__ import annotations
 
@@ -6,16 +13,42 @@ import argparse
 import math
 import os
 import sys
+from pathlib import Path
 
-__all__ = ["nonnegative_float", "nonnegative_int", "positive_float", "positive_int"]
+__all__ = [
+    "check_input_file",
+    "check_output_directory",
+    "check_output_file",
+    "input_file",
+    "nonnegative_float",
+    "nonnegative_int",
+    "output_directory",
+    "output_file",
+    "positive_float",
+    "positive_floats",
+    "positive_int",
+    "positive_ints",
+    "seed",
+    "use_host_devices",
+]
+
+MAX_SEED = 2**63 - 1
+"""Largest seed :func:`jax.random.PRNGKey` takes."""
 
 
-def _integer(text: str, minimum: int, description: str) -> int:
+def _integer(text: str, minimum: int, description: str, maximum: int | None = None) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected {description}, got {text!r}") from None
-    if value < minimum:
+        hint = ""
+        try:
+            number = float(text)
+            if math.isfinite(number) and number == int(number):
+                hint = f" (write it as {int(number)})"
+        except ValueError:
+            pass
+        raise argparse.ArgumentTypeError(f"expected {description}, got {text!r}{hint}") from None
+    if value < minimum or (maximum is not None and value > maximum):
         raise argparse.ArgumentTypeError(f"expected {description}, got {value}")
     return value
 
@@ -24,7 +57,7 @@ def _real(text: str, allow_zero: bool, description: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected {description}, got {text!r}") from None
     if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
         raise argparse.ArgumentTypeError(f"expected {description}, got {text}")
     return value
@@ -40,14 +73,46 @@ def nonnegative_int(text: str) -> int:
     return _integer(text, 0, "an integer >= 0")
 
 
+def seed(text: str) -> int:
+    """A random seed: an integer in ``[0, 2**63 - 1]``."""
+    return _integer(text, 0, f"a seed, an integer >= 0 and <= {MAX_SEED}", MAX_SEED)
+
+
 def positive_float(text: str) -> float:
-    """A finite number > 0."""
+    """A finite number > 0 (not nan, not inf)."""
     return _real(text, False, "a finite number > 0")
 
 
 def nonnegative_float(text: str) -> float:
-    """A finite number >= 0."""
+    """A finite number >= 0 (not nan, not inf)."""
     return _real(text, True, "a finite number >= 0")
+
+
+def _listed(text: str, parse, example: str) -> tuple:
+    parts = [part.strip() for part in text.split(",")]
+    if not text.strip() or any(not part for part in parts):
+        raise argparse.ArgumentTypeError(
+            f"expected a comma-separated list like {example}, got {text!r}"
+        )
+    values = []
+    for part in parts:
+        try:
+            values.append(parse(part))
+        except argparse.ArgumentTypeError as error:
+            raise argparse.ArgumentTypeError(
+                f"{error} in {text!r} (expected a comma-separated list like {example})"
+            ) from None
+    return tuple(values)
+
+
+def positive_ints(text: str) -> tuple[int, ...]:
+    """Comma-separated positive integers, e.g. ``1,64,1024``."""
+    return _listed(text, positive_int, "1,64,1024")
+
+
+def positive_floats(text: str) -> tuple[float, ...]:
+    """Comma-separated finite numbers > 0, e.g. ``0.5,2``."""
+    return _listed(text, positive_float, "0.5,2")
 
 
 def scenario_ids(text: str) -> tuple[int, ...]:
@@ -66,6 +131,120 @@ def scenario_ids(text: str) -> tuple[int, ...]:
             f"scenarios must be among {scenarios.SCENARIO_IDS}, got {text!r}"
         )
     return ids
+
+
+# ------------------------------------------------------------------------------ paths
+
+
+def _path(text: str, what: str) -> Path:
+    if not isinstance(text, str | os.PathLike) or not str(text).strip():
+        raise ValueError(f"expected {what}, got an empty name {str(text)!r}")
+    if "\0" in str(text):
+        raise ValueError(f"expected {what}, got a name with a NUL character {str(text)!r}")
+    return Path(text).expanduser()
+
+
+def _existing_ancestor(path: Path) -> Path:
+    """The nearest of ``path`` and its parents that exists (``.`` for a relative path)."""
+    candidate = path
+    while True:
+        try:
+            if candidate.exists():
+                return candidate
+        except OSError:  # e.g. a name too long
+            pass
+        if candidate.parent == candidate:
+            return candidate
+        candidate = candidate.parent if str(candidate.parent) else Path(".")
+
+
+def check_output_directory(text: str | os.PathLike) -> Path:
+    """An output folder that exists or can be created, and can be written to.
+
+    Rejects an empty name, an existing file, a path under a file, a folder without
+    write permission, and one that cannot be created. Creates nothing.
+    """
+    path = _path(text, "an output folder (e.g. results/run1; '.' for this folder)")
+    try:
+        if path.exists() and not path.is_dir():
+            raise ValueError(
+                f"{path} is a file, not a folder; choose a folder name for the outputs"
+            )
+        ancestor = _existing_ancestor(path)
+        if not ancestor.is_dir():
+            raise ValueError(
+                f"{path} cannot be created: {ancestor} is a file; choose a folder that is "
+                "not under a file"
+            )
+        if not os.access(ancestor, os.W_OK | os.X_OK):
+            if ancestor == path:
+                raise ValueError(
+                    f"cannot write in {path} (permission denied); choose a folder you can write to"
+                )
+            raise ValueError(
+                f"{path} cannot be created: no permission to write in {ancestor}; choose a "
+                "folder you can write to"
+            )
+        if len(path.name.encode()) > 255:
+            raise ValueError(f"{path.name[:40]}... is too long for a file name")
+    except OSError as error:
+        raise ValueError(f"{path} cannot be used as an output folder: {error}") from None
+    return path
+
+
+def check_output_file(text: str | os.PathLike, example: str = "results/out.json") -> Path:
+    """An output file whose folder exists or can be created, and which can be written.
+
+    Rejects an empty name, an existing folder, a path under a file and unwritable
+    places. Creates nothing.
+    """
+    path = _path(text, f"an output file name (e.g. {example})")
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder; name a file, e.g. {path / Path(example).name}")
+    parent = path.parent if str(path.parent) else Path(".")
+    try:
+        check_output_directory(parent)
+    except ValueError as error:
+        raise ValueError(f"cannot write {path}: {error}") from None
+    if path.exists() and not os.access(path, os.W_OK):
+        raise ValueError(f"cannot write {path} (permission denied); choose another file")
+    return path
+
+
+def check_input_file(text: str | os.PathLike, what: str = "file") -> Path:
+    """An existing, readable file (not a folder)."""
+    path = _path(text, f"a {what}")
+    try:
+        if not path.exists():
+            raise ValueError(f"{what} {path} does not exist")
+        if path.is_dir():
+            raise ValueError(f"{path} is a folder, not a {what}")
+        if not os.access(path, os.R_OK):
+            raise ValueError(f"cannot read {what} {path} (permission denied)")
+    except OSError as error:
+        raise ValueError(f"cannot read {what} {path}: {error}") from None
+    return path
+
+
+def _argparse_type(check, *args):
+    def convert(text: str) -> Path:
+        try:
+            return check(text, *args)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+
+    convert.__name__ = check.__name__.removeprefix("check_")
+    return convert
+
+
+output_directory = _argparse_type(check_output_directory)
+"""argparse type: :func:`check_output_directory`."""
+
+output_file = _argparse_type(check_output_file)
+"""argparse type: :func:`check_output_file`."""
+
+input_file = _argparse_type(check_input_file, "gains file")
+"""argparse type: an existing, readable gains file (:func:`check_input_file`)."""
 
 
 def use_host_devices(requested: int | None = None) -> int | None:

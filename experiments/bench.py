@@ -32,14 +32,15 @@ units.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
 import resource
 import sys
 import time
-from pathlib import Path
+
+from experiments import arguments
+from experiments import study as study_layer
 
 DEFAULT_DRAWS = (1, 64, 1024, 4096)
 DEFAULT_CHUNK = 1024  # draws per call: 512 per core keeps each core's modes in its L2
@@ -49,46 +50,22 @@ def _log(message: str) -> None:
     print(f"[bench] {message}", file=sys.stderr, flush=True)
 
 
-def _positive_ints(text: str) -> tuple[int, ...]:
+def _horizon(text: str) -> float:
+    """Seconds > 0, a whole number of the workload's 1 ms steps."""
     try:
-        values = tuple(int(v) for v in text.split(",") if v.strip())
-    except ValueError:
+        value = arguments.positive_float(text)
+    except argparse.ArgumentTypeError as error:
+        raise argparse.ArgumentTypeError(f"{error} (a positive number of seconds)") from None
+    steps = value / 1e-3
+    if round(steps) < 1 or abs(steps - round(steps)) > 1e-6 * steps:
         raise argparse.ArgumentTypeError(
-            f"expected comma-separated positive integers, got {text!r}"
-        ) from None
-    if not values or any(v < 1 for v in values):
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated positive integers (e.g. 1,64,1024), got {text!r}"
+            f"expected a positive horizon, a whole number of 1 ms steps (e.g. 0.25), got {text}"
         )
-    return values
+    return value
 
 
-def _positive_floats(text: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated positive numbers, got {text!r}"
-        ) from None
-    if not values or any(not (math.isfinite(v) and v > 0) for v in values):
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated positive numbers of seconds (e.g. 0.5,2), got {text!r}"
-        )
-    return values
-
-
-def _positive_float(text: str) -> float:
-    values = _positive_floats(text)
-    if len(values) != 1:
-        raise argparse.ArgumentTypeError(f"expected one positive number, got {text!r}")
-    return values[0]
-
-
-def _positive_int(text: str) -> int:
-    values = _positive_ints(text)
-    if len(values) != 1:
-        raise argparse.ArgumentTypeError(f"expected one positive integer, got {text!r}")
-    return values[0]
+def _horizons(text: str) -> tuple[float, ...]:
+    return arguments._listed(text, _horizon, "0.25,1")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -100,47 +77,55 @@ def build_parser() -> argparse.ArgumentParser:
             "minutes on a 2-core CPU."
         ),
     )
-    parser.add_argument("--json", type=Path, help="write every figure, with units, here")
     parser.add_argument(
-        "--draws", type=_positive_ints, default=DEFAULT_DRAWS, help="forward draw counts"
+        "--json",
+        type=arguments.output_file,
+        metavar="FILE",
+        help="write every figure, with units and provenance, here (checked before running)",
     )
     parser.add_argument(
-        "--long-horizon", type=_positive_float, default=4.0, help="horizon (s), small batches"
+        "--draws", type=arguments.positive_ints, default=DEFAULT_DRAWS, help="forward draw counts"
     )
     parser.add_argument(
-        "--short-horizon", type=_positive_float, default=1.0, help="horizon (s), big batches"
+        "--long-horizon", type=_horizon, default=4.0, help="horizon (s), small batches"
+    )
+    parser.add_argument(
+        "--short-horizon", type=_horizon, default=1.0, help="horizon (s), big batches"
     )
     parser.add_argument(
         "--long-max-draws",
-        type=_positive_int,
+        type=arguments.positive_int,
         default=64,
         help="batches up to this size run the long horizon",
     )
-    parser.add_argument("--repeats", type=_positive_int, default=3, help="timed runs (median)")
+    parser.add_argument(
+        "--repeats", type=arguments.positive_int, default=3, help="timed runs (median)"
+    )
     parser.add_argument(
         "--chunk",
-        type=_positive_int,
+        type=arguments.positive_int,
         default=DEFAULT_CHUNK,
         help="draws per compiled call for bigger forward batches (Monte Carlo chunks)",
     )
     parser.add_argument(
-        "--gradient-draws", type=_positive_int, default=64, help="draws of the gradient runs"
+        "--gradient-draws",
+        type=arguments.positive_int,
+        default=64,
+        help="draws of the gradient runs",
     )
     parser.add_argument(
         "--gradient-horizons",
-        type=_positive_floats,
+        type=_horizons,
         default=(0.25, 1.0, 4.0),
         help="horizons (s) of the gradient runs (memory against horizon)",
     )
     parser.add_argument(
         "--numpy-draws",
-        type=_positive_ints,
+        type=arguments.positive_ints,
         default=None,
         help="draw counts of the NumPy reference (default: the forward ones)",
     )
-    parser.add_argument(
-        "--numpy-horizon", type=_positive_float, default=0.25, help="NumPy horizon (s)"
-    )
+    parser.add_argument("--numpy-horizon", type=_horizon, default=0.25, help="NumPy horizon (s)")
     parser.add_argument(
         "--scaling",
         action="store_true",
@@ -148,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--devices",
-        type=_positive_int,
+        type=arguments.positive_int,
         default=None,
         help="CPU only: XLA host devices to split the draws over (default: CPU cores)",
     )
@@ -158,17 +143,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="tiny sizes for a smoke test (seconds, not minutes; figures meaningless)",
     )
     return parser
-
-
-def _configure_devices(requested: int | None) -> int | None:
-    """Ask XLA for one CPU device per core unless JAX has started (then leave it)."""
-    if "jax" in sys.modules:
-        return None
-    count = requested or os.cpu_count() or 1
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_force_host_platform_device_count" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
-    return count
 
 
 # ----------------------------------------------------------------------------- pieces
@@ -442,6 +416,7 @@ UNITS = {
 
 
 def main(argv=None) -> dict:
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     if args.small:
         args.draws = (min(args.draws[0], 4),)
@@ -451,7 +426,12 @@ def main(argv=None) -> dict:
         args.gradient_horizons = (0.02,)
         args.numpy_draws = args.draws
         args.numpy_horizon = 0.02
-    requested_devices = _configure_devices(args.devices)
+    requested_devices = arguments.use_host_devices(args.devices)
+    if args.devices is not None and requested_devices is None:
+        _log(
+            f"--devices {args.devices} ignored: XLA_FLAGS already sets the host device "
+            "count, or JAX had started"
+        )
 
     import jax
     import numpy as np
@@ -485,6 +465,7 @@ def main(argv=None) -> dict:
             "jax": jax.__version__,
             "numpy": np.__version__,
         },
+        "provenance": study_layer.provenance(["fojax", "bench", *argv]),
         "units": UNITS,
         "forward": [],
         "gradient": [],
@@ -565,7 +546,7 @@ def main(argv=None) -> dict:
     _print_summary(result)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1))
+        study_layer.write_json(args.json, result)
         _log(f"wrote {args.json}")
     return result
 

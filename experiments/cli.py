@@ -5,6 +5,12 @@ fojax simulate ...           Monte Carlo study of a scenario (see fojax simulate
 fojax reproduce --out DIR    the paper's Section V with Monte Carlo (report, JSON, figures)
 fojax tune ...               gradient-based gain tuning (see fojax tune --help)
 fojax bench [--json FILE]    throughput, compile time and gradient cost
+fojax --version              the fojax, JAX and jaxlib versions
+
+Bad input ends in a message naming what to change and exit status 2, before anything
+is compiled. A file-system failure while a command runs (a full disk, a folder removed
+under it) ends in a one-line message and exit status 1; an interruption (Ctrl-C) in
+exit status 130, with what was finished kept.
 """
 
 from __future__ import annotations
@@ -57,6 +63,9 @@ def main(argv=None) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         parser.print_help()
         return 0 if argv else 2
+    if argv[0] == "--version":
+        print(_versions())
+        return 0
     args = parser.parse_args(argv[:1])
     module_name, _ = COMMANDS[args.command]
     if args.command in HOST_DEVICE_COMMANDS:
@@ -66,8 +75,35 @@ def main(argv=None) -> int:
     import importlib
 
     module = importlib.import_module(module_name)
-    status = module.main(argv[1:])
+    try:
+        status = module.main(argv[1:])
+    except KeyboardInterrupt:
+        print(f"\nfojax {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except OSError as error:
+        print(f"fojax {args.command}: error: {_describe(error)}", file=sys.stderr)
+        return 1
     return status if isinstance(status, int) else 0
+
+
+def _describe(error: OSError) -> str:
+    """``error`` as one line: what failed, on which file, and why."""
+    reason = error.strerror or str(error)
+    if error.filename is not None:
+        return f"cannot write or read {error.filename}: {reason}"
+    return reason
+
+
+def _versions() -> str:
+    from importlib import metadata
+
+    def version(name):
+        try:
+            return metadata.version(name)
+        except metadata.PackageNotFoundError:
+            return "not installed"
+
+    return " ".join(f"{name} {version(name)}" for name in ("fojax", "jax", "jaxlib"))
 
 
 if __name__ == "__main__":

@@ -1,8 +1,12 @@
-"""Figures of Monte Carlo runs: tracking, errors, inputs and paths, spread shaded.
+"""Figures of Monte Carlo runs: tracking, errors, inputs, paths, adaptive estimates.
 
 Each function takes ``{controller name: MonteCarloResult}`` (results with kept
-trajectories) and writes one PNG. Lines are the median over the kept draws, the shaded
-band their 5-95 % range; the reference is drawn in black.
+trajectories) and writes one PNG and a PDF beside it (:func:`experiments.style.save`).
+Lines are the median over the kept draws that did not diverge, the shaded band their
+5-95 % range; the reference is dashed black, on top. Inputs are drawn as the range the
+command covers at full rate within each saved block (``inputs_low``/``inputs_high``),
+not as samples: a command that chatters at every step fills its band. Each controller
+has one colour in every figure (:data:`experiments.style.CONTROLLER_COLORS`).
 """
 
 from __future__ import annotations
@@ -11,153 +15,172 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_all", "plot_errors", "plot_inputs", "plot_path", "plot_tracking"]
+from experiments import style
 
-COLORS = {
-    "afonftsmc": "tab:red",
-    "anftsmc": "tab:blue",
-    "fobsmc": "tab:green",
-    "bsmc": "tab:purple",
-    "fl": "tab:orange",
-}
+__all__ = [
+    "plot_adaptive",
+    "plot_all",
+    "plot_errors",
+    "plot_inputs",
+    "plot_path",
+    "plot_tracking",
+]
 
+COLORS = style.CONTROLLER_COLORS  # kept for callers of the old name
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+AXES = ("x", "y", "z", "phi", "theta", "psi")
+INPUTS = ("u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)")
 
 
-def _color(name: str, index: int) -> str:
-    return COLORS.get(name, f"C{index % 10}")
+def _time(result) -> np.ndarray:
+    return np.asarray(result.trajectories.time[0])
 
 
-def _band(ax, t, values, color, label):
-    """Median line and 5-95 % band of ``values`` ``(draws, time)``."""
-    values = np.asarray(values, dtype=float)
-    low, mid, high = np.nanpercentile(values, [5, 50, 95], axis=0)
-    ax.plot(t, mid, color=color, lw=1.2, label=label)
-    if values.shape[0] > 1:
-        ax.fill_between(t, low, high, color=color, alpha=0.25, lw=0)
+def _valid(result, array) -> np.ndarray:
+    """``array`` of the kept draws that did not diverge."""
+    return np.asarray(array)[style.valid_kept(result)]
 
 
-def _series(result):
-    tr = result.trajectories
-    t = np.asarray(tr.time[0])
-    return tr, t
+def _figure(rows, cols, size):
+    plt = style.pyplot()
+    fig = plt.figure(figsize=size, layout="constrained")
+    axes = fig.subplots(rows, cols, sharex=True, squeeze=False)
+    return fig, axes
 
 
-def _title(fig, title, results):
-    kept = min(r.trajectories.time.shape[0] for r in results.values())
-    fig.suptitle(f"{title} (median, 5-95 % band over {kept} draws)", fontsize=10)
+def _finish(fig, axes, path, title, caption, handles):
+    for ax in axes[-1]:
+        ax.set_xlabel("t (s)")
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+    style.suptitle(fig, title, caption)
+    style.legend_below(fig, handles)
+    return style.save(fig, path)
+
+
+def _controller_handles(results: dict):
+    from matplotlib.lines import Line2D
+
+    return [
+        Line2D([], [], color=style.color(name, i), lw=2, label=style.label(name, result))
+        for i, (name, result) in enumerate(results.items())
+    ]
 
 
 def plot_tracking(results: dict, path: Path, title: str = "Tracking") -> Path:
     """Position ``x, y, z`` and attitude ``phi, theta, psi`` against their references."""
-    plt = _pyplot()
-    fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex=True)
+    fig, axes = _figure(3, 2, (11, 8))
     labels = ["x (m)", "y (m)", "z (m)", "phi (rad)", "theta (rad)", "psi (rad)"]
     first = next(iter(results.values()))
-    tr0, t0 = _series(first)
+    t0 = _time(first)
     for i, (name, result) in enumerate(results.items()):
-        tr, t = _series(result)
+        state = _valid(result, result.trajectories.state)
         for axis in range(6):
-            ax = axes[axis % 3, axis // 3]
-            _band(ax, t, tr.state[:, :, axis], _color(name, i), name)
+            style.band(
+                axes[axis % 3, axis // 3], _time(result), state[:, :, axis], style.color(name, i)
+            )
+    ref = np.asarray(first.trajectories.reference)
+    handles = _controller_handles(results)
     for axis in range(3):
-        axes[axis, 0].plot(t0, np.median(tr0.reference[:, :, axis], 0), "k--", lw=1, label="ref")
-    axes[2, 1].plot(t0, np.median(tr0.reference[:, :, 3], 0), "k--", lw=1, label="ref")
-    for axis, label in enumerate(labels):
-        ax = axes[axis % 3, axis // 3]
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8, loc="best")
-    axes[2, 0].set_xlabel("t (s)")
-    axes[2, 1].set_xlabel("t (s)")
-    _title(fig, title, results)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+        line = style.reference(axes[axis, 0], t0, np.median(ref[:, :, axis], 0))
+    style.reference(axes[2, 1], t0, np.median(ref[:, :, 3], 0))
+    for axis, text in enumerate(labels):
+        axes[axis % 3, axis // 3].set_ylabel(text)
+    axes[0, 1].set_title(
+        "phi, theta: no reference drawn (each controller commands its own)", fontsize=8
+    )
+    return _finish(fig, axes, path, title, style.draws_caption(results), handles + [line])
 
 
 def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Path:
     """Position errors ``e = X - X_r`` and attitude errors against the commanded attitude."""
-    plt = _pyplot()
-    fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex=True)
+    fig, axes = _figure(3, 2, (11, 8))
     labels = ["e_x (m)", "e_y (m)", "e_z (m)", "e_phi (rad)", "e_theta (rad)", "e_psi (rad)"]
+    for ax in axes.flat:
+        ax.axhline(0.0, color="0.4", lw=0.6, zorder=1)
     for i, (name, result) in enumerate(results.items()):
-        tr, t = _series(result)
-        position_error = tr.state[:, :, :3] - tr.reference[:, :, :3]
-        attitude_error = tr.state[:, :, 3:6] - tr.info.attitude_reference
-        errors = np.concatenate([position_error, attitude_error], axis=-1)
+        tr = result.trajectories
+        position_error = np.asarray(tr.state)[:, :, :3] - np.asarray(tr.reference)[:, :, :3]
+        attitude_error = np.asarray(tr.state)[:, :, 3:6] - np.asarray(tr.info.attitude_reference)
+        errors = _valid(result, np.concatenate([position_error, attitude_error], axis=-1))
         for axis in range(6):
-            _band(axes[axis % 3, axis // 3], t, errors[:, :, axis], _color(name, i), name)
-    for axis, label in enumerate(labels):
-        ax = axes[axis % 3, axis // 3]
-        ax.set_ylabel(label)
-        ax.axhline(0.0, color="k", lw=0.5)
-        ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8, loc="best")
-    axes[2, 0].set_xlabel("t (s)")
-    axes[2, 1].set_xlabel("t (s)")
-    _title(fig, title, results)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+            style.band(
+                axes[axis % 3, axis // 3], _time(result), errors[:, :, axis], style.color(name, i)
+            )
+    for axis, text in enumerate(labels):
+        axes[axis % 3, axis // 3].set_ylabel(text)
+    return _finish(
+        fig, axes, path, title, style.draws_caption(results), _controller_handles(results)
+    )
+
+
+def _inputs_envelope(result):
+    """``(low, high)`` ``(draws, blocks, 4)`` of the kept draws that did not diverge;
+    the samples themselves where a store predates the envelope."""
+    tr = result.trajectories
+    low = getattr(tr, "inputs_low", None)
+    high = getattr(tr, "inputs_high", None)
+    if low is None or high is None:
+        return _valid(result, tr.inputs), _valid(result, tr.inputs)
+    return _valid(result, low), _valid(result, high)
 
 
 def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Path:
-    """Thrust ``u_F`` and torques ``tau_x, tau_y, tau_z`` (sampled at the snapshots)."""
-    plt = _pyplot()
-    fig, axes = plt.subplots(2, 2, figsize=(11, 6), sharex=True)
-    labels = ["u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)"]
+    """Thrust ``u_F`` and torques ``tau_x, tau_y, tau_z``, one column per controller:
+    the range each command covers at full rate within every saved block (median over
+    draws of its low and high edges). A command that switches at every step fills its
+    band; one that does not is a line."""
+    plt = style.pyplot()
+    n = len(results)
+    fig = plt.figure(figsize=(max(10.0, 2.6 * n + 1.5), 8), layout="constrained")
+    axes = fig.subplots(4, n, sharex=True, sharey="row", squeeze=False)
     for i, (name, result) in enumerate(results.items()):
-        tr, t = _series(result)
+        low, high = _inputs_envelope(result)
+        color = style.color(name, i)
+        axes[0, i].set_title(style.label(name, result), color=color, fontsize=10)
+        if low.shape[0] == 0:
+            continue
         for channel in range(4):
-            _band(axes.flat[channel], t, tr.inputs[:, :, channel], _color(name, i), name)
-    for channel, label in enumerate(labels):
-        axes.flat[channel].set_ylabel(label)
-        axes.flat[channel].grid(alpha=0.3)
-    axes.flat[0].legend(fontsize=8, loc="best")
-    axes[1, 0].set_xlabel("t (s)")
-    axes[1, 1].set_xlabel("t (s)")
-    _title(fig, title, results)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+            style.envelope(
+                axes[channel, i], _time(result), low[:, :, channel], high[:, :, channel], color
+            )
+    for channel in range(4):
+        axes[channel, 0].set_ylabel(INPUTS[channel])
+    for ax in axes[-1]:
+        ax.set_xlabel("t (s)")
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+    t = _time(next(iter(results.values())))
+    block = float(t[1] - t[0]) if t.size > 1 else float("nan")
+    caption = style.draws_caption(results).replace(
+        "median and 5-95 % band",
+        f"band: each command's range (min to max over every step) within each {block:g} s "
+        "block, median",
+    )
+    style.suptitle(fig, title, caption)
+    return style.save(fig, path)
 
 
 def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) -> Path:
     """3-D path (left) and its top view (right): the reference and a few draws."""
-    plt = _pyplot()
-    fig = plt.figure(figsize=(12, 5.5))
+    plt = style.pyplot()
+    fig = plt.figure(figsize=(12, 5.8), layout="constrained")
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     ax2 = fig.add_subplot(1, 2, 2)
     first = next(iter(results.values()))
-    ref = first.trajectories.reference[0]
-    ax3.plot(ref[:, 0], ref[:, 1], ref[:, 2], "k--", lw=1.2, label="ref")
-    ax2.plot(ref[:, 0], ref[:, 1], "k--", lw=1.2, label="ref")
+    ref = np.asarray(first.trajectories.reference[0])
+    shown = 0
     for i, (name, result) in enumerate(results.items()):
-        state = result.trajectories.state
-        color = _color(name, i)
+        state = _valid(result, result.trajectories.state)
+        color = style.color(name, i)
+        shown = max(shown, min(draws, state.shape[0]))
         for d in range(min(draws, state.shape[0])):
-            label = name if d == 0 else None
-            ax3.plot(
-                state[d, :, 0],
-                state[d, :, 1],
-                state[d, :, 2],
-                color=color,
-                lw=0.7,
-                alpha=0.7,
-                label=label,
-            )
-            ax2.plot(state[d, :, 0], state[d, :, 1], color=color, lw=0.7, alpha=0.7, label=label)
+            ax3.plot(state[d, :, 0], state[d, :, 1], state[d, :, 2], color=color, lw=0.7, alpha=0.7)
+            ax2.plot(state[d, :, 0], state[d, :, 1], color=color, lw=0.7, alpha=0.7, zorder=3)
+    line = style.reference(ax2, ref[:, 0], ref[:, 1])
+    ax3.plot(
+        ref[:, 0], ref[:, 1], ref[:, 2], color=style.REFERENCE_COLOR, ls="--", lw=1.3, zorder=10
+    )
     ax3.set_xlabel("x (m)")
     ax3.set_ylabel("y (m)")
     ax3.set_zlabel("z (m)")
@@ -165,60 +188,74 @@ def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) ->
     ax2.set_ylabel("y (m)")
     ax2.set_aspect("equal", adjustable="datalim")
     ax2.grid(alpha=0.3)
-    ax2.legend(fontsize=8, loc="best")
-    fig.suptitle(f"{title} (first {draws} draws per controller)", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    total = first.draws
+    style.suptitle(
+        fig,
+        title,
+        f"one line per draw: the first {shown} of {total} draws per controller "
+        "(diverged draws left out)",
+    )
+    style.legend_below(fig, _controller_handles(results) + [line])
+    return style.save(fig, path)
 
 
 def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") -> Path:
-    """Adaptive bound estimates ``b0, b1, b2`` per axis, for controllers that adapt."""
-    plt = _pyplot()
-    fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex=True)
-    labels = ["x", "y", "z", "phi", "theta", "psi"]
+    """Adaptive bound estimates ``b0, b1, b2`` per axis, for controllers that adapt:
+    the controller's colour, one line style per estimate (solid b0, dashed b1, dotted
+    b2), median over draws."""
+    from matplotlib.lines import Line2D
+
+    fig, axes = _figure(3, 2, (11, 8))
+    handles = []
     for i, (name, result) in enumerate(results.items()):
-        tr, t = _series(result)
-        adaptive = np.asarray(tr.info.adaptive)  # (draws, time, 6, 3)
-        if not np.any(adaptive):
+        adaptive = _valid(result, result.trajectories.info.adaptive)  # (draws, time, 6, 3)
+        if adaptive.shape[0] == 0 or not np.any(adaptive):
             continue
+        color = style.color(name, i)
+        handles.append(Line2D([], [], color=color, lw=2, label=style.label(name, result)))
         for axis in range(6):
             ax = axes[axis % 3, axis // 3]
-            for j, style in enumerate(("-", "--", ":")):
-                values = adaptive[:, :, axis, j]
+            for j, ls in enumerate(style.ESTIMATE_STYLES):
                 ax.plot(
-                    t,
-                    np.median(values, 0),
-                    style,
-                    color=_color(name, i),
-                    lw=1,
-                    label=f"{name} b{j}" if axis == 0 else None,
+                    _time(result), np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1
                 )
-    for axis, label in enumerate(labels):
-        ax = axes[axis % 3, axis // 3]
-        ax.set_ylabel(f"{label}: b0, b1, b2")
-        ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8, loc="best")
-    axes[2, 0].set_xlabel("t (s)")
-    axes[2, 1].set_xlabel("t (s)")
-    fig.suptitle(f"{title} (median over draws; solid b0, dashed b1, dotted b2)", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    handles += [
+        Line2D([], [], color="0.3", ls=ls, lw=1.1, label=f"b{j}")
+        for j, ls in enumerate(style.ESTIMATE_STYLES)
+    ]
+    for axis, text in enumerate(AXES):
+        axes[axis % 3, axis // 3].set_ylabel(f"{text}: b0, b1, b2")
+    caption = style.draws_caption(results).replace("median and 5-95 % band", "median")
+    return _finish(fig, axes, path, title, caption, handles)
 
 
-def plot_all(results: dict, directory: Path, prefix: str = "") -> list[Path]:
-    """All figures above into ``directory``; returns their paths."""
+FIGURES = (
+    ("tracking", plot_tracking, "Tracking"),
+    ("errors", plot_errors, "Tracking errors"),
+    ("inputs", plot_inputs, "Control inputs"),
+    ("path3d", plot_path, "Path"),
+    ("adaptive", plot_adaptive, "Adaptive estimates"),
+)
+
+
+def plot_all(results: dict, directory: Path, prefix: str = "", context: str = "") -> list[Path]:
+    """All figures above into ``directory``; returns the paths of the PNGs drawn.
+
+    ``context``: appended to each title (e.g. the scenario and switching). A figure
+    that fails is reported as a warning naming it (:func:`style.attempt`); the others
+    are still drawn.
+    """
     directory = Path(directory)
     results = {k: r for k, r in results.items() if r.trajectories is not None}
     if not results:
         return []
-    return [
-        plot_tracking(results, directory / f"{prefix}tracking.png"),
-        plot_errors(results, directory / f"{prefix}errors.png"),
-        plot_inputs(results, directory / f"{prefix}inputs.png"),
-        plot_path(results, directory / f"{prefix}path3d.png"),
-        plot_adaptive(results, directory / f"{prefix}adaptive.png"),
-    ]
+    adapts = any(np.any(np.asarray(r.trajectories.info.adaptive)) for r in results.values())
+    paths = []
+    for stem, maker, title in FIGURES:
+        if stem == "adaptive" and not adapts:
+            continue  # no controller here adapts: nothing to draw
+        path = directory / f"{prefix}{stem}.png"
+        title = f"{title}: {context}" if context else title
+        if style.attempt(path.name, maker, results, path, title) is not None:
+            paths.append(path)
+    return paths

@@ -4,23 +4,28 @@ For each method and order, the worst relative error over the horizon (default 80
 1 ms) on test signals with exact differintegrals (sin, cos, step, ramp, t^2 and the
 Mittag-Leffler relaxation), the cost per step (modes, flops, state) and the measured
 wall time per channel-step. Writes ``accuracy.json``, ``accuracy.md`` (the table of
-``docs/fractional.md``) and ``accuracy.png`` to ``--out``.
+``docs/fractional.md``) and ``accuracy.png`` (and ``accuracy.pdf``) to ``--out``;
+``accuracy.json`` also records the command line, versions and devices
+(:func:`experiments.study.provenance`).
 
-    python -m experiments.fractional_accuracy --out results/fractional
+    fojax accuracy --out results/fractional
+    (or python -m experiments.fractional_accuracy --out results/fractional)
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import arguments, style
 from experiments import references as ref
+from experiments import study as study_layer
 from fojax import fractional
 
 ORDERS = (0.01, 0.1, 0.3, 0.5, 0.7, 0.9, 0.99)
@@ -178,54 +183,86 @@ def markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(results: dict, path: pathlib.Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def plot(results: dict, path: pathlib.Path) -> pathlib.Path:
+    plt = style.pyplot()
     orders = results["orders"]
     smooth = ["sin(1.7t)", "ramp", "t^2"]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    fig = plt.figure(figsize=(11, 4.6), layout="constrained")
+    axes = fig.subplots(1, 2, sharey=True)
     for ax, sign, title in (
         (axes[0], -1, "integral of order a"),
         (axes[1], 1, "derivative of order a"),
     ):
-        for label, r in results["methods"].items():
+        markers = ("o", "s", "^", "D", "v", "P", "X")
+        for index, (label, r) in enumerate(results["methods"].items()):
             errs = [max(r["errors"][f"{sign * o:+.2f}"][s] for s in smooth) for o in orders]
-            ax.semilogy(orders, errs, marker="o", label=label)
-        ax.axhline(1e-4, color="k", ls="--", lw=0.8)
+            # Hollow markers shrinking with the index: methods whose errors coincide
+            # (e.g. full and short GL memory at short horizons) stay visible.
+            ax.semilogy(
+                orders, errs, marker=markers[index % len(markers)], ms=10 - index, mfc="none",
+                mew=1.3, lw=1.2, label=label,
+            )  # fmt: skip
+        ax.axhline(1e-4, color="k", ls="--", lw=0.8, label="1e-4")
         ax.set_xlabel("order a")
         ax.set_title(title)
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel(f"worst relative error over {results['horizon_s']:g} s")
-    axes[1].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    handles, labels = axes[0].get_legend_handles_labels()
+    style.legend_below(fig, handles, labels, ncol=4)
+    return style.save(fig, path)
 
 
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="results/fractional", help="output folder")
-    parser.add_argument("--horizon", type=float, default=80.0, help="seconds (default 80)")
-    parser.add_argument("--dt", type=float, default=1e-3, help="step in seconds (default 1e-3)")
+MAX_STEPS = 1_000_000
+"""The full-memory Grunwald-Letnikov reference costs steps^2: beyond this it would not
+finish (80 s at 1 ms, the default, is 80,000)."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fojax accuracy", description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--out",
+        type=arguments.output_directory,
+        default=pathlib.Path("results/fractional"),
+        metavar="DIR",
+        help="output folder (results/fractional)",
+    )
+    parser.add_argument(
+        "--horizon", type=arguments.positive_float, default=80.0, help="seconds (default 80)"
+    )
+    parser.add_argument(
+        "--dt", type=arguments.positive_float, default=1e-3, help="step in seconds (default 1e-3)"
+    )
+    return parser
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
     args = parser.parse_args(argv)
-    if args.horizon <= 0 or args.dt <= 0 or args.dt >= args.horizon:
-        parser.error("need 0 < dt < horizon")
+    if args.dt >= args.horizon:
+        parser.error(f"--dt ({args.dt:g} s) must be smaller than --horizon ({args.horizon:g} s)")
+    steps = round(args.horizon / args.dt)
+    if steps > MAX_STEPS:
+        parser.error(
+            f"--horizon / --dt is {steps} steps; at most {MAX_STEPS} (the full-memory "
+            "reference costs steps^2): use a shorter --horizon or a larger --dt"
+        )
     jax.config.update("jax_enable_x64", True)
-    out = pathlib.Path(args.out)
+    out = args.out
     out.mkdir(parents=True, exist_ok=True)
     print(f"fractional accuracy: {args.horizon:g} s at dt = {args.dt:g} s (float64)", flush=True)
     results = evaluate(args.horizon, args.dt)
-    (out / "accuracy.json").write_text(json.dumps(results, indent=1))
+    results["provenance"] = study_layer.provenance(["fojax", "accuracy", *argv])
+    study_layer.write_json(out / "accuracy.json", results)
     table = markdown(results)
     (out / "accuracy.md").write_text(table)
-    plot(results, out / "accuracy.png")
     print(table)
-    print(f"wrote {out}/accuracy.json, accuracy.md, accuracy.png")
-    return results
+    written = ["accuracy.json", "accuracy.md"]
+    if style.attempt("accuracy.png", plot, results, out / "accuracy.png") is not None:
+        written.append("accuracy.png (+ .pdf)")
+    print(f"wrote {out}/: {', '.join(written)}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -13,10 +13,15 @@ Per scenario ``k`` (1, 2, 3) four figures, numbered as in the paper
   the AFONFTSMC (solid) and ``a0, a1, a2`` of the ANFTSMC (dashed), (a) position axes,
   (b) attitude axes.
 
-Lines are medians over the kept draws, bands their 5-95 % range, sampled at the
-snapshot interval (0.1 s by default): inputs that switch every 1 ms step appear as a
-wide band, not as a line. Input: ``{scenario id: {controller: MonteCarloResult}}``
-with kept trajectories.
+Lines are medians over the kept draws that did not diverge, bands their 5-95 % range;
+each title says how many draws that is and how many the tables use. States are
+sampled at the snapshot interval (0.1 s by default); the control inputs are drawn as
+the range each command covers at full rate within every snapshot block
+(``inputs_low``/``inputs_high``), so a command switching at every 1 ms step fills a
+band instead of aliasing into spikes. Each controller has one colour in every figure
+(:data:`experiments.style.CONTROLLER_COLORS`); the reference is dashed black, on top.
+Each figure is a PNG (:data:`experiments.style.DPI`) with a PDF beside it. Input:
+``{scenario id: {controller: MonteCarloResult}}`` with kept trajectories.
 """
 
 from __future__ import annotations
@@ -25,20 +30,20 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.figures import _band, _color, _pyplot
+from experiments import style
 
 __all__ = ["FIGURE_NUMBERS", "plot_all"]
 
 FIGURE_NUMBERS = {1: (5, 6, 7, 8), 2: (9, 10, 11, 12), 3: (13, 14, 15, 16)}
-DPI = 80
+DPI = style.DPI
 
 
 def _kept(results: dict) -> dict:
     return {name: r for name, r in results.items() if r.trajectories is not None}
 
 
-def _draw_count(results: dict) -> int:
-    return min(r.trajectories.time.shape[0] for r in results.values())
+def _valid(result, array) -> np.ndarray:
+    return np.asarray(array)[style.valid_kept(result)]
 
 
 def _reference_velocity(scenario_id: int, times: np.ndarray) -> np.ndarray:
@@ -56,73 +61,100 @@ def _reference_velocity(scenario_id: int, times: np.ndarray) -> np.ndarray:
     return np.asarray(jax.vmap(velocity)(jnp.asarray(times, jnp.float32)))
 
 
-def _finish(fig, path: Path, title: str, results: dict, spread: str | None = None) -> Path:
-    """Title, layout, and a PNG quantised to 128 colours (about a third of the size)."""
-    import io
+def _handles(results: dict, reference: bool = True, extra=()):
+    from matplotlib.lines import Line2D
 
-    from PIL import Image
-
-    plt = _pyplot()
-    spread = spread or f"median and 5-95 % band over {_draw_count(results)} Monte Carlo draws"
-    fig.suptitle(f"{title}\n({spread})", fontsize=10)
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, dpi=DPI, format="png")
-    plt.close(fig)
-    buffer.seek(0)
-    with Image.open(buffer) as image:
-        image.convert("RGB").quantize(colors=128).save(path, optimize=True)
-    return path
+    handles = [
+        Line2D([], [], color=style.color(name, i), lw=2, label=style.label(name, result))
+        for i, (name, result) in enumerate(results.items())
+    ]
+    if reference:
+        handles.append(
+            Line2D([], [], color=style.REFERENCE_COLOR, ls="--", lw=1.2, label="reference")
+        )
+    return handles + list(extra)
 
 
-def _legend(ax):
-    ax.legend(fontsize=7, loc="best", ncol=2, framealpha=0.7)
+def _finish(fig, path: Path, title: str, results: dict, handles, spread: str | None = None):
+    """Title with the true draw counts, legend below the axes, PNG and PDF."""
+    spread = spread or style.draws_caption(results).replace(
+        "the statistics in summary.json", "the tables"
+    )
+    style.suptitle(fig, title, spread)
+    style.legend_below(fig, handles)
+    return style.save(fig, path, quantize=True)
+
+
+def _figure(rows, cols, size):
+    plt = style.pyplot()
+    fig = plt.figure(figsize=size, layout="constrained")
+    return fig, fig.subplots(rows, cols, sharex=True, squeeze=False)
 
 
 def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> Path:
     """Fig. 5/9/13: (a) position tracking, (b) attitude tracking."""
-    plt = _pyplot()
-    fig, axes = plt.subplots(3, 2, figsize=(11, 7.5), sharex=True)
+    fig, axes = _figure(3, 2, (11, 8))
     first = next(iter(results.values())).trajectories
     t = np.asarray(first.time[0])
     for i, (name, result) in enumerate(results.items()):
-        tr = result.trajectories
+        state = _valid(result, result.trajectories.state)
         for axis in range(6):
-            _band(axes[axis % 3, axis // 3], t, tr.state[:, :, axis], _color(name, i), name)
+            style.band(axes[axis % 3, axis // 3], t, state[:, :, axis], style.color(name, i))
     for axis in range(3):
-        axes[axis, 0].plot(t, first.reference[0, :, axis], "k--", lw=1, label="reference")
-    axes[2, 1].plot(t, first.reference[0, :, 3], "k--", lw=1, label="reference")
+        style.reference(axes[axis, 0], t, first.reference[0, :, axis])
+    style.reference(axes[2, 1], t, first.reference[0, :, 3])
     labels = ["x (m)", "y (m)", "z (m)", "phi (rad)", "theta (rad)", "psi (rad)"]
     for axis, label in enumerate(labels):
         ax = axes[axis % 3, axis // 3]
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[0, 0].set_title("(a) Position tracking", fontsize=9)
-    axes[0, 1].set_title("(b) Attitude tracking", fontsize=9)
-    _legend(axes[0, 0])
+    axes[0, 1].set_title("(b) Attitude tracking (phi, theta sampled every snapshot)", fontsize=9)
     for ax in axes[2]:
         ax.set_xlabel("t (s)")
     title = f"Fig. {number}: Path following performance in Scenario {scenario_id}"
-    return _finish(fig, path, title, results)
+    return _finish(fig, path, title, results, _handles(results))
+
+
+def _envelopes(result):
+    tr = result.trajectories
+    low = getattr(tr, "inputs_low", None)
+    high = getattr(tr, "inputs_high", None)
+    if low is None or high is None:
+        return _valid(result, tr.inputs), _valid(result, tr.inputs)
+    return _valid(result, low), _valid(result, high)
 
 
 def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int) -> Path:
     """Fig. 6/10/14: (a) control inputs, (b) position and velocity tracking errors."""
-    plt = _pyplot()
-    fig, axes = plt.subplots(4, 2, figsize=(11, 8.5), sharex=True)
+    fig, axes = _figure(4, 2, (11, 9))
     first = next(iter(results.values())).trajectories
     t = np.asarray(first.time[0])
     reference_velocity = _reference_velocity(scenario_id, t)
-    for i, (name, result) in enumerate(results.items()):
+    colors = {name: style.color(name, i) for i, name in enumerate(results)}
+    envelopes = {name: _envelopes(result) for name, result in results.items()}
+    for channel in range(4):
+
+        def width(name, channel=channel):
+            low, high = envelopes[name]
+            return float(np.nanmean(high[..., channel] - low[..., channel])) if low.size else 0.0
+
+        # The widest bands first: narrower ones stay visible over them.
+        for name in sorted(results, key=width, reverse=True):
+            low, high = envelopes[name]
+            if low.shape[0]:
+                style.envelope(
+                    axes[channel, 0], t, low[:, :, channel], high[:, :, channel],
+                    colors[name], alpha=0.12,
+                )  # fmt: skip
+    for name, result in results.items():
         tr = result.trajectories
-        color = _color(name, i)
-        for channel in range(4):
-            _band(axes[channel, 0], t, tr.inputs[:, :, channel], color, name)
-        position_error = tr.state[:, :, :3] - tr.reference[:, :, :3]
+        position_error = _valid(result, np.asarray(tr.state)[:, :, :3] - tr.reference[:, :, :3])
         for axis in range(3):
-            _band(axes[axis, 1], t, position_error[:, :, axis], color, name)
-        velocity_error = np.linalg.norm(tr.state[:, :, 6:9] - reference_velocity[None], axis=-1)
-        _band(axes[3, 1], t, velocity_error, color, name)
+            style.band(axes[axis, 1], t, position_error[:, :, axis], colors[name])
+        velocity = _valid(result, tr.state)[:, :, 6:9]
+        velocity_error = np.linalg.norm(velocity - reference_velocity[None], axis=-1)
+        style.band(axes[3, 1], t, velocity_error, colors[name])
     inputs = ["u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)"]
     errors = ["e_x (m)", "e_y (m)", "e_z (m)", "|e_v| (m/s)"]
     for row in range(4):
@@ -130,34 +162,40 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
         axes[row, 1].set_ylabel(errors[row])
         for ax in axes[row]:
             ax.grid(alpha=0.3)
-        axes[row, 1].axhline(0.0, color="k", lw=0.5)
-    axes[0, 0].set_title("(a) Control inputs", fontsize=9)
+        axes[row, 1].axhline(0.0, color="0.4", lw=0.6, zorder=1)
+    block = float(t[1] - t[0]) if t.size > 1 else float("nan")
+    axes[0, 0].set_title(
+        f"(a) Control inputs: each command's range within every {block:g} s block "
+        "(median over draws)",
+        fontsize=9,
+    )
     axes[0, 1].set_title("(b) Tracking errors (position; velocity error norm)", fontsize=9)
-    _legend(axes[0, 0])
     for ax in axes[3]:
         ax.set_xlabel("t (s)")
     title = f"Fig. {number}: Control inputs & tracking errors in Scenario {scenario_id}"
-    return _finish(fig, path, title, results)
+    return _finish(fig, path, title, results, _handles(results, reference=False))
 
 
 def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: int = 3) -> Path:
     """Fig. 7/11/15: (a) 3-D path, (b) 2-D path; median path bold, a few draws faint."""
-    plt = _pyplot()
-    fig = plt.figure(figsize=(12, 5.5))
+    plt = style.pyplot()
+    fig = plt.figure(figsize=(12, 6), layout="constrained")
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     ax2 = fig.add_subplot(1, 2, 2)
     first = next(iter(results.values())).trajectories
-    ref = first.reference[0]
-    ax3.plot(ref[:, 0], ref[:, 1], ref[:, 2], "k--", lw=1.2, label="reference")
-    ax2.plot(ref[:, 0], ref[:, 1], "k--", lw=1.2, label="reference")
+    ref = np.asarray(first.reference[0])
     for i, (name, result) in enumerate(results.items()):
-        state = np.asarray(result.trajectories.state)
-        color = _color(name, i)
+        state = _valid(result, result.trajectories.state)
+        if state.shape[0] == 0:
+            continue
+        color = style.color(name, i)
         median = np.median(state[:, :, :3], axis=0)
-        ax3.plot(median[:, 0], median[:, 1], median[:, 2], color=color, lw=1.1, label=name)
-        ax2.plot(median[:, 0], median[:, 1], color=color, lw=1.1, label=name)
+        ax3.plot(median[:, 0], median[:, 1], median[:, 2], color=color, lw=1.1)
+        ax2.plot(median[:, 0], median[:, 1], color=color, lw=1.1, zorder=3)
         for d in range(min(faint, state.shape[0])):
-            ax2.plot(state[d, :, 0], state[d, :, 1], color=color, lw=0.5, alpha=0.3)
+            ax2.plot(state[d, :, 0], state[d, :, 1], color=color, lw=0.5, alpha=0.3, zorder=2)
+    ax3.plot(ref[:, 0], ref[:, 1], ref[:, 2], color=style.REFERENCE_COLOR, ls="--", lw=1.2)
+    style.reference(ax2, ref[:, 0], ref[:, 1])
     ax3.set_xlabel("x (m)")
     ax3.set_ylabel("y (m)")
     ax3.set_zlabel("z (m)")
@@ -167,35 +205,45 @@ def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: 
     ax2.set_aspect("equal", adjustable="datalim")
     ax2.grid(alpha=0.3)
     ax2.set_title(f"(b) 2-D trajectory tracking (faint: {faint} single draws)", fontsize=9)
-    _legend(ax2)
     title = f"Fig. {number}: Path following performance in Scenario {scenario_id}"
-    spread = f"median path over {_draw_count(results)} Monte Carlo draws"
-    return _finish(fig, path, title, results, spread)
+    spread = (
+        style.draws_caption(results)
+        .replace("median and 5-95 % band", "median path")
+        .replace("the statistics in summary.json", "the tables")
+    )
+    return _finish(fig, path, title, results, _handles(results), spread)
 
 
 ADAPTIVE = {"afonftsmc": ("b0", "b1", "b2"), "anftsmc": ("a0", "a1", "a2")}
 
 
 def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) -> Path:
-    """Fig. 8/12/16: adaptive estimates, (a) position axes, (b) attitude axes."""
-    plt = _pyplot()
-    fig, axes = plt.subplots(3, 2, figsize=(11, 7.5), sharex=True)
+    """Fig. 8/12/16: adaptive estimates, (a) position axes, (b) attitude axes: each
+    controller in its colour, one line style per estimate (solid b0/a0, dashed b1/a1,
+    dotted b2/a2)."""
+    from matplotlib.lines import Line2D
+
+    fig, axes = _figure(3, 2, (11, 8))
     first = next(iter(results.values())).trajectories
     t = np.asarray(first.time[0])
-    shades = ("tab:red", "tab:blue", "tab:green")
-    for name, symbols in ADAPTIVE.items():
-        if name not in results:
+    shown = {}
+    for index, (name, result) in enumerate(results.items()):
+        if name not in ADAPTIVE:
             continue
-        adaptive = np.asarray(results[name].trajectories.info.adaptive)  # (draws, T, 6, 3)
-        style = "-" if name == "afonftsmc" else "--"
+        symbols = ADAPTIVE[name]
+        adaptive = _valid(result, result.trajectories.info.adaptive)  # (draws, T, 6, 3)
+        if adaptive.shape[0] == 0:
+            continue
+        color = style.color(name, index)
+        shown[name] = result
         for axis in range(6):
             ax = axes[axis % 3, axis // 3]
-            for j, symbol in enumerate(symbols):
+            for j, ls in enumerate(style.ESTIMATE_STYLES[: len(symbols)]):
                 values = adaptive[:, :, axis, j]
-                low, mid, high = np.percentile(values, [5, 50, 95], axis=0)
-                ax.plot(t, mid, style, color=shades[j], lw=1.1, label=f"{name} {symbol}")
+                low, mid, high = np.percentile(values, style.BAND_PERCENTILES, axis=0)
+                ax.plot(t, mid, ls=ls, color=color, lw=1.1, zorder=3)
                 if values.shape[0] > 1 and name == "afonftsmc":
-                    ax.fill_between(t, low, high, color=shades[j], alpha=0.2, lw=0)
+                    ax.fill_between(t, low, high, color=color, alpha=0.12, lw=0, zorder=2)
     labels = ["x", "y", "z", "phi", "theta", "psi"]
     for axis, label in enumerate(labels):
         ax = axes[axis % 3, axis // 3]
@@ -203,18 +251,26 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
         ax.grid(alpha=0.3)
     axes[0, 0].set_title("(a) Parameters position", fontsize=9)
     axes[0, 1].set_title("(b) Parameters attitude", fontsize=9)
-    _legend(axes[0, 0])
     for ax in axes[2]:
         ax.set_xlabel("t (s)")
+    styles = [
+        Line2D(
+            [], [], color="0.3", ls=ls, lw=1.1, label=" / ".join(s[j] for s in ADAPTIVE.values())
+        )
+        for j, ls in enumerate(style.ESTIMATE_STYLES)
+    ]
     title = (
         f"Fig. {number}: Parameters estimation in Scenario {scenario_id} "
-        "(AFONFTSMC b-hat solid, ANFTSMC a-hat dashed)"
+        "(AFONFTSMC b-hat, ANFTSMC a-hat; band: AFONFTSMC 5-95 %)"
     )
-    return _finish(fig, path, title, results)
+    handles = _handles(shown or results, reference=False, extra=styles)
+    return _finish(fig, path, title, shown or results, handles)
 
 
 def plot_all(results_by_scenario: dict, directory: Path) -> list[Path]:
-    """Figs. 5-16 (those of the scenarios present) into ``directory``; their paths."""
+    """Figs. 5-16 (those of the scenarios present) into ``directory``; the PNGs' paths
+    (a PDF beside each). A figure that fails is a warning naming it; the others are
+    still drawn."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -230,5 +286,6 @@ def plot_all(results_by_scenario: dict, directory: Path) -> list[Path]:
             continue
         for (maker, stem), number in zip(makers, FIGURE_NUMBERS[scenario_id], strict=True):
             path = directory / f"fig{number:02d}_s{scenario_id}_{stem}.png"
-            paths.append(maker(results, path, number, scenario_id))
+            if style.attempt(path.name, maker, results, path, number, scenario_id) is not None:
+                paths.append(path)
     return paths

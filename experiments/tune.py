@@ -17,21 +17,31 @@ the gradient of the mean (or CVaR) cost. Writes to ``DIR``:
   interruption, the same command with ``--resume`` continues and gives the result the
   uninterrupted run would have given;
 * ``evaluation.json``: the cost of the initial and the tuned gains on
-  ``--eval-draws`` held-out draws (never used in tuning), with ``--eval-switching``.
+  ``--eval-draws`` held-out draws (never used in tuning), with ``--eval-switching``;
+* ``convergence.png`` (and ``.pdf``): the objective, the held-out costs and the
+  gradient norm against step and against wall time, drawn from ``history.csv``;
+* ``run.json``: what the run needs to be redone exactly: the initial gains' values and
+  their source, and per session (a first run, then each ``--resume``) the command
+  line, versions, backend and device counts (:func:`experiments.study.provenance`);
+  ``gains.json`` carries the same in its metadata.
 
 Every input is checked before anything is compiled or written; an existing
-checkpoint is never overwritten.
+checkpoint is never overwritten. The results are written before the figure; a
+figure that cannot be drawn is a warning.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
+import math
 import sys
 import time
 from pathlib import Path
 
-from experiments import arguments
+from experiments import arguments, style
+from experiments import study as study_layer
 
 __all__ = ["build_parser", "main", "parse_args"]
 
@@ -82,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
         parser.add_argument(
             f"--{name}-weight", type=arguments.nonnegative_float, default=value, help=f"({value:g})"
         )
-    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0, help="draws' seed (0)")
+    parser.add_argument("--seed", type=arguments.seed, default=0, help="draws' seed (0)")
     parser.add_argument(
         "--fields",
         default="default",
@@ -121,7 +131,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--eval-switching", choices=SWITCHING_FUNCTIONS, default="sat")
     parser.add_argument("--resume", action="store_true", help="continue the run in DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR")
+    parser.add_argument(
+        "--out",
+        required=True,
+        type=arguments.output_directory,
+        metavar="DIR",
+        help="output folder (created if needed)",
+    )
     return parser
 
 
@@ -134,9 +150,14 @@ def _initial_gains(parser, args, dtype):
     if args.init == "naive":
         return params.naive_gains(args.controller, dtype), "naive"
     try:
-        name, gains, _ = gains_io.load_gains(args.init, dtype)
+        path = arguments.check_input_file(args.init, "gains file")
     except ValueError as error:
-        parser.error(f"--init: {error}")
+        parser.error(f"--init: {error}; give paper, naive or a gains file (JSON)")
+    try:
+        name, gains, _ = gains_io.load_gains(path, dtype)
+    except ValueError as error:
+        message = str(error)
+        parser.error(f"--init: {message}" if str(path) in message else f"--init {path}: {message}")
     if name != args.controller:
         parser.error(f"--init {args.init} holds gains of {name!r}, not of {args.controller!r}")
     return gains, str(Path(args.init).resolve())
@@ -150,11 +171,10 @@ def parse_args(argv):
 
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.controller not in registry.controller_names():
-        parser.error(
-            f"unknown controller {args.controller!r}; choose one of "
-            f"{', '.join(registry.controller_names())}"
-        )
+    try:  # a registered name, 'package.module:Class' or an entry point
+        args.controller = registry.get_controller_class(args.controller).name
+    except (TypeError, ValueError) as error:
+        parser.error(str(error))
     if args.dtype == "float64":
         import jax
 
@@ -249,11 +269,166 @@ def _evaluate(run, result, args) -> dict:
     return out
 
 
+def _init_source(run) -> str | None:
+    """The initial gains' file, or None for the defaults (paper) and naive gains."""
+    label = run.init_label
+    return label if label not in ("paper", "naive") else None
+
+
+def _record_session(run, command: list[str]) -> dict:
+    """``run.json``: the initial gains and one provenance entry per session."""
+    path = run.out / "run.json"
+    record = {}
+    if run.resume and path.is_file():
+        try:
+            record = json.loads(path.read_text())
+        except (OSError, ValueError):
+            record = {}
+    init = study_layer.gains_record(run.init_gains, _init_source(run))
+    if run.init_label in ("paper", "naive"):
+        init["source"] = "defaults" if run.init_label == "paper" else "naive"
+    record.update(
+        {
+            "controller": run.spec.controller,
+            "init": run.init_label,
+            "init_gains": init,
+            "problem": run.fingerprint["problem"],
+            "tuner": run.fingerprint["tuner"],
+        }
+    )
+    record["sessions"] = list(record.get("sessions", [])) + [study_layer.provenance(command)]
+    run.out.mkdir(parents=True, exist_ok=True)
+    study_layer.write_json(path, record)
+    return record
+
+
+def _read_history(path: Path) -> dict[str, list[float]]:
+    with open(path, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    columns = {key: [] for key in (rows[0] if rows else {})}
+    for row in rows:
+        for key, value in row.items():
+            try:
+                columns[key].append(float(value))
+            except (TypeError, ValueError):
+                columns[key].append(math.nan)
+    return columns
+
+
+def plot_convergence(
+    history_csv: Path,
+    path: Path,
+    evaluation: dict | None = None,
+    clip_norm: float | None = None,
+    title: str = "fojax tune: convergence",
+) -> Path:
+    """The run's progress from ``history.csv``: the objective (and, when it is not the
+    mean, the minibatch mean) with the worst draw's cost, and the gradient norm, against
+    step (left) and wall time (right); the held-out cost of the initial and the tuned
+    gains where ``evaluation`` has it. Steps with diverged draws are marked."""
+    import numpy as np
+    from matplotlib.lines import Line2D
+
+    history = _read_history(history_csv)
+    if not history.get("step"):
+        raise ValueError(f"{history_csv} holds no step")
+    plt = style.pyplot()
+    fig = plt.figure(figsize=(11, 7), layout="constrained")
+    axes = fig.subplots(2, 2, sharey="row")
+    step = np.asarray(history["step"])
+    wall = np.asarray(history["wall_time_s"])
+    objective = np.asarray(history["objective"])
+    mean_cost = np.asarray(history["mean_cost"])
+    worst = np.asarray(history["max_cost"])
+    diverged = np.asarray(history.get("diverged", [0] * len(step))) > 0
+    show_mean = not np.allclose(objective, mean_cost, rtol=1e-6, equal_nan=True)
+    dark, blue, green, red = "#333333", "#0072B2", "#009E73", "#D55E00"
+    held_out = dict(ls="none", marker="D", ms=7, mfc="white", mec=green, mew=2, zorder=6)
+    handles = [Line2D([], [], color=dark, lw=1.4, marker="o", ms=2.5, label="objective")]
+    if show_mean:
+        handles.append(Line2D([], [], color=blue, lw=0.9, label="minibatch mean cost"))
+    handles.append(Line2D([], [], color=blue, lw=0.8, ls=":", label="minibatch worst cost"))
+    for col, x in enumerate((step, wall)):
+        ax = axes[0, col]
+        ax.plot(x, objective, color=dark, lw=1.4, marker="o", ms=2.5, zorder=4)
+        if show_mean:
+            ax.plot(x, mean_cost, color=blue, lw=0.9, zorder=3)
+        ax.plot(x, worst, color=blue, lw=0.8, ls=":", zorder=3)
+        if np.any(diverged):
+            ax.scatter(x[diverged], objective[diverged], marker="x", color=red, zorder=5)
+        axes[1, col].plot(x, history["grad_norm"], color=dark, lw=1.2, marker="o", ms=2.5)
+        if clip_norm is not None:
+            axes[1, col].axhline(clip_norm, color="0.5", ls="--", lw=0.9)
+    if np.any(diverged):
+        handles.append(
+            Line2D([], [], ls="none", marker="x", color=red, label="step with diverged draws")
+        )
+    if evaluation and "initial" in evaluation and "tuned" in evaluation:
+        initial = evaluation["initial"]["mean_cost"]
+        tuned = evaluation["tuned"]["mean_cost"]
+        axes[0, 0].plot([0, step[-1]], [initial, tuned], **held_out)
+        axes[0, 1].plot([wall[-1]], [tuned], **held_out)
+        handles.append(
+            Line2D(
+                [],
+                [],
+                **held_out,
+                label=f"held-out mean cost of the initial (step 0) and tuned gains "
+                f"({evaluation['draws']} draws, {evaluation['switching']}, "
+                f"{evaluation['horizon_s']:g} s)",
+            )  # fmt: skip
+        )
+    if clip_norm is not None:
+        handles.append(Line2D([], [], color="0.5", ls="--", lw=0.9, label="gradient clip norm"))
+    for row, values in enumerate((np.concatenate([objective, worst]), history["grad_norm"])):
+        values = np.asarray(values, dtype=float)
+        values = values[np.isfinite(values)]
+        if values.size and np.all(values > 0) and values.max() > 10 * values.min():
+            axes[row, 0].set_yscale("log")
+    for ax in axes.flat:
+        ax.grid(alpha=0.3, which="both")
+    axes[0, 0].set_ylabel("cost")
+    axes[1, 0].set_ylabel("gradient norm (before clipping)")
+    axes[1, 0].set_xlabel("step")
+    axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {wall[0]:.1f} s, compilation included")
+    fig.suptitle(title, fontsize=10)
+    style.legend_below(fig, handles, ncol=2 if len(handles) > 4 else len(handles))
+    return style.save(fig, path)
+
+
+def _finished_before(run) -> bool:
+    """Whether this is a ``--resume`` of a run whose steps were all done."""
+    meta = run.checkpoint_meta or {}
+    return bool(run.resume) and int(meta.get("step", -1)) >= run.config.steps
+
+
+def _save_tuned_gains(run, record: dict, earlier: str | None) -> None:
+    """Add the run's record to ``gains.json``'s metadata (fojax simulate reads it); a
+    finished run resumed keeps its file as it was (``earlier``)."""
+    path = run.out / "gains.json"
+    if not path.is_file():
+        return
+    if earlier is not None:
+        text = earlier
+    else:
+        document = json.loads(path.read_text())
+        document.setdefault("metadata", {}).update(
+            init_gains=record["init_gains"], provenance=record["sessions"][-1]
+        )
+        text = json.dumps(document, indent=2) + "\n"
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
 def main(argv=None) -> int:
     from optimize import tuner
 
     argv = list(sys.argv[1:] if argv is None else argv)
     run, args = parse_args(argv)
+    record = _record_session(run, ["fojax", "tune", *argv])
+    gains_file = run.out / "gains.json"
+    earlier = gains_file.read_text() if _finished_before(run) and gains_file.is_file() else None
     start = time.perf_counter()
     try:
         result = tuner.tune(run, progress=not args.quiet)
@@ -264,15 +439,32 @@ def main(argv=None) -> int:
         f"steps x {run.spec.draws} draws x {run.spec.horizon:g} s, final objective "
         f"{result.history[-1]['objective']:.5g} ({time.perf_counter() - start:.0f} s)"
     )
+    _save_tuned_gains(run, record, earlier)
+    files = ["gains.json", "history.csv", "run.json"]
+    evaluation = None
     if args.eval_draws > 0:
         evaluation = _evaluate(run, result, args)
-        (args.out / "evaluation.json").write_text(json.dumps(evaluation, indent=1) + "\n")
+        evaluation["provenance"] = record["sessions"][-1]
+        study_layer.write_json(args.out / "evaluation.json", evaluation)
+        files.append("evaluation.json")
         print(
             f"held-out cost ({evaluation['draws']} draws, {evaluation['horizon_s']:g} s, "
             f"{evaluation['switching']}): initial {evaluation['initial']['mean_cost']:.5g}, "
             f"tuned {evaluation['tuned']['mean_cost']:.5g}"
         )
-    print(f"wrote {args.out}/gains.json and history.csv")
+    figure = style.attempt(
+        "convergence.png",
+        plot_convergence,
+        args.out / "history.csv",
+        args.out / "convergence.png",
+        evaluation,
+        run.config.clip_norm,
+        f"fojax tune: {run.spec.controller}, scenario {run.spec.scenario}, "
+        f"{run.spec.draws} draws x {run.spec.horizon:g} s per step, {args.objective} objective",
+    )
+    if figure is not None:
+        files.append("convergence.png (+ .pdf)")
+    print(f"wrote {args.out}/: {', '.join(files)}")
     return 0
 
 

@@ -305,6 +305,7 @@ def test_a_law_in_a_module_of_its_own_is_reached_by_module_and_class(tmp_path, m
         "        return state, LawOutput(-params.k * e1 - 2 * e2, e2)\n"
     )
     monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(registry, "_LAWS", dict(registry._LAWS))  # forgotten after the test
     controller = registry.make_controller("my_laws:PD", dt=DT, horizon=1.0, filter_frequency=30.0)
     assert controller.name == "my_pd" and controller.filter_frequency == 30.0
     assert "my_pd" in registry.controller_names()

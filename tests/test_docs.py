@@ -17,7 +17,10 @@ def _examples():
 
 
 @pytest.mark.parametrize("code", list(_examples()))
-def test_example_runs(code):
+def test_example_runs(code, monkeypatch):
+    from fojax.controllers import registry
+
+    monkeypatch.setattr(registry, "_LAWS", dict(registry._LAWS))  # examples register laws
     exec(compile(code, "<example>", "exec"), {"__name__": "__example__"})
 
 

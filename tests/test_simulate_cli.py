@@ -97,7 +97,7 @@ def test_gains_round_trip_and_scalar_broadcast(tmp_path):
     np.testing.assert_allclose(loaded.mu, np.full(6, 0.002))
 
 
-def test_simulate_end_to_end_tiny(tmp_path, capsys):
+def test_simulate_end_to_end_tiny(tmp_path, capsys, monkeypatch):
     gains_path = tmp_path / "gains.json"
     gains_io.save_gains(gains_path, "afonftsmc", paper_gains())
     out = tmp_path / "run"
@@ -141,12 +141,81 @@ def test_simulate_end_to_end_tiny(tmp_path, capsys):
         )
     with np.load(out / "trajectories.npz") as tr:
         assert tr["afonftsmc.state"].shape[0] == 3
+        assert np.all(tr["afonftsmc.inputs_low"] <= tr["afonftsmc.inputs_high"])
+    _check_recorded_metadata(summary, gains_path, argv)
     for figure in ("tracking", "errors", "inputs", "path3d", "adaptive"):
         assert (out / f"{figure}.png").stat().st_size > 10_000
+        assert (out / f"{figure}.pdf").read_bytes().startswith(b"%PDF")
+    from PIL import Image
+
+    with Image.open(out / "tracking.png") as image:  # 11 x 8 in at >= 150 dpi
+        assert image.size[0] >= 11 * 150 and image.size[1] >= 8 * 150
+    assert summary["figures"] == [
+        f"{f}.png" for f in ("tracking", "errors", "inputs", "path3d", "adaptive")
+    ]
     # Started again, the same command reuses the finished chunks and agrees.
     assert cli.main(argv) == 0
     again = json.loads((out / "summary.json").read_text())
     assert again["controllers"]["afonftsmc"]["metrics"] == entry["metrics"]
+    # A figure that cannot be drawn (here: no plotting library) is a warning naming it;
+    # the results are written and the command succeeds.
+    from experiments import style
+
+    def no_matplotlib():
+        raise ModuleNotFoundError("No module named 'matplotlib'")
+
+    (out / "summary.json").unlink()
+    monkeypatch.setattr(style, "pyplot", no_matplotlib)
+    capsys.readouterr()
+    assert cli.main(argv) == 0
+    captured = capsys.readouterr()
+    for figure in ("tracking", "errors", "inputs", "path3d", "adaptive"):
+        assert f"warning: figure {figure}.png was not drawn (ModuleNotFoundError" in captured.err
+    assert "Traceback" not in captured.err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["controllers"]["afonftsmc"]["metrics"] == entry["metrics"]
+    assert "figures" not in summary
+    # --keep 0: no trajectories, and the report says so instead of listing them.
+    monkeypatch.undo()
+    keep0 = tmp_path / "keep0"
+    argv0 = [a if a != str(out) else str(keep0) for a in argv] + ["--keep", "0"]
+    assert cli.main(argv0) == 0
+    printed = capsys.readouterr().out
+    assert "no trajectories kept (--keep 0)" in printed and "trajectories.npz," not in printed
+    assert sorted(p.name for p in keep0.iterdir()) == ["chunks", "draws.npz", "summary.json"]
+
+
+def _check_recorded_metadata(summary, gains_path, argv):
+    """summary.json records what the run needs to be redone exactly."""
+    import jax
+
+    import fojax
+
+    gains = summary["gains"]["afonftsmc"]
+    assert gains["source"] == str(gains_path.resolve())
+    expected = gains_io.gains_to_dict(paper_gains("float32"))
+    assert gains["values"] == expected
+    record = summary["provenance"]
+    assert record["command"].startswith("fojax simulate --scenario 3 --controller afonftsmc")
+    assert record["command"].endswith("--quiet") and str(gains_path) in record["command"]
+    assert record["fojax_version"] == fojax.__version__
+    assert record["jax"] == jax.__version__ and record["jaxlib"]
+    assert record["backend"] == jax.default_backend()
+    assert record["device_count"] == jax.device_count() >= 1
+    assert record["local_device_count"] == jax.local_device_count()
+    assert record["process_count"] == 1 and record["python"]
+    batch = summary["batch"]
+    assert batch["devices"] == jax.local_device_count()
+    assert batch["draws_per_call"] % batch["devices"] == 0
+    assert summary["files"] == ["summary.json", "draws.npz", "trajectories.npz"]
+
+
+def test_default_gains_are_recorded_as_defaults():
+    from experiments import study
+
+    record = study.gains_record(paper_gains(), None)
+    assert record["source"] == "defaults"
+    assert record["values"]["surface_c1"] == np.asarray(paper_gains().surface_c1).tolist()
 
 
 _HOST_DEVICES_SCRIPT = """
@@ -176,3 +245,30 @@ def test_host_devices_are_set_before_jax_starts_and_never_after():
     assert arguments.use_host_devices() is None
     assert os.environ.get("XLA_FLAGS") == before
     assert "simulate" in cli.HOST_DEVICE_COMMANDS and "reproduce" not in cli.HOST_DEVICE_COMMANDS
+
+
+def test_a_control_law_of_ones_own_reaches_the_command_line(tmp_path, capsys, monkeypatch):
+    from fojax.controllers import registry
+
+    (tmp_path / "my_cli_law.py").write_text(
+        "import dataclasses\n"
+        "import jax.numpy as jnp\n"
+        "from fojax.controllers import Bounds, ControlLaw, GainField, GainSpec, LawOutput\n"
+        "@dataclasses.dataclass(frozen=True)\n"
+        "class PD(ControlLaw):\n"
+        "    name = 'cli_pd'\n"
+        "    GAINS = GainSpec('PDGains', [GainField('k', [1.0, 1.0, 30.0, 900.0, 900.0, 900.0],"
+        " Bounds(0.0))], 'PD')\n"
+        "    def step(self, params, state, e1, e2):\n"
+        "        e1, e2 = jnp.stack(e1), jnp.stack(e2)\n"
+        "        return state, LawOutput(-params.k * e1 - 2 * jnp.sqrt(params.k) * e2, e2)\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(registry, "_LAWS", dict(registry._LAWS))
+    out = tmp_path / "run"
+    argv = ["simulate", "--scenario", "1", "--controller", "my_cli_law:PD", "--draws", "2"]
+    argv += ["--horizon", "0.2", "--out", str(out), "--quiet", "--no-figures"]
+    assert cli.main(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["controllers"]) == ["cli_pd"]
+    assert summary["controllers"]["cli_pd"]["diverged"] == 0

@@ -97,6 +97,20 @@ def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     assert len(rows) == 3 and rows[0].startswith("step,objective,")
     evaluation = json.loads((out / "evaluation.json").read_text())
     assert evaluation["tuned"]["diverged"] == 0
+    # What the run needs to be redone: the initial gains and the session's provenance.
+    record = json.loads((out / "run.json").read_text())
+    assert record["init"] == "naive" and record["init_gains"]["source"] == "naive"
+    assert set(record["init_gains"]["values"]) == set(gains._fields)
+    (session,) = record["sessions"]
+    assert session["command"].startswith("fojax tune --scenario 2 --controller afonftsmc")
+    for key in ("fojax_version", "jax", "jaxlib", "backend", "device_count", "process_count"):
+        assert session[key] is not None, key
+    assert metadata["provenance"] == session and metadata["init_gains"] == record["init_gains"]
+    assert evaluation["provenance"] == session
+    # Its convergence, drawn from history.csv, PNG and PDF.
+    assert (out / "convergence.png").stat().st_size > 10_000
+    assert (out / "convergence.pdf").read_bytes().startswith(b"%PDF")
+    assert "convergence.png" in printed
     # fojax simulate reads the tuned gains.
     study, _ = simulate.parse_args(
         ["--scenario", "2", "--controller", "afonftsmc", "--draws", "2",
@@ -115,10 +129,12 @@ def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     err = _error(capsys, argv + ["--resume", "--objective", "cvar", "--out", str(out)])
     assert "problem.cost.objective: checkpoint 'mean', now 'cvar'" in err
     assert checkpoint.read_bytes() == before
-    # Resuming a finished run changes nothing.
+    # Resuming a finished run changes nothing (its sessions are logged in run.json).
     text = (out / "gains.json").read_text()
     assert cli.main(["tune"] + argv + ["--resume", "--eval-draws", "0", "--out", str(out)]) == 0
     assert (out / "gains.json").read_text() == text
+    sessions = json.loads((out / "run.json").read_text())["sessions"]
+    assert len(sessions) == 2 and "--resume" in sessions[1]["command"]
 
 
 def test_tuning_study_smoke(tmp_path):

@@ -115,9 +115,7 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
 
     parser = build_parser()
     args = parser.parse_args(argv)
-    names = registry.controller_names()
-    if BASELINE not in names:
-        parser.error(f"the baseline controller {BASELINE!r} is not registered")
+    names = registry.PAPER_CONTROLLERS
     if args.dtype == "float64":
         import jax
 

@@ -15,6 +15,7 @@ from importlib import metadata
 from typing import Any
 
 __all__ = [
+    "PAPER_CONTROLLERS",
     "controller_names",
     "controller_options",
     "get_controller_class",
@@ -23,6 +24,8 @@ __all__ = [
 ]
 
 ENTRY_POINT_GROUP = "fojax.controllers"
+PAPER_CONTROLLERS = ("afonftsmc", "anftsmc", "fobsmc", "bsmc", "fl")
+"""The paper's controller and the four it is compared with (Section V), in order."""
 _LAWS: dict[str, type] = {}
 
 

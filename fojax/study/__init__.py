@@ -8,7 +8,7 @@
   95 % intervals over the valid draws (:mod:`fojax.statistics`).
 """
 
-from fojax.study._run import DIVERGED, MonteCarloResult, make_chunk_runner, run
+from fojax.study._run import DIVERGED, MonteCarloResult, fingerprint, make_chunk_runner, run
 from fojax.study._store import ChunkStore
 from fojax.study._summary import metric_table, status_counts, summarize
 
@@ -16,6 +16,7 @@ __all__ = [
     "DIVERGED",
     "ChunkStore",
     "MonteCarloResult",
+    "fingerprint",
     "make_chunk_runner",
     "metric_table",
     "run",

@@ -96,18 +96,14 @@ def make_chunk_runner(
     return jax.jit(jax.vmap(one, in_axes=(None, 0)))
 
 
-def _config_fingerprint(controller, gains, scenario, config, seed, chunk, keep, dtype, mcfg):
+def fingerprint(controller, gains, scenario, config, seed, chunk, keep, dtype, mcfg) -> dict:
+    """Every setting a run's per-draw results depend on, as a JSON-ready dict (nested
+    dataclasses as dicts, functions by name): what the chunk store keys its chunks by."""
+
     def plain(obj):
         if dataclasses.is_dataclass(obj):
-            return {
-                f.name: (
-                    getattr(obj, f.name).__name__
-                    if callable(getattr(obj, f.name))
-                    else getattr(obj, f.name)
-                )
-                for f in dataclasses.fields(obj)
-            }
-        return obj
+            return {f.name: plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        return obj.__name__ if callable(obj) else obj
 
     return {
         "controller": controller.name,
@@ -184,10 +180,10 @@ def run(
     keep = int(min(max(keep, 0), draws))
     chunk_store = None
     if store is not None:
-        fingerprint = _config_fingerprint(
+        settings = fingerprint(
             controller, gains, scenario, config, seed, chunk, keep, dtype, metrics_config
         )
-        chunk_store = ChunkStore(Path(store), fingerprint)
+        chunk_store = ChunkStore(Path(store), settings)
     if runner is None:
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
 
