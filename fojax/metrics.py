@@ -233,9 +233,13 @@ def _update(
 
 
 def _finalize(config: MetricsConfig, acc: MetricsState) -> dict[str, Array]:
-    """The metrics of one draw (see the module docstring), as a dict of arrays."""
-    horizon = config.horizon
+    """The metrics of one draw (see the module docstring), as a dict of arrays.
+
+    The horizon ``T`` is the recorded samples times ``dt``: ``config.horizon``, or a
+    union scenario's member's own horizon when the rollout stopped recording earlier.
+    """
     dt = config.dt
+    horizon = acc.count.astype(acc.max_error.dtype) * dt
     # Settled from the sample after the last one outside the band; never outside: 0.
     settling = jnp.where(acc.last_outside < 0, 0.0, jnp.minimum(acc.last_outside + dt, horizon))
     last_sample = horizon - dt

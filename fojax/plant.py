@@ -77,6 +77,7 @@ __all__ = [
     "rk4_step_parts",
     "rotor_speed_sum",
     "rotor_speeds_squared",
+    "saturate_inputs",
     "signed_square",
     "split_state",
 ]
@@ -246,6 +247,19 @@ def _rotor_speeds_squared_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z
         common + pitch - yaw,
         common + roll + yaw,
     )
+
+
+def saturate_inputs(params: PlantParams, inputs: tuple, speed_limit: float) -> tuple:
+    """Rotor-limited actuators: ``inputs`` (four scalars ``(u_F, tau_x, tau_y, tau_z)``)
+    as the rotors can produce them. Each squared rotor speed of the inverted mixer (10)
+    is clipped to ``[0, speed_limit^2]`` (a rotor neither reverses nor exceeds its
+    largest speed) and the thrust and torques are recomputed from the clipped speeds
+    through the mixer. Returns four scalars."""
+    squared = _rotor_speeds_squared_parts(params, *inputs)
+    w1, w2, w3, w4 = (jnp.clip(w, 0.0, speed_limit * speed_limit) for w in squared)
+    b, c = params.thrust_factor, params.drag_factor
+    bd = b * params.arm_length
+    return (b * (w1 + w2 + w3 + w4), bd * (w4 - w2), bd * (w3 - w1), c * (w2 - w1 + w4 - w3))
 
 
 def _safe_sqrt_nonnegative(x: Array) -> Array:

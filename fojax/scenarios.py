@@ -34,7 +34,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable, Iterable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -58,8 +58,11 @@ __all__ = [
     "initial_state",
     "reference_54_55",
     "reference_57",
+    "reference_57_smoothed",
+    "reference_and_disturbance",
     "reference_with_derivatives",
     "sample_draw",
+    "union",
 ]
 
 SCENARIO_IDS = (1, 2, 3)
@@ -117,6 +120,24 @@ def reference_57(t) -> Array:
     y = jnp.where(after, 5.0 * jnp.sin(4.0 * jnp.pi * shifted / 23.0), 0.0)
     z = 7.0 * (1.0 - jnp.exp(-0.3 * t))
     return jnp.stack([x, y, z, jnp.full_like(t, 0.5)]).astype(t.dtype)
+
+
+def reference_57_smoothed(t, ramp: float = 2.0) -> Array:
+    """Scenario 3's reference (57) with its start at ``t = 7`` s smoothed.
+
+    As printed, ``y_r`` starts at ``t = 7`` with a velocity jump of ``20 pi / 23`` m/s
+    (and ``x_r`` with an acceleration jump). Here both horizontal terms are multiplied
+    by the quintic blend ``b(s) = 10 s^3 - 15 s^4 + 6 s^5``, ``s = (t - 7) / ramp``
+    clipped to ``[0, 1]`` (``ramp = 2`` s): ``b`` rises from 0 to 1 with zero first and
+    second derivatives at both ends, so the reference is C2 and equals (57) from
+    ``t = 7 + ramp``. ``z_r`` and ``psi_r`` are unchanged. For the sensitivity of the
+    scenario-3 verdicts to the printed jump.
+    """
+    t = _as_time(t)
+    s = jnp.clip((t - 7.0) / ramp, 0.0, 1.0)
+    blend = s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
+    printed = reference_57(t)
+    return jnp.stack([blend * printed[0], blend * printed[1], printed[2], printed[3]])
 
 
 def reference_with_derivatives(
@@ -237,6 +258,10 @@ class Scenario:
     inertia_uncertainty: ``I_ii = I_ii_nominal (1 + U[0, inertia_uncertainty])``,
         independently per axis, per draw.
     initial_position, initial_attitude: ``(3,)`` tuples (m, rad); rates start at 0.
+    members: empty for a scenario; for the union of several (:func:`union`), the
+        scenarios it holds. A union is one static structure (one compiled rollout):
+        each draw says which member it belongs to (``Draw.member``), and its random
+        tables, reference and disturbance follow that member.
     """
 
     scenario_id: int
@@ -253,6 +278,7 @@ class Scenario:
     inertia_uncertainty: float = 0.0
     initial_position: tuple[float, float, float] = _INITIAL_POSITION
     initial_attitude: tuple[float, float, float] = _INITIAL_ATTITUDE
+    members: tuple = ()
 
     @property
     def has_noise(self) -> bool:
@@ -261,6 +287,72 @@ class Scenario:
     @property
     def has_drag_variation(self) -> bool:
         return self.drag_variation > 0
+
+    def member_index(self, scenario: Scenario) -> int:
+        """The index of ``scenario`` among the members of this union (0 for itself)."""
+        if not self.members:
+            if scenario != self:
+                raise ValueError(f"{scenario.name!r} is not {self.name!r}")
+            return 0
+        try:
+            return self.members.index(scenario)
+        except ValueError:
+            names = ", ".join(repr(m.name) for m in self.members)
+            raise ValueError(f"{scenario.name!r} is not among this union's: {names}") from None
+
+
+def union(*members: Scenario) -> Scenario:
+    """One static scenario structure for several scenarios (one compiled rollout).
+
+    The union's horizon is the longest member's, its tables have the longest layout;
+    each draw is sampled for one member (``sample_draw(union, key, dt,
+    member=i)``), so that its reference, deterministic disturbance, drag variation,
+    noise and mass/inertia uncertainty are that member's, its unused tables hold
+    multipliers of exactly 1 and noise of exactly 0, and the rollout stops recording
+    it after the member's own horizon (``Draw.steps``). Draw ``i`` of a member is the
+    same number as draw ``i`` of that scenario run alone. The members must share the
+    hold times and the initial state.
+    """
+    if len(members) < 1 or not all(isinstance(m, Scenario) and not m.members for m in members):
+        raise ValueError("union takes one or more scenarios (not unions)")
+    first = members[0]
+    for m in members[1:]:
+        for name in ("drag_hold", "noise_hold", "initial_position", "initial_attitude"):
+            if getattr(m, name) != getattr(first, name):
+                raise ValueError(
+                    f"the scenarios of a union must share {name}: {first.name!r} has "
+                    f"{getattr(first, name)!r}, {m.name!r} has {getattr(m, name)!r}"
+                )
+    return dataclasses.replace(
+        first,
+        scenario_id=0,
+        name=" | ".join(m.name for m in members),
+        horizon=max(m.horizon for m in members),
+        drag_variation=max(m.drag_variation for m in members),
+        noise_std_position=max(m.noise_std_position for m in members),
+        noise_std_attitude=max(m.noise_std_attitude for m in members),
+        mass_uncertainty=max(m.mass_uncertainty for m in members),
+        inertia_uncertainty=max(m.inertia_uncertainty for m in members),
+        members=tuple(members),
+    )
+
+
+def reference_and_disturbance(scenario: Scenario, member: Array, t: Array):
+    """The reference with its two derivatives, and the deterministic disturbance, of
+    ``member`` (a union's member index; ignored for a scenario) at time ``t``.
+
+    Returns ``((position (4,), velocity (4,), acceleration (4,)), disturbance (6,))``.
+    For a union every member's functions are evaluated (time only: shared by every draw
+    under ``vmap``) and the draw's member is selected.
+    """
+    if not scenario.members:
+        return reference_with_derivatives(scenario.reference, t), scenario.disturbance(t)
+    values = [
+        (reference_with_derivatives(m.reference, t), m.disturbance(t).astype(t.dtype))
+        for m in scenario.members
+    ]
+    stacked = jax.tree.map(lambda *leaves: jnp.stack(leaves), *values)
+    return jax.tree.map(lambda leaf: leaf[member], stacked)
 
 
 _SCENARIOS = {
@@ -323,6 +415,9 @@ class Draw(NamedTuple):
         (m/s^2, rad/s^2), one row per noise hold.
     time_step: ``()`` the step ``dt`` the tables were laid out for.
     drag_hold_steps, noise_hold_steps: ``()`` int32, steps per hold.
+    member: ``()`` int32, the member of a union scenario the draw belongs to (0 for a
+        scenario). steps: ``()`` int32, that scenario's own number of steps (its
+        horizon / dt): a rollout records the draw up to there.
     """
 
     params: plant.PlantParams
@@ -331,6 +426,8 @@ class Draw(NamedTuple):
     time_step: Array
     drag_hold_steps: Array
     noise_hold_steps: Array
+    member: Array
+    steps: Array
 
 
 def draw_keys(seed: int, indices: Iterable[int] | Array) -> Array:
@@ -352,12 +449,37 @@ def hold_layout(horizon: float, hold: float, dt: float) -> tuple[int, int]:
     return hold_steps, n_steps // hold_steps + 1
 
 
-def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None) -> Draw:
+def _member_values(scenario: Scenario, member: Any, dtype) -> dict[str, Any]:
+    """The random processes' parameters of ``member``: Python numbers for a scenario,
+    rows of small tables selected by the (traced) ``member`` for a union."""
+    names = ("mass_uncertainty", "inertia_uncertainty", "drag_variation")
+    if not scenario.members:
+        values = {name: getattr(scenario, name) for name in names}
+        values["noise_std"] = [scenario.noise_std_position] * 3 + [scenario.noise_std_attitude] * 3
+        return values
+    members = scenario.members
+    values = {
+        name: jnp.asarray([getattr(m, name) for m in members], dtype)[member] for name in names
+    }
+    # 1 - a and 1 + a in Python (float64), as a scenario run alone computes them.
+    values["drag_low"] = jnp.asarray([1.0 - m.drag_variation for m in members], dtype)[member]
+    values["drag_high"] = jnp.asarray([1.0 + m.drag_variation for m in members], dtype)[member]
+    values["noise_std"] = jnp.asarray(
+        [[m.noise_std_position] * 3 + [m.noise_std_attitude] * 3 for m in members], dtype
+    )[member]
+    return values
+
+
+def sample_draw(
+    scenario: Scenario, key: Array, dt: float, dtype=None, member: Any = 0
+) -> Draw:
     """Sample one :class:`Draw` of ``scenario`` from ``key`` for a step ``dt`` (s).
 
     ``key`` should come from :func:`draw_keys`. ``dt`` must be a Python number (it
     fixes the table shapes). Tables of disabled processes have a single row
-    (multipliers 1, noise 0). Pure and ``vmap``-able over ``key``.
+    (multipliers 1, noise 0). For a union (:func:`union`), ``member`` (an index, may
+    be traced) picks the member whose processes are sampled. Pure and ``vmap``-able
+    over ``key`` (and ``member``).
     """
     dt = float(dt)
     if not dt > 0:
@@ -365,13 +487,20 @@ def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None) -> Draw:
     float_dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     key_params, key_drag, key_noise = jax.random.split(key, 3)
     key_mass, key_inertia = jax.random.split(key_params)
+    values = _member_values(scenario, member, float_dtype)
+    if scenario.members:
+        member_steps = jnp.asarray(
+            [math.ceil(m.horizon / dt - 1e-9) for m in scenario.members], jnp.int32
+        )[member]
+    else:
+        member_steps = math.ceil(scenario.horizon / dt - 1e-9)
 
     nominal = plant.nominal_params(float_dtype)
     mass_factor = 1.0 + jax.random.uniform(
-        key_mass, (), float_dtype, 0.0, scenario.mass_uncertainty
+        key_mass, (), float_dtype, 0.0, values["mass_uncertainty"]
     )
     inertia_factor = 1.0 + jax.random.uniform(
-        key_inertia, (3,), float_dtype, 0.0, scenario.inertia_uncertainty
+        key_inertia, (3,), float_dtype, 0.0, values["inertia_uncertainty"]
     )
     params = nominal._replace(
         mass=nominal.mass * mass_factor, inertia=nominal.inertia * inertia_factor
@@ -379,16 +508,17 @@ def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None) -> Draw:
 
     drag_hold_steps, n_drag = hold_layout(scenario.horizon, scenario.drag_hold, dt)
     if scenario.has_drag_variation:
-        a = scenario.drag_variation
-        drag_multipliers = jax.random.uniform(key_drag, (n_drag, 6), float_dtype, 1.0 - a, 1.0 + a)
+        if scenario.members:
+            low, high = values["drag_low"], values["drag_high"]
+        else:
+            low, high = 1.0 - values["drag_variation"], 1.0 + values["drag_variation"]
+        drag_multipliers = jax.random.uniform(key_drag, (n_drag, 6), float_dtype, low, high)
     else:
         drag_multipliers = jnp.ones((1, 6), float_dtype)
 
     noise_hold_steps, n_noise = hold_layout(scenario.horizon, scenario.noise_hold, dt)
     if scenario.has_noise:
-        std = jnp.asarray(
-            [scenario.noise_std_position] * 3 + [scenario.noise_std_attitude] * 3, float_dtype
-        )
+        std = jnp.asarray(values["noise_std"], float_dtype)
         noise_accel = std * jax.random.normal(key_noise, (n_noise, 6), float_dtype)
     else:
         noise_accel = jnp.zeros((1, 6), float_dtype)
@@ -400,6 +530,8 @@ def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None) -> Draw:
         time_step=jnp.asarray(dt, float_dtype),
         drag_hold_steps=jnp.asarray(drag_hold_steps, jnp.int32),
         noise_hold_steps=jnp.asarray(noise_hold_steps, jnp.int32),
+        member=jnp.asarray(member, jnp.int32),
+        steps=jnp.asarray(member_steps, jnp.int32),
     )
 
 

@@ -69,11 +69,17 @@ class SimulationConfig:
     dt: step (s) of the plant integrator and the controller (default 1 ms).
     horizon: simulated time (s); ``round(horizon / dt)`` steps are taken.
     save_every: steps between saved snapshots (and checkpointed blocks).
+    rotor_speed_limit: ``None`` (default): ideal actuators, the plant receives the
+        command as it is; a number ``w_max`` (rad/s): rotor-limited actuators, each
+        squared rotor speed of the command (the inverted mixer (10)) is clipped to
+        ``[0, w_max^2]`` and the thrust and torques the plant receives are recomputed
+        from the clipped speeds (:func:`fojax.plant.saturate_inputs`).
     """
 
     dt: float = 1e-3
     horizon: float = 80.0
     save_every: int = 100
+    rotor_speed_limit: float | None = None
 
     def __post_init__(self) -> None:
         for label, value in (("dt", self.dt), ("horizon", self.horizon)):
@@ -83,6 +89,11 @@ class SimulationConfig:
             raise ValueError(f"dt ({self.dt}) must not exceed the horizon ({self.horizon})")
         if not isinstance(self.save_every, int) or self.save_every < 1:
             raise ValueError(f"save_every must be a positive integer, got {self.save_every!r}")
+        limit = self.rotor_speed_limit
+        if limit is not None and not (
+            isinstance(limit, int | float) and math.isfinite(limit) and limit > 0
+        ):
+            raise ValueError(f"rotor_speed_limit must be None or a number > 0, got {limit!r}")
         if self.steps % self.save_every:
             raise ValueError(
                 f"save_every ({self.save_every}) must divide the number of steps ({self.steps}); "
@@ -210,14 +221,15 @@ def rollout(
     status_observer = observers.Status()
 
     def reference_at(k):
-        """The reference and its two derivatives at step ``k`` (time only: shared by
-        every draw under ``vmap``)."""
+        """The time, the reference with its two derivatives and the deterministic
+        disturbance at step ``k`` (time only: shared by every draw under ``vmap``; for a
+        union scenario, the draw's member's)."""
         t = k.astype(dtype) * dt
-        derivatives = scenarios.reference_with_derivatives(scenario.reference, t)
-        return t, tuple(d.astype(dtype) for d in derivatives)
+        derivatives, disturbance = scenarios.reference_and_disturbance(scenario, draw.member, t)
+        return t, tuple(d.astype(dtype) for d in derivatives), disturbance.astype(dtype)
 
     def observe(k, state):
-        t, (ref, ref_vel, ref_acc) = reference_at(k)
+        t, (ref, ref_vel, ref_acc), _ = reference_at(k)
         return Observation(t, state, ref, ref_vel, ref_acc)
 
     obs0 = observe(jnp.zeros((), jnp.int32), state0)
@@ -227,22 +239,24 @@ def rollout(
     held_at = _held_values(scenario, draw, config)
 
     def one_step(loop: LoopState, k):
-        t, (reference, _, _) = reference_at(k)
+        t, (reference, _, _), deterministic = reference_at(k)
         noise, drag = loop.held
         k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
         drag_position = tuple(k_p[i] if drag is None else k_p[i] * drag[i] for i in range(3))
         drag_attitude = tuple(
             k_phi[i] if drag is None else k_phi[i] * drag[3 + i] for i in range(3)
         )
-        deterministic = scenario.disturbance(t).astype(dtype)  # time only
         disturbance = tuple(
             deterministic[i] if noise is None else deterministic[i] + noise[i].astype(dtype)
             for i in range(6)
         )
+        applied = tuple(loop.inputs[i] for i in range(4))
+        if config.rotor_speed_limit is not None:
+            applied = plant.saturate_inputs(draw.params, applied, config.rotor_speed_limit)
         next_state = plant.rk4_step_parts(
             draw.params,
             loop.state,
-            tuple(loop.inputs[i] for i in range(4)),
+            applied,
             disturbance,
             dt,
             drag_position,
@@ -262,6 +276,13 @@ def rollout(
         )
         status = status_observer.update(loop.status, record)
         observed = observer.update(loop.observed, record) if observer is not None else None
+        if scenario.members:  # a union: record the draw up to its own scenario's horizon
+            active = k < draw.steps
+            status, observed = jax.tree.map(
+                lambda new, old: jnp.where(active, new, old),
+                (status, observed),
+                (loop.status, loop.observed),
+            )
         # The control update of step k + 1, from the new state.
         control, next_inputs, next_info = controller.step(
             params, loop.control, observe(k + 1, record.next_state)

@@ -8,6 +8,7 @@ import math  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 from fojax import plant  # noqa: E402
 
@@ -233,3 +234,22 @@ def test_split_state_and_make_state_layout():
     np.testing.assert_array_equal(attitude, [3, 4, 5])
     np.testing.assert_array_equal(velocity, [6, 7, 8])
     np.testing.assert_array_equal(rate, [9, 10, 11])
+
+
+def test_rotor_limited_inputs():
+    params = plant.nominal_params(jnp.float64)
+    hover = tuple(plant.hover_inputs(params))
+    # A feasible command passes unchanged (to rounding).
+    np.testing.assert_allclose(plant.saturate_inputs(params, hover, 1e3), hover, atol=1e-12)
+    # A roll torque larger than the rotors give: rotor 2 is clipped at 0, and the
+    # thrust and torque recomputed from the clipped speeds.
+    command = (hover[0], 5.0, 0.0, 0.0)
+    squared = np.asarray(plant.rotor_speeds_squared(params, jnp.asarray(command)))
+    assert squared[1] < 0 < squared[3]
+    applied = plant.saturate_inputs(params, command, 1e3)
+    clipped = np.clip(squared, 0.0, 1e6)
+    np.testing.assert_allclose(np.asarray(plant.mixer(params)) @ clipped, applied, rtol=1e-12)
+    assert float(applied[1]) < 5.0
+    # The upper limit: every rotor at w_max gives 4 rho_b w_max^2 of thrust.
+    top = plant.saturate_inputs(params, (1e3, 0.0, 0.0, 0.0), 20.0)
+    assert float(top[0]) == pytest.approx(4 * 3e-3 * 400.0, rel=1e-12)
