@@ -470,9 +470,7 @@ def _member_values(scenario: Scenario, member: Any, dtype) -> dict[str, Any]:
     return values
 
 
-def sample_draw(
-    scenario: Scenario, key: Array, dt: float, dtype=None, member: Any = 0
-) -> Draw:
+def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None, member: Any = 0) -> Draw:
     """Sample one :class:`Draw` of ``scenario`` from ``key`` for a step ``dt`` (s).
 
     ``key`` should come from :func:`draw_keys`. ``dt`` must be a Python number (it

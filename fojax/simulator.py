@@ -162,8 +162,8 @@ class LoopState(NamedTuple):
     observed: Any
 
 
-def _held_values(scenario: scenarios.Scenario, draw: scenarios.Draw, config: SimulationConfig):
-    """``held(k) -> (noise, drag)``: the rows of the draw's tables in force at step ``k``
+def _held_values(scenario: scenarios.Scenario, config: SimulationConfig):
+    """``held(draw, k) -> (noise, drag)``: the rows of the draw's tables in force at step ``k``
     (:func:`fojax.scenarios.held_rows`; each ``None`` when the scenario has no such
     table).
 
@@ -178,7 +178,7 @@ def _held_values(scenario: scenarios.Scenario, draw: scenarios.Draw, config: Sim
     noise_steps, _ = scenarios.hold_layout(scenario.horizon, scenario.noise_hold, config.dt)
     drag_steps, _ = scenarios.hold_layout(scenario.horizon, scenario.drag_hold, config.dt)
 
-    def held(k):
+    def held(draw, k):
         noise = scenarios.held_row(draw.noise_accel, k, noise_steps) if scenario.has_noise else None
         drag = (
             scenarios.held_row(draw.drag_multipliers, k, drag_steps)
@@ -220,7 +220,7 @@ def rollout(
     state0 = scenarios.initial_state(scenario, dtype)
     status_observer = observers.Status()
 
-    def reference_at(k):
+    def reference_at(draw, k):
         """The time, the reference with its two derivatives and the deterministic
         disturbance at step ``k`` (time only: shared by every draw under ``vmap``; for a
         union scenario, the draw's member's)."""
@@ -228,18 +228,18 @@ def rollout(
         derivatives, disturbance = scenarios.reference_and_disturbance(scenario, draw.member, t)
         return t, tuple(d.astype(dtype) for d in derivatives), disturbance.astype(dtype)
 
-    def observe(k, state):
-        t, (ref, ref_vel, ref_acc), _ = reference_at(k)
+    def observe(draw, k, state):
+        t, (ref, ref_vel, ref_acc), _ = reference_at(draw, k)
         return Observation(t, state, ref, ref_vel, ref_acc)
 
-    obs0 = observe(jnp.zeros((), jnp.int32), state0)
+    obs0 = observe(draw, jnp.zeros((), jnp.int32), state0)
     control0 = controller.init(params, obs0)
     # The first control update; later ones run at the end of the iteration before.
     control1, inputs0, info0 = controller.step(params, control0, obs0)
-    held_at = _held_values(scenario, draw, config)
+    held_at = _held_values(scenario, config)
 
-    def one_step(loop: LoopState, k):
-        t, (reference, _, _), deterministic = reference_at(k)
+    def step(params, draw, loop: LoopState, k):
+        t, (reference, _, _), deterministic = reference_at(draw, k)
         noise, drag = loop.held
         k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
         drag_position = tuple(k_p[i] if drag is None else k_p[i] * drag[i] for i in range(3))
@@ -285,12 +285,12 @@ def rollout(
             )
         # The control update of step k + 1, from the new state.
         control, next_inputs, next_info = controller.step(
-            params, loop.control, observe(k + 1, record.next_state)
+            params, loop.control, observe(draw, k + 1, record.next_state)
         )
         loop = LoopState(
             state=next_state,
             trig=jnp.stack(plant.attitude_trig(*next_state[3:6])),
-            held=held_at(k + 1),
+            held=held_at(draw, k + 1),
             control=control,
             inputs=next_inputs,
             info=next_info,
@@ -298,6 +298,9 @@ def rollout(
             observed=observed,
         )
         return loop, (reference, record.inputs, record.info)
+
+    def one_step(loop, k):
+        return step(params, draw, loop, k)
 
     @jax.checkpoint
     def block(loop: LoopState, block_index):
@@ -320,7 +323,7 @@ def rollout(
     loop0 = LoopState(
         state=state0_parts,
         trig=jnp.stack(plant.attitude_trig(*state0_parts[3:6])),
-        held=held_at(jnp.zeros((), jnp.int32)),
+        held=held_at(draw, jnp.zeros((), jnp.int32)),
         control=control1,
         inputs=inputs0,
         info=info0,

@@ -7,6 +7,7 @@ import functools
 import math
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
@@ -291,6 +292,61 @@ class SumOfExponentials:
 # ----------------------------------------------- an integral and its rate, fused
 
 
+def _drive(taps: Array, samples: tuple) -> Array:
+    """``sum_i taps_i u_i``: the unscaled growth of every mode, ``S + (modes,)``.
+
+    Written as explicit multiply-adds (not a contraction over the 3 samples), so that
+    they fuse with their neighbours instead of becoming small matrix products.
+    """
+    return sum(taps[i] * sample[..., None] for i, sample in enumerate(samples))
+
+
+def _history(modes: Array, readout: Array) -> Array:
+    """The two weighted sums of the modes, ``S + (2,)`` (sums, not a matrix product:
+    XLA's CPU backend hands small products to a library call that costs more)."""
+    return jnp.stack([jnp.sum(modes * readout[0], -1), jnp.sum(modes * readout[1], -1)], -1)
+
+
+@jax.custom_vjp
+def _advance_and_read(modes, weights, taps, readout, decay_m1, samples, active):
+    """Advance the scaled modes by one interval and read the two histories out.
+
+    ``modes + (decay_m1 modes + weights drive)`` (``z + (exp(-z) - 1) z`` keeps slow
+    modes exact in float32, where ``exp(-z) ~ 1 - 1e-6``), the growth only where
+    ``active``; returns ``(modes, history)``.
+
+    The map is linear in the modes, so its adjoint is the same recursion run backwards
+    over the cotangents: the reverse pass keeps no mode state (only the three samples
+    per channel) and recomputes nothing of the modes. ``taps``, ``readout`` and
+    ``decay_m1`` are fixed tables of the operator (not functions of the order): they
+    get no cotangent.
+    """
+    growth = jnp.where(active, weights * _drive(taps, samples), 0.0)
+    modes = modes + (decay_m1 * modes + growth)
+    return modes, _history(modes, readout)
+
+
+def _advance_and_read_fwd(modes, weights, taps, readout, decay_m1, samples, active):
+    out = _advance_and_read(modes, weights, taps, readout, decay_m1, samples, active)
+    return out, (weights, taps, readout, decay_m1, samples, active)
+
+
+def _advance_and_read_bwd(residuals, cotangents):
+    weights, taps, readout, decay_m1, samples, active = residuals
+    ct_modes_out, ct_history = cotangents
+    total = ct_modes_out + (ct_history[..., 0:1] * readout[0] + ct_history[..., 1:2] * readout[1])
+    ct_growth = jnp.where(active, total, 0.0)
+    ct_weights = ct_growth * _drive(taps, samples)
+    scaled = ct_growth * weights
+    ct_samples = tuple(jnp.sum(scaled * taps[i], -1) for i in range(3))
+    ct_modes = total + decay_m1 * total
+    zeros = jax.tree.map(jnp.zeros_like, (taps, readout, decay_m1))
+    return (ct_modes, ct_weights, *zeros, ct_samples, None)
+
+
+_advance_and_read.defvjp(_advance_and_read_fwd, _advance_and_read_bwd)
+
+
 class RatePairCoefficients(NamedTuple):
     """Weights of :class:`SOEIntegralWithRate` over the :class:`SumOfExponentials` modes.
 
@@ -396,18 +452,16 @@ class SOEIntegralWithRate:
         # interval [t_{k-2}, t_{k-1}] against the quadratic through u_{k-3}, u_{k-2},
         # u_{k-1} (on the first interval, the line through u_{k-2}, u_{k-1}).
         u_before = jnp.where(count > 2, state.u_prev3, 2.0 * state.u_prev2 - state.u_prev)
-        # Written as explicit multiply-adds (not contractions over the 3 samples), so
-        # that they fuse with their neighbours instead of becoming small matrix products.
-        taps = coeffs.taps
-        increment = coeffs.mode_weights * sum(
-            taps[i] * sample[..., None]
-            for i, sample in enumerate((state.u_prev, state.u_prev2, u_before))
-        )
-        increment = jnp.where(count > 1, increment, 0.0)
         decay_m1 = jnp.asarray(self.operator._tables["decay_m1"], dtype)
-        # z + (exp(-z) - 1) z keeps slow modes exact in float32 (exp(-z) ~ 1 - 1e-6).
-        modes = state.modes + (decay_m1 * state.modes + increment)  # now at t_{k-1}
-        history = modes @ coeffs.readout.T  # S + (2,)
+        modes, history = _advance_and_read(
+            state.modes,
+            coeffs.mode_weights,
+            coeffs.taps,
+            coeffs.readout,
+            decay_m1,
+            (state.u_prev, state.u_prev2, u_before),
+            count > 1,
+        )  # the modes now at t_{k-1}; history S + (2,)
 
         # On the first step, extrapolate linearly so that the quadratic is the line.
         u_prev2 = jnp.where(count > 1, state.u_prev2, 2.0 * state.u_prev - u)
