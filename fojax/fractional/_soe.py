@@ -87,8 +87,8 @@ class SumOfExponentials:
 
     dt: float
     horizon: float = 80.0
-    log_step: float = 0.6
-    tail_modes: int = 8
+    log_step: float = 0.8
+    tail_modes: int = 5
     z_max: float = 20.0
 
     def __post_init__(self) -> None:
