@@ -109,9 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--gradient-draws",
-        type=arguments.positive_int,
-        default=64,
-        help="draws of the gradient runs",
+        type=arguments.positive_ints,
+        default=(64, 256),
+        help="draw counts of the gradient runs (comma-separated; default 64,256)",
     )
     parser.add_argument(
         "--gradient-horizons",
@@ -187,9 +187,9 @@ class _Workload:
 def _block_size(steps: int) -> int:
     """The divisor of ``steps`` nearest ``sqrt(steps)``: checkpointed blocks of that many
     steps keep reverse-mode memory ``O(sqrt(steps))``."""
-    target = math.sqrt(steps)
-    divisors = [d for d in range(1, steps + 1) if steps % d == 0]
-    return min(divisors, key=lambda d: (abs(d - target), d))
+    from fojax import simulator
+
+    return simulator.divisor_near(steps, math.sqrt(steps))
 
 
 def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
@@ -300,6 +300,7 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
     """Reverse-mode gradient of the mean rollout cost w.r.t. the gains (tanh switching)."""
     import jax
     import jax.numpy as jnp
+    import numpy as np
 
     from fojax import observers, sharding
 
@@ -325,8 +326,21 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
     gradient_c, gradient_compile_s = _compile(gradient_jit, gains, draws)
     jax.block_until_ready(forward_c(gains, draws))
     jax.block_until_ready(gradient_c(gains, draws))
-    forward_s, _ = _median_time(lambda: forward_c(gains, draws), repeats)
-    gradient_s, _ = _median_time(lambda: gradient_c(gains, draws), repeats)
+    # Interleaved, so that a load that comes and goes falls on both alike; the ratio is
+    # the median of the per-round ratios.
+    forward_all, gradient_all, cpu_forward, cpu_gradient = [], [], [], []
+    for _ in range(repeats):
+        for fn, wall, cpu in (
+            (forward_c, forward_all, cpu_forward),
+            (gradient_c, gradient_all, cpu_gradient),
+        ):
+            start, start_cpu = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(gains, draws))
+            wall.append(time.perf_counter() - start)
+            cpu.append(time.process_time() - start_cpu)
+    forward_s, gradient_s = float(np.median(forward_all)), float(np.median(gradient_all))
+    ratios = [g / f for f, g in zip(forward_all, gradient_all, strict=True)]
+    cpu_ratios = [g / f for f, g in zip(cpu_forward, cpu_gradient, strict=True)]
     steps = work.config.steps
     return {
         "draws": count,
@@ -336,7 +350,9 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
         "save_every": work.config.save_every,
         "forward_s": forward_s,
         "gradient_s": gradient_s,
-        "gradient_over_forward": gradient_s / forward_s,
+        "gradient_over_forward": float(np.median(ratios)),
+        "gradient_over_forward_all": ratios,
+        "gradient_over_forward_cpu_time": float(np.median(cpu_ratios)),
         "gradient_draw_steps_per_s": count * steps / gradient_s,
         "forward_compile_s": forward_compile_s,
         "gradient_compile_s": gradient_compile_s,
@@ -422,7 +438,7 @@ def main(argv=None) -> dict:
         args.draws = (min(args.draws[0], 4),)
         args.long_horizon = args.short_horizon = 0.02
         args.repeats = 1
-        args.gradient_draws = min(args.gradient_draws, 4)
+        args.gradient_draws = (min(args.gradient_draws[0], 4),)
         args.gradient_horizons = (0.02,)
         args.numpy_draws = args.draws
         args.numpy_horizon = 0.02
@@ -504,17 +520,13 @@ def main(argv=None) -> dict:
             ratio = jax_entry["draw_steps_per_s"] / entry["draw_steps_per_s"]
             result["comparison"].append({"draws": entry["draws"], "jax_over_numpy": ratio})
 
-    for horizon in args.gradient_horizons:
-        _log(f"gradient: {args.gradient_draws} draws x {horizon} s ...")
-        entry = measure_gradient(args.gradient_draws, horizon, args.repeats, mesh)
-        result["gradient"].append(entry)
-        memory = entry["gradient_memory"].get("peak_bytes")
-        _log(
-            f"  {entry['gradient_draw_steps_per_s']:.3g} draw-steps/s, "
-            f"{entry['gradient_over_forward']:.2f}x forward, "
-            f"peak {memory / 2**20 if memory else float('nan'):.1f} MiB, "
-            f"compile {entry['gradient_compile_s']:.1f} s"
-        )
+    for count in args.gradient_draws:
+        for horizon in args.gradient_horizons:
+            _log(f"gradient: {count} draws x {horizon} s ...")
+            entry = measure_gradient(count, horizon, args.repeats, mesh)
+            result["gradient"].append(entry)
+            _log_gradient(entry)
+
 
     if args.scaling:
         base_draws = 8 if args.small else 256
@@ -551,6 +563,17 @@ def main(argv=None) -> dict:
     return result
 
 
+def _log_gradient(entry: dict) -> None:
+    memory = entry["gradient_memory"].get("peak_bytes")
+    _log(
+        f"  {entry['gradient_draw_steps_per_s']:.3g} draw-steps/s, "
+        f"{entry['gradient_over_forward']:.2f}x forward "
+        f"({entry['gradient_over_forward_cpu_time']:.2f}x in CPU time), "
+        f"peak {memory / 2**20 if memory else float('nan'):.1f} MiB, "
+        f"compile {entry['gradient_compile_s']:.1f} s"
+    )
+
+
 def _print_summary(result: dict) -> None:
     machine = result["machine"]
     print(
@@ -580,7 +603,9 @@ def _print_summary(result: dict) -> None:
         print(
             f"  {e['draws']} draws x {e['horizon_s']:g} s (blocks of {e['save_every']}): "
             f"{e['gradient_draw_steps_per_s']:10.3g} draw-steps/s, "
-            f"{e['gradient_over_forward']:.2f}x forward, peak "
+            f"{e['gradient_over_forward']:.2f}x forward "
+            f"({e['gradient_over_forward_cpu_time']:.2f}x in CPU time), "
+            f"compile {e['gradient_compile_s']:.1f} s, peak "
             + (f"{memory / 2**20:.1f} MiB" if memory else "n/a")
         )
     if isinstance(result["crazyflow"], list):
