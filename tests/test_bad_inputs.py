@@ -288,7 +288,8 @@ def test_bench_records_provenance_and_checks_json_first(monkeypatch, tmp_path):
     stub = {"draws": 1, "horizon_s": 0.02, "steps": 20, "run_s": 1.0, "compile_s": 1.0,
             "calls": 1, "chunk": 1, "draw_steps_per_s": 20.0}  # fmt: skip
     gradient = {**stub, "save_every": 5, "gradient_draw_steps_per_s": 1.0,
-                "gradient_over_forward": 2.0, "gradient_memory": {},
+                "gradient_over_forward": 2.0, "gradient_over_forward_cpu_time": 2.0,
+                "gradient_memory": {},
                 "gradient_compile_s": 1.0}  # fmt: skip
     monkeypatch.setattr(bench, "measure_forward", lambda *a, **k: dict(stub))
     monkeypatch.setattr(bench, "measure_numpy", lambda *a, **k: dict(stub))
