@@ -4,7 +4,7 @@ See :mod:`experiments.reproduce` for what it writes, :mod:`.claims` for the clai
 the verdict rule, :mod:`.report` for the report.
 
 The studies (one :class:`experiments.simulate.Study` per scenario) are made, run and
-summarised through :func:`_make_study`, :func:`_run_study` and :func:`_write_outputs`
+summarised through :func:`_make_study`, :func:`_run_studies` and :func:`_write_outputs`
 only, the one place that knows where that layer lives.
 """
 
@@ -38,8 +38,13 @@ def _make_study(**fields) -> simulate.Study:
     return simulate.Study(**fields)
 
 
-def _run_study(study, directory: Path, progress: bool, overwrite: bool) -> dict:
-    return simulate.run_study(study, directory, progress, overwrite)
+def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce):
+    """Yields ``(study, results)`` scenario by scenario (:func:`experiments.study.run_studies`:
+    the next runs' programs compile while one runs)."""
+    from experiments import study as study_layer
+
+    pairs = [(study, out / f"s{study.scenario_id}") for study in studies]
+    yield from study_layer.run_studies(pairs, progress, overwrite, announce=announce)
 
 
 def _write_outputs(study, results: dict, directory: Path) -> dict:
@@ -92,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulated time (s) for every scenario (default: each scenario's, 80/80/50 s)",
     )
     parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s")
-    parser.add_argument("--chunk", type=arguments.positive_int, default=50, help="draws per batch")
+    arguments.add_device_batch(parser)
     parser.add_argument(
         "--keep",
         type=arguments.nonnegative_int,
@@ -105,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--overwrite", action="store_true", help="discard finished chunks of an earlier run"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress display")
+    arguments.add_runtime_options(parser)
     return parser
 
 
@@ -143,7 +149,7 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
                 gains={},
                 fractional=args.fractional,
                 switching=args.switching,
-                chunk=args.chunk,
+                device_batch=args.device_batch,
                 keep=min(args.keep, args.draws),
                 dtype=args.dtype,
                 reaching_band=band,
@@ -168,29 +174,36 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    runtime = arguments.setup_runtime(argv, "fojax reproduce")
     studies, args = parse_args(argv)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    progress = not args.quiet
+    lead = runtime["process_index"] == 0
+    if lead:
+        out.mkdir(parents=True, exist_ok=True)
+    progress = not args.quiet and lead
     start = time.perf_counter()
     results_by_scenario, summaries = {}, {}
+
+    def announce(study):
+        if progress:
+            index = [s.scenario_id for s in studies].index(study.scenario_id)
+            print(
+                f"scenario {study.scenario_id} ({index + 1}/{len(studies)}): "
+                f"{len(study.controllers)} controllers x {study.draws} draws, "
+                f"{study.horizon:g} s; {time.perf_counter() - start:.0f} s so far",
+                file=sys.stderr,
+                flush=True,
+            )
+
     try:
-        for index, study in enumerate(studies):
-            if progress:
-                print(
-                    f"scenario {study.scenario_id} ({index + 1}/{len(studies)}): "
-                    f"{len(study.controllers)} controllers x {study.draws} draws, "
-                    f"{study.horizon:g} s; {time.perf_counter() - start:.0f} s so far",
-                    file=sys.stderr,
-                    flush=True,
-                )
-            directory = out / f"s{study.scenario_id}"
-            results = _run_study(study, directory, progress, args.overwrite)
+        for study, results in _run_studies(studies, out, progress, args.overwrite, announce):
             results_by_scenario[study.scenario_id] = results
-            summaries[study.scenario_id] = _write_outputs(study, results, directory)
+            if lead:
+                directory = out / f"s{study.scenario_id}"
+                summaries[study.scenario_id] = _write_outputs(study, results, directory)
     except KeyboardInterrupt:
         print(
-            f"\ninterrupted: finished chunks are kept under {out}/s*/chunks; run the same "
+            f"\ninterrupted: finished draws are kept under {out}/s*/chunks; run the same "
             "command again to continue",
             file=sys.stderr,
         )
@@ -198,6 +211,8 @@ def main(argv=None) -> int:
     except ValueError as error:
         print(f"fojax reproduce: error: {error}", file=sys.stderr)
         return 2
+    if not lead:  # process 0 writes the report
+        return 0
     figures = []
     if not args.no_figures:
         from experiments import paper_figures
