@@ -328,12 +328,12 @@ def check_stores(study: Study, out: Path) -> None:
 
 
 def compile_threads() -> int:
-    """Threads compiling the next runs' programs while one runs
-    (``FOJAX_COMPILE_THREADS``, default :data:`DEFAULT_COMPILE_THREADS`; 0: compile
-    each when it is needed)."""
+    """Threads compiling the runs' programs while earlier runs compute
+    (``FOJAX_COMPILE_THREADS``, default :func:`default_compile_threads`; 0: each
+    compiled when its run starts)."""
     text = os.environ.get("FOJAX_COMPILE_THREADS", "").strip()
     if not text:
-        return DEFAULT_COMPILE_THREADS
+        return default_compile_threads()
     try:
         value = int(text)
     except ValueError:
@@ -343,8 +343,15 @@ def compile_threads() -> int:
     return value
 
 
-DEFAULT_COMPILE_THREADS = 1
-"""One thread compiling ahead: see docs/performance.md ("fojax reproduce")."""
+def default_compile_threads() -> int:
+    """One compiling thread per core, at most 4. XLA compiles a program on one thread;
+    the runs' programs are independent, so they compile side by side (measured on 2
+    cores: docs/performance.md, "fojax reproduce")."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return max(1, min(4, cores))
 
 
 class _Job:
@@ -455,9 +462,10 @@ def run_studies(
     yields ``(study, {name: result})`` as each study finishes.
 
     Every store is checked before anything is compiled (:func:`check_stores`; with
-    ``overwrite`` the stored draws are discarded instead). While one run computes,
-    ``threads`` worker threads (default :func:`compile_threads`) compile the programs of
-    the next runs that have draws left; runs with the same program share one.
+    ``overwrite`` the stored draws are discarded instead). ``threads`` worker threads
+    (default :func:`compile_threads`) compile the programs of every run that has draws
+    left, in run order, while the runs whose programs are ready compute; runs with the
+    same program share one.
     ``announce(study)`` is called before a study's first run.
     """
     import concurrent.futures
@@ -495,11 +503,11 @@ def run_studies(
 
     results: dict = {}
     try:
+        if executor is not None:  # every program that will be needed, in run order
+            for index in range(len(jobs)):
+                if pending[index]:
+                    request(index)
         for index, job in enumerate(jobs):
-            if executor is not None:  # the next runs' programs, in the background
-                ahead = [i for i in range(index + 1, len(jobs)) if pending[i]][:threads]
-                for i in ahead:
-                    request(i)
             if job.name == job.study.controllers[0] and announce is not None:
                 announce(job.study)
             runner = None

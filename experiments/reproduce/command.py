@@ -54,6 +54,84 @@ def _write_outputs(study, results: dict, directory: Path) -> dict:
     return summary
 
 
+# ------------------------------------------------------------------------- figures
+
+
+def _draw_scenario(scenario_id: int, results: dict, directory: str) -> list[str]:
+    """Figs. of one scenario (run in the figure process)."""
+    from experiments import paper_figures
+
+    return [str(p) for p in paper_figures.plot_all({scenario_id: results}, Path(directory))]
+
+
+class _FigureDrawer:
+    """Draws each scenario's figures in a separate process as soon as its results are
+    in, while the next scenarios run: drawing 12 figures takes about as long as
+    simulating them (Python and matplotlib, one core), so on two cores it overlaps
+    the rest of the run (docs/performance.md). A figure process that fails is a
+    warning; the figures are then drawn here."""
+
+    def __init__(self, directory: Path, progress: bool):
+        import concurrent.futures
+        import multiprocessing
+
+        self.directory, self.progress = Path(directory), progress
+        self.futures: dict = {}
+        self.results: dict = {}
+        try:
+            context = multiprocessing.get_context("spawn")  # no fork of a process using JAX
+            self.pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=context)
+        except (OSError, ValueError, NotImplementedError):
+            self.pool = None
+
+    def submit(self, scenario_id: int, results: dict) -> None:
+        self.results[scenario_id] = results
+        if self.pool is None:
+            return
+        light = {name: _without_devices(r) for name, r in results.items()}
+        self.futures[scenario_id] = self.pool.submit(
+            _draw_scenario, scenario_id, light, str(self.directory)
+        )
+
+    def finish(self) -> list[Path]:
+        from experiments import paper_figures
+
+        if self.progress:
+            print("figures ...", file=sys.stderr, flush=True)
+        paths = []
+        for scenario_id in sorted(self.results):
+            future = self.futures.get(scenario_id)
+            try:
+                drawn = [Path(p) for p in future.result()] if future is not None else None
+            except Exception as error:  # noqa: BLE001 - the process died: draw them here
+                print(
+                    f"warning: the figure process failed ({type(error).__name__}: {error}); "
+                    "drawing the figures here",
+                    file=sys.stderr,
+                )
+                drawn = None
+            if drawn is None:
+                drawn = paper_figures.plot_all(
+                    {scenario_id: self.results[scenario_id]}, self.directory
+                )
+            paths.extend(drawn)
+        self.close()
+        return paths
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            self.pool = None
+
+
+def _without_devices(result):
+    """A result holding NumPy arrays only (picklable without JAX)."""
+    import jax
+    import numpy as np
+
+    return result._replace(trajectories=jax.tree.map(np.asarray, result.trajectories))
+
+
 # ----------------------------------------------------------------------- arguments
 
 
@@ -195,13 +273,18 @@ def main(argv=None) -> int:
                 flush=True,
             )
 
+    drawer = _FigureDrawer(out / "figures", progress) if lead and not args.no_figures else None
     try:
         for study, results in _run_studies(studies, out, progress, args.overwrite, announce):
             results_by_scenario[study.scenario_id] = results
             if lead:
                 directory = out / f"s{study.scenario_id}"
                 summaries[study.scenario_id] = _write_outputs(study, results, directory)
+                if drawer is not None:  # while the next scenario runs
+                    drawer.submit(study.scenario_id, results)
     except KeyboardInterrupt:
+        if drawer is not None:
+            drawer.close()
         print(
             f"\ninterrupted: finished draws are kept under {out}/s*/chunks; run the same "
             "command again to continue",
@@ -209,17 +292,13 @@ def main(argv=None) -> int:
         )
         return 130
     except ValueError as error:
+        if drawer is not None:
+            drawer.close()
         print(f"fojax reproduce: error: {error}", file=sys.stderr)
         return 2
     if not lead:  # process 0 writes the report
         return 0
-    figures = []
-    if not args.no_figures:
-        from experiments import paper_figures
-
-        if progress:
-            print("figures ...", file=sys.stderr, flush=True)
-        figures = paper_figures.plot_all(results_by_scenario, out / "figures")
+    figures = drawer.finish() if drawer is not None else []
     claims = claims_module.evaluate_claims(summaries, results_by_scenario)
     tables = claims_module.paired_tables(summaries, results_by_scenario, TABLE_METRICS)
     settings = {
