@@ -29,6 +29,13 @@ __all__ = [
     "positive_int",
     "positive_ints",
     "seed",
+    "add_device_batch",
+    "add_runtime_options",
+    "compile_cache_dir",
+    "default_cache_dir",
+    "enable_compile_cache",
+    "parse_distributed",
+    "setup_runtime",
     "use_host_devices",
 ]
 
@@ -247,6 +254,14 @@ input_file = _argparse_type(check_input_file, "gains file")
 """argparse type: an existing, readable gains file (:func:`check_input_file`)."""
 
 
+def _usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity: under SLURM, the task's)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def use_host_devices(requested: int | None = None) -> int | None:
     """Ask XLA for one CPU device per core (or ``requested``) unless JAX has started.
 
@@ -262,6 +277,206 @@ def use_host_devices(requested: int | None = None) -> int | None:
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_force_host_platform_device_count" in flags:
         return None
-    count = requested or os.cpu_count() or 1
+    count = requested or _usable_cores()
     os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
     return count
+
+
+# ------------------------------------------------------- compilation and distributed runs
+
+CACHE_VARIABLE = "FOJAX_COMPILE_CACHE"
+"""Environment variable: ``0`` (or ``off``, ``false``, ``no``) turns the persistent
+compilation cache off; a folder name puts it there."""
+
+_OFF = ("0", "off", "false", "no")
+
+
+class _Removed(argparse.Action):
+    """An option that no longer exists: an error saying what replaced it."""
+
+    def __init__(self, option_strings, dest, replacement: str = "", **kwargs):
+        self.replacement = replacement
+        super().__init__(option_strings, dest, nargs="?", help=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string} was removed: {self.replacement}")
+
+
+def add_device_batch(parser: argparse.ArgumentParser) -> None:
+    """``--device-batch N``: draws per block, each device's share of a call (and the
+    removed ``--chunk``, which now ends in a message saying so)."""
+    parser.add_argument(
+        "--device-batch",
+        type=positive_int,
+        metavar="N",
+        help="draws each device computes in one call (default: 50 on a CPU, 1024 on a "
+        "GPU). Draw i's numbers do not depend on the draw count, the devices or the "
+        "processes, only on this block size (rounding); memory grows with it",
+    )
+    parser.add_argument(
+        "--chunk",
+        action=_Removed,
+        replacement="draws are computed in blocks of --device-batch draws per device "
+        "(default 50 on a CPU); give --device-batch N",
+    )
+
+
+def add_runtime_options(parser: argparse.ArgumentParser, distributed: bool = True) -> None:
+    """The options every command that compiles rollouts shares: the persistent
+    compilation cache and, with ``distributed``, joining a ``jax.distributed`` run."""
+    group = parser.add_argument_group("compilation and distributed runs")
+    group.add_argument(
+        "--no-compile-cache",
+        action="store_true",
+        help=f"neither read nor write the persistent compilation cache (default: on, in "
+        f"{default_cache_dir()}; {CACHE_VARIABLE}=0 turns it off, {CACHE_VARIABLE}=DIR "
+        "moves it)",
+    )
+    if not distributed:
+        return
+    group.add_argument(
+        "--coordinator",
+        metavar="HOST:PORT",
+        help="join a multi-process run (jax.distributed) whose process 0 listens at "
+        "HOST:PORT; with --num-processes and --process-id. Without them a run joins "
+        "when JAX_COORDINATOR_ADDRESS/JAX_NUM_PROCESSES/JAX_PROCESS_ID are set or a "
+        "cluster job of several processes is detected (SLURM srun, Open MPI, ...)",
+    )
+    group.add_argument("--num-processes", metavar="N", help="processes of the run (>= 1)")
+    group.add_argument("--process-id", metavar="I", help="this process's index, 0 to N - 1")
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/fojax/jax``, or ``~/.cache/fojax/jax``."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "fojax" / "jax"
+
+
+def compile_cache_dir(disabled: bool = False) -> Path | None:
+    """Where the commands keep compiled programs: None when ``disabled`` or
+    ``FOJAX_COMPILE_CACHE`` says off; that variable's folder when it names one; else
+    :func:`default_cache_dir`."""
+    text = os.environ.get(CACHE_VARIABLE, "").strip()
+    if disabled or text.lower() in _OFF:
+        return None
+    return Path(text).expanduser() if text else default_cache_dir()
+
+
+def enable_compile_cache(disabled: bool = False) -> str | None:
+    """Turn JAX's persistent compilation cache on (or off when ``disabled`` or
+    ``FOJAX_COMPILE_CACHE=0``); returns the folder in use, or None.
+
+    A folder already chosen (``JAX_COMPILATION_CACHE_DIR``, or by the program calling
+    the command, as the test suite does) is kept. A folder that cannot be created is a
+    warning: the command runs without the cache.
+    """
+    import jax
+
+    if compile_cache_dir(disabled) is None:
+        jax.config.update("jax_enable_compilation_cache", False)
+        return None
+    jax.config.update("jax_enable_compilation_cache", True)
+    chosen = jax.config.jax_compilation_cache_dir
+    if chosen:
+        return str(chosen)
+    path = compile_cache_dir()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        print(
+            f"warning: no compilation cache ({path} cannot be created: "
+            f"{error.strerror or error}); set {CACHE_VARIABLE}=DIR to put it elsewhere",
+            file=sys.stderr,
+        )
+        jax.config.update("jax_enable_compilation_cache", False)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    # Programs compiling in 1 s or more (every rollout) are kept; smaller ones are not
+    # worth a file.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    return str(path)
+
+
+def _coordinator(text: str) -> str:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(
+            f"--coordinator must be HOST:PORT with a port in 1-65535 (e.g. 127.0.0.1:12355 "
+            f"or node01:12355), got {text!r}"
+        )
+    return text
+
+
+def parse_distributed(values: dict) -> dict:
+    """Validated ``{"coordinator_address", "num_processes", "process_id"}`` (None where
+    not given) from the options' texts; ``ValueError`` saying what to change."""
+    coordinator = values.get("coordinator")
+    count = values.get("num_processes")
+    index = values.get("process_id")
+    given = {
+        k: v
+        for k, v in (
+            ("--coordinator", coordinator),
+            ("--num-processes", count),
+            ("--process-id", index),
+        )
+        if v is not None
+    }
+    if not given:
+        return {"coordinator_address": None, "num_processes": None, "process_id": None}
+    env = {
+        "--coordinator": "JAX_COORDINATOR_ADDRESS",
+        "--num-processes": "JAX_NUM_PROCESSES",
+        "--process-id": "JAX_PROCESS_ID",
+    }
+    missing = [flag for flag in env if flag not in given and not os.environ.get(env[flag])]
+    if missing:
+        variables = ", ".join(env[m] for m in missing)
+        raise ValueError(
+            f"a multi-process run needs {', '.join(missing)} too (or {variables}); give "
+            "--coordinator HOST:PORT --num-processes N --process-id I together"
+        )
+    try:
+        count = None if count is None else _integer(count, 1, "--num-processes, an integer >= 1")
+        index = None if index is None else _integer(index, 0, "--process-id, an integer >= 0")
+    except argparse.ArgumentTypeError as error:
+        raise ValueError(str(error)) from None
+    total = count if count is not None else int(os.environ.get("JAX_NUM_PROCESSES", "0") or 0)
+    if index is not None and total and index >= total:
+        raise ValueError(
+            f"--process-id must be below the number of processes ({total}), got {index}"
+        )
+    return {
+        "coordinator_address": None if coordinator is None else _coordinator(coordinator),
+        "num_processes": count,
+        "process_id": index,
+    }
+
+
+def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
+    """Before a command touches JAX's devices: turn the compilation cache on (unless
+    ``--no-compile-cache``) and join a ``jax.distributed`` run when asked or detected
+    (:func:`fojax.sharding.initialize`). Bad values exit with status 2 and a message.
+
+    Returns :func:`fojax.sharding.initialize`'s answer plus ``"compile_cache"``.
+    """
+    parser = argparse.ArgumentParser(prog=prog, add_help=False)
+    add_runtime_options(parser, distributed)
+    known, _ = parser.parse_known_args(argv)
+    try:
+        options = parse_distributed(vars(known)) if distributed else {}
+    except ValueError as error:
+        parser.error(str(error))
+    cache = enable_compile_cache(known.no_compile_cache)
+    from fojax import sharding
+
+    if distributed:
+        try:
+            info = sharding.initialize(**options)
+        except ValueError as error:
+            parser.error(str(error))
+        except RuntimeError as error:  # e.g. JAX already started in this process
+            parser.error(f"cannot join the multi-process run: {error}")
+    else:
+        info = {"process_index": 0, "process_count": 1, "joined": None}
+    return {**info, "compile_cache": cache}

@@ -7,6 +7,12 @@ fojax tune ...               gradient-based gain tuning (see fojax tune --help)
 fojax bench [--json FILE]    throughput, compile time and gradient cost
 fojax --version              the fojax, JAX and jaxlib versions
 
+``simulate``, ``reproduce`` and ``tune`` keep compiled programs in a persistent
+cache (``~/.cache/fojax/jax``; ``--no-compile-cache`` or ``FOJAX_COMPILE_CACHE=0``
+turns it off) and join a multi-process ``jax.distributed`` run when given
+``--coordinator``, ``--num-processes`` and ``--process-id``, when JAX's variables are
+set, or in a cluster job of several processes (``docs/distributed.md``).
+
 Bad input ends in a message naming what to change and exit status 2, before anything
 is compiled. A file-system failure while a command runs (a full disk, a folder removed
 under it) ends in a one-line message and exit status 1; an interruption (Ctrl-C) in
@@ -38,14 +44,14 @@ COMMANDS = {
     ),
 }
 
-HOST_DEVICE_COMMANDS = ("simulate",)
-"""Commands whose Monte Carlo draws are split over one CPU device per core (set before
-JAX starts; ``XLA_FLAGS=--xla_force_host_platform_device_count=1`` keeps one). Not
-``reproduce``: its report should not depend on the machine's core count (a draw's
-float32 rounding depends on the batch it runs in, and the paper's ``sgn`` switching
-amplifies rounding: on 2 devices the default run's means moved by up to 10 %, an
-overshoot, almost all within the one-device run's 95 % intervals), and its small
-chunks gain little (196 -> 156 s measured)."""
+HOST_DEVICE_COMMANDS = ("simulate", "reproduce")
+"""Commands whose draws are split over one CPU device per core (set before JAX starts;
+``XLA_FLAGS=--xla_force_host_platform_device_count=1`` keeps one). Their results do not
+depend on it: the draws are computed in fixed blocks, one per device and call
+(``--device-batch``), and draw ``i``'s numbers are the same bit for bit on any number
+of devices and processes (:mod:`fojax.study`). Not ``tune``: a minibatch is one block
+unless ``--device-batch`` splits it, and one device runs its large kernels on every
+core."""
 
 
 def main(argv=None) -> int:

@@ -2,7 +2,7 @@
 
     fojax simulate --scenario {1,2,3} --controller NAME[,NAME...]|all --draws N --seed S
                    [--horizon T] [--dt DT] [--gains FILE ...] [--fractional METHOD]
-                   [--switching sign|sat|tanh] [--chunk N] [--dtype float32|float64]
+                   [--switching sign|sat|tanh] [--device-batch N] [--dtype float32|float64]
                    --out DIR
 
 Writes to ``DIR``, the results first and the figures after them:
@@ -18,9 +18,16 @@ Writes to ``DIR``, the results first and the figures after them:
 * ``trajectories.npz``: decimated trajectories of the first draws.
 * figures, PNG and PDF: ``tracking``, ``errors``, ``inputs``, ``path3d``,
   ``adaptive`` (a figure that cannot be drawn is a warning; the results stay).
-* ``chunks/``: finished chunks. An interrupted run started again with the same
-  command continues from them; one with other settings is refused, naming the
-  settings that differ (``--overwrite`` starts afresh).
+* ``chunks/``: finished draws. An interrupted run started again with the same
+  command continues from them, and one with more draws (or on other devices or
+  processes) reuses them: draw ``i``'s numbers do not depend on the draw count or the
+  layout, only on ``--device-batch`` (:mod:`fojax.study`). One with other settings is
+  refused, naming the settings that differ (``--overwrite`` starts afresh).
+
+Over several processes (``--coordinator HOST:PORT --num-processes N --process-id I``
+on each, the ``JAX_COORDINATOR_ADDRESS``/``JAX_NUM_PROCESSES``/``JAX_PROCESS_ID``
+variables, or a detected cluster job such as SLURM's ``srun``): the draws are split
+over every process's devices and process 0 writes the outputs (``docs/distributed.md``).
 
 Every input is checked before anything is compiled. The study itself
 (:class:`Study`, :func:`run_study`, :func:`write_outputs`) lives in
@@ -81,9 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="sign",
         help="switching function of the sliding-mode controllers (default sign, the paper's)",
     )
-    parser.add_argument(
-        "--chunk", type=arguments.positive_int, default=1024, help="draws per compiled call"
-    )
+    arguments.add_device_batch(parser)
     parser.add_argument(
         "--keep",
         type=arguments.nonnegative_int,
@@ -103,6 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="output folder (created if needed)",
     )
+    arguments.add_runtime_options(parser)
     return parser
 
 
@@ -182,7 +188,7 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
         gains=gains,
         fractional=args.fractional,
         switching=args.switching,
-        chunk=args.chunk,
+        device_batch=args.device_batch,
         keep=min(args.keep, args.draws),
         dtype=dtype,
         gains_sources=sources,
@@ -225,16 +231,19 @@ def _print_summary(summary: dict) -> None:
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    runtime = arguments.setup_runtime(argv, "fojax simulate")
     study, args = parse_args(argv)
     out: Path = args.out
     command = ["fojax", "simulate", *argv]
-    out.mkdir(parents=True, exist_ok=True)
+    lead = runtime["process_index"] == 0
+    if lead:
+        out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     try:
-        results = run_study(study, out, progress=not args.quiet, overwrite=args.overwrite)
+        results = run_study(study, out, progress=not args.quiet and lead, overwrite=args.overwrite)
     except KeyboardInterrupt:
         print(
-            f"\ninterrupted: finished chunks are kept in {out / 'chunks'}; run the same "
+            f"\ninterrupted: finished draws are kept in {out / 'chunks'}; run the same "
             "command again to continue",
             file=sys.stderr,
         )
@@ -242,6 +251,8 @@ def main(argv=None) -> int:
     except ValueError as error:  # e.g. study.StoreMismatch, raised before compiling
         print(f"fojax simulate: error: {error}", file=sys.stderr)
         return 2
+    if not lead:  # process 0 writes the outputs
+        return 0
     wall = round(time.perf_counter() - start, 1)
     summary = write_outputs(
         study,

@@ -32,8 +32,10 @@ __all__ = [
     "Study",
     "StoreMismatch",
     "check_stores",
+    "compile_threads",
     "gains_record",
     "provenance",
+    "run_studies",
     "run_study",
     "snapshot_interval",
     "store_differences",
@@ -60,7 +62,9 @@ class Study:
     gains: dict
     fractional: str
     switching: str
-    chunk: int
+    device_batch: int | None
+    """Draws per block, each device's share of a call (None: the platform's default,
+    :func:`fojax.study.default_device_batch`); draw ``i``'s numbers depend on it."""
     keep: int
     dtype: str
     gains_sources: dict = dataclasses.field(default_factory=dict)
@@ -184,15 +188,24 @@ def write_json(path: Path, document: dict) -> Path:
 
 
 class StoreMismatch(ValueError):
-    """The output folder holds chunks of a run with other settings."""
+    """The output folder holds draws of a run with other settings.
+
+    stores: ``[(folder, [(field, earlier, now), ...]), ...]``, the settings that differ
+    per store (:func:`fojax.study.fingerprint_differences`).
+    """
+
+    def __init__(self, message: str, stores: list | None = None):
+        super().__init__(message)
+        self.stores = list(stores or [])
 
 
 _FLAGS = {
     "seed": "--seed",
     "dtype": "--dtype",
-    "keep": "--keep (capped at --draws)",
-    "chunk": "--chunk or --draws (draws per call: the smaller, rounded up to a multiple "
-    "of the device count)",
+    "device_batch": "--device-batch",
+    "xla_flags": "XLA_FLAGS",
+    "backend": "the platform: cpu or gpu draws round differently",
+    "store_format": "stored by an earlier fojax",
     "gains": "--gains",
     "controller_config.law.switching": "--switching",
     "controller_config.law.fractional_method": "--fractional",
@@ -213,77 +226,57 @@ def _flag(field: str) -> str:
     return ""
 
 
-def _flatten(value, prefix: str = "") -> dict:
-    if isinstance(value, dict):
-        out = {}
-        for key in value:
-            out.update(_flatten(value[key], f"{prefix}.{key}" if prefix else str(key)))
-        return out
-    return {prefix: value}
-
-
-def _short(value, width: int = 60) -> str:
-    text = json.dumps(value, default=str)
-    return text if len(text) <= width else text[: width - 3] + "..."
-
-
-def _differences(stored: dict, current: dict) -> list[str]:
-    old, new = _flatten(stored), _flatten(current)
-    lines = []
-    for field in sorted(set(old) | set(new)):
-        if old.get(field, "<absent>") == new.get(field, "<absent>"):
-            continue
-        flag = _flag(field)
-        lines.append(
-            f"{field}{f' ({flag})' if flag else ''}: earlier "
-            f"{_short(old.get(field, '<absent>'))}, now {_short(new.get(field, '<absent>'))}"
-        )
-    return lines
-
-
-def _fingerprint(controller, gains, scenario, config, study: Study, devices: int, dtype):
-    """The chunk store's fingerprint of this run (as :func:`fojax.study.run` makes
-    it), JSON-normalised; None when fojax does not expose how it makes one."""
+def _fingerprint(controller, gains, scenario, config, study: Study, dtype) -> dict:
+    """The store's fingerprint of this run, as :func:`fojax.study.run` makes it."""
     from fojax import study as monte_carlo
 
-    make = getattr(monte_carlo, "fingerprint", None)
-    if make is None:
-        return None
-    chunk = min(study.chunk, study.draws)
-    chunk = -(-chunk // devices) * devices
-    keep = min(max(study.keep, 0), study.draws)
     metrics_config = study.metrics_config(config.steps)
-    fingerprint = make(
-        controller, gains, scenario, config, study.seed, chunk, keep, dtype, metrics_config
+    return monte_carlo.fingerprint(
+        controller, gains, scenario, config, study.seed, dtype, metrics_config, study.device_batch
     )
-    return json.loads(json.dumps(fingerprint, sort_keys=True, default=str))
 
 
 def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None:
-    """How ``fingerprint`` differs from the one of the chunks in ``store``: one line
-    per field (``[]``: the same settings; None: nothing stored there to compare)."""
+    """How ``fingerprint`` differs from the one of the draws in ``store``: one line per
+    field, naming the option that sets it (``[]``: the same settings; None: nothing
+    stored there to compare)."""
+    from fojax import study as monte_carlo
+    from fojax.study import _store
+
     manifest = Path(store) / "manifest.json"
     if fingerprint is None or not manifest.is_file():
         return None
     try:
-        stored = json.loads(manifest.read_text()).get("fingerprint")
+        stored = json.loads(manifest.read_text())
     except (OSError, ValueError):
         return [f"{manifest} cannot be read"]
-    if not isinstance(stored, dict):
+    if not isinstance(stored, dict) or not isinstance(stored.get("fingerprint"), dict):
         return [f"{manifest} holds no settings"]
-    return _differences(stored, fingerprint)
+    earlier = dict(stored["fingerprint"])
+    earlier.setdefault("store_format", 1)
+    current = {"store_format": _store.STORE_FORMAT, **fingerprint}
+    differences = monte_carlo.fingerprint_differences(earlier, current)
+    return _store.describe_differences(differences, _flag)
+
+
+def _mesh():
+    """Every device of every process (GPUs, or one CPU device per core: see
+    :func:`experiments.arguments.use_host_devices`), or None for one device."""
+    import jax
+
+    from fojax import sharding
+
+    return sharding.draw_mesh(jax.devices()) if jax.device_count() > 1 else None
 
 
 def _prepared(study: Study):
     """``(mesh, scenario, config, dtype, {name: (controller, gains)})``."""
-    import jax
     import jax.numpy as jnp
 
-    from fojax import scenarios, sharding, simulator
+    from fojax import scenarios, simulator
     from fojax.controllers import registry
 
-    # Every local device (GPUs, or one CPU device per core: see experiments.cli).
-    mesh = sharding.draw_mesh(jax.local_devices()) if jax.local_device_count() > 1 else None
+    mesh = _mesh()
     scenario = dataclasses.replace(scenarios.get_scenario(study.scenario_id), horizon=study.horizon)
     config = simulator.SimulationConfig(
         dt=study.dt, horizon=study.horizon, save_every=study.save_every
@@ -308,61 +301,241 @@ def _prepared(study: Study):
 
 def check_stores(study: Study, out: Path) -> None:
     """Raise :class:`StoreMismatch` naming the fields that differ when ``out/chunks``
-    holds chunks of a run with other settings (before anything is compiled)."""
-    mesh, scenario, config, dtype, runs = _prepared(study)
-    devices = 1 if mesh is None else int(mesh.devices.size)
+    holds draws of a run with other settings (before anything is compiled). The draw
+    count, ``--keep``, the devices and the processes may differ: a longer run extends
+    the stored one."""
+    _, scenario, config, dtype, runs = _prepared(study)
     problems = []
     for name, (controller, gains) in runs.items():
         store = Path(out) / "chunks" / name
-        fingerprint = _fingerprint(controller, gains, scenario, config, study, devices, dtype)
+        fingerprint = _fingerprint(controller, gains, scenario, config, study, dtype)
         lines = store_differences(store, fingerprint)
         if lines:
             problems.append((store, lines))
     if problems:
         text = "\n".join(
-            f"{store} holds chunks of an earlier run that differs in:\n  " + "\n  ".join(lines)
+            f"{store} holds draws of an earlier run that differs in:\n  " + "\n  ".join(lines)
             for store, lines in problems
         )
         raise StoreMismatch(
-            f"{text}\nto start afresh, add --overwrite (discards those chunks), or choose "
-            "another --out"
+            f"{text}\nto start afresh, add --overwrite (discards those draws), or choose "
+            "another --out",
+            problems,
         )
+
+
+# --------------------------------------------------------------------- running studies
+
+
+def compile_threads() -> int:
+    """Threads compiling the runs' programs while earlier runs compute
+    (``FOJAX_COMPILE_THREADS``, default :func:`default_compile_threads`; 0: each
+    compiled when its run starts)."""
+    text = os.environ.get("FOJAX_COMPILE_THREADS", "").strip()
+    if not text:
+        return default_compile_threads()
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"FOJAX_COMPILE_THREADS must be an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise ValueError(f"FOJAX_COMPILE_THREADS must be an integer >= 0, got {value}")
+    return value
+
+
+def default_compile_threads() -> int:
+    """One compiling thread per core, at most 4. XLA compiles a program on one thread;
+    the runs' programs are independent, so they compile side by side (measured on 2
+    cores: docs/performance.md, "fojax reproduce")."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return max(1, min(4, cores))
+
+
+class _Job:
+    """One (study, controller) run: what it needs compiled and where it stores draws."""
+
+    def __init__(self, study: Study, out: Path, name: str, prepared):
+        mesh, scenario, config, dtype, runs = prepared
+        self.study, self.out, self.name = study, Path(out), name
+        self.mesh, self.scenario, self.config, self.dtype = mesh, scenario, config, dtype
+        self.controller, self.gains = runs[name]
+        self.metrics_config = study.metrics_config(config.steps)
+        self.store = self.out / "chunks" / name
+
+    def compile_key(self):
+        """Runs with equal keys share one compiled program. The scenario is part of
+        it for as long as the rollout compiles it in (:mod:`fojax.simulator`); once it
+        takes the scenario as data, only its static part (horizon, table layout)
+        belongs here and the scenarios of one controller share a program."""
+        from fojax import study as monte_carlo
+
+        batch = self.study.device_batch or monte_carlo.default_device_batch()
+        per_call = batch * (1 if self.mesh is None else int(self.mesh.devices.size))
+        shapes = tuple((tuple(g.shape), str(g.dtype)) for g in self.gains)
+        return (
+            self.controller,
+            self.scenario,
+            self.config,
+            self.metrics_config,
+            str(self.dtype),
+            per_call,
+            shapes,
+        )
+
+    def compile(self):
+        from fojax import study as monte_carlo
+
+        per_call = self.compile_key()[5]
+        return monte_carlo.compile_chunk_runner(
+            self.controller,
+            self.gains,
+            self.scenario,
+            self.config,
+            per_call,
+            self.metrics_config,
+            self.dtype,
+            self.mesh,
+        )
+
+    def pending(self) -> bool:
+        """Whether some draws are not in the store yet (process 0 reads the store; its
+        answer is every process's)."""
+        import jax
+        import numpy as np
+
+        from fojax import study as monte_carlo
+        from fojax.study import _store
+
+        keep = min(max(self.study.keep, 0), self.study.draws)
+        answer = True
+        if jax.process_index() == 0 and (self.store / "manifest.json").is_file():
+            fingerprint = _fingerprint(
+                self.controller, self.gains, self.scenario, self.config, self.study, self.dtype
+            )
+            try:
+                store = monte_carlo.ChunkStore(self.store, fingerprint, writable=False)
+                segments = _store.plan(store.ranges(), self.study.draws, keep)
+                answer = any(kind == "compute" for kind, *_ in segments)
+            except ValueError:
+                answer = True  # the run itself reports the mismatch
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            from fojax import sharding
+
+            sharding.barrier("pending")
+            answer = bool(multihost_utils.broadcast_one_to_all(np.asarray(answer)))
+        return answer
+
+    def run(self, runner, progress: bool):
+        from fojax import study as monte_carlo
+
+        return monte_carlo.run(
+            self.controller,
+            self.gains,
+            self.scenario,
+            self.config,
+            self.study.draws,
+            seed=self.study.seed,
+            device_batch=self.study.device_batch,
+            keep=self.study.keep,
+            progress=progress,
+            dtype=self.dtype,
+            metrics_config=self.metrics_config,
+            store=self.store,
+            runner=runner,
+            mesh=self.mesh,
+        )
+
+
+def run_studies(
+    studies: list[tuple[Study, Path]],
+    progress: bool = True,
+    overwrite: bool = False,
+    threads: int | None = None,
+    announce=None,
+):
+    """Run several studies, each (study, output folder), controller after controller;
+    yields ``(study, {name: result})`` as each study finishes.
+
+    Every store is checked before anything is compiled (:func:`check_stores`; with
+    ``overwrite`` the stored draws are discarded instead). ``threads`` worker threads
+    (default :func:`compile_threads`) compile the programs of every run that has draws
+    left, in run order, while the runs whose programs are ready compute; runs with the
+    same program share one.
+    ``announce(study)`` is called before a study's first run.
+    """
+    import concurrent.futures
+
+    threads = compile_threads() if threads is None else threads
+    for study, out in studies:
+        chunks = Path(out) / "chunks"
+        if overwrite and chunks.exists():
+            import jax
+
+            if jax.process_index() == 0:
+                shutil.rmtree(chunks)
+        elif chunks.exists():
+            check_stores(study, out)
+    jobs = []
+    for study, out in studies:
+        prepared = _prepared(study)
+        jobs.extend(_Job(study, out, name, prepared) for name in study.controllers)
+    pending = [job.pending() for job in jobs]
+    compiled: dict = {}
+    executor = concurrent.futures.ThreadPoolExecutor(threads) if threads > 0 else None
+
+    def request(index: int):
+        key = jobs[index].compile_key()
+        try:
+            hash(key)
+        except TypeError:  # an unhashable setting: this run's own program
+            key = ("job", index)
+        if key not in compiled:
+            if executor is not None:
+                compiled[key] = executor.submit(jobs[index].compile)
+            else:
+                compiled[key] = jobs[index].compile()
+        return compiled[key]
+
+    results: dict = {}
+    try:
+        if executor is not None:  # every program that will be needed, in run order
+            for index in range(len(jobs)):
+                if pending[index]:
+                    request(index)
+        for index, job in enumerate(jobs):
+            if job.name == job.study.controllers[0] and announce is not None:
+                announce(job.study)
+            runner = None
+            if pending[index]:
+                runner = request(index)
+                if isinstance(runner, concurrent.futures.Future):
+                    runner = runner.result()
+            results.setdefault(id(job.study), {})[job.name] = job.run(runner, progress)
+            if job.name == job.study.controllers[-1]:
+                yield job.study, results.pop(id(job.study))
+    finally:
+        if executor is not None:
+            executor.shutdown(wait=False, cancel_futures=True)
 
 
 def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = False) -> dict:
     """Run every controller of ``study`` on the same draws; returns the results by name.
 
-    Finished chunks go to ``out/chunks/<controller>``; a run started again with the
-    same settings continues from them. Raises :class:`StoreMismatch` (a ValueError)
-    naming the fields that differ when they hold a run with other settings (unless
-    ``overwrite``: then they are discarded).
+    Draws go to ``out/chunks/<controller>``; a run started again with the same
+    settings continues from them, one with more draws extends them. Raises
+    :class:`StoreMismatch` (a ValueError) naming the fields that differ when they hold
+    a run with other settings (unless ``overwrite``: then they are discarded).
     """
-    from fojax import study as monte_carlo
-
-    chunks = Path(out) / "chunks"
-    if overwrite and chunks.exists():
-        shutil.rmtree(chunks)
-    elif chunks.exists():
-        check_stores(study, out)
-    mesh, scenario, config, dtype, runs = _prepared(study)
-    results = {}
-    for name, (controller, gains) in runs.items():
-        results[name] = monte_carlo.run(
-            controller,
-            gains,
-            scenario,
-            config,
-            study.draws,
-            seed=study.seed,
-            chunk=study.chunk,
-            keep=study.keep,
-            progress=progress,
-            dtype=dtype,
-            metrics_config=study.metrics_config(config.steps),
-            store=chunks / name,
-            mesh=mesh,
-        )
-    return results
+    runs = run_studies([(study, out)], progress, overwrite)
+    try:
+        return next(runs)[1]
+    finally:
+        runs.close()
 
 
 # ---------------------------------------------------------------------------- outputs
@@ -399,18 +572,17 @@ def _used_gains(study: Study, name: str):
 
 
 def _batch_layout(study: Study) -> dict:
-    """How the draws were batched: a draw's float32 rounding depends on its batch."""
-    import jax
+    """How the draws were laid out over processes and devices (a draw's numbers do not
+    depend on it, only on the block size ``device_batch``)."""
+    from fojax import study as monte_carlo
 
-    devices = jax.local_device_count()
-    per_call = -(-min(study.chunk, study.draws) // devices) * devices
-    return {
-        "devices": devices,
-        "draws_per_call": per_call,
-        "calls": -(-study.draws // per_call),
-        "note": "draws per call: the smaller of --chunk and --draws, rounded up to a "
-        "multiple of the device count; each call's draws are split over the devices",
-    }
+    layout = monte_carlo.batch_layout(study.draws, study.device_batch, _mesh())
+    layout["note"] = (
+        "each call computes one block of device_batch consecutive draws per device of "
+        "every process; a draw's numbers depend on device_batch, not on the draw count, "
+        "the devices or the processes"
+    )
+    return layout
 
 
 def _savez(path: Path, arrays: dict) -> None:
@@ -449,7 +621,7 @@ def write_outputs(
         "fractional_method": study.fractional,
         "switching": study.switching,
         "dtype": study.dtype,
-        "chunk": study.chunk,
+        "device_batch": study.device_batch or monte_carlo.default_device_batch(),
         "batch": _batch_layout(study),
         "keep": study.keep,
         "gains": {
@@ -464,6 +636,9 @@ def write_outputs(
         bounds = _reaching_bounds(name, study, result)
         entry = monte_carlo.summarize(result, extra=bounds)
         entry["wall_time_s"] = round(result.wall_time, 2)
+        if getattr(result, "layout", None):
+            entry["draws_computed"] = result.layout["computed"]
+            entry["draws_from_store"] = result.layout["loaded"]
         summary["controllers"][name] = entry
         arrays[f"{name}.status"] = result.status
         for metric, values in result.per_draw.items():

@@ -138,6 +138,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="output folder (created if needed)",
     )
+    parser.add_argument(
+        "--device-batch",
+        type=arguments.positive_int,
+        metavar="N",
+        help="draws of a minibatch each device differentiates in one call (default: the "
+        "whole minibatch). The steps depend on it (rounding), not on the devices or "
+        "processes: over P devices, --device-batch DRAWS/P splits each minibatch",
+    )
+    arguments.add_runtime_options(parser)
     return parser
 
 
@@ -275,7 +284,7 @@ def _init_source(run) -> str | None:
     return label if label not in ("paper", "naive") else None
 
 
-def _record_session(run, command: list[str]) -> dict:
+def _record_session(run, command: list[str], device_batch: int | None = None) -> dict:
     """``run.json``: the initial gains and one provenance entry per session."""
     path = run.out / "run.json"
     record = {}
@@ -296,7 +305,9 @@ def _record_session(run, command: list[str]) -> dict:
             "tuner": run.fingerprint["tuner"],
         }
     )
-    record["sessions"] = list(record.get("sessions", [])) + [study_layer.provenance(command)]
+    session = study_layer.provenance(command)
+    session["device_batch"] = device_batch or run.spec.draws  # draws per device and call
+    record["sessions"] = list(record.get("sessions", [])) + [session]
     run.out.mkdir(parents=True, exist_ok=True)
     study_layer.write_json(path, record)
     return record
@@ -421,24 +432,68 @@ def _save_tuned_gains(run, record: dict, earlier: str | None) -> None:
     tmp.replace(path)
 
 
+def _tuning_problem(run, device_batch=None):
+    """The problem with its draws over every device of every process: per-draw
+    gradients computed where the draws are, gathered, reduced the same way on each
+    process (:class:`optimize.problem.TuningProblem`'s ``mesh``), so that a run over
+    several processes takes the steps a one-process run takes."""
+    import jax
+
+    from fojax import sharding
+    from optimize import problem
+
+    mesh = sharding.draw_mesh(jax.devices())
+    return problem.TuningProblem(run.spec, run.init_gains, mesh=mesh, device_batch=device_batch)
+
+
+def _private_copy(run):
+    """For processes other than 0: the run writing into a private temporary folder
+    (process 0 writes the outputs), holding a copy of the checkpoint to resume from."""
+    import shutil
+    import tempfile
+
+    from optimize import tuner
+
+    folder = Path(tempfile.mkdtemp(prefix="fojax-tune-"))
+    checkpoint = run.out / tuner.CHECKPOINT
+    if run.resume and checkpoint.is_file():
+        shutil.copy2(checkpoint, folder / tuner.CHECKPOINT)
+    import dataclasses
+
+    return dataclasses.replace(run, out=folder)
+
+
 def main(argv=None) -> int:
     from optimize import tuner
 
     argv = list(sys.argv[1:] if argv is None else argv)
+    runtime = arguments.setup_runtime(argv, "fojax tune")
     run, args = parse_args(argv)
-    record = _record_session(run, ["fojax", "tune", *argv])
+    lead = runtime["process_index"] == 0
+    if not lead:
+        run = _private_copy(run)
+    record = _record_session(run, ["fojax", "tune", *argv], args.device_batch) if lead else None
     gains_file = run.out / "gains.json"
     earlier = gains_file.read_text() if _finished_before(run) and gains_file.is_file() else None
     start = time.perf_counter()
     try:
-        result = tuner.tune(run, progress=not args.quiet)
+        result = tuner.tune(
+            run, progress=not args.quiet and lead, problem=_tuning_problem(run, args.device_batch)
+        )
     except KeyboardInterrupt:
         return 130
+    if not lead:
+        import shutil
+
+        shutil.rmtree(run.out, ignore_errors=True)
+        return 0
     print(
         f"tuned {run.spec.controller} on scenario {run.spec.scenario}: {result.completed} "
         f"steps x {run.spec.draws} draws x {run.spec.horizon:g} s, final objective "
         f"{result.history[-1]['objective']:.5g} ({time.perf_counter() - start:.0f} s)"
     )
+    if runtime["process_count"] > 1:
+        print(f"over {runtime['process_count']} processes, {runtime['device_count']} devices")
     _save_tuned_gains(run, record, earlier)
     files = ["gains.json", "history.csv", "run.json"]
     evaluation = None

@@ -35,8 +35,10 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 __all__ = [
     "DRAW_AXIS",
+    "barrier",
     "draw_mesh",
     "draw_sharding",
+    "detect_cluster",
     "initialize",
     "pad_draws",
     "replicate",
@@ -48,35 +50,77 @@ __all__ = [
 DRAW_AXIS = "draws"
 
 
+JAX_VARIABLES = ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
+"""The environment variables of a :func:`jax.distributed.initialize` run."""
+
+
+def detect_cluster() -> tuple[str, int] | None:
+    """``(name, process count)`` of the cluster this process runs in, as
+    :func:`jax.distributed.initialize` detects it (SLURM, Open MPI, Kubernetes, Cloud
+    TPU; not the opt-in mpi4py), or None. A cluster job of one process is not a
+    distributed run, so callers join only when the count is above 1."""
+    try:
+        from jax._src import clusters  # JAX's own detection; private, hence guarded
+
+        types = list(clusters.ClusterEnv._cluster_types)
+    except (ImportError, AttributeError):  # another JAX: SLURM's variables by hand
+        if all(os.environ.get(v) for v in ("SLURM_JOB_ID", "SLURM_NTASKS", "SLURM_PROCID")):
+            return "slurm", int(os.environ["SLURM_NTASKS"])
+        return None
+    for env in types:
+        if getattr(env, "opt_in_only_method", False):
+            continue
+        try:
+            if env.is_env_present():
+                return str(getattr(env, "name", env.__name__)), int(env.get_process_count())
+        except Exception:  # a detector that cannot answer here (e.g. no API access)
+            continue
+    return None
+
+
 def initialize(
     coordinator_address: str | None = None,
     num_processes: int | None = None,
     process_id: int | None = None,
+    detect: bool = True,
 ) -> dict[str, int]:
-    """Join a multi-host run through :func:`jax.distributed.initialize`, if there is one.
+    """Join a multi-process run through :func:`jax.distributed.initialize`, if there is one.
 
-    With all three arguments ``None`` and none of ``JAX_COORDINATOR_ADDRESS``,
-    ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID`` set (and no cluster detected by JAX), this
-    is a single-process run and nothing is done. Call it before any other JAX call.
+    Joins when any argument is given, when any of ``JAX_COORDINATOR_ADDRESS``,
+    ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID`` is set (arguments override them), or,
+    with ``detect``, when :func:`detect_cluster` finds a cluster job of more than one
+    process (e.g. ``srun`` with several tasks); otherwise this is a single-process run
+    and nothing is done. Call it before any other JAX call that touches devices; a
+    second call after joining does nothing. On CPUs the processes exchange results
+    through JAX's CPU collectives (gloo).
 
-    Returns ``{"process_index", "process_count", "device_count", "local_device_count"}``.
+    Returns ``{"process_index", "process_count", "device_count", "local_device_count",
+    "joined"}`` (``joined``: how the run was joined: ``"arguments"``, ``"environment"``,
+    the cluster's name, or ``None``).
     """
-    given = (coordinator_address, num_processes, process_id)
-    from_env = any(
-        os.environ.get(name)
-        for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
-    )
-    if any(v is not None for v in given) or from_env:
-        if num_processes is not None and (not isinstance(num_processes, int) or num_processes < 1):
-            raise ValueError(f"num_processes must be a positive integer, got {num_processes!r}")
-        if process_id is not None and (
-            not isinstance(process_id, int)
-            or process_id < 0
-            or (num_processes is not None and process_id >= num_processes)
-        ):
-            raise ValueError(
-                f"process_id must be an integer in [0, num_processes), got {process_id!r}"
-            )
+    if num_processes is not None and (
+        isinstance(num_processes, bool) or not isinstance(num_processes, int) or num_processes < 1
+    ):
+        raise ValueError(f"num_processes must be a positive integer, got {num_processes!r}")
+    if process_id is not None and (
+        isinstance(process_id, bool)
+        or not isinstance(process_id, int)
+        or process_id < 0
+        or (num_processes is not None and process_id >= num_processes)
+    ):
+        raise ValueError(f"process_id must be an integer in [0, num_processes), got {process_id!r}")
+    joined = None
+    if jax.distributed.is_initialized():
+        joined = "earlier"
+    elif any(v is not None for v in (coordinator_address, num_processes, process_id)):
+        joined = "arguments"
+    elif any(os.environ.get(name) for name in JAX_VARIABLES):
+        joined = "environment"
+    elif detect:
+        cluster = detect_cluster()
+        if cluster is not None and cluster[1] > 1:
+            joined = cluster[0]
+    if joined is not None and joined != "earlier":
         jax.distributed.initialize(
             coordinator_address=coordinator_address,
             num_processes=num_processes,
@@ -87,7 +131,37 @@ def initialize(
         "process_count": jax.process_count(),
         "device_count": jax.device_count(),
         "local_device_count": jax.local_device_count(),
+        "joined": joined,
     }
+
+
+_BARRIERS = {"count": 0}
+
+
+def barrier(name: str, timeout_s: float = 3600.0) -> None:
+    """Wait until every process of a ``jax.distributed`` run gets here (nothing to do
+    in a single-process run).
+
+    Collectives on CPUs (gloo) give up when the processes reach their first one more
+    than 30 s apart, which a compilation of the gradient on a loaded machine exceeds;
+    this waits through the coordination service instead, up to ``timeout_s``.
+    """
+    if jax.process_count() == 1:
+        return
+    _BARRIERS["count"] += 1
+    label = f"fojax:{name}:{_BARRIERS['count']}"
+    try:
+        from jax._src import distributed  # the coordination client; private, hence guarded
+
+        client = distributed.global_state.client
+    except (ImportError, AttributeError):
+        client = None
+    if client is None or not hasattr(client, "wait_at_barrier"):
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(label)
+        return
+    client.wait_at_barrier(label, int(timeout_s * 1000))
 
 
 def draw_mesh(devices: Sequence[Any] | None = None) -> Mesh:

@@ -195,13 +195,18 @@ class TuningProblem:
     """:class:`ProblemSpec` + base gains, compiled (one compilation per shape).
 
     base_gains: the gains the tuned fields start from and the untuned fields keep
-    (validated by the controller's ``check_gains``).
+    (validated by the controller's ``check_gains``). mesh: a
+    :func:`fojax.sharding.draw_mesh` (e.g. over every process's devices): the per-draw
+    gradients of :meth:`value_and_grad` are computed over its devices in blocks of
+    ``device_batch`` draws (default: the whole minibatch), gathered to every process
+    and reduced there by one program, so that every mesh gives the same numbers for a
+    given ``device_batch`` (:func:`_over_mesh`).
 
     Attributes: ``spec``, ``param_map``, ``base_gains``, ``sim_config``,
     ``controller`` (``tanh`` switching when the controller has a switching function).
     """
 
-    def __init__(self, spec: ProblemSpec, base_gains: Any):
+    def __init__(self, spec: ProblemSpec, base_gains: Any, mesh=None, device_batch=None):
         self.spec = spec
         dtype = spec.jnp_dtype
         cls = registry.get_controller_class(spec.controller)
@@ -236,11 +241,12 @@ class TuningProblem:
             costs = cost_lib.DrawCosts(effective, terms, status, diverged)
             return Step(objective, costs, None, jnp.zeros((), jnp.int32))
 
-        def value_and_grad(params, width_scale, keys):
+        def per_draw_grads(params, width_scale, keys):
             grad_one = jax.value_and_grad(one, has_aux=True)
-            (j, (terms, status)), grads = jax.vmap(grad_one, in_axes=(None, None, 0))(
-                params, width_scale, keys
-            )
+            return jax.vmap(grad_one, in_axes=(None, None, 0))(params, width_scale, keys)
+
+        def reduce_draws(per_draw):
+            (j, (terms, status)), grads = per_draw
             effective, diverged = cost_lib.guard(cost_config, j, status)
             objective, weights = cost_lib.combine(cost_config, effective)
             finite = jnp.all(
@@ -264,9 +270,17 @@ class TuningProblem:
             costs = cost_lib.DrawCosts(effective, terms, status, diverged)
             return Step(objective, costs, gradient, bad)
 
+        def value_and_grad(params, width_scale, keys):
+            return reduce_draws(per_draw_grads(params, width_scale, keys))
+
         self._value = jax.jit(value)
         self._value_and_grad = jax.jit(value_and_grad)
         self._gains_of = gains_of
+        self.mesh = mesh
+        if mesh is not None:
+            self._value_and_grad = _over_mesh(
+                per_draw_grads, jax.jit(reduce_draws), mesh, device_batch
+            )
 
     # -- draws ------------------------------------------------------------------------
     def minibatch_keys(self, index: int, draws: int | None = None) -> Array:
@@ -292,6 +306,58 @@ class TuningProblem:
 
     def value_and_grad(self, params, width_scale: float, keys: Array) -> Step:
         return self._value_and_grad(params, jnp.asarray(width_scale, self.spec.jnp_dtype), keys)
+
+
+def _over_mesh(per_draw, reduce, mesh, device_batch=None):
+    """``value_and_grad`` with the draws over ``mesh``: the minibatch's keys in blocks of
+    ``device_batch`` (default: the whole minibatch, one block), one block per device
+    and call (the last block completed by repeating the last key, a short last call by
+    repeating its last block), ``per_draw`` (vmapped over the keys) compiled for one
+    block per device, the per-draw values gathered to every process
+    (``jax.distributed``), the padding dropped, then ``reduce`` (jitted) on this
+    process's default device.
+
+    Each draw is computed by the same per-device program at the same place in its
+    block whatever the mesh, so every mesh, one device or the devices of several
+    processes, gives the same per-draw values and hence the same objective and
+    gradient, bit for bit, for a given ``device_batch`` (XLA rounds a draw according to
+    its batch: :mod:`fojax.study`)."""
+    from fojax import sharding
+
+    devices = int(mesh.devices.size)
+    replicated = sharding.replicated_sharding(mesh)
+    run = jax.jit(
+        per_draw,
+        in_shardings=(replicated, replicated, sharding.draw_sharding(mesh)),
+        out_shardings=sharding.draw_sharding(mesh),
+    )
+    several = any(d.process_index != jax.process_index() for d in mesh.devices.flat)
+
+    def value_and_grad(params, width_scale, keys):
+        keys = np.asarray(keys)
+        n = keys.shape[0]
+        batch = int(device_batch or n)
+        blocks = -(-n // batch)
+        params = sharding.replicate(params, mesh)
+        width_scale = sharding.replicate(width_scale, mesh)
+        parts = []
+        for first_block in range(0, blocks, devices):
+            chosen = [min(b, blocks - 1) for b in range(first_block, first_block + devices)]
+            index = np.concatenate([np.arange(b * batch, (b + 1) * batch) for b in chosen])
+            out = run(
+                params, width_scale, sharding.shard_draws(keys[np.minimum(index, n - 1)], mesh)
+            )
+            if several:
+                from jax.experimental import multihost_utils
+
+                sharding.barrier("gradients")  # compilations may end far apart
+                out = multihost_utils.process_allgather(out, tiled=True)
+            real = min(devices, blocks - first_block) * batch
+            parts.append(jax.tree.map(lambda x, real=real: np.asarray(x)[:real], out))
+        out = jax.tree.map(lambda *xs: jnp.asarray(np.concatenate(xs)[:n]), *parts)
+        return reduce(out)
+
+    return value_and_grad
 
 
 @functools.lru_cache(maxsize=16)

@@ -152,7 +152,8 @@ def _sim_cases(p):
         (SIM + ["--dt", "inf", "--out", str(p["folder"])], "finite number > 0"),
         (SIM + ["--dt", "0.0003", "--out", str(p["folder"])], "e.g. --horizon"),
         (SIM + ["--keep", "-1", "--out", str(p["folder"])], "integer >= 0"),
-        (SIM + ["--chunk", "0", "--out", str(p["folder"])], "positive integer"),
+        (SIM + ["--device-batch", "0", "--out", str(p["folder"])], "positive integer"),
+        (SIM + ["--chunk", "8", "--out", str(p["folder"])], "--chunk was removed"),
         (SIM + ["--dtype", "float16", "--out", str(p["folder"])], "invalid choice"),
         (SIM + ["--controller", "", "--out", str(p["folder"])], "unknown controller"),
         (SIM + ["--controller", "afonftsmc,pid", "--out", str(p["folder"])], "'pid'"),
@@ -206,14 +207,13 @@ def test_simulate_names_only_the_settings_that_differ(capsys, tmp_path):
     """An earlier run's chunks with another seed and switching: the message lists those
     two fields and how to start afresh, before anything runs."""
     earlier, _ = simulate.parse_args(SIM + ["--switching", "sat", "--out", str(tmp_path)])
-    mesh, scenario, config, dtype, runs = study._prepared(earlier)
+    from fojax.study import ChunkStore
+
+    _, scenario, config, dtype, runs = study._prepared(earlier)
     controller, gains = runs["afonftsmc"]
-    devices = 1 if mesh is None else int(mesh.devices.size)
-    fingerprint = study._fingerprint(controller, gains, scenario, config, earlier, devices, dtype)
-    assert fingerprint is not None, "fojax.study no longer exposes its fingerprint"
+    fingerprint = study._fingerprint(controller, gains, scenario, config, earlier, dtype)
     store = tmp_path / "chunks" / "afonftsmc"
-    store.mkdir(parents=True)
-    (store / "manifest.json").write_text(json.dumps({"key": "x", "fingerprint": fingerprint}))
+    ChunkStore(store, fingerprint)  # the earlier run's (empty) store
     status = cli.main(["simulate"] + SIM + ["--seed", "7", "--out", str(tmp_path), "--quiet"])
     assert status == 2
     err = capsys.readouterr().err

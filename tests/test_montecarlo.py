@@ -109,87 +109,185 @@ def test_online_metrics_match_offline_evaluation():
     assert np.any(np.asarray(online["settling_time"]) > 0)
 
 
-def test_chunking_does_not_change_draws_and_store_resumes(tmp_path):
-    gains = paper_gains()
-    whole = study.run(
+def _run(draws, device_batch=8, store=None, runner=None, keep=2, seed=3, **kw):
+    return study.run(
         CONTROLLER,
-        gains,
+        paper_gains(),
         SCENARIO,
         CONFIG,
-        draws=5,
-        seed=3,
-        chunk=5,
-        keep=2,
+        draws=draws,
+        seed=seed,
+        device_batch=device_batch,
+        keep=keep,
         progress=False,
         metrics_config=METRICS,
-        runner=None,
+        store=store,
+        runner=runner,
+        **kw,
     )
-    calls = []
-    compiled = study.make_chunk_runner(CONTROLLER, SCENARIO, CONFIG, METRICS)
+
+
+def _assert_same_draws(a, b, n=None):
+    """Bit for bit: draw i's numbers do not depend on the draws around it."""
+    n = min(a.draws, b.draws) if n is None else n
+    np.testing.assert_array_equal(a.status[:n], b.status[:n])
+    assert sorted(a.per_draw) == sorted(b.per_draw)
+    for name in a.per_draw:
+        np.testing.assert_array_equal(a.per_draw[name][:n], b.per_draw[name][:n], err_msg=name)
+
+
+def _counting(calls):
+    compiled = runner()
 
     def counting(g, keys):
-        calls.append(keys.shape[0])
+        calls.append(int(keys.shape[0]))
         return compiled(g, keys)
 
+    return counting
+
+
+def test_blocks_do_not_change_draws_and_store_resumes(tmp_path):
+    whole = _run(draws=21)
+    few = _run(draws=5, keep=2)
+    _assert_same_draws(few, whole)  # the first 5 of 21: the same numbers
+    np.testing.assert_array_equal(few.trajectories.state, whole.trajectories.state)
+    calls = []
     store = tmp_path / "chunks"
-    chunked = study.run(
-        CONTROLLER,
-        gains,
-        SCENARIO,
-        CONFIG,
-        draws=5,
-        seed=3,
-        chunk=2,
-        keep=2,
-        progress=False,
-        metrics_config=METRICS,
-        store=store,
-        runner=counting,
-    )
-    assert calls == [2, 2, 2]  # padded last chunk: one shape, one compilation
-    assert compiled._cache_size() == 1
-    for name in whole.per_draw:
-        np.testing.assert_allclose(chunked.per_draw[name], whole.per_draw[name], rtol=1e-12)
-    np.testing.assert_array_equal(chunked.status, whole.status)
-    np.testing.assert_allclose(chunked.trajectories.state, whole.trajectories.state, rtol=1e-12)
+    stored_run = _run(draws=21, store=store, runner=_counting(calls))
+    # Blocks of 8 draws, one per call on one device, the last one completed with the
+    # draws that follow: one shape, one compilation.
+    assert calls == [8, 8, 8]
+    assert stored_run.layout["device_batch"] == 8 and stored_run.layout["calls"] == 3
+    _assert_same_draws(stored_run, whole)
+    np.testing.assert_array_equal(stored_run.trajectories.state, whole.trajectories.state)
+    assert stored_run.trajectories.state.shape[0] == 2
 
-    # Interrupted after two chunks: the third is recomputed, the first two are loaded.
-    (store / "chunk_0000004.npz").unlink()
+    # Interrupted after the first two calls: the third is computed, the rest read.
+    stored = sorted(p.name for p in store.glob("draws_*.npz"))
+    assert stored == [
+        "draws_0000000000-0000000008.npz",
+        "draws_0000000008-0000000016.npz",
+        "draws_0000000016-0000000024.npz",  # whole blocks, draws 21-23 included
+    ]
+    (store / stored[2]).unlink()
     calls.clear()
-    resumed = study.run(
-        CONTROLLER,
-        gains,
-        SCENARIO,
-        CONFIG,
-        draws=5,
-        seed=3,
-        chunk=2,
-        keep=2,
-        progress=False,
-        metrics_config=METRICS,
-        store=store,
-        runner=counting,
-    )
-    assert calls == [2]
-    for name in whole.per_draw:
-        np.testing.assert_allclose(resumed.per_draw[name], whole.per_draw[name], rtol=1e-12)
+    resumed = _run(draws=21, store=store, runner=_counting(calls))
+    assert calls == [8] and resumed.layout["computed"] == 5
+    _assert_same_draws(resumed, whole)
 
-    # Other settings in the same store are refused, not mixed in.
-    with pytest.raises(ValueError, match="other settings"):
-        study.run(
-            CONTROLLER,
-            gains,
-            SCENARIO,
-            CONFIG,
-            draws=5,
-            seed=4,
-            chunk=2,
-            keep=2,
-            progress=False,
-            metrics_config=METRICS,
-            store=store,
-            runner=counting,
-        )
+    # Other settings in the same store are refused, naming what differs, not mixed in.
+    with pytest.raises(study.StoreMismatch, match="seed") as info:
+        _run(draws=21, seed=4, store=store, runner=_counting(calls))
+    assert [d[0] for d in info.value.differences] == ["seed"]
+    assert isinstance(info.value, ValueError)
+    with pytest.raises(study.StoreMismatch, match="device_batch: earlier 8, now 16"):
+        _run(draws=21, device_batch=16, store=store, runner=_counting(calls))
+
+
+def test_a_longer_run_extends_the_stored_draws(tmp_path):
+    """More draws and more kept trajectories in the same store: the stored draws are
+    reused, and the result equals a run made at the larger size from scratch."""
+    store = tmp_path / "chunks"
+    calls = []
+    _run(draws=5, keep=2, store=store, runner=_counting(calls))
+    assert calls == [8]
+    calls.clear()
+    extended = _run(draws=40, keep=3, store=store, runner=_counting(calls))
+    # Draws 0-1 have snapshots stored and 3-7 need none; draw 2 now needs one: its
+    # block is computed again, and blocks 1-4 (draws 8-39) for the first time.
+    assert calls == [8] * 5 and extended.layout["loaded"] == 7
+    scratch = _run(draws=40, keep=3)
+    _assert_same_draws(extended, scratch)
+    np.testing.assert_array_equal(extended.trajectories.state, scratch.trajectories.state)
+    # Fewer draws than stored: read, nothing computed.
+    calls.clear()
+    shorter = _run(draws=7, keep=1, store=store, runner=_counting(calls))
+    assert calls == [] and shorter.layout["computed"] == 0
+    _assert_same_draws(shorter, scratch, 7)
+    assert shorter.trajectories.state.shape[0] == 1
+
+
+def test_store_plan_reads_what_is_there_and_computes_the_rest():
+    from fojax.study import _store
+
+    def item(first, stop, kept):
+        return _store.StoredRange(first, stop, kept, None)
+
+    stored = [item(0, 16, 2), item(16, 32, 0), item(40, 48, 0)]
+    plan = [(k, a, b) for k, a, b, _ in _store.plan(stored, 50, keep=2)]
+    assert plan == [
+        ("load", 0, 16),
+        ("load", 16, 32),
+        ("compute", 32, 40),
+        ("load", 40, 48),
+        ("compute", 48, 50),
+    ]
+    # keep 4: draws 2-3 need snapshots the first file lacks.
+    plan = [(k, a, b) for k, a, b, _ in _store.plan(stored, 20, keep=4)]
+    assert plan == [("load", 0, 2), ("compute", 2, 4), ("load", 4, 16), ("load", 16, 20)]
+    # Overlapping files: the one reaching further is read.
+    plan = [(k, a, b) for k, a, b, _ in _store.plan([item(0, 8, 0), item(0, 24, 0)], 20, 0)]
+    assert plan == [("load", 0, 20)]
+    assert _store.plan([], 3, 3) == [("compute", 0, 3, None)]
+
+
+def test_store_mismatch_names_the_fields(tmp_path):
+    fingerprint = study.fingerprint(
+        CONTROLLER, paper_gains(), SCENARIO, CONFIG, 3, jnp.float64, METRICS, 8
+    )
+    assert not {"draws", "chunk", "keep"} & set(fingerprint)
+    assert fingerprint["device_batch"] == 8 and fingerprint["backend"] == "cpu"
+    # The suite's optimisation-level flag changes arithmetic: it is part of the key.
+    assert "--xla_backend_optimization_level=0" in fingerprint["xla_flags"]
+    study.ChunkStore(tmp_path, fingerprint)
+    other = dict(fingerprint, seed=4, dtype="float32")
+    with pytest.raises(study.StoreMismatch) as info:
+        study.ChunkStore(tmp_path, other)
+    assert [field for field, _, _ in info.value.differences] == ["dtype", "seed"]
+    message = str(info.value)
+    assert 'dtype: earlier "float64", now "float32"' in message
+    assert "seed: earlier 3, now 4" in message and "afresh" in message
+    # A store of the earlier format (chunk and keep in its settings) is named as such.
+    (tmp_path / "manifest.json").write_text(
+        '{"key": "x", "fingerprint": {"chunk": 50, "keep": 32}}'
+    )
+    with pytest.raises(study.StoreMismatch, match="store_format: earlier 1, now 2"):
+        study.ChunkStore(tmp_path, fingerprint)
+    assert study.numeric_xla_flags(
+        "--xla_force_host_platform_device_count=2 --xla_dump_to=/tmp/x --xla_cpu_foo=1"
+    ) == ["--xla_cpu_foo=1"]
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"draws": 2**32 + 1}, "at most 2\\*\\*32"),
+        ({"draws": 0}, "positive integer"),
+        ({"draws": 3, "seed": 2**63}, "at most 2\\*\\*63 - 1"),
+        ({"draws": 3, "seed": -1}, "non-negative"),
+        ({"draws": 3, "device_batch": 0}, "device_batch must be a positive integer"),
+    ],
+)
+def test_run_rejects_out_of_range_draws_and_seeds_before_tracing(kwargs, message):
+    def never(*args):
+        raise AssertionError("nothing may run")
+
+    with pytest.raises(ValueError, match=message):
+        study.run(CONTROLLER, paper_gains(), SCENARIO, CONFIG, runner=never, **kwargs)
+
+
+def test_batch_layout():
+    layout = study.batch_layout(100, 64)
+    assert layout == {
+        "processes": 1,
+        "devices": 1,
+        "device_batch": 64,
+        "draws_per_call": 64,
+        "blocks": 2,
+        "calls": 2,
+    }
+    assert study.default_device_batch("cpu") == 50
+    assert study.default_device_batch("gpu") == study.OTHER_DEVICE_BATCH
 
 
 def test_summary_excludes_diverged_draws_and_counts_flags():

@@ -157,7 +157,7 @@ VERDICTS = set(reproduce.claims.VERDICTS)
 
 def test_reproduce_end_to_end_tiny(tmp_path):
     out = tmp_path / "run"
-    argv = ["reproduce", "--out", str(out), "--draws", "3", "--chunk", "2", "--keep", "2"]
+    argv = ["reproduce", "--out", str(out), "--draws", "3", "--device-batch", "2", "--keep", "2"]
     argv += ["--horizon", "0.2", "--seed", "4", "--quiet"]
     assert cli.main(argv) == 0
     report = json.loads((out / "report.json").read_text())

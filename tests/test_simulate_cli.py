@@ -109,7 +109,7 @@ def test_simulate_end_to_end_tiny(tmp_path, capsys, monkeypatch):
         "afonftsmc",
         "--draws",
         "3",
-        "--chunk",
+        "--device-batch",
         "2",
         "--horizon",
         "0.2",
@@ -244,7 +244,7 @@ def test_host_devices_are_set_before_jax_starts_and_never_after():
     before = os.environ.get("XLA_FLAGS")
     assert arguments.use_host_devices() is None
     assert os.environ.get("XLA_FLAGS") == before
-    assert "simulate" in cli.HOST_DEVICE_COMMANDS and "reproduce" not in cli.HOST_DEVICE_COMMANDS
+    assert "simulate" in cli.HOST_DEVICE_COMMANDS and "reproduce" in cli.HOST_DEVICE_COMMANDS
 
 
 def test_a_control_law_of_ones_own_reaches_the_command_line(tmp_path, capsys, monkeypatch):
@@ -272,3 +272,28 @@ def test_a_control_law_of_ones_own_reaches_the_command_line(tmp_path, capsys, mo
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["controllers"]) == ["cli_pd"]
     assert summary["controllers"]["cli_pd"]["diverged"] == 0
+
+
+def test_load_gains_names_the_file_for_folders_and_undecodable_files(tmp_path):
+    folder = tmp_path / "gains_folder"
+    folder.mkdir()
+    with pytest.raises(ValueError, match="is a folder, not a gains file") as info:
+        gains_io.load_gains(folder)
+    assert str(folder) in str(info.value)
+    binary = tmp_path / "gains.bin"
+    binary.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ValueError, match="not UTF-8 text") as info:
+        gains_io.load_gains(binary)
+    assert str(binary) in str(info.value)
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(ValueError, match="nested too deeply|not valid JSON") as info:
+        gains_io.load_gains(deep)
+    assert str(deep) in str(info.value)
+    if os.geteuid() != 0:  # root reads regardless of permissions
+        secret = tmp_path / "secret.json"
+        secret.write_text("{}")
+        secret.chmod(0o000)
+        with pytest.raises(ValueError, match="permission denied") as info:
+            gains_io.load_gains(secret)
+        assert str(secret) in str(info.value)

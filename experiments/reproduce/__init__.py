@@ -2,7 +2,7 @@
 
     fojax reproduce --out DIR [--draws N] [--seed S] [--switching sign|sat|tanh]
                     [--fractional soe|oustaloup|gl] [--scenarios 1,2,3] [--horizon T]
-                    [--chunk N] [--keep N] [--dtype float32|float64] [--quiet]
+                    [--device-batch N] [--keep N] [--dtype float32|float64] [--quiet]
 
 All three scenarios, every registered controller (the AFONFTSMC and the four it is
 compared with: ANFTSMC, FOBSMC, BSMC, FL), the same draws for every controller

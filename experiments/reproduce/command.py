@@ -4,7 +4,7 @@ See :mod:`experiments.reproduce` for what it writes, :mod:`.claims` for the clai
 the verdict rule, :mod:`.report` for the report.
 
 The studies (one :class:`experiments.simulate.Study` per scenario) are made, run and
-summarised through :func:`_make_study`, :func:`_run_study` and :func:`_write_outputs`
+summarised through :func:`_make_study`, :func:`_run_studies` and :func:`_write_outputs`
 only, the one place that knows where that layer lives.
 """
 
@@ -38,8 +38,13 @@ def _make_study(**fields) -> simulate.Study:
     return simulate.Study(**fields)
 
 
-def _run_study(study, directory: Path, progress: bool, overwrite: bool) -> dict:
-    return simulate.run_study(study, directory, progress, overwrite)
+def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce):
+    """Yields ``(study, results)`` scenario by scenario (:func:`experiments.study.run_studies`:
+    the next runs' programs compile while one runs)."""
+    from experiments import study as study_layer
+
+    pairs = [(study, out / f"s{study.scenario_id}") for study in studies]
+    yield from study_layer.run_studies(pairs, progress, overwrite, announce=announce)
 
 
 def _write_outputs(study, results: dict, directory: Path) -> dict:
@@ -47,6 +52,84 @@ def _write_outputs(study, results: dict, directory: Path) -> dict:
     summary["reaching_band"] = list(study.reaching_band)
     (directory / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary
+
+
+# ------------------------------------------------------------------------- figures
+
+
+def _draw_scenario(scenario_id: int, results: dict, directory: str) -> list[str]:
+    """Figs. of one scenario (run in the figure process)."""
+    from experiments import paper_figures
+
+    return [str(p) for p in paper_figures.plot_all({scenario_id: results}, Path(directory))]
+
+
+class _FigureDrawer:
+    """Draws each scenario's figures in a separate process as soon as its results are
+    in, while the next scenarios run: drawing 12 figures takes about as long as
+    simulating them (Python and matplotlib, one core), so on two cores it overlaps
+    the rest of the run (docs/performance.md). A figure process that fails is a
+    warning; the figures are then drawn here."""
+
+    def __init__(self, directory: Path, progress: bool):
+        import concurrent.futures
+        import multiprocessing
+
+        self.directory, self.progress = Path(directory), progress
+        self.futures: dict = {}
+        self.results: dict = {}
+        try:
+            context = multiprocessing.get_context("spawn")  # no fork of a process using JAX
+            self.pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=context)
+        except (OSError, ValueError, NotImplementedError):
+            self.pool = None
+
+    def submit(self, scenario_id: int, results: dict) -> None:
+        self.results[scenario_id] = results
+        if self.pool is None:
+            return
+        light = {name: _without_devices(r) for name, r in results.items()}
+        self.futures[scenario_id] = self.pool.submit(
+            _draw_scenario, scenario_id, light, str(self.directory)
+        )
+
+    def finish(self) -> list[Path]:
+        from experiments import paper_figures
+
+        if self.progress:
+            print("figures ...", file=sys.stderr, flush=True)
+        paths = []
+        for scenario_id in sorted(self.results):
+            future = self.futures.get(scenario_id)
+            try:
+                drawn = [Path(p) for p in future.result()] if future is not None else None
+            except Exception as error:  # noqa: BLE001 - the process died: draw them here
+                print(
+                    f"warning: the figure process failed ({type(error).__name__}: {error}); "
+                    "drawing the figures here",
+                    file=sys.stderr,
+                )
+                drawn = None
+            if drawn is None:
+                drawn = paper_figures.plot_all(
+                    {scenario_id: self.results[scenario_id]}, self.directory
+                )
+            paths.extend(drawn)
+        self.close()
+        return paths
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            self.pool = None
+
+
+def _without_devices(result):
+    """A result holding NumPy arrays only (picklable without JAX)."""
+    import jax
+    import numpy as np
+
+    return result._replace(trajectories=jax.tree.map(np.asarray, result.trajectories))
 
 
 # ----------------------------------------------------------------------- arguments
@@ -92,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulated time (s) for every scenario (default: each scenario's, 80/80/50 s)",
     )
     parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s")
-    parser.add_argument("--chunk", type=arguments.positive_int, default=50, help="draws per batch")
+    arguments.add_device_batch(parser)
     parser.add_argument(
         "--keep",
         type=arguments.nonnegative_int,
@@ -105,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--overwrite", action="store_true", help="discard finished chunks of an earlier run"
     )
     parser.add_argument("--quiet", action="store_true", help="no progress display")
+    arguments.add_runtime_options(parser)
     return parser
 
 
@@ -143,7 +227,7 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
                 gains={},
                 fractional=args.fractional,
                 switching=args.switching,
-                chunk=args.chunk,
+                device_batch=args.device_batch,
                 keep=min(args.keep, args.draws),
                 dtype=args.dtype,
                 reaching_band=band,
@@ -168,43 +252,53 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    runtime = arguments.setup_runtime(argv, "fojax reproduce")
     studies, args = parse_args(argv)
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    progress = not args.quiet
+    lead = runtime["process_index"] == 0
+    if lead:
+        out.mkdir(parents=True, exist_ok=True)
+    progress = not args.quiet and lead
     start = time.perf_counter()
     results_by_scenario, summaries = {}, {}
+
+    def announce(study):
+        if progress:
+            index = [s.scenario_id for s in studies].index(study.scenario_id)
+            print(
+                f"scenario {study.scenario_id} ({index + 1}/{len(studies)}): "
+                f"{len(study.controllers)} controllers x {study.draws} draws, "
+                f"{study.horizon:g} s; {time.perf_counter() - start:.0f} s so far",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    drawer = _FigureDrawer(out / "figures", progress) if lead and not args.no_figures else None
     try:
-        for index, study in enumerate(studies):
-            if progress:
-                print(
-                    f"scenario {study.scenario_id} ({index + 1}/{len(studies)}): "
-                    f"{len(study.controllers)} controllers x {study.draws} draws, "
-                    f"{study.horizon:g} s; {time.perf_counter() - start:.0f} s so far",
-                    file=sys.stderr,
-                    flush=True,
-                )
-            directory = out / f"s{study.scenario_id}"
-            results = _run_study(study, directory, progress, args.overwrite)
+        for study, results in _run_studies(studies, out, progress, args.overwrite, announce):
             results_by_scenario[study.scenario_id] = results
-            summaries[study.scenario_id] = _write_outputs(study, results, directory)
+            if lead:
+                directory = out / f"s{study.scenario_id}"
+                summaries[study.scenario_id] = _write_outputs(study, results, directory)
+                if drawer is not None:  # while the next scenario runs
+                    drawer.submit(study.scenario_id, results)
     except KeyboardInterrupt:
+        if drawer is not None:
+            drawer.close()
         print(
-            f"\ninterrupted: finished chunks are kept under {out}/s*/chunks; run the same "
+            f"\ninterrupted: finished draws are kept under {out}/s*/chunks; run the same "
             "command again to continue",
             file=sys.stderr,
         )
         return 130
     except ValueError as error:
+        if drawer is not None:
+            drawer.close()
         print(f"fojax reproduce: error: {error}", file=sys.stderr)
         return 2
-    figures = []
-    if not args.no_figures:
-        from experiments import paper_figures
-
-        if progress:
-            print("figures ...", file=sys.stderr, flush=True)
-        figures = paper_figures.plot_all(results_by_scenario, out / "figures")
+    if not lead:  # process 0 writes the report
+        return 0
+    figures = drawer.finish() if drawer is not None else []
     claims = claims_module.evaluate_claims(summaries, results_by_scenario)
     tables = claims_module.paired_tables(summaries, results_by_scenario, TABLE_METRICS)
     settings = {

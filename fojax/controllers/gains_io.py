@@ -112,11 +112,31 @@ def load_gains(path: str | os.PathLike, dtype: Any = None) -> tuple[str, Any, di
     path = Path(path)
     source = str(path)
     try:
-        document = json.loads(path.read_text())
+        data = path.read_bytes()
     except FileNotFoundError:
         raise ValueError(f"gains file {source} does not exist") from None
+    except IsADirectoryError:
+        raise ValueError(
+            f"{source} is a folder, not a gains file; give the JSON file (e.g. "
+            f"{Path(source) / 'gains.json'})"
+        ) from None
+    except PermissionError:
+        raise ValueError(f"cannot read gains file {source} (permission denied)") from None
+    except OSError as error:
+        raise ValueError(f"cannot read gains file {source}: {error.strerror or error}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise ValueError(
+            f"{source} is not a gains file: not UTF-8 text ({error}); a gains file is "
+            "JSON as fojax tune writes it"
+        ) from None
+    try:
+        document = json.loads(text)
     except json.JSONDecodeError as error:
         raise ValueError(f"{source} is not valid JSON: {error}") from None
+    except RecursionError:
+        raise ValueError(f"{source} is not a gains file: JSON nested too deeply") from None
     if not isinstance(document, dict):
         raise ValueError(f"{source}: expected a JSON object with 'controller' and 'gains'")
     unknown = sorted(set(document) - FORMAT_KEYS)

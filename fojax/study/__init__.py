@@ -1,24 +1,55 @@
 """Monte Carlo studies: chunked, vmapped rollouts of many draws, stored and summarised.
 
 * :func:`run` (``fojax.run_monte_carlo``): draws ``0 ... n - 1`` of a scenario under
-  one controller, in compiled chunks, over the devices of a mesh, resumable through a
-  chunk store; :func:`make_chunk_runner` its compiled function, to share;
-* :class:`ChunkStore`: one file per finished chunk, keyed by the run's settings;
+  one controller, in fixed blocks of draws, one per device and call, over the devices
+  (and processes) of a mesh, resumable and extendable through a store; draw ``i``'s
+  numbers do not depend on the draw count, the devices or the processes (only on the
+  block size, :func:`default_device_batch`); :func:`make_chunk_runner` and
+  :func:`compile_chunk_runner` its compiled function, to share (or compile ahead, in a
+  thread);
+* :class:`ChunkStore`: one file per finished range of draws, keyed by
+  :func:`fingerprint`; :class:`StoreMismatch` names the settings that differ;
 * :func:`summarize`, :func:`metric_table`, :func:`status_counts`: per-metric means and
   95 % intervals over the valid draws (:mod:`fojax.statistics`).
 """
 
-from fojax.study._run import DIVERGED, MonteCarloResult, fingerprint, make_chunk_runner, run
-from fojax.study._store import ChunkStore
+from fojax.study._run import (
+    DEVICE_BATCH,
+    DIVERGED,
+    MAX_DRAWS,
+    MAX_SEED,
+    OTHER_DEVICE_BATCH,
+    MonteCarloResult,
+    batch_layout,
+    check_run_arguments,
+    compile_chunk_runner,
+    default_device_batch,
+    fingerprint,
+    make_chunk_runner,
+    numeric_xla_flags,
+    run,
+)
+from fojax.study._store import ChunkStore, StoreMismatch, fingerprint_differences
 from fojax.study._summary import metric_table, status_counts, summarize
 
 __all__ = [
     "DIVERGED",
+    "MAX_DRAWS",
+    "MAX_SEED",
+    "DEVICE_BATCH",
     "ChunkStore",
+    "OTHER_DEVICE_BATCH",
     "MonteCarloResult",
+    "StoreMismatch",
+    "batch_layout",
+    "check_run_arguments",
+    "compile_chunk_runner",
+    "default_device_batch",
     "fingerprint",
+    "fingerprint_differences",
     "make_chunk_runner",
     "metric_table",
+    "numeric_xla_flags",
     "run",
     "status_counts",
     "summarize",

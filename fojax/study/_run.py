@@ -1,19 +1,37 @@
-"""Monte Carlo over random draws: chunked, vmapped rollouts with online metrics.
+"""Monte Carlo over random draws: vmapped rollouts in fixed blocks, with online metrics.
 
 Draw ``i`` of a run with seed ``s`` always uses the key ``fold_in(PRNGKey(s), i)``
-(:func:`fojax.scenarios.draw_keys`), so its trajectory does not depend on how many
-draws run or how they are chunked, and every controller given the same seed sees the
+(:func:`fojax.scenarios.draw_keys`), and every controller given the same seed sees the
 same draws (common random numbers): comparisons between controllers are paired.
 
-Draws run in chunks of a fixed size (the last chunk is padded, so one compiled
-function serves the whole run); each chunk is one ``jit(vmap(rollout))`` call. With a
-``store`` directory every finished chunk is written to disk at once, and a run
-started again with the same settings picks up where it stopped.
+**Draw i's numbers do not depend on the layout.** The draws are computed in blocks of
+``device_batch`` consecutive draws, ``[k B, (k + 1) B)``: each device of each call runs
+exactly one block, so every draw is computed by the same compiled per-device program
+at the same position in its block, whatever the draw count, the number of calls, the
+devices and the processes; its numbers are the same bit for bit. (XLA compiles a batch
+into code that depends on its size, and on the CPU some of it, e.g. the library
+kernels it hands dots and large reductions to, also rounds a draw according to where it
+sits in the batch: measured, per-device batches of 8, 16, 20, 50 and 2048 draws give
+up to four different roundings of the same draw; see ``docs/performance.md``.) The
+block size is therefore a setting of the run, part of its fingerprint like the seed:
+runs with another ``device_batch`` round differently. The last block of a run is
+completed with the draws that follow (real draws, kept in the store).
+
+With a ``store`` directory every finished call is written to disk at once
+(:class:`fojax.study.ChunkStore`), and a run started again with the same settings,
+with more draws or on other devices reads what is there and computes the rest.
+
+Across processes (``jax.distributed``; :func:`fojax.sharding.initialize`): the mesh
+spans every process's devices, every process computes the same keys and takes part
+in every call, the results are gathered to every process, and process 0 alone reads
+and writes the store (it sends what it read to the others), so the run needs no
+shared file system.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import io
 import os
 import sys
 import time
@@ -27,12 +45,36 @@ import numpy as np
 
 from fojax import metrics, observers, plant, scenarios, sharding, simulator
 from fojax.controllers.cascade import as_controller
-from fojax.study._store import ChunkStore, flatten_snapshot, unflatten_snapshot
+from fojax.study._store import ChunkStore, flatten_snapshot, plan, unflatten_snapshot
 
 Array = jax.Array
 
 DIVERGED = observers.NONFINITE | observers.TILT_LIMIT
 """Status bits that make a draw count as diverged (excluded from the metrics)."""
+
+DEVICE_BATCH = {"cpu": 50}
+"""Default draws per block (per device and call), by platform. On a CPU, 50: the
+default ``fojax reproduce`` (100 draws per scenario and controller) is then two blocks,
+one call on two cores with no padded draws, and a call's per-step kernel overhead
+stays below half its arithmetic; larger blocks are faster for large runs (measured:
+``docs/performance.md``). Other platforms: :data:`OTHER_DEVICE_BATCH`."""
+
+OTHER_DEVICE_BATCH = 1024
+"""Default block on GPUs and other accelerators (not measured here: no GPU)."""
+
+
+def default_device_batch(platform: str | None = None) -> int:
+    """:data:`DEVICE_BATCH` of ``platform`` (default JAX's backend)."""
+    platform = platform or jax.default_backend()
+    return DEVICE_BATCH.get(platform, OTHER_DEVICE_BATCH)
+
+
+MAX_SEED = 2**63 - 1
+"""Largest seed :func:`jax.random.PRNGKey` takes."""
+
+MAX_DRAWS = 2**32
+"""Most draws of one run: draw indices are folded into the key as 32-bit integers, so
+index ``2**32`` would repeat draw 0."""
 
 
 class MonteCarloResult(NamedTuple):
@@ -44,8 +86,10 @@ class MonteCarloResult(NamedTuple):
     trajectories: :class:`fojax.simulator.Snapshot` of the first ``keep`` draws, leaves
         ``(keep, blocks, ...)``.
     wall_time: seconds spent, compilation included. compile_time: seconds of the first
-        chunk beyond the steady per-chunk time (an estimate; 0 when every chunk came
+        call beyond the steady per-call time (an estimate; 0 when every draw came
         from the store).
+    layout: how the draws were computed (:func:`batch_layout` plus ``computed`` and
+        ``loaded``: draws computed in this run and read from the store).
     """
 
     controller: str
@@ -54,6 +98,7 @@ class MonteCarloResult(NamedTuple):
     trajectories: Any
     wall_time: float
     compile_time: float
+    layout: dict | None = None
 
     @property
     def draws(self) -> int:
@@ -63,6 +108,52 @@ class MonteCarloResult(NamedTuple):
     def valid(self) -> np.ndarray:
         """``(draws,)`` bool, draws that neither diverged nor left Assumption 1."""
         return (self.status & DIVERGED) == 0
+
+
+def _devices(mesh) -> int:
+    return 1 if mesh is None else int(mesh.devices.size)
+
+
+def batch_layout(draws: int, device_batch: int | None = None, mesh=None) -> dict:
+    """``{"processes", "devices", "device_batch", "draws_per_call", "blocks", "calls"}``
+    of a run of ``draws`` draws in blocks of ``device_batch`` (default
+    :func:`default_device_batch`) over ``mesh`` (None: one device), all computed."""
+    batch = device_batch or default_device_batch()
+    devices = _devices(mesh)
+    processes = 1 if mesh is None else len({d.process_index for d in mesh.devices.flat})
+    blocks = -(-draws // batch)
+    return {
+        "processes": processes,
+        "devices": devices,
+        "device_batch": batch,
+        "draws_per_call": batch * devices,
+        "blocks": blocks,
+        "calls": -(-blocks // devices),
+    }
+
+
+def check_run_arguments(draws, seed, device_batch=None) -> None:
+    """``ValueError`` saying what to change for a bad draw count, seed or block size."""
+    if isinstance(draws, bool) or not isinstance(draws, int | np.integer) or draws < 1:
+        raise ValueError(f"draws must be a positive integer, got {draws!r}")
+    if draws > MAX_DRAWS:
+        raise ValueError(
+            f"draws must be at most 2**32 = {MAX_DRAWS} (draw indices are 32-bit; more "
+            f"would repeat draws), got {draws}; split the study over several seeds"
+        )
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if seed > MAX_SEED:
+        raise ValueError(
+            f"seed must be at most 2**63 - 1 = {MAX_SEED} (the range of jax.random.PRNGKey), "
+            f"got {seed}"
+        )
+    if device_batch is not None and (
+        isinstance(device_batch, bool)
+        or not isinstance(device_batch, int | np.integer)
+        or device_batch < 1
+    ):
+        raise ValueError(f"device_batch must be a positive integer, got {device_batch!r}")
 
 
 def make_chunk_runner(
@@ -75,10 +166,10 @@ def make_chunk_runner(
 ) -> Callable:
     """A jitted ``(gains, keys (n, 2)) -> (status (n,), metrics, snapshots)``.
 
-    ``gains`` is shared by every draw of the chunk; the compiled function is reused for
+    ``gains`` is shared by every draw of the call; the compiled function is reused for
     any gains and keys of the same shapes. With ``mesh`` (a :func:`fojax.sharding.draw_mesh`
     of more than one device) the draws of each call are split over its devices; ``n``
-    must then be a multiple of the mesh's size (:func:`run` rounds its chunk up to one).
+    must then be a multiple of the mesh's size (:func:`run` makes it one).
     """
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
@@ -96,15 +187,84 @@ def make_chunk_runner(
     return jax.jit(jax.vmap(one, in_axes=(None, 0)))
 
 
-def fingerprint(controller, gains, scenario, config, seed, chunk, keep, dtype, mcfg) -> dict:
-    """Every setting a run's per-draw results depend on, as a JSON-ready dict (nested
-    dataclasses as dicts, functions by name): what the chunk store keys its chunks by."""
+def compile_chunk_runner(
+    controller,
+    gains,
+    scenario: scenarios.Scenario,
+    config: simulator.SimulationConfig,
+    draws_per_call: int,
+    metrics_config: metrics.MetricsConfig | None = None,
+    dtype=None,
+    mesh=None,
+) -> Callable:
+    """:func:`make_chunk_runner` compiled ahead of time for calls of ``draws_per_call``
+    draws (``device_batch`` times the mesh's devices: :func:`batch_layout`) with gains
+    shaped like ``gains``.
+
+    Lowering holds Python's lock, XLA's compilation does not: called in a worker thread
+    it compiles while other runs go on (``experiments.study`` does so). Pass the result
+    to :func:`run` as ``runner``. With the persistent compilation cache on
+    (``jax_compilation_cache_dir``) a compiled program is read from there.
+    """
+    dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
+    jitted = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
+    gains = jax.tree.map(lambda g: jnp.asarray(g, dtype), gains)
+    if mesh is not None and mesh.devices.size > 1:
+        gains_spec = jax.tree.map(
+            lambda g: jax.ShapeDtypeStruct(
+                g.shape, g.dtype, sharding=sharding.replicated_sharding(mesh)
+            ),
+            gains,
+        )
+        keys_spec = jax.ShapeDtypeStruct(
+            (draws_per_call, 2), jnp.uint32, sharding=sharding.draw_sharding(mesh)
+        )
+    else:
+        gains_spec = jax.tree.map(lambda g: jax.ShapeDtypeStruct(g.shape, g.dtype), gains)
+        keys_spec = jax.ShapeDtypeStruct((draws_per_call, 2), jnp.uint32)
+    return jitted.lower(gains_spec, keys_spec).compile()
+
+
+def numeric_xla_flags(flags: str | None = None) -> list[str]:
+    """The ``XLA_FLAGS`` (default: the environment's) that can change a program's
+    arithmetic: all but the host device count and dump options."""
+    flags = os.environ.get("XLA_FLAGS", "") if flags is None else flags
+    kept = []
+    for flag in flags.split():
+        name = flag.lstrip("-").split("=")[0]
+        if name == "xla_force_host_platform_device_count" or name.startswith("xla_dump"):
+            continue
+        kept.append(flag)
+    return sorted(kept)
+
+
+def fingerprint(
+    controller,
+    gains,
+    scenario,
+    config,
+    seed,
+    dtype,
+    mcfg,
+    device_batch: int | None = None,
+    backend: str | None = None,
+) -> dict:
+    """Every setting draw ``i``'s numbers depend on, as a JSON-ready dict (nested
+    dataclasses as dicts, functions by name): what the chunk store keys its draws by.
+
+    With the settings of the rollout: the block size ``device_batch`` (default
+    :func:`default_device_batch`), the platform ``backend`` (``cpu``, ``gpu``, ...;
+    default JAX's) and the ``XLA_FLAGS`` that change arithmetic
+    (:func:`numeric_xla_flags`). Not in it, since they do not change a draw's numbers:
+    the draw count, ``keep``, the devices and processes.
+    """
 
     def plain(obj):
         if dataclasses.is_dataclass(obj):
             return {f.name: plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
         return obj.__name__ if callable(obj) else obj
 
+    controller = as_controller(controller)
     return {
         "controller": controller.name,
         "controller_config": plain(controller),
@@ -113,10 +273,61 @@ def fingerprint(controller, gains, scenario, config, seed, chunk, keep, dtype, m
         "simulation": plain(config),
         "metrics": plain(mcfg),
         "seed": int(seed),
-        "chunk": int(chunk),
-        "keep": int(keep),
-        "dtype": str(dtype),
+        "dtype": str(jnp.dtype(dtype)),
+        "device_batch": int(device_batch or default_device_batch(backend)),
+        "backend": backend or jax.default_backend(),
+        "xla_flags": numeric_xla_flags(),
     }
+
+
+# ------------------------------------------------------------------------ processes
+
+
+def _multiprocess(mesh) -> bool:
+    return mesh is not None and any(
+        d.process_index != jax.process_index() for d in mesh.devices.flat
+    )
+
+
+def _gathered(tree, mesh):
+    """Device outputs as host arrays, every draw on every process."""
+    if _multiprocess(mesh):
+        from jax.experimental import multihost_utils
+
+        sharding.barrier("gather")  # processes may finish compiling far apart
+        return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
+    return jax.tree.map(np.asarray, tree)
+
+
+def _broadcast_bytes(payload: bytes | None) -> bytes:
+    """``payload`` of process 0, on every process."""
+    from jax.experimental import multihost_utils
+
+    lead = jax.process_index() == 0
+    sharding.barrier("broadcast")
+    size = np.array([len(payload) if lead else 0], np.int64)
+    size = int(np.asarray(multihost_utils.broadcast_one_to_all(size))[0])
+    data = np.frombuffer(payload, np.uint8) if lead else np.zeros(size, np.uint8)
+    return np.asarray(multihost_utils.broadcast_one_to_all(data)).tobytes()
+
+
+def _broadcast_arrays(arrays: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
+    buffer = io.BytesIO()
+    if jax.process_index() == 0:
+        np.savez(buffer, **arrays)
+    data = _broadcast_bytes(buffer.getvalue() if jax.process_index() == 0 else None)
+    with np.load(io.BytesIO(data)) as loaded:
+        return {k: loaded[k] for k in loaded.files}
+
+
+def _place(runner_inputs, mesh):
+    gains, keys = runner_inputs
+    if mesh is not None and mesh.devices.size > 1:
+        return sharding.replicate(gains, mesh), sharding.shard_draws(keys, mesh)
+    return gains, keys
+
+
+# ------------------------------------------------------------------------------ run
 
 
 def run(
@@ -126,7 +337,7 @@ def run(
     config: simulator.SimulationConfig,
     draws: int,
     seed: int = 0,
-    chunk: int = 1024,
+    device_batch: int | None = None,
     keep: int = 64,
     progress: bool = True,
     dtype=None,
@@ -143,110 +354,212 @@ def run(
         scenario: the scenario; its ``horizon`` should cover ``config.horizon`` (the
             random tables are laid out for it).
         config: simulation settings.
-        draws: number of draws, >= 1. seed: the run's seed, >= 0.
-        chunk: draws per compiled call (memory grows with it).
+        draws: number of draws, 1 to 2**32. seed: the run's seed, 0 to 2**63 - 1.
+        device_batch: draws per block, the draws each device computes in one call
+            (default :func:`default_device_batch`: 50 on a CPU). Memory grows with it;
+            draw ``i``'s numbers depend on it (rounding), and on nothing else of the
+            layout.
         keep: decimated trajectories are kept for the first ``keep`` draws.
-        progress: print a progress line per chunk to stderr.
+        progress: print a progress line per call to stderr (process 0 only).
         dtype: floating dtype (default float32, float64 with x64 enabled).
         metrics_config: settling bands etc.; default :class:`fojax.metrics.MetricsConfig`.
-        store: a directory: each finished chunk is saved there, and chunks already
-            there (from an interrupted run with the same settings) are loaded, not rerun.
-        runner: a function from :func:`make_chunk_runner` for these settings, to share
-            one compiled function between calls (made with the same ``mesh``).
-        mesh: a :func:`fojax.sharding.draw_mesh`: each chunk's draws are split over its
-            devices (one per core on a CPU with
-            ``XLA_FLAGS=--xla_force_host_platform_device_count=N``, or the GPUs), the
-            chunk rounded up to a multiple of its size. Each draw's result is the same
-            as on one device up to floating-point rounding (XLA may vectorise batches
-            of other sizes differently), as it is between chunk sizes; a chattering
-            closed loop (``sign`` switching) amplifies that rounding in single draws.
+        store: a directory: each finished call's draws are saved there, and draws already
+            there (from an interrupted or shorter run, or one on other devices, with the
+            same :func:`fingerprint`) are read, not rerun. Other settings raise
+            :class:`fojax.study.StoreMismatch` naming the fields that differ.
+        runner: a function from :func:`make_chunk_runner` or :func:`compile_chunk_runner`
+            for these settings, made with the same ``mesh`` (compiled: for
+            ``device_batch`` draws per device), to share one compiled function.
+        mesh: a :func:`fojax.sharding.draw_mesh`: each call runs one block per device
+            (one per core on a CPU with
+            ``XLA_FLAGS=--xla_force_host_platform_device_count=N``, the GPUs, or every
+            process's devices after :func:`fojax.sharding.initialize`).
 
-    Returns a :class:`MonteCarloResult`.
+    Returns a :class:`MonteCarloResult`, the same on every process.
     """
     controller = as_controller(controller)
     if hasattr(controller, "check_gains"):
         controller.check_gains(gains)
-    if not isinstance(draws, int | np.integer) or draws < 1:
-        raise ValueError(f"draws must be a positive integer, got {draws!r}")
-    if not isinstance(seed, int | np.integer) or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    if not isinstance(chunk, int | np.integer) or chunk < 1:
-        raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
+    check_run_arguments(draws, seed, device_batch)
+    draws, seed = int(draws), int(seed)
+    batch = int(device_batch or default_device_batch())
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
-    devices = 1 if mesh is None else int(mesh.devices.size)
-    chunk = int(min(chunk, draws))
-    chunk = -(-chunk // devices) * devices  # whole draws per device
+    layout = batch_layout(draws, batch, mesh)
+    devices = layout["devices"]
     keep = int(min(max(keep, 0), draws))
+    multi = _multiprocess(mesh)
+    lead = jax.process_index() == 0
     chunk_store = None
-    if store is not None:
+    if store is not None and lead:
         settings = fingerprint(
-            controller, gains, scenario, config, seed, chunk, keep, dtype, metrics_config
+            controller, gains, scenario, config, seed, dtype, metrics_config, batch
         )
         chunk_store = ChunkStore(Path(store), settings)
-    if runner is None:
+    if chunk_store is not None:
+        segments = plan(chunk_store.ranges(), draws, keep)
+    else:
+        segments = [("compute", 0, draws, None)]
+    blocks = sorted(
+        {
+            k
+            for kind, start, stop, _ in segments
+            if kind == "compute"
+            for k in range(start // batch, (stop - 1) // batch + 1)
+        }
+    )
+    if multi:  # process 0's plan (it alone reads the store)
+        message = {"blocks": np.asarray(blocks, np.int64)} if lead else None
+        blocks = [int(k) for k in _broadcast_arrays(message)["blocks"]]
+    calls = [blocks[i : i + devices] for i in range(0, len(blocks), devices)]
+    if runner is None and calls:
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
 
-    statuses, per_draw, kept = [], [], []
-    start = time.perf_counter()
-    chunk_times = []
-    computed = 0
-    for first in range(0, draws, chunk):
-        n = min(chunk, draws - first)
-        loaded = chunk_store.load(first) if chunk_store is not None else None
-        if loaded is not None:
-            status, values, snaps = loaded
-        else:
-            t0 = time.perf_counter()
-            indices = np.arange(first, first + chunk)
-            indices = np.minimum(indices, draws - 1)  # pad the last chunk
-            keys = scenarios.draw_keys(seed, indices)
-            status, values, snapshots = runner(gains, keys)
-            status = np.asarray(status)[:n]
-            values = {k: np.asarray(v)[:n] for k, v in values.items()}
-            snaps = None
-            if first < keep:
-                snaps = {k: v[:n] for k, v in flatten_snapshot(snapshots).items()}
-            chunk_times.append(time.perf_counter() - t0)
-            computed += n
-            if chunk_store is not None:
-                chunk_store.save(first, status, values, snaps)
-        statuses.append(status)
-        per_draw.append(values)
-        if first < keep and snaps is not None:
-            kept.append(snaps)
-        if progress:
-            done = first + n
-            elapsed = time.perf_counter() - start
-            diverged = int(np.sum((np.concatenate(statuses) & DIVERGED) > 0))
-            steady = np.median(chunk_times[1:]) if len(chunk_times) > 1 else None
-            remaining = (draws - done) / chunk
-            eta = f", about {remaining * steady:.0f} s left" if steady else ""
-            rate = computed * config.steps / max(sum(chunk_times), 1e-9) if computed else 0.0
-            print(
-                f"\r  {controller.name}: {done}/{draws} draws, {elapsed:.0f} s"
-                f"{eta}, {rate:.3g} draw-steps/s, diverged {diverged}   ",
-                end="",
-                file=sys.stderr,
-                flush=True,
+    computed: dict[int, tuple] = {}  # block -> (status, per_draw, snapshots or None)
+    start_time = time.perf_counter()
+    call_times: list[float] = []
+    done = draws - sum(b - a for kind, a, b, _ in segments if kind == "compute")
+    for call in calls:
+        t0 = time.perf_counter()
+        filled = call + [call[-1]] * (devices - len(call))  # a short last call: repeat
+        indices = np.concatenate([np.arange(k * batch, (k + 1) * batch) for k in filled])
+        keys = np.asarray(scenarios.draw_keys(seed, np.minimum(indices, MAX_DRAWS - 1)))
+        outputs = runner(*_place((gains, keys), mesh))
+        status, values, snapshots = _gathered(outputs, mesh)
+        flat = flatten_snapshot(snapshots)
+        for j, k in enumerate(call):
+            part = slice(j * batch, (j + 1) * batch)
+            first = k * batch
+            kept = min(batch, max(keep - first, 0))
+            snaps = {name: v[part][:kept] for name, v in flat.items()} if kept else None
+            computed[k] = (
+                np.asarray(status)[part],
+                {name: np.asarray(v)[part] for name, v in values.items()},
+                snaps,
             )
-    if progress:
+        if chunk_store is not None:
+            _save_blocks(chunk_store, call, computed, batch)
+        call_times.append(time.perf_counter() - t0)
+        done += sum(max(0, min(batch, draws - k * batch)) for k in call)
+        if progress and lead:
+            diverged = sum(
+                int(np.sum((c[0][: max(0, draws - k * batch)] & DIVERGED) > 0))
+                for k, c in computed.items()
+            )
+            _print_progress(
+                controller.name,
+                min(done, draws),
+                draws,
+                diverged,
+                len(computed) * batch,
+                config.steps,
+                call_times,
+                start_time,
+                batch * devices,
+            )
+    if progress and lead and calls:
         print(file=sys.stderr)
-    wall = time.perf_counter() - start
+    wall = time.perf_counter() - start_time
+
+    flat = None
+    if lead or not multi:
+        flat = _assemble(segments, chunk_store, computed, batch, keep)
+        missing = sum(b - a for kind, a, b, _ in segments if kind == "compute")
+        flat["computed"] = np.asarray([missing], np.int64)
+    if multi:  # the others hold only the computed blocks: process 0 sends the result
+        flat = _broadcast_arrays(flat)
+    computed_draws = int(flat.pop("computed")[0])
+    status, per_draw, kept = _split(flat)
     compile_time = 0.0
-    if len(chunk_times) > 1:
-        compile_time = max(0.0, chunk_times[0] - float(np.median(chunk_times[1:])))
-    elif chunk_times:
-        compile_time = float("nan")  # one chunk: cannot separate compile from run
-    trajectories = None
-    if kept:
-        merged = {k: np.concatenate([c[k] for c in kept])[:keep] for k in kept[0]}
-        trajectories = unflatten_snapshot(merged)
+    if len(call_times) > 1:
+        compile_time = max(0.0, call_times[0] - float(np.median(call_times[1:])))
+    elif call_times:
+        compile_time = float("nan")  # one call: cannot separate compile from run
     return MonteCarloResult(
         controller=controller.name,
-        status=np.concatenate(statuses).astype(np.int32),
-        per_draw={k: np.concatenate([p[k] for p in per_draw]) for k in per_draw[0]},
-        trajectories=trajectories,
+        status=status.astype(np.int32),
+        per_draw=per_draw,
+        trajectories=unflatten_snapshot(kept) if kept else None,
         wall_time=wall,
         compile_time=compile_time,
+        layout={
+            **layout,
+            "calls": len(calls),
+            "computed": computed_draws,
+            "loaded": draws - computed_draws,
+        },
+    )
+
+
+def _save_blocks(chunk_store: ChunkStore, call: list[int], computed: dict, batch: int) -> None:
+    """Store the call's blocks, consecutive ones in one file (indices below 2**32)."""
+    runs: list[list[int]] = []
+    for k in sorted(set(call)):
+        if runs and runs[-1][-1] == k - 1:
+            runs[-1].append(k)
+        else:
+            runs.append([k])
+    for run_blocks in runs:
+        first = run_blocks[0] * batch
+        n = min(len(run_blocks) * batch, MAX_DRAWS - first)
+        if n <= 0:
+            continue
+        status = np.concatenate([computed[k][0] for k in run_blocks])[:n]
+        values = {
+            name: np.concatenate([computed[k][1][name] for k in run_blocks])[:n]
+            for name in computed[run_blocks[0]][1]
+        }
+        snaps = None
+        if computed[run_blocks[0]][2] is not None:
+            parts = [computed[k][2] for k in run_blocks if computed[k][2] is not None]
+            snaps = {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+        chunk_store.save(first, status, values, snaps)
+
+
+def _assemble(segments, chunk_store, computed: dict, batch: int, keep: int) -> dict:
+    """Draws ``[0, draws)`` from the store and the computed blocks, as flat arrays:
+    ``status``, ``m.<metric>``, ``s.<snapshot leaf>`` (the first ``keep`` draws)."""
+    pieces = []  # (first, status, per_draw, snapshots or None)
+    for kind, start, stop, item in segments:
+        if kind == "load":
+            pieces.append((start, *chunk_store.load(item, start, stop)))
+            continue
+        for k in range(start // batch, (stop - 1) // batch + 1):
+            a, b = max(start, k * batch), min(stop, (k + 1) * batch)
+            lo, hi = a - k * batch, b - k * batch
+            status, values, snaps = computed[k]
+            snaps = {n: v[lo:hi] for n, v in snaps.items()} if snaps and a < keep else None
+            pieces.append((a, status[lo:hi], {n: v[lo:hi] for n, v in values.items()}, snaps))
+    out = {"status": np.concatenate([p[1] for p in pieces])}
+    for name in pieces[0][2]:
+        out[f"m.{name}"] = np.concatenate([p[2][name] for p in pieces])
+    kept = []
+    for first, status, _, snaps in pieces:
+        if first >= keep:
+            break
+        n = min(len(status), keep - first)
+        kept.append({k: v[:n] for k, v in snaps.items()})
+    if kept:
+        for name in kept[0]:
+            out[f"s.{name}"] = np.concatenate([k[name] for k in kept])
+    return out
+
+
+def _split(flat: dict[str, np.ndarray]):
+    per_draw = {k[2:]: v for k, v in flat.items() if k.startswith("m.")}
+    kept = {k[2:]: v for k, v in flat.items() if k.startswith("s.")}
+    return flat["status"], per_draw, kept
+
+
+def _print_progress(name, done, draws, diverged, computed, steps, call_times, start, per_call):
+    elapsed = time.perf_counter() - start
+    steady = np.median(call_times[1:]) if len(call_times) > 1 else None
+    eta = f", about {(draws - done) / per_call * steady:.0f} s left" if steady else ""
+    rate = computed * steps / max(sum(call_times), 1e-9)
+    print(
+        f"\r  {name}: {done}/{draws} draws, {elapsed:.0f} s{eta}, {rate:.3g} draw-steps/s, "
+        f"diverged {diverged}   ",
+        end="",
+        file=sys.stderr,
+        flush=True,
     )

@@ -1,68 +1,238 @@
-"""The resumable chunk store of a Monte Carlo run: one ``.npz`` per finished chunk."""
+"""The resumable store of a Monte Carlo run: one ``.npz`` per finished range of draws.
+
+A file holds draws ``[first, stop)`` of one run (status, per-draw metrics and the
+snapshots of those of its draws below the run's ``keep``); the folder's
+``manifest.json`` holds the run's fingerprint (:func:`fojax.study.fingerprint`: every
+setting a draw's numbers depend on, and nothing else). Since draw ``i``'s numbers do not
+depend on the draw count, the chunking or the devices (:mod:`fojax.study`), a store
+serves any run with the same fingerprint: a longer run reuses the draws already there,
+a run with another chunk size or on other devices reads them as they are.
+"""
 
 from __future__ import annotations
 
 import hashlib
 import json
 import os
+import re
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from fojax import simulator
 from fojax.controllers.base import ControlInfo
 
+STORE_FORMAT = 2
+"""Version of the store's layout (1: one file per fixed chunk, keyed by the chunk size
+and ``keep`` too; 2: files per range of draws, keyed by what draw ``i`` depends on)."""
+
+_FILE = re.compile(r"^draws_(\d{10})-(\d{10})\.npz$")
+
+
+class StoreMismatch(ValueError):
+    """The store holds draws of a run with other settings.
+
+    directory: the store. differences: ``[(field, earlier, now), ...]``, the fingerprint
+    fields (dotted paths) that differ, with the stored and the current value.
+    """
+
+    def __init__(self, directory: str | os.PathLike, differences: list[tuple[str, Any, Any]]):
+        self.directory = Path(directory)
+        self.differences = list(differences)
+        lines = "\n  ".join(describe_differences(self.differences))
+        super().__init__(
+            f"{self.directory} holds draws of a run with other settings; it differs in:\n  "
+            f"{lines}\nremove that folder (or the run's chunks) to start afresh, or store "
+            "this run elsewhere"
+        )
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        out: dict[str, Any] = {}
+        for key in value:
+            out.update(_flatten(value[key], f"{prefix}.{key}" if prefix else str(key)))
+        return out
+    return {prefix: value}
+
+
+ABSENT = "<absent>"
+
+
+def fingerprint_differences(stored: dict, current: dict) -> list[tuple[str, Any, Any]]:
+    """``[(field, stored value, current value)]`` for every leaf that differs (dotted
+    paths; :data:`ABSENT` where a field exists on one side only), sorted by field."""
+    old = _flatten(_canonical(stored))
+    new = _flatten(_canonical(current))
+    return [
+        (field, old.get(field, ABSENT), new.get(field, ABSENT))
+        for field in sorted(set(old) | set(new))
+        if old.get(field, ABSENT) != new.get(field, ABSENT)
+    ]
+
+
+def _short(value: Any, width: int = 60) -> str:
+    text = json.dumps(value, default=str)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def describe_differences(
+    differences: list[tuple[str, Any, Any]], hint=lambda field: ""
+) -> list[str]:
+    """One line per difference: ``field (hint): earlier X, now Y``."""
+    lines = []
+    for field, old, new in differences:
+        extra = hint(field)
+        lines.append(
+            f"{field}{f' ({extra})' if extra else ''}: earlier {_short(old)}, now {_short(new)}"
+        )
+    return lines
+
+
+def _canonical(document: Any) -> Any:
+    """JSON-normalised (tuples as lists, keys sorted, NumPy scalars as numbers)."""
+    return json.loads(json.dumps(document, sort_keys=True, default=str))
+
 
 def _fingerprint_hash(fingerprint: dict) -> str:
-    text = json.dumps(fingerprint, sort_keys=True, default=str)
+    text = json.dumps(_canonical(fingerprint), sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-class ChunkStore:
-    """One ``.npz`` per finished chunk under ``directory``, keyed by a fingerprint."""
+class StoredRange(NamedTuple):
+    """A file of the store: draws ``[first, stop)``, snapshots of ``[first, first + kept)``."""
 
-    def __init__(self, directory: Path, fingerprint: dict):
+    first: int
+    stop: int
+    kept: int
+    path: Path
+
+
+class ChunkStore:
+    """Files of finished draws under ``directory``, keyed by a fingerprint.
+
+    Opening a folder whose manifest holds another fingerprint raises
+    :class:`StoreMismatch` naming the fields that differ. ``writable=False``: read only
+    (the other processes of a distributed run); nothing is created.
+    """
+
+    def __init__(self, directory: str | os.PathLike, fingerprint: dict, writable: bool = True):
         self.directory = Path(directory)
-        self.key = _fingerprint_hash(fingerprint)
+        self.fingerprint = {"store_format": STORE_FORMAT, **_canonical(fingerprint)}
+        self.key = _fingerprint_hash(self.fingerprint)
+        self.writable = writable
         manifest = self.directory / "manifest.json"
         if manifest.exists():
-            stored = json.loads(manifest.read_text())
-            if stored.get("key") != self.key:
-                raise ValueError(
-                    f"{self.directory} holds chunks of a run with other settings "
-                    f"({stored.get('fingerprint')}); remove it or choose another output "
-                    "directory"
-                )
-        else:
+            try:
+                stored = json.loads(manifest.read_text())
+            except ValueError:
+                stored = {}
+            if not isinstance(stored, dict) or stored.get("key") != self.key:
+                earlier = stored.get("fingerprint") if isinstance(stored, dict) else None
+                if not isinstance(earlier, dict):
+                    earlier = {}
+                earlier.setdefault("store_format", 1)
+                differences = fingerprint_differences(earlier, self.fingerprint)
+                if not differences:  # same settings, other hashing: take it as a mismatch
+                    differences = [("key", stored.get("key"), self.key)]
+                raise StoreMismatch(self.directory, differences)
+        elif writable:
             self.directory.mkdir(parents=True, exist_ok=True)
-            tmp = manifest.with_suffix(".tmp")
-            tmp.write_text(
-                json.dumps({"key": self.key, "fingerprint": fingerprint}, indent=1, default=str)
-            )
+            document = {"key": self.key, "fingerprint": self.fingerprint}
+            tmp = manifest.with_name(".manifest.json.tmp")
+            tmp.write_text(json.dumps(document, indent=1) + "\n")
             os.replace(tmp, manifest)
 
-    def _path(self, first: int) -> Path:
-        return self.directory / f"chunk_{first:07d}.npz"
+    # ---------------------------------------------------------------------- reading
+    def ranges(self) -> list[StoredRange]:
+        """The finished ranges, sorted by their first draw."""
+        if not self.directory.is_dir():
+            return []
+        found = []
+        for path in self.directory.iterdir():
+            match = _FILE.match(path.name)
+            if not match:
+                continue
+            first, stop = int(match.group(1)), int(match.group(2))
+            try:
+                with np.load(path) as data:
+                    kept = int(data["s.time"].shape[0]) if "s.time" in data.files else 0
+                    if data["status"].shape != (stop - first,):
+                        continue  # not written by this store
+            except (OSError, ValueError, KeyError):
+                continue  # unreadable (a partial copy): computed again
+            found.append(StoredRange(first, stop, kept, path))
+        return sorted(found)
 
-    def load(self, first: int):
-        path = self._path(first)
-        if not path.exists():
-            return None
-        with np.load(path) as data:
-            status = data["status"]
-            per_draw = {k[2:]: data[k] for k in data.files if k.startswith("m.")}
-            snaps = {k[2:]: data[k] for k in data.files if k.startswith("s.")}
-        return status, per_draw, snaps or None
+    def load(self, stored: StoredRange, first: int, stop: int):
+        """Draws ``[first, stop)`` (within ``stored``): ``(status, per_draw, snapshots)``;
+        snapshots cover the file's kept draws within the range (None: none)."""
+        lo, hi = first - stored.first, stop - stored.first
+        with np.load(stored.path) as data:
+            status = data["status"][lo:hi]
+            per_draw = {k[2:]: data[k][lo:hi] for k in data.files if k.startswith("m.")}
+            snaps = {k[2:]: data[k][lo:hi] for k in data.files if k.startswith("s.")}
+        if not snaps or next(iter(snaps.values())).shape[0] == 0:
+            snaps = None
+        return status, per_draw, snaps
 
-    def save(self, first: int, status, per_draw, snapshots) -> None:
-        arrays = {"status": status}
-        arrays.update({f"m.{k}": v for k, v in per_draw.items()})
+    # ---------------------------------------------------------------------- writing
+    def save(self, first: int, status, per_draw, snapshots) -> Path:
+        """Store draws ``[first, first + len(status))``; ``snapshots`` (or None) hold
+        the first of them. Files wholly inside the new range are removed."""
+        stop = first + int(np.shape(status)[0])
+        arrays = {"status": np.asarray(status)}
+        arrays.update({f"m.{k}": np.asarray(v) for k, v in per_draw.items()})
         if snapshots is not None:
-            arrays.update({f"s.{k}": v for k, v in snapshots.items()})
-        path = self._path(first)
-        tmp = path.with_name(path.stem + ".tmp.npz")
+            arrays.update({f"s.{k}": np.asarray(v) for k, v in snapshots.items()})
+        path = self.directory / f"draws_{first:010d}-{stop:010d}.npz"
+        tmp = path.with_name(f".{path.stem}.tmp.npz")
         np.savez(tmp, **arrays)
         os.replace(tmp, path)
+        for other in self.ranges():
+            if other.path != path and first <= other.first and other.stop <= stop:
+                other.path.unlink(missing_ok=True)
+        return path
+
+
+def plan(
+    stored: list[StoredRange], draws: int, keep: int
+) -> list[tuple[str, int, int, StoredRange | None]]:
+    """How to obtain draws ``[0, draws)``: segments ``("load", first, stop, file)`` and
+    ``("compute", first, stop, None)`` in order, covering it exactly.
+
+    A stored draw ``i`` is usable when the file has its snapshot or ``i >= keep``; where
+    files overlap, the one reaching furthest is read.
+    """
+    usable: list[tuple[int, int, StoredRange]] = []
+    for item in stored:
+        parts = [(item.first, min(item.stop, item.first + item.kept))]
+        parts.append((max(item.first, keep), item.stop))
+        for a, b in parts:
+            a, b = max(a, 0), min(b, draws)
+            if a < b:
+                usable.append((a, b, item))
+    segments: list[tuple[str, int, int, StoredRange | None]] = []
+    position = 0
+    while position < draws:
+        covering = [u for u in usable if u[0] <= position < u[1]]
+        if covering:
+            _, stop, item = max(covering, key=lambda u: u[1])
+            segments.append(("load", position, stop, item))
+            position = stop
+            continue
+        later = [u[0] for u in usable if u[0] > position]
+        stop = min(later) if later else draws
+        segments.append(("compute", position, stop, None))
+        position = stop
+    merged: list[tuple[str, int, int, StoredRange | None]] = []
+    for segment in segments:  # adjacent segments from the same file: one
+        if merged and segment[0] == "load" and merged[-1][3] is segment[3]:
+            merged[-1] = ("load", merged[-1][1], segment[2], segment[3])
+        else:
+            merged.append(segment)
+    return merged
 
 
 def flatten_snapshot(snapshot) -> dict[str, np.ndarray]:
