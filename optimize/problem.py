@@ -10,7 +10,10 @@ same draws.
 Draws (``scenarios.draw_keys(seed, i)``): minibatch ``b`` of the tuning stream holds
 draw indices ``b n ... (b + 1) n - 1`` (``n`` = ``draws``), fresh draws every step;
 held-out evaluation draws are indices ``HELDOUT_OFFSET + j``, a disjoint index range
-of the same seed (a run would need over 2^31 tuning draws to reach it).
+of the same seed (a run would need over 2^31 tuning draws to reach it); validation
+draws, which the tuners use to choose among their own iterates, are indices
+``VALIDATION_OFFSET + j`` (``2^30 <= VALIDATION_OFFSET + j < HELDOUT_OFFSET``): disjoint
+from the tuning stream and from the held-out draws.
 
 During tuning the sliding-mode controllers switch with ``tanh(S / (scale w))``, ``w``
 the gains' smoothing width (the field declared with role ``"smoothing"``,
@@ -38,6 +41,7 @@ Array = jax.Array
 
 __all__ = [
     "HELDOUT_OFFSET",
+    "VALIDATION_OFFSET",
     "ProblemSpec",
     "Step",
     "TuningProblem",
@@ -47,6 +51,10 @@ __all__ = [
 
 HELDOUT_OFFSET = 2**31
 """Held-out draws are indices ``HELDOUT_OFFSET + j`` of the tuning seed."""
+
+VALIDATION_OFFSET = 2**30
+"""Validation draws are indices ``VALIDATION_OFFSET + j`` of the tuning seed (below the
+held-out range, above any tuning minibatch a run reaches)."""
 
 DTYPES = ("float32", "float64")
 
@@ -267,6 +275,17 @@ class TuningProblem:
         self._value = jax.jit(value)
         self._value_and_grad = jax.jit(value_and_grad)
         self._gains_of = gains_of
+        template = {f.name: jnp.zeros(f.param_shape, dtype) for f in param_map.fields}
+        _, self._unravel = param_map.ravel(template)
+
+        def batch_value(vectors, width_scale, keys):
+            def candidate(vector):
+                step = value(self._unravel(vector), width_scale, keys)
+                return step.objective, step.costs
+
+            return jax.vmap(candidate)(vectors)
+
+        self._batch_value = jax.jit(batch_value)
 
     # -- draws ------------------------------------------------------------------------
     def minibatch_keys(self, index: int, draws: int | None = None) -> Array:
@@ -278,6 +297,11 @@ class TuningProblem:
         """Keys ``(draws, 2)`` of the held-out draws (disjoint from every minibatch)."""
         return scenarios.draw_keys(self.spec.seed, HELDOUT_OFFSET + np.arange(draws))
 
+    def validation_keys(self, draws: int) -> Array:
+        """Keys ``(draws, 2)`` of the validation draws (disjoint from every minibatch and
+        from the held-out draws)."""
+        return scenarios.draw_keys(self.spec.seed, VALIDATION_OFFSET + np.arange(draws))
+
     # -- parameters -------------------------------------------------------------------
     def initial_params(self) -> dict:
         return self.param_map.to_params(self.base_gains, self.spec.jnp_dtype)
@@ -286,12 +310,54 @@ class TuningProblem:
         """Evaluation gains of ``params`` (the base boundary layer, not the annealed one)."""
         return self.param_map.to_gains(params, self.base_gains)
 
+    def params_of(self, gains: Any) -> dict:
+        """Unconstrained parameters of ``gains``, a start other than the base gains.
+
+        Raises ``ValueError`` when a field the problem does not tune differs from the
+        base gains (that field would silently take the base value)."""
+        tuned = set(self.param_map.names)
+        different = [
+            name
+            for name in self.base_gains._fields
+            if name not in tuned
+            and not np.array_equal(
+                np.asarray(getattr(gains, name), np.float64),
+                np.asarray(getattr(self.base_gains, name), np.float64),
+            )
+        ]
+        if different:
+            raise ValueError(
+                f"untuned fields differ from the problem's base gains: {', '.join(different)}"
+            )
+        return self.param_map.to_params(gains, self.spec.jnp_dtype)
+
+    def vector(self, params) -> np.ndarray:
+        """``params`` as one float64 vector ``(param_map.size,)`` (the ``ravel`` order)."""
+        return np.asarray(self.param_map.ravel(params)[0], np.float64)
+
+    def unravel(self, vector) -> dict:
+        """The inverse of :meth:`vector`."""
+        return self._unravel(jnp.asarray(vector, self.spec.jnp_dtype))
+
     # -- evaluations ------------------------------------------------------------------
     def value(self, params, width_scale: float, keys: Array) -> Step:
         return self._value(params, jnp.asarray(width_scale, self.spec.jnp_dtype), keys)
 
     def value_and_grad(self, params, width_scale: float, keys: Array) -> Step:
         return self._value_and_grad(params, jnp.asarray(width_scale, self.spec.jnp_dtype), keys)
+
+    def batch_value(self, vectors, width_scale: float, keys: Array):
+        """Objectives ``(P,)`` and :class:`optimize.cost.DrawCosts` with ``(P, n, ...)``
+        leaves of ``P`` candidates (rows of ``vectors``, :meth:`vector` order), each on
+        the same ``n`` draws ``keys`` (common random numbers): one compiled, batched call
+        (a ``vmap`` over candidates of :meth:`value`), compiled once per ``(P, n)``."""
+        vectors = jnp.asarray(vectors, self.spec.jnp_dtype)
+        if vectors.ndim != 2 or vectors.shape[1] != self.param_map.size:
+            raise ValueError(
+                f"candidates must be an array (P, {self.param_map.size}), got shape "
+                f"{tuple(vectors.shape)}"
+            )
+        return self._batch_value(vectors, jnp.asarray(width_scale, self.spec.jnp_dtype), keys)
 
 
 @functools.lru_cache(maxsize=16)
@@ -330,7 +396,8 @@ def evaluate(
     """
     horizon = spec.horizon if horizon is None else float(horizon)
     scenario = scenarios.get_scenario(spec.scenario) if scenario is None else scenario
-    run = _evaluator(spec, scenario, horizon, switching)
+    # The seed and the minibatch size do not enter the compiled evaluation.
+    run = _evaluator(dataclasses.replace(spec, seed=0, draws=1), scenario, horizon, switching)
     dtype = spec.jnp_dtype
     gains = type(gains)(*(jnp.asarray(g, dtype) for g in gains))
     keys = np.asarray(keys)
