@@ -354,7 +354,8 @@ def table(results: dict) -> str:
             for name, t in traces.items()
             if t["trace"]
         )
-        + f" (a gradient of the 80 s run: {results['gradient_time_s']:.1f} s; compile "
+        + f" (a gradient of the {objective['horizon_s']:g} s run: "
+        f"{results['gradient_time_s']:.1f} s; compile "
         f"{results['compile_time_s']:.0f} s).",
     ]
     return "\n".join(lines)

@@ -32,7 +32,9 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
   10 s, ``sat`` switching; not counted in any wall time.
 * Wall time, compilation included: each method's functions are compiled once per
   parameter count, before its first run, and that compile time (first call minus a
-  second call of the same function) is added to every one of its curves. XLA's
+  second call of the same function; for the gradient tuner, its gradient and its
+  validation run compiled side by side in two threads, as the tuner does) is added to
+  every one of its curves. XLA's
   persistent compilation cache is off. One process, one XLA device, runs one after
   another; the load average is recorded before and after each run.
 
@@ -85,6 +87,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--df-draws", type=arguments.positive_int, default=16)
     parser.add_argument("--heldout-draws", type=arguments.positive_int, default=64)
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument(
+        "--compile", choices=("optimized", "fast"), default="optimized", help="tuning functions"
+    )
     parser.add_argument("--out", type=Path, default=Path("results/tuning_study"))
     parser.add_argument("--update-doc", type=Path, help="markdown file to update")
     parser.add_argument(
@@ -132,6 +137,34 @@ def _load() -> list[float]:
         return []
 
 
+def cpu_model() -> str | None:
+    """The CPU's model name, family and model numbers (XLA compiles for the host CPU,
+    and float32 rounding can depend on the instructions it picks)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    fields = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    return (
+        f"{fields.get('model name', '?')} (family {fields.get('cpu family', '?')}, "
+        f"model {fields.get('model', '?')})"
+    )
+
+
+def run_context(command: list[str]) -> dict:
+    """Provenance of a study run (:func:`experiments.study.provenance`), the CPU model
+    and the load average."""
+    from experiments import study as study_layer
+
+    record = study_layer.provenance(command)
+    record["cpu_model"] = cpu_model()
+    record["load_average"] = _load()
+    return record
+
+
 def git_commit() -> str | None:
     try:
         commit = subprocess.run(
@@ -176,6 +209,7 @@ class _Setup:
             cost=cost,
             share=share,
             dtype=args.dtype,
+            compile=args.compile,
         )
         dtype = jnp.dtype(args.dtype)
         self.naive = params_lib.naive_gains("afonftsmc", dtype)
@@ -201,9 +235,23 @@ class _Setup:
         popsize = self.popsize
         vectors = np.repeat(problem.vector(params)[None], popsize, axis=0)
         if "gradient" in args.methods:
-            self.compile_s["gradient"] = twice(
-                lambda: problem.value_and_grad(params, 1.0, grad_keys).objective
-            ) + twice(lambda: problem_lib.evaluate(self.spec, self.naive, validation_keys).cost)
+            # As the tuner does it: the validation run compiles in a thread beside the
+            # gradient. Counted: that warm-up's wall time less one gradient evaluation
+            # (the tuner's first step counts its own).
+            import threading
+
+            def validation():
+                return problem_lib.evaluate(self.spec, self.naive, validation_keys).cost
+
+            t0 = time.perf_counter()
+            thread = threading.Thread(target=validation)
+            thread.start()
+            jax.block_until_ready(problem.value_and_grad(params, 1.0, grad_keys).objective)
+            thread.join()
+            warm = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            jax.block_until_ready(problem.value_and_grad(params, 1.0, grad_keys).objective)
+            self.compile_s["gradient"] = max(warm - (time.perf_counter() - t0), 0.0)
         if "cma-es" in args.methods:
             self.compile_s["cma-es"] = twice(lambda: problem.batch_value(vectors, 1.0, df_keys)[0])
         if "nelder-mead" in args.methods:
@@ -284,7 +332,11 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
             if method == "nelder-mead" or every["n"] % 2 == 0:
                 curve.append((draw_steps, row["wall_time_s"], setup.heldout(problem.gains(params))))
 
-        budget = args.cma_generations * setup.popsize * args.df_draws * problem.spec.steps
+        per_evaluation = args.df_draws * problem.spec.steps
+        budget = args.cma_generations * setup.popsize * per_evaluation
+        if method == "nelder-mead":  # at least the initial simplex and one generation more
+            size = problem.param_map.size
+            budget = max(budget, (size + 1 + setup.popsize) * per_evaluation)
         if method == "cma-es":
             result = derivative_free.cma_es(
                 problem,

@@ -51,6 +51,7 @@ import json
 import math
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -123,7 +124,7 @@ class TunerConfig:
     """
 
     steps: int = 100
-    method: str = "adam"
+    method: str = "lbfgs"
     learning_rate: float = 0.05
     final_learning_rate: float = 0.1
     clip_norm: float = 1.0
@@ -493,18 +494,41 @@ def tune(
     session_start = time.perf_counter()
     excluded = 0.0
     draw_steps = history[-1]["draw_steps"] if history else 0
+    # The start's validation (which compiles the validation run) goes in a thread
+    # beside the first step (which compiles the gradient): XLA compiles each on one
+    # core, so on two cores the validation's compilation costs no wall time.
+    start_validation: dict = {}
+    thread = None
+    if validating and best["initial"] is None:
+
+        def validate_start(params=state[0]):
+            try:
+                start_validation["cost"] = validate(params)
+            except BaseException as error:  # re-raised in the main thread
+                start_validation["error"] = error
+
+        thread = threading.Thread(target=validate_start, daemon=True)
+        thread.start()
+
+    def join_start() -> None:
+        nonlocal thread
+        if thread is None:
+            return
+        thread.join()
+        thread = None
+        if "error" in start_validation:
+            raise start_validation["error"]
+        best["initial"] = best["cost"] = start_validation["cost"]
+        best["step"] = 0
+        if progress:
+            print(
+                f"  start: validation cost {best['initial']:.4e} "
+                f"({config.validation_draws} draws, {config.validation_switching})",
+                file=sys.stderr,
+                flush=True,
+            )
+
     try:
-        if validating and best["initial"] is None:
-            best["initial"] = best["cost"] = validate(state[0])
-            best["step"] = 0
-            if progress:
-                print(
-                    f"  start: validation cost {best['initial']:.4e} "
-                    f"({config.validation_draws} draws, {config.validation_switching}) "
-                    f"{time.perf_counter() - session_start:.0f} s",
-                    file=sys.stderr,
-                    flush=True,
-                )
         while step < last:
             scale = width_scale(config, step)
             if quasi_newton:
@@ -526,6 +550,7 @@ def tune(
             jax.block_until_ready(new_state)
             draw_steps += spec.draw_steps_per_minibatch
             state, step = new_state, step + 1
+            join_start()
             validation = None
             if validating and (step % config.validate_every == 0 or step == config.steps):
                 validation = validate(state[0])
@@ -558,6 +583,7 @@ def tune(
                 file=sys.stderr,
             )
         raise
+    join_start()
     if step == start_step:
         save(step)  # nothing to do (a finished run resumed): rewrite the outputs
     final_params = state[0]

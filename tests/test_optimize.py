@@ -197,9 +197,8 @@ def test_cost_gradient_matches_finite_differences():
 
 
 def _run(tmp, steps, stop_after=None, resume=False, config_overrides=None):
-    config = tuner_lib.TunerConfig(
-        steps=steps, learning_rate=0.1, checkpoint_every=1, **(config_overrides or {})
-    )
+    settings = {"method": "adam", "learning_rate": 0.1, **(config_overrides or {})}
+    config = tuner_lib.TunerConfig(steps=steps, checkpoint_every=1, **settings)
     run = tuner_lib.prepare(SPEC, config, NAIVE, "naive", tmp, resume=resume)
     return tuner_lib.tune(run, progress=False, stop_after=stop_after, problem=small_problem())
 
@@ -227,7 +226,11 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path):
 def test_short_tuning_lowers_cost_on_heldout_draws():
     result = tuner_lib.tune(
         tuner_lib.prepare(
-            SPEC, tuner_lib.TunerConfig(steps=12, learning_rate=0.1), NAIVE, "naive", None
+            SPEC,
+            tuner_lib.TunerConfig(steps=12, method="adam", learning_rate=0.1),
+            NAIVE,
+            "naive",
+            None,
         ),
         progress=False,
         problem=small_problem(),
@@ -402,7 +405,7 @@ def _validated_run(config):
 def test_tuner_returns_the_best_validated_gains(learning_rate):
     # 0.1: tuning helps; 30: every step throws the gains by e^30, and the start must come back.
     config = tuner_lib.TunerConfig(
-        steps=4, learning_rate=learning_rate, validation_draws=4, validate_every=2
+        steps=4, method="adam", learning_rate=learning_rate, validation_draws=4, validate_every=2
     )
     result, iterates, validation = _validated_run(config)
     validated = [0, 2, 4]
