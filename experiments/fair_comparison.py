@@ -77,6 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--out", type=Path, default=Path("results/fair_comparison"))
+    parser.add_argument(
+        "--update-doc",
+        type=Path,
+        help="markdown file whose <!-- fair-comparison:begin/end --> block to replace",
+    )
     parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
     parser.add_argument("--quiet", action="store_true")
     return parser
@@ -244,6 +249,18 @@ def main(argv=None) -> int:
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     text = table(results)
     (out / "table.md").write_text(text + "\n")
+    if args.update_doc is not None:
+        from experiments.remark3 import replace_block
+        from experiments.tuning_study import commit_label, run_context
+
+        context = run_context(["python", "-m", "experiments.fair_comparison", *(argv or [])])
+        head = (
+            f"Run: `{context['command']}`; commit {commit_label(context)}, "
+            f"{context.get('cpu_model')}, load average {context['load_average'][0]} at the end; "
+            f"{results['total_wall_time_s']:.0f} s in all (tuning resumed from checkpoints "
+            "counts only the steps this invocation ran)."
+        )
+        replace_block(args.update_doc, "fair-comparison", head + "\n\n" + text)
     print(text)
     print(f"wrote {out}/results.json, table.md ({results['total_wall_time_s']:.0f} s in all)")
     return 0

@@ -419,8 +419,10 @@ def plot_convergence(
             ax.scatter(x[diverged], objective[diverged], marker="x", color=red, zorder=5)
         axes[1, col].plot(x, history["grad_norm"], color=dark, lw=1.2, marker="o", ms=2.5)
         if validated.any():
+            # Against wall time as steps: the start's gains stand until the next
+            # validation (the start is validated while the gradient compiles).
             ax.plot(x[validated], validation[validated], color=orange, lw=1.2, marker="s", ms=4,
-                    zorder=5)  # fmt: skip
+                    zorder=5, drawstyle="steps-post" if col else "default")  # fmt: skip
         if clip_norm is not None:
             axes[1, col].axhline(clip_norm, color="0.5", ls="--", lw=0.9)
     if np.any(diverged):
@@ -542,7 +544,7 @@ def main(argv=None) -> int:
         args.out / "history.csv",
         args.out / "convergence.png",
         evaluation,
-        run.config.clip_norm,
+        run.config.clip_norm if run.config.method == "adam" else None,
         f"fojax tune: {run.spec.controller}, scenario {run.spec.scenario}, "
         f"{run.spec.draws} draws x {run.spec.horizon:g} s per step, {args.objective} objective",
         None if result.validation is None else result.validation["initial"],

@@ -447,12 +447,14 @@ def _curve_at(points, limit, key):
 def report(results: dict) -> str:
     """The generated part of docs/tuning.md's section: the run, the tables, the
     convergence and the cost terms."""
+    from experiments.tuning_study import commit_label
+
     p = results["provenance"]
     tuners = results["tuners"]
     g = tuners["gradient"]
     validation = results["validation"]
     lines = [
-        f"Run: `{p['command']}`; commit {p.get('fojax_git')}, JAX {p['jax']} / jaxlib "
+        f"Run: `{p['command']}`; commit {commit_label(p)}, JAX {p['jax']} / jaxlib "
         f"{p['jaxlib']}, {p.get('cpu_model')}, {p['cpu_count']} cores, load average "
         f"{p['load_average'][0] if p.get('load_average') else 'n/a'} at the start and "
         f"{p['load_average_end'][0] if p.get('load_average_end') else 'n/a'} at the end; "

@@ -95,6 +95,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--report-only", action="store_true", help="summarise the stored runs, run nothing"
     )
+    parser.add_argument(
+        "--bench",
+        type=arguments.nonnegative_int,
+        default=0,
+        metavar="N",
+        help="also time N generations of CMA-ES evaluated in one batched call against one "
+        "call per candidate (interleaved; medians), stored in --out/bench_<share>.json",
+    )
+    parser.add_argument(
+        "--user-view",
+        type=arguments.nonnegative_int,
+        default=0,
+        metavar="N",
+        help="also run `fojax tune --scenario 2 --init paper` N times per --compile mode, "
+        "each in a fresh process (compilation included), stored in --out/user_view/",
+    )
+    parser.add_argument("--user-steps", type=arguments.positive_int, default=6)
     parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
     parser.add_argument("--quiet", action="store_true")
     return parser
@@ -152,6 +169,14 @@ def cpu_model() -> str | None:
         f"{fields.get('model name', '?')} (family {fields.get('cpu family', '?')}, "
         f"model {fields.get('model', '?')})"
     )
+
+
+def commit_label(provenance: dict) -> str:
+    """``abc1234`` (``, with uncommitted changes``) from a provenance record."""
+    git = provenance.get("fojax_git")
+    if not isinstance(git, dict) or not git.get("commit"):
+        return "unknown"
+    return git["commit"][:7] + (" (with uncommitted changes)" if git.get("dirty") else "")
 
 
 def run_context(command: list[str]) -> dict:
@@ -278,6 +303,156 @@ class _Setup:
         return paper_gains(jnp.dtype(self.args.dtype)) if name == "paper" else self.naive
 
 
+def bench_batched(setup: _Setup, repeats: int) -> dict:
+    """Wall time of one CMA-ES generation (the population on the same draws): one
+    batched call against one call per candidate, interleaved, ``repeats`` times each;
+    and the largest relative difference of their costs."""
+    import jax
+
+    args = setup.args
+    problem = setup.problem
+    rng = np.random.default_rng(0)
+    start = problem.vector(problem.initial_params())
+    candidates = start + 0.5 * rng.normal(size=(setup.popsize, start.size))
+    keys = problem.minibatch_keys(0, args.df_draws)
+    jax.block_until_ready(problem.batch_value(candidates, 1.0, keys))  # compiled first
+    jax.block_until_ready(problem.value(problem.unravel(candidates[0]), 1.0, keys))
+    batched, alone = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        together = np.asarray(jax.block_until_ready(problem.batch_value(candidates, 1.0, keys)[0]))
+        batched.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        separate = np.asarray(
+            [float(problem.value(problem.unravel(x), 1.0, keys).objective) for x in candidates]
+        )
+        alone.append(time.perf_counter() - t0)
+    return {
+        "share": setup.spec.share,
+        "parameters": problem.param_map.size,
+        "population": setup.popsize,
+        "draws": args.df_draws,
+        "horizon_s": args.horizon,
+        "batched_s": batched,
+        "one_at_a_time_s": alone,
+        "median_batched_s": float(np.median(batched)),
+        "median_one_at_a_time_s": float(np.median(alone)),
+        "largest_relative_difference": float(np.max(np.abs(together - separate) / separate)),
+        "load": _load(),
+    }
+
+
+USER_MODES = ("optimized", "fast")
+
+
+def user_command(args, mode: str, out: Path) -> list[str]:
+    """The ``fojax tune`` command of the user's view (scenario 2, the paper's gains,
+    the default cost and tuner)."""
+    command = [
+        "fojax", "tune", "--scenario", str(args.scenario), "--controller", "afonftsmc",
+        "--draws", str(args.gradient_draws), "--steps", str(args.user_steps),
+        "--validate-every", "2", "--init", "paper", "--compile", mode, "--out", str(out),
+    ]  # fmt: skip
+    if args.tiny:
+        command += ["--horizon", str(args.horizon), "--dtype", "float64"]
+    return command
+
+
+def user_view(args, out: Path) -> list[dict]:
+    """Run the user's ``fojax tune`` ``args.user_view`` times per compile mode, each in
+    a fresh process (no persistent compilation cache), interleaving the modes; time
+    the whole command and read its outputs."""
+    import csv
+
+    records = []
+    folder = out / "user_view"
+    for index in range(args.user_view):
+        for mode in USER_MODES:
+            path = folder / f"{mode}_{index}.json"
+            if path.exists():
+                records.append(json.loads(path.read_text()))
+                continue
+            run_dir = folder / f"{mode}_{index}"
+            if run_dir.exists():
+                shutil.rmtree(run_dir)
+            command = user_command(args, mode, run_dir)
+            env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+            load = _load()
+            t0 = time.perf_counter()
+            subprocess.run(
+                [sys.executable, "-m", "experiments.cli", *command[1:], "--quiet"],
+                check=True,
+                env=env,
+                stdout=subprocess.DEVNULL,
+            )
+            total = time.perf_counter() - t0
+            evaluation = json.loads((run_dir / "evaluation.json").read_text())
+            gains = json.loads((run_dir / "gains.json").read_text())["metadata"]
+            with open(run_dir / "history.csv", newline="") as handle:
+                history = list(csv.DictReader(handle))
+            initial = evaluation["initial"]["mean_cost"]
+            first_half = next(
+                (
+                    float(row["wall_time_s"])
+                    for row in history
+                    if row["validation_cost"]
+                    and float(row["validation_cost"]) <= 0.5 * gains["validation"]["initial"]
+                ),
+                None,
+            )
+            record = {
+                "mode": mode,
+                "run": index,
+                "command": " ".join(command),
+                "total_s": round(total, 1),
+                "tuning_s": float(history[-1]["wall_time_s"]),
+                "validation_halved_at_s": first_half,
+                "heldout_initial": initial,
+                "heldout_tuned": evaluation["tuned"]["mean_cost"],
+                "heldout_draws": evaluation["draws"],
+                "selected_step": gains["selected_step"],
+                "validation": gains["validation"],
+                "load_before": load,
+                "load_after": _load(),
+            }
+            path.write_text(json.dumps(record, indent=1) + "\n")
+            records.append(record)
+            _log(
+                args,
+                f"  user view ({mode}, run {index}): {total:.0f} s in all, held-out "
+                f"{initial:.4g} -> {record['heldout_tuned']:.4g}",
+            )
+    return records
+
+
+def user_table(records: list[dict]) -> str:
+    lines = [
+        "| `--compile` | runs | command wall time (s), compilation included | tuning loop (s) "
+        "| validation cost first at half the start's, at (s of the loop) | held-out cost: "
+        "paper's -> returned | returned step | held-out halved |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for mode in USER_MODES:
+        runs = [r for r in records if r["mode"] == mode]
+        if not runs:
+            continue
+        halved = sum(r["heldout_tuned"] <= 0.5 * r["heldout_initial"] for r in runs)
+        lines.append(
+            f"| {mode} | {len(runs)} | {_spread([r['total_s'] for r in runs], '.0f')} | "
+            f"{_spread([r['tuning_s'] for r in runs], '.0f')} | "
+            f"{_spread([r['validation_halved_at_s'] for r in runs], '.0f')} | "
+            f"{runs[0]['heldout_initial']:.4g} -> "
+            f"{_spread([r['heldout_tuned'] for r in runs], '.4g')} | "
+            f"{', '.join(str(r['selected_step']) for r in runs)} | {halved}/{len(runs)} |"
+        )
+    loads = [x for r in records for x in (r["load_before"][:1] + r["load_after"][:1])]
+    if loads:
+        lines += ["", f"(1-minute load average {min(loads):.1f}-{max(loads):.1f}; command: "
+                  f"`{records[0]['command'].replace(' --compile optimized', '')}` "
+                  "with `--compile fast` or not.)"]  # fmt: skip
+    return "\n".join(lines)
+
+
 def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     """One tuning run; returns its curve (draw-steps, wall time without compilation,
     held-out cost of the current answer) and totals."""
@@ -378,6 +553,7 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
         "load_before": load_before,
         "load_after": _load(),
         "elapsed_s": round(time.perf_counter() - t0, 1),
+        "git_commit": git_commit(),
         **totals,
     }
 
@@ -403,7 +579,8 @@ def main(argv=None) -> int:
                 for method in args.methods
                 if not (runs_dir / f"{share}_{start}_{seed}_{method}.json").exists()
             ]
-            if not pending:
+            bench_path = out / f"bench_{share}.json"
+            if not pending and (not args.bench or bench_path.exists()):
                 continue
             t0 = time.perf_counter()
             setup = _Setup(args, share)
@@ -412,6 +589,11 @@ def main(argv=None) -> int:
                 f"share={share}: {setup.problem.param_map.size} parameters, compiled in "
                 f"{time.perf_counter() - t0:.0f} s ({setup.compile_s})",
             )
+            if args.bench and not bench_path.exists():
+                bench = bench_batched(setup, args.bench)
+                bench_path.write_text(json.dumps(bench, indent=1) + "\n")
+                _log(args, f"  batched generation {bench['median_batched_s']:.2f} s, one at a "
+                     f"time {bench['median_one_at_a_time_s']:.2f} s (medians)")  # fmt: skip
             for start, seed, method in pending:
                 record = run_one(setup, start, seed, method)
                 record["settings"] = settings
@@ -426,6 +608,9 @@ def main(argv=None) -> int:
                     f"{record['wall_time_s']:.0f} s + {record['compile_s']:.0f} s compile, "
                     f"load {record['load_before']} -> {record['load_after']}",
                 )
+    users = user_view(args, out) if args.user_view and not args.report_only else []
+    if not users and (out / "user_view").is_dir():
+        users = [json.loads(p.read_text()) for p in sorted((out / "user_view").glob("*.json"))]
     records = [json.loads(p.read_text()) for p in sorted(runs_dir.glob("*.json"))]
     records = [
         r
@@ -436,7 +621,14 @@ def main(argv=None) -> int:
         and r["method"] in args.methods
     ]
     summary = summarize(records)
+    benches = [
+        json.loads((out / f"bench_{share}.json").read_text())
+        for share in args.shares
+        if (out / f"bench_{share}.json").exists()
+    ]
     results = {
+        "user_view": users,
+        "bench": benches,
         "settings": settings,
         "summary": summary,
         "runs": records,
@@ -512,6 +704,9 @@ def summarize(records: list[dict]) -> dict:
                         "gradient_reached_at_s": wall,
                         "gradient_draw_steps": steps,
                         "ratio_to_cma_wall_time": None if wall is None else wall / cma_total,
+                        "ratio_without_compilation": None
+                        if wall is None
+                        else (wall - gradient["compile_s"]) / cma["wall_time_s"],
                         "met": wall is not None and wall <= 0.5 * cma_total,
                         "gradient_best": min(c for _, _, c in gradient["curve"]),
                     }
@@ -566,8 +761,9 @@ def table(results: dict) -> str:
         "budget) in at most half of CMA-ES's wall time (both with compilation):",
         "",
         "| parameters | start | seed | CMA-ES best | CMA-ES wall time (s) (reached its best at) "
-        "| gradient reached it at (s) | ratio | met | gradient's best |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| gradient reached it at (s) | ratio | met | ratio without compilation | "
+        "gradient's best |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for key, entry in summary.items():
         share, start = key.split("/")
@@ -583,11 +779,27 @@ def table(results: dict) -> str:
                 if t["ratio_to_cma_wall_time"] is None
                 else (f"{t['ratio_to_cma_wall_time']:.2f}")
             )
+            bare = t.get("ratio_without_compilation")
+            bare = "-" if bare is None else f"{bare:.2f}"
             lines.append(
                 f"| {size} | {start} | {t['seed']} | {t['cma_best']:.4g} | "
                 f"{t['cma_wall_time_s']:.0f} ({t['cma_reached_at_s']:.0f}) | {reached} | "
-                f"{ratio} | {'yes' if t['met'] else 'no'} | {t['gradient_best']:.4g} |"
+                f"{ratio} | {'yes' if t['met'] else 'no'} | {bare} | {t['gradient_best']:.4g} |"
             )
+    for bench in results.get("bench", []):
+        lines += [
+            "",
+            f"One CMA-ES generation, {bench['parameters']} parameters: {bench['population']} "
+            f"candidates x {bench['draws']} draws x {bench['horizon_s']:g} s in one batched "
+            f"call {bench['median_batched_s']:.2f} s, one call per candidate "
+            f"{bench['median_one_at_a_time_s']:.2f} s (medians of {len(bench['batched_s'])}, "
+            f"interleaved; {bench['median_one_at_a_time_s'] / bench['median_batched_s']:.1f}x); "
+            f"costs equal to {bench['largest_relative_difference']:.1g} relative (float32 "
+            "rounding depends on the batch).",
+        ]
+    if results.get("user_view"):
+        lines += ["", "The user's view, `fojax tune` from the paper's gains:", ""]
+        lines.append(user_table(results["user_view"]))
     lines += [
         "",
         "Settings: "
@@ -642,7 +854,8 @@ def plot(records: list[dict], path: Path, axis: str) -> Path:
             ax.axhline(initial, color="0.4", ls=":", lw=1)
         ax.set_yscale("log")
         ax.grid(alpha=0.3, which="both")
-        ax.set_title(f"{size} parameters (--share {share}), from the {start} start", fontsize=9)
+        origin = "the paper's gains" if start == "paper" else "the naive start"
+        ax.set_title(f"{size} parameters (--share {share}), from {origin}", fontsize=9)
         ax.set_xlabel(
             "wall time, compilation included (s)" if axis == "wall" else "simulated draw-steps"
         )
