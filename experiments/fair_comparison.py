@@ -53,7 +53,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--draws", type=arguments.positive_int, default=16, help="draws per gradient step"
     )
     parser.add_argument("--steps", type=arguments.positive_int, default=50, help="gradient steps")
-    parser.add_argument("--learning-rate", type=arguments.positive_float, default=0.1)
+    parser.add_argument(
+        "--method",
+        choices=("lbfgs", "adam"),
+        default="lbfgs",
+        help="the gradient tuner's method (lbfgs: quasi-Newton on one fixed sample of --draws "
+        "draws; adam: fresh minibatches)",
+    )
+    parser.add_argument(
+        "--learning-rate", type=arguments.positive_float, default=0.1, help="Adam's step"
+    )
     parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument("--controllers", help="comma-separated names (default: all registered)")
     parser.add_argument("--eval-draws", type=arguments.positive_int, default=64)
@@ -68,6 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--out", type=Path, default=Path("results/fair_comparison"))
+    parser.add_argument(
+        "--update-doc",
+        type=Path,
+        help="markdown file whose <!-- fair-comparison:begin/end --> block to replace",
+    )
     parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
     parser.add_argument("--quiet", action="store_true")
     return parser
@@ -124,7 +138,9 @@ def main(argv=None) -> int:
 
     start_all = time.perf_counter()
     dtype = jnp.dtype(args.dtype)
-    config = tuner_lib.TunerConfig(steps=args.steps, learning_rate=args.learning_rate)
+    config = tuner_lib.TunerConfig(
+        steps=args.steps, method=args.method, learning_rate=args.learning_rate
+    )
     settings = {f"scenario {k}": scenarios.get_scenario(k) for k in args.eval_scenarios}
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -160,6 +176,8 @@ def main(argv=None) -> int:
             "this_invocation_s": round(time.perf_counter() - t0, 1),
             "first_objective": result.history[0]["objective"],
             "final_objective": last["objective"],
+            "returned_step": result.best_step,
+            "validation": result.validation,
             "parameters": params_lib.make_parameter_map(name, spec.fields, spec.share).size,
         }
 
@@ -231,6 +249,18 @@ def main(argv=None) -> int:
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     text = table(results)
     (out / "table.md").write_text(text + "\n")
+    if args.update_doc is not None:
+        from experiments.remark3 import replace_block
+        from experiments.tuning_study import commit_label, run_context
+
+        context = run_context(["python", "-m", "experiments.fair_comparison", *(argv or [])])
+        head = (
+            f"Run: `{context['command']}`; commit {commit_label(context)}, "
+            f"{context.get('cpu_model')}, load average {context['load_average'][0]} at the end; "
+            f"{results['total_wall_time_s']:.0f} s in all (tuning resumed from checkpoints "
+            "counts only the steps this invocation ran)."
+        )
+        replace_block(args.update_doc, "fair-comparison", head + "\n\n" + text)
     print(text)
     print(f"wrote {out}/results.json, table.md ({results['total_wall_time_s']:.0f} s in all)")
     return 0
@@ -299,15 +329,17 @@ def table(results: dict) -> str:
     lines += [
         "",
         "| controller | tuned parameters | tuning draw-steps | tuning wall time (s) | "
-        "minibatch objective, first -> last step |",
-        "|---|---|---|---|---|",
+        "objective, first -> last step | returned step: validation cost, start -> returned |",
+        "|---|---|---|---|---|---|",
     ]
     for name in names:
         t = tuning[name]
+        v = t.get("validation")
+        returned = "-" if not v else (f"{v['best_step']}: {v['initial']:.4g} -> {v['best']:.4g}")
         lines.append(
             f"| {name} | {t['parameters']} | {t['draw_steps']:.3g} | "
             f"{t['tuning_wall_time_s']:.0f} | {t['first_objective']:.4g} -> "
-            f"{t['final_objective']:.4g} |"
+            f"{t['final_objective']:.4g} | {returned} |"
         )
     return "\n".join(lines)
 

@@ -10,9 +10,14 @@ own horizon is 80 s or 50 s) with the controller's switching smoothed to ``tanh`
 (annealed towards the evaluation boundary layer), and takes one clipped Adam step on
 the gradient of the mean (or CVaR) cost. Writes to ``DIR``:
 
-* ``gains.json``: the tuned gains, the format ``fojax simulate --gains`` reads;
+* ``gains.json``: the tuned gains, the format ``fojax simulate --gains`` reads: the
+  best of the start and the validated steps on ``--validation-draws`` validation draws
+  (disjoint from the tuning and the held-out draws), with ``--eval-switching``; its
+  metadata name the step they come from (``selected_step``, 0: the start) and the
+  validation costs, so a run never returns gains worse than its start on them;
 * ``history.csv``: one row per step (objective, gradient norm, learning rate,
-  boundary-layer scale, diverged draws, simulated draw-steps, wall time);
+  boundary-layer scale, diverged draws, simulated draw-steps, wall time, validation
+  cost where validated, best step so far);
 * ``checkpoint.npz``: the state every ``--checkpoint-every`` steps. After an
   interruption, the same command with ``--resume`` continues and gives the result the
   uninterrupted run would have given;
@@ -101,10 +106,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--share", choices=tuple(params.SHARING), default="paper")
     parser.add_argument(
+        "--method",
+        choices=("adam", "lbfgs"),
+        default=tuner.method,
+        help=f"adam: fresh minibatches each step; lbfgs: quasi-Newton on one fixed sample of "
+        f"--draws draws ({tuner.method})",
+    )
+    parser.add_argument(
         "--learning-rate",
         type=arguments.positive_float,
         default=tuner.learning_rate,
         help="Adam step",
+    )
+    parser.add_argument(
+        "--max-step",
+        type=arguments.positive_float,
+        default=tuner.max_step,
+        help=f"L-BFGS's largest change of a parameter per step ({tuner.max_step})",
     )
     parser.add_argument(
         "--clip-norm",
@@ -117,8 +135,30 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--checkpoint-every", type=arguments.positive_int, default=tuner.checkpoint_every
     )
+    parser.add_argument(
+        "--validation-draws",
+        type=arguments.nonnegative_int,
+        default=tuner.validation_draws,
+        help=f"validation draws scoring the start and every --validate-every steps; the "
+        f"best validated gains are returned ({tuner.validation_draws}; 0: no validation, "
+        "the last step's gains are returned)",
+    )
+    parser.add_argument(
+        "--validate-every",
+        type=arguments.positive_int,
+        default=tuner.validate_every,
+        help=f"steps between validations ({tuner.validate_every}; the last step is always "
+        "validated)",
+    )
     parser.add_argument("--fractional", choices=fractional.METHODS, default="soe")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument(
+        "--compile",
+        choices=("optimized", "fast"),
+        default="optimized",
+        help="fast: compile the gradient without LLVM's optimisation passes (about 3x "
+        "faster to compile, about 2x slower per step: for short runs); optimized (default)",
+    )
     parser.add_argument(
         "--eval-draws",
         type=arguments.nonnegative_int,
@@ -219,14 +259,20 @@ def parse_args(argv):
             share=args.share,
             fractional=args.fractional,
             dtype=args.dtype,
+            compile=args.compile,
         )
         config = tuner.TunerConfig(
             steps=args.steps,
+            method=args.method,
             learning_rate=args.learning_rate,
+            max_step=args.max_step,
             clip_norm=args.clip_norm,
             anneal_start=args.anneal_start,
             anneal_end=args.anneal_end,
             checkpoint_every=args.checkpoint_every,
+            validation_draws=args.validation_draws,
+            validate_every=args.validate_every,
+            validation_switching=args.eval_switching,
         )
         if args.eval_horizon is not None:
             steps = args.eval_horizon / args.dt
@@ -258,6 +304,7 @@ def _evaluate(run, result, args) -> dict:
         "horizon_s": horizon,
         "switching": args.eval_switching,
         "draw_indices": f"{problem_lib.HELDOUT_OFFSET} + [0, {args.eval_draws})",
+        "tuned_gains_from_step": result.best_step,
     }
     for label, gains in (("initial", run.init_gains), ("tuned", result.gains)):
         costs = problem_lib.evaluate(
@@ -332,6 +379,7 @@ def plot_convergence(
     evaluation: dict | None = None,
     clip_norm: float | None = None,
     title: str = "fojax tune: convergence",
+    validation_start: float | None = None,
 ) -> Path:
     """The run's progress from ``history.csv``: the objective (and, when it is not the
     mean, the minibatch mean) with the worst draw's cost, and the gradient norm, against
@@ -352,6 +400,19 @@ def plot_convergence(
     mean_cost = np.asarray(history["mean_cost"])
     worst = np.asarray(history["max_cost"])
     diverged = np.asarray(history.get("diverged", [0] * len(step))) > 0
+    validation = np.asarray(history.get("validation_cost", [math.nan] * len(step)))
+    validated = np.isfinite(validation)
+    orange = "#E69F00"
+    if validation_start is not None and validated.any():  # the start, validated at step 0
+        step, wall = np.concatenate([[0.0], step]), np.concatenate([[0.0], wall])
+        pad = np.asarray([math.nan])
+        objective, mean_cost, worst = (
+            np.concatenate([pad, a]) for a in (objective, mean_cost, worst)
+        )
+        diverged = np.concatenate([[False], diverged])
+        validation = np.concatenate([[validation_start], validation])
+        validated = np.isfinite(validation)
+        history = {**history, "grad_norm": np.concatenate([pad, history["grad_norm"]])}
     show_mean = not np.allclose(objective, mean_cost, rtol=1e-6, equal_nan=True)
     dark, blue, green, red = "#333333", "#0072B2", "#009E73", "#D55E00"
     held_out = dict(ls="none", marker="D", ms=7, mfc="white", mec=green, mew=2, zorder=6)
@@ -368,12 +429,23 @@ def plot_convergence(
         if np.any(diverged):
             ax.scatter(x[diverged], objective[diverged], marker="x", color=red, zorder=5)
         axes[1, col].plot(x, history["grad_norm"], color=dark, lw=1.2, marker="o", ms=2.5)
+        if validated.any():
+            # Against wall time as steps: the start's gains stand until the next
+            # validation (the start is validated while the gradient compiles).
+            ax.plot(x[validated], validation[validated], color=orange, lw=1.2, marker="s", ms=4,
+                    zorder=5, drawstyle="steps-post" if col else "default")  # fmt: skip
         if clip_norm is not None:
             axes[1, col].axhline(clip_norm, color="0.5", ls="--", lw=0.9)
     if np.any(diverged):
         handles.append(
             Line2D([], [], ls="none", marker="x", color=red, label="step with diverged draws")
         )
+    if validated.any():
+        best = history.get("best_step", [math.nan])[-1]
+        handles.append(
+            Line2D([], [], color=orange, lw=1.2, marker="s", ms=4,
+                   label=f"validation cost (returned: step {best:.0f})")
+        )  # fmt: skip
     if evaluation and "initial" in evaluation and "tuned" in evaluation:
         initial = evaluation["initial"]["mean_cost"]
         tuned = evaluation["tuned"]["mean_cost"]
@@ -391,7 +463,8 @@ def plot_convergence(
         )
     if clip_norm is not None:
         handles.append(Line2D([], [], color="0.5", ls="--", lw=0.9, label="gradient clip norm"))
-    for row, values in enumerate((np.concatenate([objective, worst]), history["grad_norm"])):
+    costs = np.concatenate([objective, worst, validation[validated]])
+    for row, values in enumerate((costs, history["grad_norm"])):
         values = np.asarray(values, dtype=float)
         values = values[np.isfinite(values)]
         if values.size and np.all(values > 0) and values.max() > 10 * values.min():
@@ -401,7 +474,8 @@ def plot_convergence(
     axes[0, 0].set_ylabel("cost")
     axes[1, 0].set_ylabel("gradient norm (before clipping)")
     axes[1, 0].set_xlabel("step")
-    axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {wall[0]:.1f} s, compilation included")
+    first = wall[1] if validation_start is not None and validated.any() else wall[0]
+    axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {first:.1f} s, compilation included")
     fig.suptitle(title, fontsize=10)
     style.legend_below(fig, handles, ncol=2 if len(handles) > 4 else len(handles))
     return style.save(fig, path)
@@ -494,6 +568,18 @@ def main(argv=None) -> int:
     )
     if runtime["process_count"] > 1:
         print(f"over {runtime['process_count']} processes, {runtime['device_count']} devices")
+    if result.validation is not None:
+        v = result.validation
+        chosen = (
+            "the start's (no step validated better)"
+            if v["best_step"] == 0
+            else (f"step {v['best_step']}'s")
+        )
+        print(
+            f"returned {chosen} gains: validation cost {v['best']:.5g} against "
+            f"{v['initial']:.5g} at the start and {v['final']:.5g} at the last step "
+            f"({v['draws']} validation draws, {v['switching']}, {v['horizon_s']:g} s)"
+        )
     _save_tuned_gains(run, record, earlier)
     files = ["gains.json", "history.csv", "run.json"]
     evaluation = None
@@ -513,9 +599,10 @@ def main(argv=None) -> int:
         args.out / "history.csv",
         args.out / "convergence.png",
         evaluation,
-        run.config.clip_norm,
+        run.config.clip_norm if run.config.method == "adam" else None,
         f"fojax tune: {run.spec.controller}, scenario {run.spec.scenario}, "
         f"{run.spec.draws} draws x {run.spec.horizon:g} s per step, {args.objective} objective",
+        None if result.validation is None else result.validation["initial"],
     )
     if figure is not None:
         files.append("convergence.png (+ .pdf)")

@@ -12,8 +12,13 @@ Protocol (every number in ``docs/tuning.md`` comes from this script):
    :mod:`optimize.cost` with the CLI defaults, draws from the tuning stream of seed
    ``--seed``; start: :func:`optimize.params.naive_gains`.
 2. Tuners, same problem, same starting point:
-   * gradient (:mod:`optimize.tuner`): ``--steps`` steps of ``--draws`` draws;
-   * CMA-ES and Nelder-Mead (:mod:`optimize.derivative_free`) with
+   * gradient (:mod:`optimize.tuner`): ``--steps`` steps of ``--draws`` draws,
+     ``--gradient-method`` (``lbfgs``: quasi-Newton on one fixed sample; ``adam``: a
+     fresh minibatch every step), returning its best validated iterate (its own
+     ``--tuner-validation-draws`` validation draws, every ``--validate-every``
+     steps);
+   * CMA-ES (each generation in one batched call) and Nelder-Mead
+     (:mod:`optimize.derivative_free`) with
      ``--df-budget-factor`` times the gradient tuner's simulated draw-steps (a
      gradient step simulates its draws once forward; its reverse pass costs a few
      forward passes more in wall time, which the wall-time axis shows).
@@ -27,7 +32,18 @@ Protocol (every number in ``docs/tuning.md`` comes from this script):
    scenario 3 (other disturbances, 30 % mass/inertia uncertainty, reference (57)).
    Paired differences against the paper's gains use the same draws (95 % Student-t).
 
-Writes ``results.json``, ``table.md``, ``curves.csv`` and ``tuning.png`` to ``--out``.
+Writes ``results.json`` (with the run's provenance: commit, versions, CPU, load),
+``table.md``, ``curves.csv`` and ``tuning.png`` to ``--out``; ``--update-doc FILE``
+replaces the block between ``<!-- tune-paper-gains:begin -->`` and
+``<!-- tune-paper-gains:end -->`` of FILE with the tables and copies the figure beside
+it as ``tuning.png``.
+
+Reproducibility: on one machine a rerun gives the same numbers (XLA's CPU code is
+deterministic; wall times aside). The float32 rounding of the gradient depends on the
+code and on the instructions XLA picks for the CPU, and a tuner's path amplifies
+rounding differences (docs/tuning.md measures by how much), so the gradient row is
+reproduced exactly only by the same commit on the same kind of CPU; ``results.json``
+records both.
 """
 
 from __future__ import annotations
@@ -73,7 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--horizon", type=float, default=10.0, help="tuning horizon (s)")
     parser.add_argument("--draws", type=int, default=16, help="draws per gradient step")
     parser.add_argument("--steps", type=int, default=50, help="gradient steps")
-    parser.add_argument("--learning-rate", type=float, default=0.1)
+    parser.add_argument("--gradient-method", choices=("lbfgs", "adam"), default="lbfgs")
+    parser.add_argument("--learning-rate", type=float, default=0.1, help="Adam's")
+    parser.add_argument("--max-step", type=float, default=1.0, help="L-BFGS's")
+    parser.add_argument("--tuner-validation-draws", type=int, default=32)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--dtype", default="float32")
     parser.add_argument("--df-budget-factor", type=float, default=3.0)
@@ -83,6 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--eval-draws", type=int, default=64)
     parser.add_argument("--eval-horizon", type=float, help="s (default: each scenario's)")
     parser.add_argument("--out", type=Path, default=Path("results/tune_paper_gains"))
+    parser.add_argument("--update-doc", type=Path, help="markdown file to update")
     parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
     parser.add_argument("--quiet", action="store_true")
     # Cost weights (default: the fojax tune defaults).
@@ -115,6 +135,7 @@ def main(argv=None) -> int:
         args.seed, args.dtype = 5, "float64"
         args.effort_weight, args.chattering_weight, args.attitude_weight = 1e-3, 1e-3, 2.0
         args.validation_draws, args.validate_every, args.eval_draws = 2, 1, 2
+        args.tuner_validation_draws = 2
         args.eval_horizon = args.eval_horizon or 0.3
         args.df_budget_factor = max(args.df_budget_factor, 40.0)
     if args.dtype == "float64":
@@ -123,6 +144,7 @@ def main(argv=None) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
+    from experiments.tuning_study import run_context
     from fojax import scenarios
     from fojax.controllers.afonftsmc import paper_gains
     from optimize import cost as cost_lib
@@ -132,6 +154,7 @@ def main(argv=None) -> int:
     from optimize import tuner as tuner_lib
 
     start_all = time.perf_counter()
+    provenance = run_context(["python", "-m", "experiments.tune_paper_gains", *(argv or [])])
     dtype = jnp.dtype(args.dtype)
     overrides = {
         k: v
@@ -152,7 +175,14 @@ def main(argv=None) -> int:
         cost=cost_config,
         dtype=args.dtype,
     )
-    config = tuner_lib.TunerConfig(steps=args.steps, learning_rate=args.learning_rate)
+    config = tuner_lib.TunerConfig(
+        steps=args.steps,
+        method=args.gradient_method,
+        learning_rate=args.learning_rate,
+        max_step=args.max_step,
+        validation_draws=args.tuner_validation_draws,
+        validate_every=args.validate_every,
+    )
     naive = params_lib.naive_gains("afonftsmc", dtype)
     paper = paper_gains(dtype)
     problem = problem_lib.TuningProblem(spec, naive)
@@ -182,9 +212,15 @@ def main(argv=None) -> int:
 
     # -- gradient tuner -----------------------------------------------------------------
     def on_step(step, params, row):
-        if step % args.validate_every == 0 or step == config.steps:
+        # The tuner's answer so far: its best validated iterate (the start until a
+        # validated step beats it).
+        if row["validation_cost"] is None:
+            return
+        if row["best_step"] == step:
             value = validate(problem.gains(params))
-            curves.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
+        else:
+            value = [v for m, _, _, v in curves if m == "gradient"][-1]
+        curves.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
 
     _log(args, f"gradient tuner: {config.steps} steps x {spec.draws} draws x {spec.horizon:g} s")
     run = tuner_lib.prepare(spec, config, naive, "naive", None)
@@ -291,6 +327,9 @@ def main(argv=None) -> int:
                 "wall_time_s": gradient_wall,
                 "steps": config.steps,
                 "final_objective": gradient.history[-1]["objective"],
+                "method": config.method,
+                "returned_step": gradient.best_step,
+                "validation": gradient.validation,
             },
             "cma-es": {
                 "draw_steps": es.draw_steps,
@@ -313,6 +352,8 @@ def main(argv=None) -> int:
         },
         "compile_time_s": round(compile_s, 1),
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
+        "provenance": provenance,
+        "curves": [list(c) for c in curves],
     }
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -321,8 +362,17 @@ def main(argv=None) -> int:
         writer = csv.writer(handle)
         writer.writerow(["method", "draw_steps", "wall_time_s", "validation_cost"])
         writer.writerows(curves)
+    results["provenance"]["load_average_end"] = run_context([])["load_average"]
+    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     (out / "table.md").write_text(table(results) + "\n")
     plot(curves, references, out / "tuning.png")
+    if args.update_doc is not None:
+        import shutil
+
+        from experiments.remark3 import replace_block
+
+        shutil.copyfile(out / "tuning.png", args.update_doc.parent / "tuning.png")
+        replace_block(args.update_doc, "tune-paper-gains", report(results))
     print(table(results))
     print(
         f"wrote {out}/results.json, table.md, curves.csv, tuning.png "
@@ -385,6 +435,90 @@ def table(results: dict) -> str:
             else:
                 cells.append(f"{diff['mean']:+.3g}")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _curve_at(points, limit, key):
+    """The last curve point with ``key`` (0: draw-steps, 1: wall time) <= ``limit``."""
+    inside = [p for p in points if p[key] <= limit]
+    return inside[-1] if inside else None
+
+
+def report(results: dict) -> str:
+    """The generated part of docs/tuning.md's section: the run, the tables, the
+    convergence and the cost terms."""
+    from experiments.tuning_study import commit_label
+
+    p = results["provenance"]
+    tuners = results["tuners"]
+    g = tuners["gradient"]
+    validation = results["validation"]
+    lines = [
+        f"Run: `{p['command']}`; commit {commit_label(p)}, JAX {p['jax']} / jaxlib "
+        f"{p['jaxlib']}, {p.get('cpu_model')}, {p['cpu_count']} cores, load average "
+        f"{p['load_average'][0] if p.get('load_average') else 'n/a'} at the start and "
+        f"{p['load_average_end'][0] if p.get('load_average_end') else 'n/a'} at the end; "
+        f"{results['total_wall_time_s']:.0f} s in all, of which {results['compile_time_s']:.0f} s "
+        f"compiling the tuning cost and its gradient, {g['wall_time_s']:.0f} s gradient tuning "
+        f"({g['method']}, its validation included), {tuners['cma-es']['wall_time_s']:.0f} s "
+        f"CMA-ES, {tuners['nelder-mead']['wall_time_s']:.0f} s Nelder-Mead.",
+        "",
+        f"The gradient tuner returned the gains of step {g['returned_step']} of {g['steps']} "
+        + (
+            f"(validation cost {g['validation']['best']:.4g}; {g['validation']['initial']:.4g} "
+            f"at the start, {g['validation']['final']:.4g} at the last step)."
+            if g.get("validation")
+            else "."
+        ),
+        "",
+        "**Held-out cost** (mean ± 95 % half-width over "
+        f"{next(iter(results['evaluation'].values()))['draws']} draws), paired differences "
+        "against the paper's gains:",
+        "",
+        table(results),
+        "",
+    ]
+    first = next(iter(results["evaluation"].values()))
+    terms = ", ".join(
+        f"{name} " + " / ".join(f"{t:.3g}" for t in entry["terms_mean"])
+        for name, entry in first["gains"].items()
+    )
+    lines += [
+        f"Mean terms on {next(iter(results['evaluation']))} "
+        f"({first['horizon_s']:g} s), `P` / `A` / `E` / `C`: {terms}.",
+        "",
+    ]
+    curves = results.get("curves", [])
+    if curves:
+        by_method = {}
+        for method, steps, wall, value in curves:
+            by_method.setdefault(method, []).append((steps, wall, value))
+        budget = g["draw_steps"]
+        lines += [
+            f"**Convergence** (validation cost: {validation['draws']} held-out draws, "
+            f"{validation['horizon_s']:g} s, `sat`; paper {validation['paper']:.4g}, naive "
+            f"{validation['naive']:.4g}):",
+            "",
+            "| method | at half the gradient's draw-steps | at the gradient's draw-steps | at "
+            "the end | best point | at the gradient's wall time |",
+            "|---|---|---|---|---|---|",
+        ]
+        for method, points in by_method.items():
+            points.sort()
+            cells = []
+            for limit in (budget / 2, budget):
+                at = _curve_at(points, limit, 0)
+                cells.append("-" if at is None else f"{at[2]:.4g} ({at[0]:.2g})")
+            cells.append(f"{points[-1][2]:.4g} ({points[-1][0]:.2g}, {points[-1][1]:.0f} s)")
+            best = min(points, key=lambda q: q[2])
+            cells.append(f"{best[2]:.4g} ({best[0]:.2g}, {best[1]:.0f} s)")
+            at = _curve_at(sorted(points, key=lambda q: q[1]), g["wall_time_s"], 1)
+            cells.append("-" if at is None else f"{at[2]:.4g} ({at[1]:.0f} s)")
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
+        lines += [
+            "",
+            "(draw-steps and tuning wall time, compilation excluded, in parentheses.)",
+        ]
     return "\n".join(lines)
 
 

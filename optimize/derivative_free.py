@@ -6,10 +6,12 @@ feasible), the same cost and objective (:class:`optimize.problem.TuningProblem`)
 the switching at a fixed width (``width_scale``, by default the gradient tuner's final
 one), draws from the same tuning stream (never the held-out ones).
 
-* :func:`cma_es`: CMA-ES (the ``cma`` package). Every generation evaluates all its
-  candidates on one fresh minibatch (common random numbers within a generation); the
-  answer is the distribution mean (``xfavorite``), the robust choice for a noisy
-  objective.
+* :func:`cma_es`: CMA-ES (the ``cma`` package's ask/tell). Every generation evaluates
+  all its candidates on one fresh minibatch (common random numbers within a
+  generation) in one compiled, batched call (:meth:`TuningProblem.batch_value`:
+  candidates x draws, compiled once); ``batched=False`` evaluates them one at a time
+  (the same costs to rounding, slower). The answer is the distribution mean
+  (``xfavorite``), the robust choice for a noisy objective.
 * :func:`nelder_mead`: SciPy's Nelder-Mead on one fixed minibatch (a sample-average
   approximation: a deterministic objective, as the simplex method needs), initial
   simplex ``x0 + step e_i``.
@@ -72,11 +74,11 @@ class DFResult(NamedTuple):
 class _Objective:
     """Candidate vector -> objective on ``keys``, with counters and timing."""
 
-    def __init__(self, problem: TuningProblem, width_scale: float, budget: Budget):
+    def __init__(self, problem: TuningProblem, width_scale: float, budget: Budget, x0=None):
         self.problem = problem
         self.width_scale = width_scale
         self.budget = budget
-        params = problem.initial_params()
+        params = problem.initial_params() if x0 is None else x0
         self.x0, self.unravel = problem.param_map.ravel(params)
         self.x0 = np.asarray(self.x0, np.float64)
         self.dtype = problem.spec.jnp_dtype
@@ -91,6 +93,14 @@ class _Objective:
         self.budget.charge(int(keys.shape[0]) * self.problem.spec.steps)
         self.evaluations += 1
         return float(self.problem.value(self.params(x), self.width_scale, keys).objective)
+
+    def batch(self, candidates, keys) -> np.ndarray:
+        """Objectives ``(P,)`` of ``P`` candidates on the same ``keys``, in one call."""
+        count = len(candidates)
+        self.budget.charge(count * int(keys.shape[0]) * self.problem.spec.steps)
+        self.evaluations += count
+        objectives, _ = self.problem.batch_value(np.asarray(candidates), self.width_scale, keys)
+        return np.asarray(objectives, np.float64)
 
     @property
     def wall(self) -> float:
@@ -113,15 +123,18 @@ def cma_es(
     seed: int = 0,
     width_scale: float = 1.0,
     callback: Callable | None = None,
+    batched: bool = True,
+    x0: Any = None,
 ) -> DFResult:
-    """CMA-ES from the problem's initial parameters with step ``sigma0`` (in the
-    unconstrained parameters), ``popsize`` candidates per generation (default the
-    ``cma`` package's ``4 + 3 ln n``), each on ``draws_per_candidate`` draws (default
-    the problem's minibatch size)."""
+    """CMA-ES from ``x0`` (parameters dict; default the problem's initial parameters)
+    with step ``sigma0`` (in the unconstrained parameters), ``popsize`` candidates per
+    generation (default the ``cma`` package's ``4 + 3 ln n``), each on
+    ``draws_per_candidate`` draws (default the problem's minibatch size), the whole
+    generation in one batched call (``batched=False``: one call per candidate)."""
     import cma
 
     budget = Budget(budget_draw_steps)
-    objective = _Objective(problem, width_scale, budget)
+    objective = _Objective(problem, width_scale, budget, x0)
     n = problem.spec.draws if draws_per_candidate is None else int(draws_per_candidate)
     if n < 1:
         raise ValueError(f"draws_per_candidate must be >= 1, got {draws_per_candidate!r}")
@@ -147,7 +160,10 @@ def cma_es(
     while budget.affords(per_generation):
         candidates = es.ask()
         keys = problem.minibatch_keys(generation, draws=n)
-        values = [objective(x, keys) for x in candidates]
+        if batched:
+            values = objective.batch(candidates, keys).tolist()
+        else:
+            values = [objective(x, keys) for x in candidates]
         es.tell(candidates, values)
         generation += 1
         best = min(best, min(values))
@@ -182,13 +198,15 @@ def nelder_mead(
     callback: Callable | None = None,
     callback_every: int = 20,
     minibatch: int = 0,
+    x0: Any = None,
 ) -> DFResult:
     """SciPy Nelder-Mead on minibatch ``minibatch`` of ``draws`` draws (default the
-    problem's size), initial simplex ``x0 + step e_i``, until the budget is spent."""
+    problem's size), initial simplex ``x0 + step e_i`` (``x0`` a parameters dict;
+    default the problem's initial parameters), until the budget is spent."""
     from scipy import optimize as scipy_optimize
 
     budget = Budget(budget_draw_steps)
-    objective = _Objective(problem, width_scale, budget)
+    objective = _Objective(problem, width_scale, budget, x0)
     n = problem.spec.draws if draws is None else int(draws)
     per_evaluation = n * problem.spec.steps
     max_evaluations = budget.limit // per_evaluation

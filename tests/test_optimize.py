@@ -197,9 +197,8 @@ def test_cost_gradient_matches_finite_differences():
 
 
 def _run(tmp, steps, stop_after=None, resume=False, config_overrides=None):
-    config = tuner_lib.TunerConfig(
-        steps=steps, learning_rate=0.1, checkpoint_every=1, **(config_overrides or {})
-    )
+    settings = {"method": "adam", "learning_rate": 0.1, **(config_overrides or {})}
+    config = tuner_lib.TunerConfig(steps=steps, checkpoint_every=1, **settings)
     run = tuner_lib.prepare(SPEC, config, NAIVE, "naive", tmp, resume=resume)
     return tuner_lib.tune(run, progress=False, stop_after=stop_after, problem=small_problem())
 
@@ -227,7 +226,11 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path):
 def test_short_tuning_lowers_cost_on_heldout_draws():
     result = tuner_lib.tune(
         tuner_lib.prepare(
-            SPEC, tuner_lib.TunerConfig(steps=12, learning_rate=0.1), NAIVE, "naive", None
+            SPEC,
+            tuner_lib.TunerConfig(steps=12, method="adam", learning_rate=0.1),
+            NAIVE,
+            "naive",
+            None,
         ),
         progress=False,
         problem=small_problem(),
@@ -329,3 +332,158 @@ def test_derivative_free_tuners_respect_the_budget():
         derivative_free.cma_es(problem, per_eval, popsize=4)
     with pytest.raises(ValueError, match="does not cover the initial simplex"):
         derivative_free.nelder_mead(problem, 3 * per_eval)
+
+
+def test_batched_costs_equal_one_at_a_time_costs():
+    """One compiled call over candidates x draws gives each candidate the costs that
+    evaluating it alone gives (float64, to rounding), also through the evaluation path
+    (``evaluate``, another compiled program of the same rollout)."""
+    problem = small_problem()
+    rng = np.random.default_rng(3)
+    start = problem.vector(problem.initial_params())
+    candidates = start + 0.5 * rng.normal(size=(5, start.size))
+    keys = problem.minibatch_keys(1)
+    objectives, costs = problem.batch_value(candidates, 1.0, keys)
+    assert np.asarray(costs.cost).shape == (5, SPEC.draws)
+    assert np.ptp(np.asarray(objectives)) > 1e-3  # the candidates differ in cost
+    for i, x in enumerate(candidates):
+        params = problem.unravel(x)
+        alone = problem.value(params, 1.0, keys)
+        np.testing.assert_allclose(costs.cost[i], alone.costs.cost, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(costs.terms[i], alone.costs.terms, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(objectives[i], alone.objective, rtol=1e-12, atol=0)
+        reference = problem_lib.evaluate(SPEC, problem.gains(params), keys, switching="tanh")
+        np.testing.assert_allclose(costs.cost[i], reference.cost, rtol=1e-12, atol=0)
+    with pytest.raises(ValueError, match=r"candidates must be an array \(P, 33\)"):
+        problem.batch_value(candidates[:, :-1], 1.0, keys)
+
+
+def test_batched_cma_es_equals_one_at_a_time_cma_es():
+    from optimize import derivative_free
+
+    problem = small_problem()
+    budget = 3 * 4 * SPEC.draws * SPEC.steps
+    batched = derivative_free.cma_es(problem, budget, popsize=4, seed=2, batched=True)
+    alone = derivative_free.cma_es(problem, budget, popsize=4, seed=2, batched=False)
+    assert batched.evaluations == alone.evaluations == 12
+    for a, b in zip(batched.history, alone.history, strict=True):
+        assert a["draw_steps"] == b["draw_steps"]
+        assert a["objective"] == pytest.approx(b["objective"], rel=1e-12)
+    for name in batched.params:
+        np.testing.assert_allclose(batched.params[name], alone.params[name], rtol=1e-10)
+
+
+def test_validation_draws_are_disjoint_from_tuning_and_heldout_draws():
+    problem = small_problem()
+    validation = set(map(tuple, np.asarray(problem.validation_keys(64)).tolist()))
+    heldout = set(map(tuple, np.asarray(problem.heldout_keys(64)).tolist()))
+    tuning = set(map(tuple, np.asarray(problem.minibatch_keys(0, draws=4096)).tolist()))
+    assert len(validation) == 64 and not validation & heldout and not validation & tuning
+
+
+def _validated_run(config):
+    """A run recording every iterate, and the independent validation of each."""
+    iterates = {}
+    problem = small_problem()
+    run = tuner_lib.prepare(SPEC, config, NAIVE, "naive", None)
+    result = tuner_lib.tune(
+        run,
+        progress=False,
+        problem=problem,
+        callback=lambda step, params, row: iterates.__setitem__(step, params),
+    )
+    iterates[0] = problem.initial_params()
+    keys = problem.validation_keys(config.validation_draws)
+    validation = {
+        step: float(np.mean(problem_lib.evaluate(SPEC, problem.gains(p), keys).cost))
+        for step, p in iterates.items()
+    }
+    return result, iterates, validation
+
+
+@pytest.mark.parametrize("learning_rate", [0.1, 30.0])
+def test_tuner_returns_the_best_validated_gains(learning_rate):
+    # 0.1: tuning helps; 30: every step throws the gains by e^30, and the start must come back.
+    config = tuner_lib.TunerConfig(
+        steps=4, method="adam", learning_rate=learning_rate, validation_draws=4, validate_every=2
+    )
+    result, iterates, validation = _validated_run(config)
+    validated = [0, 2, 4]
+    for row in result.history:
+        expected = validation[row["step"]] if row["step"] in validated else None
+        if expected is None:
+            assert row["validation_cost"] is None
+        else:
+            assert row["validation_cost"] == pytest.approx(expected, rel=1e-12)
+    best = min(validated, key=lambda step: (validation[step], step))
+    assert result.best_step == best
+    assert result.validation["initial"] == pytest.approx(validation[0], rel=1e-12)
+    assert result.validation["best"] == pytest.approx(validation[best], rel=1e-12)
+    assert result.validation["final"] == pytest.approx(validation[4], rel=1e-12)
+    for name in result.params:
+        np.testing.assert_array_equal(result.params[name], iterates[best][name])
+        np.testing.assert_array_equal(result.final_params[name], iterates[4][name])
+    if learning_rate == 30.0:
+        assert best == 0 and validation[4] > validation[0]
+        for name in NAIVE._fields:
+            np.testing.assert_array_equal(getattr(result.gains, name), getattr(NAIVE, name))
+    else:
+        assert best > 0 and validation[best] < 0.9 * validation[0]
+
+
+# ------------------------------------------------------------------------- L-BFGS
+
+
+def test_lbfgs_minimises_rosenbrock_like_scipy():
+    from scipy import optimize as scipy_optimize
+
+    from optimize import lbfgs as lbfgs_lib
+
+    def rosenbrock(x):
+        return scipy_optimize.rosen(x), scipy_optimize.rosen_der(x)
+
+    x0 = np.asarray([-1.2, 1.0, -0.5, 0.8])
+    method = lbfgs_lib.LBFGS(memory=5, max_step=0.5)
+    state = method.start(x0)
+    accepted_values = []
+    for _ in range(400):
+        f, g = rosenbrock(state["trial"])
+        state, accepted = method.tell(state, f, g)
+        if accepted:
+            accepted_values.append(state["f"])
+    assert np.all(np.diff(accepted_values) <= 0)  # sufficient decrease at every move
+    reference = scipy_optimize.minimize(rosenbrock, x0, jac=True, method="L-BFGS-B")
+    np.testing.assert_allclose(reference.x, np.ones(4), atol=1e-4)
+    np.testing.assert_allclose(state["x"], reference.x, atol=1e-4)
+    # The state survives a JSON round trip exactly (checkpoints).
+    import json
+
+    again = lbfgs_lib.state_from_json(json.loads(json.dumps(lbfgs_lib.state_to_json(state))))
+    for key, value in state.items():
+        if isinstance(value, list):
+            for a, b in zip(value, again[key], strict=True):
+                np.testing.assert_array_equal(a, b)
+        elif isinstance(value, np.ndarray):
+            np.testing.assert_array_equal(value, again[key])
+        else:
+            assert value == again[key]
+
+
+def test_lbfgs_tuner_resumes_exactly_and_only_accepts_decreases(tmp_path):
+    overrides = {"method": "lbfgs", "max_step": 0.5, "validation_draws": 2}
+    full = _run(tmp_path / "full", 5, config_overrides=overrides)
+    part = _run(tmp_path / "part", 5, stop_after=3, config_overrides=overrides)
+    resumed = _run(tmp_path / "part", 5, resume=True, config_overrides=overrides)
+    assert part.completed == 3 and resumed.completed == 5
+    for name in full.params:
+        np.testing.assert_array_equal(resumed.params[name], full.params[name])
+        np.testing.assert_array_equal(resumed.final_params[name], full.final_params[name])
+    strip = [{k: v for k, v in row.items() if k != "wall_time_s"} for row in full.history]
+    assert [{k: v for k, v in r.items() if k != "wall_time_s"} for r in resumed.history] == strip
+    # Every accepted trial lowered the fixed-sample objective (re-evaluated independently).
+    problem = small_problem()
+    keys = problem.minibatch_keys(0)
+    objectives = [row["objective"] for row in full.history if row["accepted"]]
+    assert len(objectives) >= 2 and np.all(np.diff(objectives) < 0)
+    final = float(problem.value(full.final_params, 1.0, keys).objective)
+    assert final == pytest.approx(objectives[-1], rel=1e-12)

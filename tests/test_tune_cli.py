@@ -95,6 +95,14 @@ def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     assert metadata["problem"]["draws"] == 3 and metadata["init"] == "naive"
     rows = (out / "history.csv").read_text().strip().splitlines()
     assert len(rows) == 3 and rows[0].startswith("step,objective,")
+    # The returned gains are the best validated ones, and say which step they are from.
+    columns = rows[0].split(",")
+    last = dict(zip(columns, rows[-1].split(","), strict=True))
+    validation = metadata["validation"]
+    assert metadata["selected_step"] == validation["best_step"] == int(last["best_step"])
+    assert float(last["validation_cost"]) == pytest.approx(validation["final"], rel=1e-12)
+    assert validation["draws"] == 32 and validation["switching"] == "sat"
+    assert "returned " in printed and "validation cost" in printed
     evaluation = json.loads((out / "evaluation.json").read_text())
     assert evaluation["tuned"]["diverged"] == 0
     # What the run needs to be redone: the initial gains and the session's provenance.

@@ -1,0 +1,876 @@
+"""The tuning study in wall time: gradient tuner, batched CMA-ES and Nelder-Mead.
+
+    python -m experiments.tuning_study [--out results/tuning_study]
+                                       [--update-doc docs/tuning.md] [--tiny]
+
+Held-out cost against wall time (compilation included) and against simulated
+draw-steps, for the gradient tuner (:mod:`optimize.tuner`), CMA-ES with every
+generation evaluated in one batched, compiled call (:func:`optimize.derivative_free.cma_es`)
+and Nelder-Mead (:func:`optimize.derivative_free.nelder_mead`), from the paper's gains
+and from the naive start (:func:`optimize.params.naive_gains`), with 33 parameters
+(``--share paper``) and 66 (``--share none``), over ``--seeds`` (the tuning draws'
+seed, and CMA-ES's sampling seed).
+
+Protocol (the defaults; every number of the study's section of ``docs/tuning.md``):
+
+* Problem: scenario 2, 10 s, the default cost (:class:`optimize.cost.CostConfig`),
+  mean objective, float32, seed ``s``.
+* Gradient tuner: ``--gradient-method`` (``lbfgs``: quasi-Newton on one fixed sample
+  of ``--gradient-draws`` draws at the final switching width; ``adam``: fresh
+  minibatches, the ``fojax tune`` defaults), ``--gradient-steps`` evaluations of the
+  objective and its gradient, its own validation (``--validation-draws`` validation
+  draws, ``sat``, every ``--validate-every`` steps; it returns the best validated
+  iterate), counted in its wall time.
+* CMA-ES: ``--cma-generations`` generations of the ``cma`` package's default
+  population, ``--df-draws`` fresh draws per generation shared by its candidates,
+  step 0.5, the answer is the distribution mean; switching width x1.
+* Nelder-Mead: ``--df-draws`` fixed draws, as many evaluations as CMA-ES's budget of
+  draw-steps, the answer is the best point; initial simplex ``u0 + 0.5 e_i``.
+* Held-out cost: each method's current answer (gradient: the best validated so far;
+  CMA-ES: the mean; Nelder-Mead: the best point) on ``--heldout-draws`` held-out draws
+  (indices ``2^31 + j`` of seed 0, the same for every run; never seen by any tuner),
+  10 s, ``sat`` switching; not counted in any wall time.
+* Wall time, compilation included: each method's functions are compiled once per
+  parameter count, before its first run, and that compile time (first call minus a
+  second call of the same function; for the gradient tuner, its gradient and its
+  validation run compiled side by side in two threads, as the tuner does) is added to
+  every one of its curves. XLA's
+  persistent compilation cache is off. One process, one XLA device, runs one after
+  another; the load average is recorded before and after each run.
+
+Each finished run is stored in ``--out/runs/`` (an interrupted study continues where it
+stopped); ``results.json``, ``table.md`` and the figures ``tuning_wall.png`` and
+``tuning_draw_steps.png`` summarise them. ``--update-doc FILE`` replaces the block
+between ``<!-- tuning-study:begin -->`` and ``<!-- tuning-study:end -->`` of FILE and
+copies the figures beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from experiments import arguments
+
+__all__ = ["main", "summarize", "table"]
+
+METHODS = ("gradient", "cma-es", "nelder-mead")
+COLORS = {"gradient": "#0072B2", "cma-es": "#D55E00", "nelder-mead": "#009E73"}
+LABELS = {"gradient": "gradient tuner", "cma-es": "CMA-ES (batched)", "nelder-mead": "Nelder-Mead"}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m experiments.tuning_study")
+    parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
+    parser.add_argument("--horizon", type=arguments.positive_float, default=10.0)
+    parser.add_argument("--seeds", default="0,1,2", help="comma-separated (0,1,2)")
+    parser.add_argument("--shares", default="paper,none", help="comma-separated (paper,none)")
+    parser.add_argument("--starts", default="paper,naive", help="comma-separated (paper,naive)")
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--gradient-method", choices=("lbfgs", "adam"), default="lbfgs")
+    parser.add_argument("--gradient-steps", type=arguments.positive_int, default=30)
+    parser.add_argument("--gradient-draws", type=arguments.positive_int, default=16)
+    parser.add_argument("--learning-rate", type=arguments.positive_float, default=0.1)
+    parser.add_argument("--max-step", type=arguments.positive_float, default=1.0)
+    parser.add_argument("--validation-draws", type=arguments.positive_int, default=32)
+    parser.add_argument("--validate-every", type=arguments.positive_int, default=2)
+    parser.add_argument("--cma-generations", type=arguments.positive_int, default=20)
+    parser.add_argument("--cma-sigma", type=arguments.positive_float, default=0.5)
+    parser.add_argument("--df-draws", type=arguments.positive_int, default=16)
+    parser.add_argument("--heldout-draws", type=arguments.positive_int, default=64)
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument(
+        "--compile", choices=("optimized", "fast"), default="optimized", help="tuning functions"
+    )
+    parser.add_argument("--out", type=Path, default=Path("results/tuning_study"))
+    parser.add_argument("--update-doc", type=Path, help="markdown file to update")
+    parser.add_argument(
+        "--report-only", action="store_true", help="summarise the stored runs, run nothing"
+    )
+    parser.add_argument(
+        "--bench",
+        type=arguments.nonnegative_int,
+        default=0,
+        metavar="N",
+        help="also time N generations of CMA-ES evaluated in one batched call against one "
+        "call per candidate (interleaved; medians), stored in --out/bench_<share>.json",
+    )
+    parser.add_argument(
+        "--user-view",
+        type=arguments.nonnegative_int,
+        default=0,
+        metavar="N",
+        help="also run `fojax tune --scenario 2 --init paper` N times per --compile mode, "
+        "each in a fresh process (compilation included), stored in --out/user_view/",
+    )
+    parser.add_argument("--user-steps", type=arguments.positive_int, default=6)
+    parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
+    parser.add_argument("--quiet", action="store_true")
+    return parser
+
+
+def parse_args(argv) -> argparse.Namespace:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        args.seeds = tuple(int(s) for s in args.seeds.split(",") if s.strip())
+    except ValueError:
+        parser.error(f"--seeds must be comma-separated integers, got {args.seeds!r}")
+    args.shares = tuple(s.strip() for s in args.shares.split(",") if s.strip())
+    args.starts = tuple(s.strip() for s in args.starts.split(",") if s.strip())
+    args.methods = tuple(s.strip() for s in args.methods.split(",") if s.strip())
+    for label, values, valid in (
+        ("--shares", args.shares, ("paper", "none")),
+        ("--starts", args.starts, ("paper", "naive")),
+        ("--methods", args.methods, METHODS),
+    ):
+        if not values or any(v not in valid for v in values):
+            parser.error(f"{label} must be among {', '.join(valid)}, got {','.join(values)}")
+    if args.tiny:
+        args.horizon, args.gradient_draws, args.df_draws = 0.3, 3, 3
+        args.gradient_steps, args.cma_generations, args.heldout_draws = 4, 2, 4
+        args.validation_draws, args.validate_every = 2, 2
+        args.seeds, args.dtype = args.seeds[:1], "float64"
+    return args
+
+
+def _log(args, text: str) -> None:
+    if not args.quiet:
+        print(text, file=sys.stderr, flush=True)
+
+
+def _load() -> list[float]:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return []
+
+
+def cpu_model() -> str | None:
+    """The CPU's model name, family and model numbers (XLA compiles for the host CPU,
+    and float32 rounding can depend on the instructions it picks)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    fields = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    return (
+        f"{fields.get('model name', '?')} (family {fields.get('cpu family', '?')}, "
+        f"model {fields.get('model', '?')})"
+    )
+
+
+def commit_label(provenance: dict) -> str:
+    """``abc1234`` (``, with uncommitted changes``) from a provenance record."""
+    git = provenance.get("fojax_git")
+    if not isinstance(git, dict) or not git.get("commit"):
+        return "unknown"
+    return git["commit"][:7] + (" (with uncommitted changes)" if git.get("dirty") else "")
+
+
+def run_context(command: list[str]) -> dict:
+    """Provenance of a study run (:func:`experiments.study.provenance`), the CPU model
+    and the load average."""
+    from experiments import study as study_layer
+
+    record = study_layer.provenance(command)
+    record["cpu_model"] = cpu_model()
+    record["load_average"] = _load()
+    return record
+
+
+def git_commit() -> str | None:
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        return commit + (" (with uncommitted changes)" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+class _Setup:
+    """One parameter count: the problem, compiled once, and each method's compile time."""
+
+    def __init__(self, args, share: str):
+        import jax
+        import jax.numpy as jnp
+
+        from fojax import scenarios
+        from optimize import cost as cost_lib
+        from optimize import params as params_lib
+        from optimize import problem as problem_lib
+
+        self.args = args
+        if args.tiny:
+            cost = cost_lib.CostConfig(
+                effort_weight=1e-3, chattering_weight=1e-3, attitude_weight=2.0
+            )
+        else:
+            cost = cost_lib.CostConfig()
+        self.spec = problem_lib.ProblemSpec(
+            controller="afonftsmc",
+            scenario=args.scenario,
+            horizon=args.horizon,
+            draws=args.gradient_draws,
+            seed=0,
+            cost=cost,
+            share=share,
+            dtype=args.dtype,
+            compile=args.compile,
+        )
+        dtype = jnp.dtype(args.dtype)
+        self.naive = params_lib.naive_gains("afonftsmc", dtype)
+        self.problem = problem_lib.TuningProblem(self.spec, self.naive)
+        self.heldout_keys = np.asarray(
+            scenarios.draw_keys(0, problem_lib.HELDOUT_OFFSET + np.arange(args.heldout_draws))
+        )
+        self.compile_s: dict[str, float] = {}
+
+        def twice(fn) -> float:
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            first = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            return max(first - (time.perf_counter() - t0), 0.0)
+
+        problem = self.problem
+        params = problem.initial_params()
+        grad_keys = problem.minibatch_keys(0, args.gradient_draws)
+        df_keys = problem.minibatch_keys(0, args.df_draws)
+        validation_keys = problem.validation_keys(args.validation_draws)
+        popsize = self.popsize
+        vectors = np.repeat(problem.vector(params)[None], popsize, axis=0)
+        if "gradient" in args.methods:
+            # As the tuner does it: the validation run compiles in a thread beside the
+            # gradient. Counted: that warm-up's wall time less one gradient evaluation
+            # (the tuner's first step counts its own).
+            import threading
+
+            def validation():
+                return problem_lib.evaluate(self.spec, self.naive, validation_keys).cost
+
+            t0 = time.perf_counter()
+            thread = threading.Thread(target=validation)
+            thread.start()
+            jax.block_until_ready(problem.value_and_grad(params, 1.0, grad_keys).objective)
+            thread.join()
+            warm = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            jax.block_until_ready(problem.value_and_grad(params, 1.0, grad_keys).objective)
+            self.compile_s["gradient"] = max(warm - (time.perf_counter() - t0), 0.0)
+        if "cma-es" in args.methods:
+            self.compile_s["cma-es"] = twice(lambda: problem.batch_value(vectors, 1.0, df_keys)[0])
+        if "nelder-mead" in args.methods:
+            self.compile_s["nelder-mead"] = twice(
+                lambda: problem.value(params, 1.0, df_keys).objective
+            )
+        self.heldout(self.naive)  # compiles the held-out evaluation (not counted)
+
+    @property
+    def popsize(self) -> int:
+        return 4 + int(3 * np.log(self.problem.param_map.size))
+
+    def heldout(self, gains) -> float:
+        from optimize import problem as problem_lib
+
+        costs = problem_lib.evaluate(self.spec, gains, self.heldout_keys)
+        return float(np.mean(np.asarray(costs.cost, np.float64)))
+
+    def start(self, name: str):
+        import jax.numpy as jnp
+
+        from fojax.controllers.afonftsmc import paper_gains
+
+        return paper_gains(jnp.dtype(self.args.dtype)) if name == "paper" else self.naive
+
+
+def bench_batched(setup: _Setup, repeats: int) -> dict:
+    """Wall time of one CMA-ES generation (the population on the same draws): one
+    batched call against one call per candidate, interleaved, ``repeats`` times each;
+    and the largest relative difference of their costs."""
+    import jax
+
+    args = setup.args
+    problem = setup.problem
+    rng = np.random.default_rng(0)
+    start = problem.vector(problem.initial_params())
+    candidates = start + 0.5 * rng.normal(size=(setup.popsize, start.size))
+    keys = problem.minibatch_keys(0, args.df_draws)
+    jax.block_until_ready(problem.batch_value(candidates, 1.0, keys))  # compiled first
+    jax.block_until_ready(problem.value(problem.unravel(candidates[0]), 1.0, keys))
+    batched, alone = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        together = np.asarray(jax.block_until_ready(problem.batch_value(candidates, 1.0, keys)[0]))
+        batched.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        separate = np.asarray(
+            [float(problem.value(problem.unravel(x), 1.0, keys).objective) for x in candidates]
+        )
+        alone.append(time.perf_counter() - t0)
+    return {
+        "share": setup.spec.share,
+        "parameters": problem.param_map.size,
+        "population": setup.popsize,
+        "draws": args.df_draws,
+        "horizon_s": args.horizon,
+        "batched_s": batched,
+        "one_at_a_time_s": alone,
+        "median_batched_s": float(np.median(batched)),
+        "median_one_at_a_time_s": float(np.median(alone)),
+        "largest_relative_difference": float(np.max(np.abs(together - separate) / separate)),
+        "load": _load(),
+    }
+
+
+USER_MODES = ("optimized", "fast")
+
+
+def user_command(args, mode: str, out: Path) -> list[str]:
+    """The ``fojax tune`` command of the user's view (scenario 2, the paper's gains,
+    the default cost and tuner)."""
+    command = [
+        "fojax", "tune", "--scenario", str(args.scenario), "--controller", "afonftsmc",
+        "--draws", str(args.gradient_draws), "--steps", str(args.user_steps),
+        "--validate-every", "2", "--init", "paper", "--compile", mode, "--out", str(out),
+    ]  # fmt: skip
+    if args.tiny:
+        command += ["--horizon", str(args.horizon), "--dtype", "float64"]
+    return command
+
+
+def user_view(args, out: Path) -> list[dict]:
+    """Run the user's ``fojax tune`` ``args.user_view`` times per compile mode, each in
+    a fresh process (no persistent compilation cache), interleaving the modes; time
+    the whole command and read its outputs."""
+    import csv
+
+    records = []
+    folder = out / "user_view"
+    for index in range(args.user_view):
+        for mode in USER_MODES:
+            path = folder / f"{mode}_{index}.json"
+            if path.exists():
+                records.append(json.loads(path.read_text()))
+                continue
+            run_dir = folder / f"{mode}_{index}"
+            if run_dir.exists():
+                shutil.rmtree(run_dir)
+            command = user_command(args, mode, run_dir)
+            env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+            load = _load()
+            t0 = time.perf_counter()
+            subprocess.run(
+                [sys.executable, "-m", "experiments.cli", *command[1:], "--quiet"],
+                check=True,
+                env=env,
+                stdout=subprocess.DEVNULL,
+            )
+            total = time.perf_counter() - t0
+            evaluation = json.loads((run_dir / "evaluation.json").read_text())
+            gains = json.loads((run_dir / "gains.json").read_text())["metadata"]
+            with open(run_dir / "history.csv", newline="") as handle:
+                history = list(csv.DictReader(handle))
+            initial = evaluation["initial"]["mean_cost"]
+            first_half = next(
+                (
+                    float(row["wall_time_s"])
+                    for row in history
+                    if row["validation_cost"]
+                    and float(row["validation_cost"]) <= 0.5 * gains["validation"]["initial"]
+                ),
+                None,
+            )
+            record = {
+                "mode": mode,
+                "run": index,
+                "command": " ".join(command),
+                "total_s": round(total, 1),
+                "tuning_s": float(history[-1]["wall_time_s"]),
+                "validation_halved_at_s": first_half,
+                "heldout_initial": initial,
+                "heldout_tuned": evaluation["tuned"]["mean_cost"],
+                "heldout_draws": evaluation["draws"],
+                "selected_step": gains["selected_step"],
+                "validation": gains["validation"],
+                "load_before": load,
+                "load_after": _load(),
+            }
+            path.write_text(json.dumps(record, indent=1) + "\n")
+            records.append(record)
+            _log(
+                args,
+                f"  user view ({mode}, run {index}): {total:.0f} s in all, held-out "
+                f"{initial:.4g} -> {record['heldout_tuned']:.4g}",
+            )
+    return records
+
+
+def user_table(records: list[dict]) -> str:
+    lines = [
+        "| `--compile` | runs | command wall time (s), compilation included | tuning loop (s) "
+        "| validation cost first at half the start's, at (s of the loop) | held-out cost: "
+        "paper's -> returned | returned step | held-out halved |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for mode in USER_MODES:
+        runs = [r for r in records if r["mode"] == mode]
+        if not runs:
+            continue
+        halved = sum(r["heldout_tuned"] <= 0.5 * r["heldout_initial"] for r in runs)
+        lines.append(
+            f"| {mode} | {len(runs)} | {_spread([r['total_s'] for r in runs], '.0f')} | "
+            f"{_spread([r['tuning_s'] for r in runs], '.0f')} | "
+            f"{_spread([r['validation_halved_at_s'] for r in runs], '.0f')} | "
+            f"{runs[0]['heldout_initial']:.4g} -> "
+            f"{_spread([r['heldout_tuned'] for r in runs], '.4g')} | "
+            f"{', '.join(str(r['selected_step']) for r in runs)} | {halved}/{len(runs)} |"
+        )
+    loads = [x for r in records for x in (r["load_before"][:1] + r["load_after"][:1])]
+    if loads:
+        lines += ["", f"(1-minute load average {min(loads):.1f}-{max(loads):.1f}; command: "
+                  f"`{records[0]['command'].replace(' --compile optimized', '')}` "
+                  "with `--compile fast` or not.)"]  # fmt: skip
+    return "\n".join(lines)
+
+
+def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
+    """One tuning run; returns its curve (draw-steps, wall time without compilation,
+    held-out cost of the current answer) and totals."""
+    import copy
+    import dataclasses
+
+    from optimize import derivative_free
+    from optimize import tuner as tuner_lib
+
+    args = setup.args
+    problem = copy.copy(setup.problem)  # the same compiled functions, another seed
+    problem.spec = dataclasses.replace(setup.spec, seed=seed)
+    init = setup.start(start)
+    x0 = problem.params_of(init)
+    curve = [(0, 0.0, setup.heldout(init))]
+    load_before = _load()
+    t0 = time.perf_counter()
+    if method == "gradient":
+        config = tuner_lib.TunerConfig(
+            steps=args.gradient_steps,
+            method=args.gradient_method,
+            learning_rate=args.learning_rate,
+            max_step=args.max_step,
+            validation_draws=args.validation_draws,
+            validate_every=args.validate_every,
+            checkpoint_every=10**6,
+        )
+        run = tuner_lib.prepare(problem.spec, config, init, start, None)
+
+        def on_step(step, params, row):
+            if row["validation_cost"] is not None and row["best_step"] == step:
+                curve.append((row["draw_steps"], row["wall_time_s"], setup.heldout(
+                    problem.gains(params))))  # fmt: skip
+            elif row["validation_cost"] is not None:
+                curve.append((row["draw_steps"], row["wall_time_s"], curve[-1][2]))
+
+        result = tuner_lib.tune(run, progress=False, callback=on_step, problem=problem)
+        last = result.history[-1]
+        totals = {
+            "draw_steps": last["draw_steps"],
+            "wall_time_s": last["wall_time_s"],
+            "steps": result.completed,
+            "best_step": result.best_step,
+            "validation": result.validation,
+        }
+        gains = result.gains
+    else:
+        every = {"n": 0}
+
+        def record(draw_steps, params, row):
+            every["n"] += 1
+            if method == "nelder-mead" or every["n"] % 2 == 0:
+                curve.append((draw_steps, row["wall_time_s"], setup.heldout(problem.gains(params))))
+
+        per_evaluation = args.df_draws * problem.spec.steps
+        budget = args.cma_generations * setup.popsize * per_evaluation
+        if method == "nelder-mead":  # at least the initial simplex and one generation more
+            size = problem.param_map.size
+            budget = max(budget, (size + 1 + setup.popsize) * per_evaluation)
+        if method == "cma-es":
+            result = derivative_free.cma_es(
+                problem,
+                budget,
+                draws_per_candidate=args.df_draws,
+                sigma0=args.cma_sigma,
+                seed=seed,
+                callback=record,
+                x0=x0,
+            )
+        else:
+            result = derivative_free.nelder_mead(
+                problem,
+                budget,
+                draws=args.df_draws,
+                callback=record,
+                callback_every=setup.popsize,
+                x0=x0,
+            )
+        totals = {
+            "draw_steps": result.draw_steps,
+            "wall_time_s": round(result.wall_time_s, 3),
+            "evaluations": result.evaluations,
+        }
+        gains = result.gains
+    final = setup.heldout(gains)
+    if curve[-1][0] != totals["draw_steps"] or curve[-1][2] != final:
+        curve.append((totals["draw_steps"], totals["wall_time_s"], final))
+    return {
+        "start": start,
+        "seed": seed,
+        "method": method,
+        "share": setup.spec.share,
+        "parameters": setup.problem.param_map.size,
+        "compile_s": round(setup.compile_s[method], 2),
+        "curve": [[int(s), round(float(w), 3), float(c)] for s, w, c in curve],
+        "final_heldout": final,
+        "initial_heldout": curve[0][2],
+        "load_before": load_before,
+        "load_after": _load(),
+        "elapsed_s": round(time.perf_counter() - t0, 1),
+        "git_commit": git_commit(),
+        **totals,
+    }
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.dtype == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    out = args.out
+    runs_dir = out / "runs"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    start_all = time.perf_counter()
+    settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()}
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in settings.items()}
+    if not args.report_only:
+        for share in args.shares:
+            pending = [
+                (start, seed, method)
+                for start in args.starts
+                for seed in args.seeds
+                for method in args.methods
+                if not (runs_dir / f"{share}_{start}_{seed}_{method}.json").exists()
+            ]
+            bench_path = out / f"bench_{share}.json"
+            if not pending and (not args.bench or bench_path.exists()):
+                continue
+            t0 = time.perf_counter()
+            setup = _Setup(args, share)
+            _log(
+                args,
+                f"share={share}: {setup.problem.param_map.size} parameters, compiled in "
+                f"{time.perf_counter() - t0:.0f} s ({setup.compile_s})",
+            )
+            if args.bench and not bench_path.exists():
+                bench = bench_batched(setup, args.bench)
+                bench_path.write_text(json.dumps(bench, indent=1) + "\n")
+                _log(args, f"  batched generation {bench['median_batched_s']:.2f} s, one at a "
+                     f"time {bench['median_one_at_a_time_s']:.2f} s (medians)")  # fmt: skip
+            for start, seed, method in pending:
+                record = run_one(setup, start, seed, method)
+                record["settings"] = settings
+                path = runs_dir / f"{share}_{start}_{seed}_{method}.json"
+                tmp = path.with_suffix(".tmp")
+                tmp.write_text(json.dumps(record, indent=1) + "\n")
+                tmp.replace(path)
+                _log(
+                    args,
+                    f"  {share} {start} seed {seed} {method}: held-out "
+                    f"{record['initial_heldout']:.4g} -> {record['final_heldout']:.4g}, "
+                    f"{record['wall_time_s']:.0f} s + {record['compile_s']:.0f} s compile, "
+                    f"load {record['load_before']} -> {record['load_after']}",
+                )
+    users = user_view(args, out) if args.user_view and not args.report_only else []
+    if not users and (out / "user_view").is_dir():
+        users = [json.loads(p.read_text()) for p in sorted((out / "user_view").glob("*.json"))]
+    records = [json.loads(p.read_text()) for p in sorted(runs_dir.glob("*.json"))]
+    records = [
+        r
+        for r in records
+        if r["share"] in args.shares
+        and r["start"] in args.starts
+        and r["seed"] in args.seeds
+        and r["method"] in args.methods
+    ]
+    summary = summarize(records)
+    benches = [
+        json.loads((out / f"bench_{share}.json").read_text())
+        for share in args.shares
+        if (out / f"bench_{share}.json").exists()
+    ]
+    results = {
+        "user_view": users,
+        "bench": benches,
+        "settings": settings,
+        "summary": summary,
+        "runs": records,
+        "git_commit": git_commit(),
+        "this_invocation_s": round(time.perf_counter() - start_all, 1),
+        "runs_elapsed_s": round(sum(r["elapsed_s"] for r in records), 1),
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    figures = [
+        plot(records, out / "tuning_wall.png", "wall"),
+        plot(records, out / "tuning_draw_steps.png", "draw_steps"),
+    ]
+    text = table(results)
+    (out / "table.md").write_text(text + "\n")
+    if args.update_doc is not None:
+        from experiments.remark3 import replace_block
+
+        for figure in figures:
+            shutil.copyfile(figure, args.update_doc.parent / figure.name)
+        replace_block(args.update_doc, "tuning-study", text)
+    print(text)
+    print(f"wrote {out}/results.json, table.md, tuning_wall.png, tuning_draw_steps.png")
+    return 0
+
+
+# ----------------------------------------------------------------------------- summary
+
+
+def _reach(curve, level, compile_s):
+    """(wall time incl. compile, draw-steps) at which ``curve`` first reaches ``level``."""
+    for draw_steps, wall, cost in curve:
+        if cost <= level:
+            return wall + compile_s, draw_steps
+    return None, None
+
+
+def summarize(records: list[dict]) -> dict:
+    """Per (share, start): per method the held-out costs and times over the seeds, and,
+    per seed, where the gradient tuner reaches CMA-ES's best held-out cost."""
+    groups: dict = {}
+    for r in records:
+        groups.setdefault((r["share"], r["start"]), {}).setdefault(r["method"], {})[r["seed"]] = r
+    out = {}
+    for (share, start), methods in sorted(groups.items()):
+        entry = {"methods": {}, "target": []}
+        for method, by_seed in methods.items():
+            runs = list(by_seed.values())
+            entry["methods"][method] = {
+                "parameters": runs[0]["parameters"],
+                "seeds": sorted(by_seed),
+                "initial": runs[0]["initial_heldout"],
+                "final": [r["final_heldout"] for r in runs],
+                "best": [min(c for _, _, c in r["curve"]) for r in runs],
+                "wall_time_s": [r["wall_time_s"] + r["compile_s"] for r in runs],
+                "compile_s": runs[0]["compile_s"],
+                "draw_steps": [r["draw_steps"] for r in runs],
+            }
+        if "gradient" in methods and "cma-es" in methods:
+            for seed, cma in sorted(methods["cma-es"].items()):
+                gradient = methods["gradient"].get(seed)
+                if gradient is None:
+                    continue
+                level = min(c for _, _, c in cma["curve"])
+                cma_total = cma["wall_time_s"] + cma["compile_s"]
+                cma_at, _ = _reach(cma["curve"], level, cma["compile_s"])
+                wall, steps = _reach(gradient["curve"], level, gradient["compile_s"])
+                entry["target"].append(
+                    {
+                        "seed": seed,
+                        "cma_best": level,
+                        "cma_wall_time_s": cma_total,
+                        "cma_reached_at_s": cma_at,
+                        "gradient_reached_at_s": wall,
+                        "gradient_draw_steps": steps,
+                        "ratio_to_cma_wall_time": None if wall is None else wall / cma_total,
+                        "ratio_without_compilation": None
+                        if wall is None
+                        else (wall - gradient["compile_s"]) / cma["wall_time_s"],
+                        "met": wall is not None and wall <= 0.5 * cma_total,
+                        "gradient_best": min(c for _, _, c in gradient["curve"]),
+                    }
+                )
+        out[f"{share}/{start}"] = entry
+    return out
+
+
+def _spread(values, fmt=".3g") -> str:
+    values = [v for v in values if v is not None]
+    if not values:
+        return "-"
+    median = float(np.median(values))
+    if len(values) == 1:
+        return format(median, fmt)
+    return f"{median:{fmt}} [{min(values):{fmt}}, {max(values):{fmt}}]"
+
+
+def table(results: dict) -> str:
+    """Markdown: per parameter count and start, each method's held-out costs and times
+    (median [min, max] over the seeds), and the target check per seed."""
+    summary = results["summary"]
+    settings = results["settings"]
+    runs = results["runs"]
+    loads = [x for r in runs for x in (r["load_before"][:1] + r["load_after"][:1])]
+    lines = [
+        f"Runs: {len(runs)}, {results['runs_elapsed_s']:.0f} s in all (held-out evaluation "
+        f"included); commit {results['git_commit']}; 1-minute load average "
+        + (f"{min(loads):.1f}-{max(loads):.1f}" if loads else "n/a")
+        + " over the runs (2 cores).",
+        "",
+        "| parameters | start | method | held-out cost at the start | final held-out cost | "
+        "best held-out cost on the curve | wall time incl. compile (s) | compile (s) | "
+        "draw-steps |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key, entry in summary.items():
+        share, start = key.split("/")
+        for method in METHODS:
+            m = entry["methods"].get(method)
+            if m is None:
+                continue
+            lines.append(
+                f"| {m['parameters']} (`--share {share}`) | {start} | {LABELS[method]} | "
+                f"{m['initial']:.4g} | {_spread(m['final'], '.4g')} | "
+                f"{_spread(m['best'], '.4g')} | {_spread(m['wall_time_s'], '.0f')} | "
+                f"{m['compile_s']:.0f} | {_spread(m['draw_steps'], '.3g')} |"
+            )
+    lines += [
+        "",
+        "Target: the gradient tuner reaches CMA-ES's best held-out cost (over CMA-ES's whole "
+        "budget) in at most half of CMA-ES's wall time (both with compilation):",
+        "",
+        "| parameters | start | seed | CMA-ES best | CMA-ES wall time (s) (reached its best at) "
+        "| gradient reached it at (s) | ratio | met | ratio without compilation | "
+        "gradient's best |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key, entry in summary.items():
+        share, start = key.split("/")
+        size = next(iter(entry["methods"].values()))["parameters"]
+        for t in entry["target"]:
+            reached = (
+                "not reached"
+                if t["gradient_reached_at_s"] is None
+                else (f"{t['gradient_reached_at_s']:.0f}")
+            )
+            ratio = (
+                "-"
+                if t["ratio_to_cma_wall_time"] is None
+                else (f"{t['ratio_to_cma_wall_time']:.2f}")
+            )
+            bare = t.get("ratio_without_compilation")
+            bare = "-" if bare is None else f"{bare:.2f}"
+            lines.append(
+                f"| {size} | {start} | {t['seed']} | {t['cma_best']:.4g} | "
+                f"{t['cma_wall_time_s']:.0f} ({t['cma_reached_at_s']:.0f}) | {reached} | "
+                f"{ratio} | {'yes' if t['met'] else 'no'} | {bare} | {t['gradient_best']:.4g} |"
+            )
+    for bench in results.get("bench", []):
+        lines += [
+            "",
+            f"One CMA-ES generation, {bench['parameters']} parameters: {bench['population']} "
+            f"candidates x {bench['draws']} draws x {bench['horizon_s']:g} s in one batched "
+            f"call {bench['median_batched_s']:.2f} s, one call per candidate "
+            f"{bench['median_one_at_a_time_s']:.2f} s (medians of {len(bench['batched_s'])}, "
+            f"interleaved; {bench['median_one_at_a_time_s'] / bench['median_batched_s']:.1f}x); "
+            f"costs equal to {bench['largest_relative_difference']:.1g} relative (float32 "
+            "rounding depends on the batch).",
+        ]
+    if results.get("user_view"):
+        lines += ["", "The user's view, `fojax tune` from the paper's gains:", ""]
+        lines.append(user_table(results["user_view"]))
+    lines += [
+        "",
+        "Settings: "
+        + ", ".join(
+            f"{k} {settings[k]}"
+            for k in (
+                "gradient_method",
+                "gradient_steps",
+                "gradient_draws",
+                "validation_draws",
+                "validate_every",
+                "cma_generations",
+                "df_draws",
+                "heldout_draws",
+                "horizon",
+                "dtype",
+            )
+        )
+        + ".",
+    ]
+    return "\n".join(lines)
+
+
+def plot(records: list[dict], path: Path, axis: str) -> Path:
+    """Held-out cost against wall time (compile included) or draw-steps: one panel
+    per (parameter count, start), one colour per method, one line per seed."""
+    from matplotlib.lines import Line2D
+
+    from experiments import style
+
+    plt = style.pyplot()
+    panels = sorted({(r["parameters"], r["share"], r["start"]) for r in records})
+    cols = len({p[2] for p in panels}) or 1
+    rows = max(1, len(panels) // cols)
+    fig = plt.figure(figsize=(5.2 * cols, 3.6 * rows), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(rows, cols)
+    for index, (size, share, start) in enumerate(panels):
+        ax = axes.flat[index]
+        initial = None
+        for r in records:
+            if (r["parameters"], r["share"], r["start"]) != (size, share, start):
+                continue
+            curve = np.asarray(r["curve"], float)
+            if axis == "wall":  # the start, then nothing until compilation ends
+                x = np.concatenate([[0.0], curve[:, 1] + r["compile_s"]])
+                y = np.concatenate([[curve[0, 2]], curve[:, 2]])
+            else:
+                x, y = curve[:, 0], curve[:, 2]
+            ax.step(x, y, where="post", color=COLORS[r["method"]], lw=1.2, alpha=0.85)
+            initial = r["initial_heldout"]
+        if initial is not None:
+            ax.axhline(initial, color="0.4", ls=":", lw=1)
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+        origin = "the paper's gains" if start == "paper" else "the naive start"
+        ax.set_title(f"{size} parameters (--share {share}), from {origin}", fontsize=9)
+        ax.set_xlabel(
+            "wall time, compilation included (s)" if axis == "wall" else "simulated draw-steps"
+        )
+        if index % cols == 0:
+            ax.set_ylabel("held-out cost of the current answer")
+    handles = [Line2D([], [], color=COLORS[m], lw=1.4, label=LABELS[m]) for m in METHODS]
+    handles.append(Line2D([], [], color="0.4", ls=":", lw=1, label="the start's held-out cost"))
+    style.legend_below(fig, handles, ncol=len(handles))
+    fig.suptitle(
+        "AFONFTSMC, scenario 2, 10 s: held-out cost of each tuner's current answer "
+        "(one line per seed)",
+        fontsize=10,
+    )
+    return style.save(fig, path)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
