@@ -1,0 +1,882 @@
+"""Sensitivity of the Section V verdicts to the open modelling choices.
+
+    python -m experiments.sensitivity [--out results/sensitivity] [--doc docs/sensitivity.md]
+                                      [--draws 32] [--dt-draws 16] [--horizon 30] [--seed 0]
+                                      [--settings KEY,KEY,...] [--workers 2]
+                                      [--tuned-gains FILE] [--tune-steps 20] [--tune-draws 8]
+                                      [--tune-horizon 5] [--quiet]
+
+The claims of ``fojax reproduce`` (:mod:`experiments.reproduce.claims`: the same
+claim map, margins, Holm correction and four outcomes) are decided again while each
+open modelling choice is moved away from the default, one at a time (:data:`SETTINGS`):
+the step, the thrust guard of eq. (13), the command filter's bandwidth, the fractional
+method, the switching function, the actuators, scenario 3's reference, the Gaussian
+disturbances' size, the baseline gains and the floating-point precision. Every setting
+flies the same draws (seed ``--seed``, draws ``0 ... n - 1``: common random numbers),
+the three scenarios under the five controllers.
+
+Size. The full study (100 draws, 80/80/50 s) takes about 4 minutes per setting on 2
+cores, so every setting runs ``--draws`` draws over ``--horizon`` s for all three
+scenarios; the step of 0.1 ms, ten times the work per simulated second, runs the first
+``--dt-draws`` draws, and is compared with the default's verdicts on those same draws
+(the column ``default, first n draws``, no extra runs).
+
+Compilation dominates at this size (one rollout program compiles in 10-20 s on a
+loaded 2-core machine, running 32 draws x 30 s takes a few seconds), so:
+
+* one program per (controller, simulation settings, dtype) serves every scenario of
+  every setting that shares them: the scenarios are members of one
+  :func:`fojax.scenarios.union` (each draw says its member), and a setting that only
+  changes a scenario (smoothed reference, larger Gaussian disturbances) or the gains
+  (gains are an argument) needs no program of its own;
+* a controller that a setting does not change (the FL has no switching function; only
+  the AFONFTSMC and FOBSMC have fractional operators) reuses the default's runs;
+* the programs compile in the background while the previous one runs, in ``--workers``
+  processes (float64 in a process of its own, with ``jax_enable_x64``), next to the
+  gain tuning of ``experiments/fair_comparison.py`` (``--tune-*``, or ``--tuned-gains``
+  to take the gains of an earlier fair-comparison run).
+
+Every run (one controller, one scenario, one set of gains, one program) is saved to
+``OUT/runs/<key>.npz`` as soon as it finishes, keyed by everything its numbers depend
+on: an interrupted study started again with the same command continues there.
+
+Outputs: ``OUT/report.json`` (every setting's claims with their comparisons' outcomes,
+the float32/float64 table), ``--doc`` (default ``docs/sensitivity.md``: the verdict
+matrix, what flips, the precision table; the text above its marker line is kept) and
+its figure (``docs/sensitivity.png``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from experiments.reproduce import claims as claims_module
+
+__all__ = [
+    "SETTINGS",
+    "THRUST_TO_WEIGHT",
+    "Setting",
+    "build_parser",
+    "evaluate",
+    "main",
+    "make_plan",
+    "rotor_speed_limit",
+]
+
+SCENARIO_IDS = (1, 2, 3)
+
+THRUST_TO_WEIGHT = 2.0
+"""The rotor-limited actuators' largest speed gives this multiple of the nominal weight
+with all four rotors at full speed: ``w_max = sqrt(THRUST_TO_WEIGHT m g / (4 rho_b))``.
+A thrust-to-weight ratio of 2 is the low end of what multirotors are built with (it
+leaves the hover at half throttle); scenario 3's 30 % heavier draws keep 1.5."""
+
+SIGMA_FACTOR = 5.0
+"""Scenario 2's Gaussian disturbances scaled by this (0.1 -> 0.5 m/s^2 and rad/s^2)."""
+
+
+def rotor_speed_limit(thrust_to_weight: float = THRUST_TO_WEIGHT) -> float:
+    """``w_max`` (rad/s) at which four rotors give ``thrust_to_weight`` times the nominal
+    weight (:func:`fojax.plant.nominal_params`: m = 0.74 kg, rho_b = 3e-3 N s^2)."""
+    from fojax import plant
+
+    params = plant.nominal_params()
+    weight = float(params.mass) * float(params.gravity)
+    return math.sqrt(thrust_to_weight * weight / (4.0 * float(params.thrust_factor)))
+
+
+# ------------------------------------------------------------------------- settings
+
+
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    """One column of the verdict matrix: the default with one choice moved.
+
+    key: short name (``--settings``). choice: the modelling choice. value: its value here.
+    controller: options of :func:`fojax.make_controller` (``(name, value)`` pairs).
+    simulation: fields of :class:`fojax.SimulationConfig` (``dt``, ``rotor_speed_limit``).
+    scenarios: ``(scenario id, variant)`` pairs, variants of :func:`scenario_variant`.
+    gains: ``"ours"`` (each controller's documented defaults, as ``fojax reproduce``) or
+    ``"tuned"`` (``experiments/fair_comparison.py``). dtype: ``"float32"`` or
+    ``"float64"``. reduced: run the first ``--dt-draws`` draws only. reference: the
+    setting whose verdicts this one is compared with.
+    """
+
+    key: str
+    choice: str
+    value: str
+    controller: tuple = ()
+    simulation: tuple = ()
+    scenarios: tuple = ()
+    gains: str = "ours"
+    dtype: str = "float32"
+    reduced: bool = False
+    reference: str = "default"
+
+
+SETTINGS = (
+    Setting("default", "default", "as fojax reproduce", reference=""),
+    Setting("default-reduced", "default", "first --dt-draws draws", reduced=True, reference=""),
+    Setting(
+        "dt-0.1ms",
+        "step dt",
+        "0.1 ms (default 1 ms)",
+        controller=(("dt", 1e-4),),
+        simulation=(("dt", 1e-4),),
+        reduced=True,
+        reference="default-reduced",
+    ),
+    Setting("guard-0.5g", "thrust guard", "0.5 g (default 0.1 g)", (("thrust_floor", 0.5),)),
+    Setting("filter-25", "command filter", "25 rad/s (default 50)", (("filter_frequency", 25.0),)),
+    Setting(
+        "filter-100", "command filter", "100 rad/s (default 50)", (("filter_frequency", 100.0),)
+    ),
+    Setting(
+        "oustaloup",
+        "fractional method",
+        "Oustaloup/CRONE (default sum of exponentials)",
+        (("fractional_method", "oustaloup"),),
+    ),
+    Setting("sat", "switching", "sat (default sgn)", (("switching", "sat"),)),
+    Setting(
+        "rotor-limited",
+        "actuators",
+        "rotor-limited, w_max for thrust/weight 2 (default ideal)",
+        simulation=(("rotor_speed_limit", "thrust/weight 2"),),
+    ),
+    Setting(
+        "s3-smoothed",
+        "scenario-3 reference",
+        "smoothed start (default as printed)",
+        scenarios=((3, "smoothed"),),
+    ),
+    Setting("sigma-x5", "Gaussian sigma", "x5: 0.5 (default 0.1)", scenarios=((2, "sigma-x5"),)),
+    Setting("tuned", "baseline gains", "all tuned, same budget (default ours)", gains="tuned"),
+    Setting("float64", "precision", "float64 (default float32)", dtype="float64"),
+)
+"""The default, and each choice moved one at a time."""
+
+SETTING_KEYS = tuple(s.key for s in SETTINGS)
+
+
+def scenario_variant(scenario_id: int, variant: str | None, horizon: float):
+    """Scenario ``scenario_id`` (``variant``: ``None``, ``"smoothed"`` for scenario 3's
+    reference with its start smoothed, ``"sigma-x5"`` for scenario 2's Gaussian
+    disturbances x :data:`SIGMA_FACTOR`) over ``horizon`` s."""
+    from fojax import scenarios
+
+    scenario = scenarios.get_scenario(scenario_id)
+    if variant == "smoothed":
+        scenario = dataclasses.replace(scenario, reference=scenarios.reference_57_smoothed)
+    elif variant == "sigma-x5":
+        scenario = dataclasses.replace(
+            scenario,
+            noise_std_position=SIGMA_FACTOR * scenario.noise_std_position,
+            noise_std_attitude=SIGMA_FACTOR * scenario.noise_std_attitude,
+        )
+    elif variant is not None:
+        raise ValueError(f"unknown scenario variant {variant!r}")
+    return dataclasses.replace(scenario, horizon=float(horizon))
+
+
+# ----------------------------------------------------------------------------- plan
+
+
+@dataclasses.dataclass(eq=False)
+class Job:
+    """One compiled program: a controller, simulation settings and dtype, for a union
+    of the scenarios its runs need, with a batch of ``draws`` draws."""
+
+    index: int
+    controller: object
+    config: object
+    dtype: str
+    members: list = dataclasses.field(default_factory=list)
+    runs: list = dataclasses.field(default_factory=list)
+    draws: int = 0
+
+    def union(self):
+        from fojax import scenarios
+
+        return scenarios.union(*self.members)
+
+    def cost(self) -> float:
+        """A rough cost in units of one compilation: compile plus run."""
+        compile_units = 1.0 + 0.25 * (len(self.members) - 1)
+        steps = self.config.steps * self.draws * len(self.runs)
+        scale = 2.0 if self.dtype == "float64" else 1.0
+        return compile_units + scale * steps / 7e6
+
+
+@dataclasses.dataclass(eq=False)
+class Run:
+    """One batch of draws: a job's program with one set of gains for one member."""
+
+    job: Job
+    gains: str
+    scenario: object
+
+    @property
+    def member(self) -> int:
+        return self.job.members.index(self.scenario)
+
+
+@dataclasses.dataclass
+class Plan:
+    settings: tuple
+    jobs: list
+    runs: list
+    cells: dict  # (setting key, scenario id, controller) -> (Run, draws)
+    horizon: float
+    draws: int
+    dt_draws: int
+    seed: int
+    controllers: tuple
+
+
+def simulation_config(setting: Setting, horizon: float):
+    from fojax import simulator
+
+    fields = dict(setting.simulation)
+    dt = float(fields.get("dt", 1e-3))
+    limit = fields.get("rotor_speed_limit")
+    if limit is not None:
+        limit = rotor_speed_limit()
+    steps = round(horizon / dt)
+    return simulator.SimulationConfig(
+        dt=dt,
+        horizon=float(horizon),
+        save_every=simulator.divisor_near(steps, 100),
+        rotor_speed_limit=limit,
+    )
+
+
+def make_plan(
+    settings, horizon: float, draws: int, dt_draws: int, seed: int, controllers=None
+) -> Plan:
+    """The jobs (programs) and runs (batches) that ``settings`` need, shared where the
+    numbers are the same: one job per distinct (controller, simulation settings,
+    dtype), one run per distinct (job, gains, scenario). ``controllers``: default the
+    paper's five (the AFONFTSMC first)."""
+    from fojax import make_controller
+    from fojax.controllers import registry
+
+    controllers = tuple(controllers or registry.PAPER_CONTROLLERS)
+
+    jobs: dict = {}
+    runs: dict = {}
+    cells = {}
+    for setting in settings:
+        config = simulation_config(setting, horizon)
+        n = dt_draws if setting.reduced else draws
+        variants = dict(setting.scenarios)
+        for scenario_id in SCENARIO_IDS:
+            scenario = scenario_variant(scenario_id, variants.get(scenario_id), horizon)
+            for name in controllers:
+                options = {"dt": config.dt, "horizon": config.horizon}
+                options.update(dict(setting.controller))
+                controller = make_controller(name, **options)
+                job_key = (controller, config, setting.dtype)
+                if job_key not in jobs:
+                    jobs[job_key] = Job(len(jobs), controller, config, setting.dtype)
+                job = jobs[job_key]
+                if scenario not in job.members:
+                    job.members.append(scenario)
+                identity = (job_key, setting.gains, scenario)
+                if identity not in runs:
+                    runs[identity] = Run(job, setting.gains, scenario)
+                    job.runs.append(runs[identity])
+                job.draws = max(job.draws, n)
+                cells[(setting.key, scenario_id, name)] = (runs[identity], n)
+    return Plan(
+        tuple(settings),
+        list(jobs.values()),
+        list(runs.values()),
+        cells,
+        horizon,
+        draws,
+        dt_draws,
+        seed,
+        controllers,
+    )
+
+
+def assign_lanes(plan: Plan, workers: int) -> dict:
+    """Lane name -> job indices: ``"f64"`` for the float64 jobs, ``"0" ... "workers-1"``
+    for the others (longest first to the least loaded lane; the jobs whose runs wait
+    for the tuned gains first in lane 0, so that their other runs finish early)."""
+    lanes = {str(i): [] for i in range(workers)}
+    load = {str(i): 0.0 for i in range(workers)}
+    f64 = [j.index for j in plan.jobs if j.dtype == "float64"]
+    waiting = [j for j in plan.jobs if j.dtype != "float64" and _has_tuned(j)]
+    for job in waiting:
+        lanes["0"].append(job.index)
+        load["0"] += job.cost()
+    rest = [j for j in plan.jobs if j.dtype != "float64" and not _has_tuned(j)]
+    for job in sorted(rest, key=lambda j: -j.cost()):
+        lane = min(load, key=lambda k: (load[k], k))
+        lanes[lane].append(job.index)
+        load[lane] += job.cost()
+    if f64:
+        lanes["f64"] = f64
+    return {k: v for k, v in lanes.items() if v}
+
+
+def _has_tuned(job: Job) -> bool:
+    return any(r.gains == "tuned" for r in job.runs)
+
+
+# --------------------------------------------------------------------------- gains
+
+
+def gains_for(run: Run, tuned: dict | None, dtype: str | None = None):
+    """The run's gains in ``dtype`` (default the run's): the controller's defaults or
+    the tuned ones."""
+    import jax.numpy as jnp
+
+    from fojax.controllers import gains_io
+
+    dtype = jnp.dtype(dtype or run.job.dtype)
+    name = run.job.controller.name
+    if run.gains == "ours":
+        return run.job.controller.default_gains(dtype)
+    if tuned is None:
+        raise ValueError("the tuned gains are not available")
+    return gains_io.gains_from_dict(name, tuned[name], source="tuned gains", dtype=dtype)
+
+
+def load_tuned(path: Path) -> dict:
+    """``{controller: {field: value}}``: the tuned gains of a fair-comparison
+    ``results.json`` (``"gains"`` -> controller -> ``"tuned"``), or a mapping of that
+    shape."""
+    data = json.loads(Path(path).read_text())
+    gains = data.get("gains", data)
+    return {name: entry["tuned"] if "tuned" in entry else entry for name, entry in gains.items()}
+
+
+# ---------------------------------------------------------------------------- runs
+
+
+def reaching_band(dt: float) -> tuple:
+    """:func:`experiments.reproduce.claims.reaching_band` from the AFONFTSMC's default
+    gains in float64 (NumPy), the same band in every process, float32 or float64."""
+    from fojax.controllers import registry
+
+    spec = registry.get_controller_class(claims_module.BASELINE).GAINS
+    gains = spec.type(*(np.asarray(f.default, np.float64) for f in spec.fields))
+    return claims_module.reaching_band(dt, gains)
+
+
+def metrics_config(config):
+    from fojax import metrics
+
+    return metrics.MetricsConfig(
+        dt=config.dt, steps=config.steps, reaching_band=reaching_band(config.dt)
+    )
+
+
+def _plain(obj):
+    """JSON-ready: dataclasses as dicts, functions by module and name, recursively."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, tuple | list):
+        return [_plain(v) for v in obj]
+    if callable(obj):
+        return f"{getattr(obj, '__module__', '')}.{getattr(obj, '__qualname__', repr(obj))}"
+    return obj
+
+
+def run_key(run: Run, tuned: dict | None, seed: int) -> str:
+    """Everything the run's per-draw numbers depend on, hashed: the fingerprint of
+    :func:`fojax.study.fingerprint` with the union's members spelled out, the member and
+    the batch. The gains enter as float32 values, so that every process, with or
+    without ``jax_enable_x64``, finds the same key (the dtype is a field of its own)."""
+    from fojax import study
+
+    job = run.job
+    settings = study.fingerprint(
+        job.controller,
+        gains_for(run, tuned, "float32"),
+        run.scenario,
+        job.config,
+        seed,
+        job.draws,
+        0,
+        job.dtype,
+        metrics_config(job.config),
+    )
+    settings["union"] = _plain(job.members)
+    settings["member"] = run.member
+    settings["draws"] = job.draws
+    text = json.dumps(settings, sort_keys=True, default=str)
+    if " at 0x" in text:  # an object spelled by its address: not the same in another process
+        raise ValueError(f"run key depends on an address: {text}")
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def _run_path(out: Path, key: str) -> Path:
+    return out / "runs" / f"{key}.npz"
+
+
+def compile_job(job: Job):
+    """The job's program: ``(gains, keys (n, 2), members (n,)) -> (status, metrics)``,
+    compiled for ``job.draws`` draws."""
+    import jax
+    import jax.numpy as jnp
+
+    from fojax import metrics, plant, scenarios, simulator
+
+    dtype = jnp.dtype(job.dtype)
+    union = job.union()
+    config = job.config
+    model = plant.nominal_params(dtype)
+    observer = metrics.Metrics(metrics_config(config))
+    controller = job.controller
+
+    def one(gains, key, member):
+        draw = scenarios.sample_draw(union, key, config.dt, dtype, member=member)
+        result = simulator.rollout(controller, gains, model, union, draw, config, observer)
+        return result.status, result.outputs
+
+    function = jax.jit(jax.vmap(one, in_axes=(None, 0, 0)))
+    gains = controller.default_gains(dtype)
+    keys = scenarios.draw_keys(0, np.arange(job.draws))
+    members = jnp.zeros((job.draws,), jnp.int32)
+    start = time.perf_counter()
+    compiled = function.lower(gains, keys, members).compile()
+    return compiled, time.perf_counter() - start
+
+
+def execute(compiled, run: Run, gains, seed: int, path: Path) -> float:
+    """Run the batch and save ``status`` and every metric to ``path``; the seconds."""
+    import jax.numpy as jnp
+
+    from fojax import scenarios
+
+    job = run.job
+    keys = scenarios.draw_keys(seed, np.arange(job.draws))
+    members = jnp.full((job.draws,), run.member, jnp.int32)
+    start = time.perf_counter()
+    status, values = compiled(gains, keys, members)
+    arrays = {"status": np.asarray(status)}
+    arrays.update({f"m.{k}": np.asarray(v) for k, v in values.items()})
+    seconds = time.perf_counter() - start
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+    return seconds
+
+
+def _describe(run: Run) -> str:
+    job = run.job
+    c = job.controller
+    return (
+        f"{c.name} {run.scenario.name[:24]!r} gains={run.gains} {job.dtype} dt={job.config.dt:g}"
+        f" guard={c.thrust_floor:g} filter={c.filter_frequency:g}"
+        f" {getattr(c.law, 'switching', '-')} {getattr(c.law, 'fractional_method', '-')}"
+        f" rotor={job.config.rotor_speed_limit}"
+    )
+
+
+def run_lane(plan: Plan, job_indices: list, out: Path, tuned_path: Path, progress: bool) -> None:
+    """Compile and run the lane's jobs (each compiled in a background thread while the
+    previous one runs); runs with tuned gains wait for them, at the end."""
+    tuned = load_tuned(tuned_path) if tuned_path.exists() else None
+    jobs = [plan.jobs[i] for i in job_indices]
+
+    def pending(job, tuned):
+        todo = []
+        for run in job.runs:
+            if run.gains == "tuned" and tuned is None:
+                todo.append(run)
+                continue
+            if not _run_path(out, run_key(run, tuned, plan.seed)).exists():
+                todo.append(run)
+        return todo
+
+    work = [(job, pending(job, tuned)) for job in jobs]
+    work = [(job, runs) for job, runs in work if runs]
+    log = _logger(progress)
+    if not work:
+        return
+    deferred = []
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        futures = [pool.submit(compile_job, job) for job, _ in work]
+        for (job, runs), future in zip(work, futures, strict=True):
+            compiled, seconds = future.result()
+            log(
+                f"compiled job {job.index} ({job.controller.name}, {len(job.members)} "
+                f"scenarios, {job.dtype}) in {seconds:.0f} s"
+            )
+            for run in runs:
+                if run.gains == "tuned" and tuned is None:
+                    deferred.append((compiled, run))
+                    continue
+                _run_and_log(compiled, run, tuned, plan, out, log)
+    if deferred:
+        log("waiting for the tuned gains ...")
+        tuned = _wait_for_tuned(tuned_path)
+        for compiled, run in deferred:
+            if not _run_path(out, run_key(run, tuned, plan.seed)).exists():
+                _run_and_log(compiled, run, tuned, plan, out, log)
+
+
+def _run_and_log(compiled, run, tuned, plan, out, log) -> None:
+    path = _run_path(out, run_key(run, tuned, plan.seed))
+    seconds = execute(compiled, run, gains_for(run, tuned), plan.seed, path)
+    log(f"ran {_describe(run)}: {run.job.draws} draws in {seconds:.1f} s")
+
+
+def _wait_for_tuned(path: Path, poll: float = 5.0) -> dict:
+    failed = path.parent / "FAILED"
+    while not path.exists():
+        if failed.exists():
+            raise RuntimeError(f"the gain tuning failed: {failed.read_text()[-2000:]}")
+        time.sleep(poll)
+    return load_tuned(path)
+
+
+def _logger(progress: bool):
+    lane = os.environ.get("FOJAX_SENSITIVITY_LANE", "main")
+    start = time.perf_counter()
+
+    def log(text: str) -> None:
+        if progress:
+            print(
+                f"[{lane} {time.perf_counter() - start:5.0f} s] {text}", file=sys.stderr, flush=True
+            )
+
+    return log
+
+
+# ----------------------------------------------------------------------------- results
+
+
+def load_results(plan: Plan, out: Path, tuned: dict | None) -> dict:
+    """``(setting key, scenario id, controller) -> MonteCarloResult`` (first ``n`` draws
+    of the cell's run) for every cell whose run is on disk."""
+    from fojax import study
+
+    loaded = {}
+    results = {}
+    for cell, (run, n) in plan.cells.items():
+        if run.gains == "tuned" and tuned is None:
+            continue
+        key = run_key(run, tuned, plan.seed)
+        if key not in loaded:
+            path = _run_path(out, key)
+            if not path.exists():
+                continue
+            with np.load(path) as data:
+                loaded[key] = (
+                    data["status"],
+                    {k[2:]: data[k] for k in data.files if k.startswith("m.")},
+                )
+        status, per_draw = loaded[key]
+        results[cell] = study.MonteCarloResult(
+            controller=run.job.controller.name,
+            status=np.asarray(status[:n], np.int32),
+            per_draw={k: v[:n] for k, v in per_draw.items()},
+            trajectories=None,
+            wall_time=0.0,
+            compile_time=0.0,
+        )
+    return results
+
+
+def evaluate(plan: Plan, results: dict) -> dict:
+    """Setting key -> ``{"claims": evaluate_claims(...), "diverged": ...}``, or
+    ``{"missing": [...]}`` when some of its runs are not there."""
+    from fojax import study
+
+    evaluated = {}
+    for setting in plan.settings:
+        config = simulation_config(setting, plan.horizon)
+        missing = [
+            f"s{s} {name}"
+            for s in SCENARIO_IDS
+            for name in plan.controllers
+            if (setting.key, s, name) not in results
+        ]
+        if missing:
+            evaluated[setting.key] = {"missing": missing}
+            continue
+        results_by_scenario, summaries, diverged = {}, {}, {}
+        band = reaching_band(config.dt)
+        for s in SCENARIO_IDS:
+            by_name = {n: results[(setting.key, s, n)] for n in plan.controllers}
+            results_by_scenario[s] = by_name
+            summaries[s] = {
+                "horizon_s": config.horizon,
+                "dt_s": config.dt,
+                "reaching_band": list(band),
+                "controllers": {n: study.summarize(r) for n, r in by_name.items()},
+            }
+            diverged[s] = {n: s_["diverged"] for n, s_ in summaries[s]["controllers"].items()}
+        evaluated[setting.key] = {
+            "claims": claims_module.evaluate_claims(summaries, results_by_scenario),
+            "diverged": diverged,
+            "draws": next(iter(results_by_scenario[1].values())).draws,
+            "summaries": summaries,
+        }
+    return evaluated
+
+
+# ---------------------------------------------------------------------------- command
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from experiments import arguments
+
+    parser = argparse.ArgumentParser(
+        prog="python -m experiments.sensitivity",
+        description="The Section V verdicts with each open modelling choice moved in turn.",
+    )
+    parser.add_argument("--out", type=Path, default=Path("results/sensitivity"), metavar="DIR")
+    parser.add_argument(
+        "--doc", type=Path, default=Path("docs/sensitivity.md"), help="document to (re)write"
+    )
+    parser.add_argument("--no-doc", action="store_true", help="write OUT/report.* only")
+    parser.add_argument("--draws", type=arguments.positive_int, default=32)
+    parser.add_argument(
+        "--dt-draws",
+        type=arguments.positive_int,
+        default=16,
+        help="draws of the 0.1 ms step (10x the work per simulated second)",
+    )
+    parser.add_argument(
+        "--horizon", type=arguments.positive_float, default=30.0, help="s, every scenario"
+    )
+    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
+    parser.add_argument(
+        "--settings",
+        help=f"comma-separated subset of {','.join(SETTING_KEYS)} (default all)",
+    )
+    parser.add_argument(
+        "--controllers",
+        help="comma-separated subset of the paper's five, with afonftsmc (quick checks)",
+    )
+    parser.add_argument(
+        "--workers", type=arguments.positive_int, default=2, help="float32 worker processes"
+    )
+    parser.add_argument(
+        "--tuned-gains",
+        type=Path,
+        help="results.json of an earlier experiments.fair_comparison run (default: tune here)",
+    )
+    parser.add_argument("--tune-steps", type=arguments.positive_int, default=20)
+    parser.add_argument("--tune-draws", type=arguments.positive_int, default=8)
+    parser.add_argument("--tune-horizon", type=arguments.positive_float, default=5.0)
+    parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--lane", help=argparse.SUPPRESS)
+    return parser
+
+
+def parse_args(argv):
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.settings is None:
+        args.selected = SETTINGS
+    else:
+        keys = [k.strip() for k in args.settings.split(",") if k.strip()]
+        unknown = [k for k in keys if k not in SETTING_KEYS]
+        if unknown or not keys:
+            parser.error(f"--settings must be among {', '.join(SETTING_KEYS)}, got {unknown}")
+        wanted = set(keys)
+        for s in SETTINGS:  # a setting needs the one it is compared with
+            if s.key in wanted and s.reference:
+                wanted.add(s.reference)
+        args.selected = tuple(s for s in SETTINGS if s.key in wanted)
+    from fojax.controllers import registry
+
+    paper = registry.PAPER_CONTROLLERS
+    if args.controllers is None:
+        args.controllers = paper
+    else:
+        names = [n.strip() for n in args.controllers.split(",") if n.strip()]
+        if not names or set(names) - set(paper) or claims_module.BASELINE not in names:
+            parser.error(
+                f"--controllers must be among {', '.join(paper)} and include "
+                f"{claims_module.BASELINE}, got {args.controllers!r}"
+            )
+        args.controllers = tuple(n for n in paper if n in names)
+    for dt in (1e-3, 1e-4):
+        steps = args.horizon / dt
+        if abs(steps - round(steps)) > 1e-6 * steps:
+            parser.error(f"--horizon must be a whole number of 0.1 ms steps, got {args.horizon}")
+    if args.dt_draws > args.draws:
+        parser.error("--dt-draws must not exceed --draws")
+    if args.tuned_gains is not None and not args.tuned_gains.is_file():
+        parser.error(f"--tuned-gains: no file {args.tuned_gains}")
+    return args
+
+
+def _tuning_command(args, directory: Path) -> list:
+    return [
+        sys.executable,
+        "-m",
+        "experiments.fair_comparison",
+        "--out",
+        str(directory),
+        "--steps",
+        str(args.tune_steps),
+        "--draws",
+        str(args.tune_draws),
+        "--horizon",
+        f"{args.tune_horizon:g}",
+        "--seed",
+        str(args.seed),
+        "--eval-draws",
+        "1",
+        "--eval-scenarios",
+        "2",
+        "--eval-horizon",
+        "0.1",
+        "--quiet",
+    ]
+
+
+def _lane_command(argv: list, lane: str) -> list:
+    return [sys.executable, "-m", "experiments.sensitivity", *argv, "--lane", lane]
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = parse_args(argv)
+    if args.lane == "f64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    plan = make_plan(
+        args.selected, args.horizon, args.draws, args.dt_draws, args.seed, args.controllers
+    )
+    lanes = assign_lanes(plan, args.workers)
+    tuned_path = args.tuned_gains or (out / "tuning" / "results.json")
+    if args.lane is not None:
+        run_lane(plan, lanes.get(args.lane, []), out, tuned_path, not args.quiet)
+        return 0
+
+    start = time.perf_counter()
+    load_start = os.getloadavg()
+    before = set((out / "runs").glob("*.npz"))
+    log = _logger(not args.quiet)
+    log(
+        f"{len(plan.settings)} settings, {len(plan.jobs)} programs, {len(plan.runs)} runs; "
+        f"lanes {', '.join(f'{k}: {len(v)} programs' for k, v in lanes.items())}"
+    )
+    processes = {}
+    tuning = None
+    needs_tuning = any(s.gains == "tuned" for s in plan.settings)
+    tuning_wall = None
+    if needs_tuning and not tuned_path.exists():
+        directory = tuned_path.parent
+        directory.mkdir(parents=True, exist_ok=True)
+        (directory / "FAILED").unlink(missing_ok=True)
+        log("tuning the five controllers: " + " ".join(_tuning_command(args, directory)[1:]))
+        tuning = subprocess.Popen(
+            _tuning_command(args, directory),
+            stdout=subprocess.DEVNULL,
+            stderr=open(directory / "stderr.log", "w"),  # noqa: SIM115
+        )
+        tuning_start = time.perf_counter()
+    lane_argv = [a for a in argv if a != "--quiet"] + (["--quiet"] if args.quiet else [])
+    for lane in lanes:
+        env = dict(os.environ, FOJAX_SENSITIVITY_LANE=lane)
+        processes[lane] = subprocess.Popen(_lane_command(lane_argv, lane), env=env)
+    failed = []
+    try:
+        if tuning is not None:
+            rc = tuning.wait()
+            tuning_wall = time.perf_counter() - tuning_start
+            if rc != 0 or not tuned_path.exists():
+                tail = (tuned_path.parent / "stderr.log").read_text()[-3000:]
+                (tuned_path.parent / "FAILED").write_text(f"exit status {rc}\n{tail}")
+                log(f"the gain tuning failed (exit status {rc}); see {tuned_path.parent}")
+            else:
+                log(f"tuned gains written in {tuning_wall:.0f} s")
+        for lane, process in processes.items():
+            if process.wait() != 0:
+                failed.append(lane)
+    except KeyboardInterrupt:
+        for process in [*processes.values(), tuning]:
+            if process is not None:
+                process.terminate()
+        print(
+            f"\ninterrupted: finished runs are kept under {out}/runs; run the same command "
+            "again to continue",
+            file=sys.stderr,
+        )
+        return 130
+    if failed:
+        log(f"lanes {failed} failed; the settings they left unfinished are marked missing")
+    tuned = load_tuned(tuned_path) if tuned_path.exists() else None
+    results = load_results(plan, out, tuned)
+    evaluated = evaluate(plan, results)
+    wall = time.perf_counter() - start
+    computed = len(set((out / "runs").glob("*.npz")) - before)
+    history_path = out / "invocations.json"
+    history = json.loads(history_path.read_text()) if history_path.exists() else []
+    history.append(
+        {
+            "started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(time.time() - wall)),
+            "wall_s": round(wall, 1),
+            "runs_computed": computed,
+            "runs_on_disk_before": len(before),
+            "tuning_s": None if tuning_wall is None else round(tuning_wall, 1),
+            "load_average_start": [round(x, 2) for x in load_start],
+            "load_average_end": [round(x, 2) for x in os.getloadavg()],
+            "command": "python -m experiments.sensitivity " + " ".join(argv),
+        }
+    )
+    history_path.write_text(json.dumps(history, indent=1) + "\n")
+    from experiments import sensitivity_report
+
+    meta = {
+        "draws": args.draws,
+        "dt_draws": args.dt_draws,
+        "horizon_s": args.horizon,
+        "seed": args.seed,
+        "workers": args.workers,
+        "rotor_speed_limit": rotor_speed_limit(),
+        "thrust_to_weight": THRUST_TO_WEIGHT,
+        "sigma_factor": SIGMA_FACTOR,
+        "tuning": {
+            "source": str(args.tuned_gains) if args.tuned_gains else "fair_comparison here",
+            "steps": args.tune_steps,
+            "draws": args.tune_draws,
+            "horizon_s": args.tune_horizon,
+            "wall_s": None if tuning_wall is None else round(tuning_wall, 1),
+        },
+        "programs": len(plan.jobs),
+        "runs": len(plan.runs),
+        "wall_s": round(wall, 1),
+        "load_average_start": [round(x, 2) for x in load_start],
+        "load_average_end": [round(x, 2) for x in os.getloadavg()],
+        "cpus": os.cpu_count(),
+        "command": "python -m experiments.sensitivity " + " ".join(argv),
+        "invocations": history,
+    }
+    report = sensitivity_report.write(
+        out, plan, evaluated, meta, None if args.no_doc else args.doc, results
+    )
+    log(f"wrote {report} in {wall:.0f} s")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
