@@ -412,10 +412,9 @@ def run_key(run: Run, tuned: dict | None, seed: int) -> str:
         run.scenario,
         job.config,
         seed,
-        job.draws,
-        0,
         job.dtype,
         metrics_config(job.config),
+        device_batch=job.draws,
     )
     settings["union"] = _plain(job.members)
     settings["member"] = run.member

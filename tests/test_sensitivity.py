@@ -166,7 +166,7 @@ def test_union_runner_equals_study_run_float64():
         config,
         draws=3,
         seed=0,
-        chunk=3,
+        device_batch=3,
         keep=0,
         progress=False,
         dtype=jnp.float64,
