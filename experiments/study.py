@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 __all__ = [
     "Study",
     "StoreMismatch",
-    "Union",
+    "UnionMember",
     "check_stores",
     "compile_threads",
     "gains_record",
@@ -288,7 +288,7 @@ def _scenario(study: Study):
     return dataclasses.replace(scenarios.get_scenario(study.scenario_id), horizon=study.horizon)
 
 
-def _prepared(study: Study, union: Union | None = None):
+def _prepared(study: Study, union: UnionMember | None = None):
     """``(mesh, scenario, config, dtype, {name: (controller, gains)})``; with ``union``
     (:func:`plan_unions`) the union's scenario, and its horizon for the simulation and
     the controllers."""
@@ -319,7 +319,7 @@ def _prepared(study: Study, union: Union | None = None):
     return mesh, scenario, config, dtype, runs
 
 
-def check_stores(study: Study, out: Path, union: Union | None = None) -> None:
+def check_stores(study: Study, out: Path, union: UnionMember | None = None) -> None:
     """Raise :class:`StoreMismatch` naming the fields that differ when ``out/chunks``
     holds draws of a run with other settings (before anything is compiled). The draw
     count, ``--keep``, the devices and the processes may differ: a longer run extends
@@ -348,7 +348,7 @@ def check_stores(study: Study, out: Path, union: Union | None = None) -> None:
 # ---------------------------------------------------------------------- scenario unions
 
 
-class Union(NamedTuple):
+class UnionMember(NamedTuple):
     """A study run as member ``member`` of the union ``scenario``
     (:func:`fojax.scenarios.union`), over the union's horizon."""
 
@@ -391,7 +391,7 @@ def _union_key(study: Study):
     )
 
 
-def plan_unions(studies: list[Study]) -> list[Union | None]:
+def plan_unions(studies: list[Study]) -> list[UnionMember | None]:
     """For each study, the union it runs in, or None (alone).
 
     Studies with the same settings but their scenario and horizon (:func:`_union_key`)
@@ -405,7 +405,7 @@ def plan_unions(studies: list[Study]) -> list[Union | None]:
     """
     from fojax import scenarios, simulator
 
-    plans: list[Union | None] = [None] * len(studies)
+    plans: list[UnionMember | None] = [None] * len(studies)
     if not union_enabled():
         return plans
     groups: dict = {}
@@ -430,7 +430,7 @@ def plan_unions(studies: list[Study]) -> list[Union | None]:
         except ValueError:  # scenarios that cannot share a program
             continue
         for index, member in zip(indices, members, strict=True):
-            plans[index] = Union(bank, distinct.index(member))
+            plans[index] = UnionMember(bank, distinct.index(member))
     return plans
 
 
@@ -448,7 +448,7 @@ def _stored_alone(study: Study, out: Path) -> bool:
     return False
 
 
-def _agreed(unions: list[Union | None]) -> list[Union | None]:
+def _agreed(unions: list[UnionMember | None]) -> list[UnionMember | None]:
     """Process 0's choice of which studies run alone (it alone may see the stores)."""
     import jax
 
