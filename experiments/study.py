@@ -26,19 +26,22 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 __all__ = [
     "Study",
     "StoreMismatch",
+    "UnionMember",
     "check_stores",
     "compile_threads",
     "gains_record",
+    "plan_unions",
     "provenance",
     "run_studies",
     "run_study",
     "snapshot_interval",
     "store_differences",
+    "union_enabled",
     "write_json",
     "write_outputs",
 ]
@@ -226,13 +229,22 @@ def _flag(field: str) -> str:
     return ""
 
 
-def _fingerprint(controller, gains, scenario, config, study: Study, dtype) -> dict:
-    """The store's fingerprint of this run, as :func:`fojax.study.run` makes it."""
+def _fingerprint(controller, gains, scenario, config, study: Study, dtype, member=None) -> dict:
+    """The store's fingerprint of this run, as :func:`fojax.study.run` makes it
+    (``member``: the study's index in a union ``scenario``)."""
     from fojax import study as monte_carlo
 
     metrics_config = study.metrics_config(config.steps)
     return monte_carlo.fingerprint(
-        controller, gains, scenario, config, study.seed, dtype, metrics_config, study.device_batch
+        controller,
+        gains,
+        scenario,
+        config,
+        study.seed,
+        dtype,
+        metrics_config,
+        study.device_batch,
+        member=member,
     )
 
 
@@ -269,25 +281,33 @@ def _mesh():
     return sharding.draw_mesh(jax.devices()) if jax.device_count() > 1 else None
 
 
-def _prepared(study: Study):
-    """``(mesh, scenario, config, dtype, {name: (controller, gains)})``."""
+def _scenario(study: Study):
+    """The study's scenario, with the study's horizon."""
+    from fojax import scenarios
+
+    return dataclasses.replace(scenarios.get_scenario(study.scenario_id), horizon=study.horizon)
+
+
+def _prepared(study: Study, union: UnionMember | None = None):
+    """``(mesh, scenario, config, dtype, {name: (controller, gains)})``; with ``union``
+    (:func:`plan_unions`) the union's scenario, and its horizon for the simulation and
+    the controllers."""
     import jax.numpy as jnp
 
-    from fojax import scenarios, simulator
+    from fojax import simulator
     from fojax.controllers import registry
 
     mesh = _mesh()
-    scenario = dataclasses.replace(scenarios.get_scenario(study.scenario_id), horizon=study.horizon)
-    config = simulator.SimulationConfig(
-        dt=study.dt, horizon=study.horizon, save_every=study.save_every
-    )
+    scenario = _scenario(study) if union is None else union.scenario
+    horizon = study.horizon if union is None else union.scenario.horizon
+    config = simulator.SimulationConfig(dt=study.dt, horizon=horizon, save_every=study.save_every)
     dtype = jnp.dtype(study.dtype)
     runs = {}
     for name in study.controllers:
         controller = registry.make_controller(
             name,
             dt=study.dt,
-            horizon=study.horizon,
+            horizon=horizon,
             fractional_method=study.fractional,
             switching=study.switching,
         )
@@ -299,16 +319,17 @@ def _prepared(study: Study):
     return mesh, scenario, config, dtype, runs
 
 
-def check_stores(study: Study, out: Path) -> None:
+def check_stores(study: Study, out: Path, union: UnionMember | None = None) -> None:
     """Raise :class:`StoreMismatch` naming the fields that differ when ``out/chunks``
     holds draws of a run with other settings (before anything is compiled). The draw
     count, ``--keep``, the devices and the processes may differ: a longer run extends
-    the stored one."""
-    _, scenario, config, dtype, runs = _prepared(study)
+    the stored one. ``union``: the study runs as a member of it (:func:`plan_unions`)."""
+    _, scenario, config, dtype, runs = _prepared(study, union)
+    member = None if union is None else union.member
     problems = []
     for name, (controller, gains) in runs.items():
         store = Path(out) / "chunks" / name
-        fingerprint = _fingerprint(controller, gains, scenario, config, study, dtype)
+        fingerprint = _fingerprint(controller, gains, scenario, config, study, dtype, member)
         lines = store_differences(store, fingerprint)
         if lines:
             problems.append((store, lines))
@@ -322,6 +343,126 @@ def check_stores(study: Study, out: Path) -> None:
             "another --out",
             problems,
         )
+
+
+# ---------------------------------------------------------------------- scenario unions
+
+
+class UnionMember(NamedTuple):
+    """A study run as member ``member`` of the union ``scenario``
+    (:func:`fojax.scenarios.union`), over the union's horizon."""
+
+    scenario: Any
+    member: int
+
+
+def union_enabled() -> bool:
+    """Whether :func:`run_studies` runs studies that differ only in their scenario and
+    horizon as members of one union of scenarios (``FOJAX_UNION``, default 1; 0: each
+    study on its own scenario, one compiled program per study and controller)."""
+    text = os.environ.get("FOJAX_UNION", "").strip().lower()
+    if text in ("", "1", "true", "yes", "on"):
+        return True
+    if text in ("0", "false", "no", "off"):
+        return False
+    raise ValueError(f"FOJAX_UNION must be 0 or 1, got {text!r}")
+
+
+def _union_key(study: Study):
+    """What studies must share (all but the scenario, horizon, draws, seed and keep)
+    to run as members of one union with one program per controller."""
+    import numpy as np
+
+    gains = {
+        name: {field: np.asarray(v).tolist() for field, v in g._asdict().items()}
+        for name, g in study.gains.items()
+    }
+    band = study.reaching_band
+    return (
+        tuple(study.controllers),
+        study.dt,
+        study.save_every,
+        study.fractional,
+        study.switching,
+        study.device_batch,
+        study.dtype,
+        tuple(band) if isinstance(band, list | tuple) else band,
+        json.dumps(gains, sort_keys=True, default=str),
+    )
+
+
+def plan_unions(studies: list[Study]) -> list[UnionMember | None]:
+    """For each study, the union it runs in, or None (alone).
+
+    Studies with the same settings but their scenario and horizon (:func:`_union_key`)
+    and at least two different scenarios run as members of the union of their
+    scenarios (each with its own horizon), so that a controller's runs share one
+    compiled program: the simulation runs the union's (longest) horizon and the
+    controllers are made for it (their fractional memory spans it), each draw is
+    recorded up to its own scenario's horizon, so its metrics and snapshots are those
+    of its scenario alone (bit for bit in float64 when the controller does not depend
+    on the horizon). Off with ``FOJAX_UNION=0`` (:func:`union_enabled`).
+    """
+    from fojax import scenarios, simulator
+
+    plans: list[UnionMember | None] = [None] * len(studies)
+    if not union_enabled():
+        return plans
+    groups: dict = {}
+    for index, study in enumerate(studies):
+        try:
+            key = _union_key(study)
+            hash(key)
+        except (TypeError, ValueError):
+            continue
+        groups.setdefault(key, []).append(index)
+    for indices in groups.values():
+        members = [_scenario(studies[i]) for i in indices]
+        distinct = list(dict.fromkeys(members))
+        if len(distinct) < 2:
+            continue
+        try:
+            bank = scenarios.union(*distinct)
+            study = studies[indices[0]]
+            simulator.SimulationConfig(
+                dt=study.dt, horizon=bank.horizon, save_every=study.save_every
+            )
+        except ValueError:  # scenarios that cannot share a program
+            continue
+        for index, member in zip(indices, members, strict=True):
+            plans[index] = UnionMember(bank, distinct.index(member))
+    return plans
+
+
+def _stored_alone(study: Study, out: Path) -> bool:
+    """Whether ``out/chunks`` holds draws of this study run alone (an earlier run
+    without the union, which it then continues)."""
+    chunks = Path(out) / "chunks"
+    if not chunks.is_dir():
+        return False
+    _, scenario, config, dtype, runs = _prepared(study)
+    for name, (controller, gains) in runs.items():
+        fingerprint = _fingerprint(controller, gains, scenario, config, study, dtype)
+        if store_differences(chunks / name, fingerprint) == []:
+            return True
+    return False
+
+
+def _agreed(unions: list[UnionMember | None]) -> list[UnionMember | None]:
+    """Process 0's choice of which studies run alone (it alone may see the stores)."""
+    import jax
+
+    if jax.process_count() == 1:
+        return unions
+    import numpy as np
+    from jax.experimental import multihost_utils
+
+    from fojax import sharding
+
+    sharding.barrier("unions")
+    alone = np.asarray([u is None for u in unions], np.int32)
+    alone = np.asarray(multihost_utils.broadcast_one_to_all(alone))
+    return [None if alone[i] else u for i, u in enumerate(unions)]
 
 
 # --------------------------------------------------------------------- running studies
@@ -357,19 +498,19 @@ def default_compile_threads() -> int:
 class _Job:
     """One (study, controller) run: what it needs compiled and where it stores draws."""
 
-    def __init__(self, study: Study, out: Path, name: str, prepared):
+    def __init__(self, study: Study, out: Path, name: str, prepared, member: int | None = None):
         mesh, scenario, config, dtype, runs = prepared
-        self.study, self.out, self.name = study, Path(out), name
+        self.study, self.out, self.name, self.member = study, Path(out), name, member
         self.mesh, self.scenario, self.config, self.dtype = mesh, scenario, config, dtype
         self.controller, self.gains = runs[name]
         self.metrics_config = study.metrics_config(config.steps)
         self.store = self.out / "chunks" / name
 
     def compile_key(self):
-        """Runs with equal keys share one compiled program. The scenario is part of
-        it for as long as the rollout compiles it in (:mod:`fojax.simulator`); once it
-        takes the scenario as data, only its static part (horizon, table layout)
-        belongs here and the scenarios of one controller share a program."""
+        """Runs with equal keys share one compiled program. The rollout compiles the
+        scenario in (:mod:`fojax.simulator`): runs of several scenarios share one when
+        they run as members of one union (:func:`plan_unions`), whose member index is
+        an argument of the program."""
         from fojax import study as monte_carlo
 
         batch = self.study.device_batch or monte_carlo.default_device_batch()
@@ -413,7 +554,13 @@ class _Job:
         answer = True
         if jax.process_index() == 0 and (self.store / "manifest.json").is_file():
             fingerprint = _fingerprint(
-                self.controller, self.gains, self.scenario, self.config, self.study, self.dtype
+                self.controller,
+                self.gains,
+                self.scenario,
+                self.config,
+                self.study,
+                self.dtype,
+                self.member,
             )
             try:
                 store = monte_carlo.ChunkStore(self.store, fingerprint, writable=False)
@@ -448,6 +595,7 @@ class _Job:
             store=self.store,
             runner=runner,
             mesh=self.mesh,
+            member=self.member,
         )
 
 
@@ -465,25 +613,35 @@ def run_studies(
     ``overwrite`` the stored draws are discarded instead). ``threads`` worker threads
     (default :func:`compile_threads`) compile the programs of every run that has draws
     left, in run order, while the runs whose programs are ready compute; runs with the
-    same program share one.
+    same program share one. Studies that differ only in their scenario and horizon run
+    as members of one union of scenarios (:func:`plan_unions`; ``FOJAX_UNION=0``: not),
+    so that each controller's runs share one program; a study whose folder holds draws
+    of an earlier run alone continues that run alone. Each study's results are those
+    of its scenario (its metrics, its horizon's snapshots).
     ``announce(study)`` is called before a study's first run.
     """
     import concurrent.futures
 
     threads = compile_threads() if threads is None else threads
-    for study, out in studies:
+    unions = plan_unions([study for study, _ in studies])
+    for index, (study, out) in enumerate(studies):
         chunks = Path(out) / "chunks"
         if overwrite and chunks.exists():
             import jax
 
             if jax.process_index() == 0:
                 shutil.rmtree(chunks)
-        elif chunks.exists():
-            check_stores(study, out)
+        elif chunks.exists() and unions[index] is not None and _stored_alone(study, out):
+            unions[index] = None
+    unions = _agreed(unions)
+    for index, (study, out) in enumerate(studies):
+        if not overwrite and (Path(out) / "chunks").exists():
+            check_stores(study, out, unions[index])
     jobs = []
-    for study, out in studies:
-        prepared = _prepared(study)
-        jobs.extend(_Job(study, out, name, prepared) for name in study.controllers)
+    for (study, out), union in zip(studies, unions, strict=True):
+        prepared = _prepared(study, union)
+        member = None if union is None else union.member
+        jobs.extend(_Job(study, out, name, prepared, member) for name in study.controllers)
     pending = [job.pending() for job in jobs]
     compiled: dict = {}
     executor = concurrent.futures.ThreadPoolExecutor(threads) if threads > 0 else None

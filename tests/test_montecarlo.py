@@ -367,3 +367,79 @@ def test_metrics_config_rejects_bad_values():
         metrics.MetricsConfig(dt=1e-3, steps=0)
     with pytest.raises(ValueError, match="draws"):
         study.run(CONTROLLER, paper_gains(), SCENARIO, CONFIG, draws=0)
+
+
+# ---------------------------------------------------------------- union scenarios
+
+
+def _union_members():
+    return (SCENARIO, dataclasses.replace(scenarios.get_scenario(3), horizon=0.2))
+
+
+def test_a_union_member_runs_as_its_scenario_alone(tmp_path):
+    """``run(union, member=i)``: one compiled program for both members (of different
+    horizons), and each member's draws, status and trimmed snapshots are those of its
+    scenario run alone, bit for bit in float64; the store is keyed by the member."""
+    members = _union_members()
+    bank = scenarios.union(*members)
+    config = simulator.SimulationConfig(dt=1e-3, horizon=bank.horizon, save_every=50)
+    shared = study.make_chunk_runner(CONTROLLER, bank, config, dtype=jnp.float64)
+    gains = paper_gains()
+    common = dict(draws=3, seed=5, device_batch=2, keep=3, progress=False, dtype=jnp.float64)
+    for index, member in enumerate(members):
+        together = study.run(CONTROLLER, gains, bank, config, runner=shared, member=index, **common)
+        alone_config = dataclasses.replace(config, horizon=member.horizon)
+        alone = study.run(CONTROLLER, gains, member, alone_config, **common)
+        np.testing.assert_array_equal(together.status, alone.status)
+        assert together.per_draw.keys() == alone.per_draw.keys()
+        for name, value in alone.per_draw.items():
+            np.testing.assert_array_equal(together.per_draw[name], value, err_msg=name)
+        assert together.trajectories.time.shape == alone.trajectories.time.shape
+        assert alone.trajectories.time.shape[1] == round(member.horizon / 1e-3) // 50
+        for got, want in zip(
+            jax.tree.leaves(together.trajectories), jax.tree.leaves(alone.trajectories), strict=True
+        ):
+            np.testing.assert_array_equal(got, want)
+    if hasattr(shared, "_cache_size"):
+        assert shared._cache_size() == 1  # one program served both members
+    # The store: the member's draws are read back; another member's are not.
+    store = tmp_path / "store"
+    first = study.run(CONTROLLER, gains, bank, config, member=1, store=store, **common)
+    again = study.run(CONTROLLER, gains, bank, config, member=1, store=store, **common)
+    assert again.layout["loaded"] == 3
+    np.testing.assert_array_equal(again.trajectories.state, first.trajectories.state)
+    with pytest.raises(study.StoreMismatch, match="member: earlier 1, now 0"):
+        study.run(CONTROLLER, gains, bank, config, member=0, store=store, **common)
+    settings = study.fingerprint(
+        CONTROLLER, gains, bank, config, 5, jnp.float64, METRICS, 2, member=1
+    )
+    assert settings["member"] == 1
+    assert [m["horizon"] for m in settings["scenario"]["members"]] == [0.3, 0.2]
+    assert settings["scenario"]["members"][1]["reference"] == "reference_57"
+    assert "member" not in study.fingerprint(
+        CONTROLLER, gains, SCENARIO, CONFIG, 5, jnp.float64, METRICS, 2
+    )
+
+
+@pytest.mark.parametrize(
+    "member, message",
+    [
+        (None, "pass member="),
+        (2, "member must be 0 to 1"),
+        (-1, "member must be 0 to 1"),
+        (True, "integer index"),
+        (0.0, "integer index"),
+    ],  # fmt: skip
+)
+def test_a_union_needs_a_member_in_range_before_compiling(monkeypatch, member, message):
+    bank = scenarios.union(*_union_members())
+    config = simulator.SimulationConfig(dt=1e-3, horizon=bank.horizon, save_every=50)
+
+    def no_compiling(*args, **kwargs):
+        raise AssertionError("compiled")
+
+    monkeypatch.setattr(study._run, "make_chunk_runner", no_compiling)
+    with pytest.raises(ValueError, match=message):
+        study.run(CONTROLLER, paper_gains(), bank, config, 2, member=member, progress=False)
+    with pytest.raises(ValueError, match="not a union"):
+        study.run(CONTROLLER, paper_gains(), SCENARIO, CONFIG, 2, member=1, progress=False)

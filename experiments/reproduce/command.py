@@ -27,8 +27,10 @@ DEFAULT_DRAWS = 100
 """Draws per scenario and controller by default, sized to finish within 10 minutes on
 a 2-core CPU: 3 scenarios x 5 controllers x 100 draws took 196 s on the project's
 2-core machine (float32, chunks of 50, load average about 1; about 100 s of it
-compiling the 15 (scenario, controller) rollouts); the measured time of the committed
-example is in ``docs/reproduction.md``."""
+compiling the 15 (scenario, controller) rollouts, before the scenarios ran as members
+of one union: now one rollout per controller, 5 in all, each scenario's draws recorded
+up to its own horizon; ``FOJAX_UNION=0`` compiles the 15); the measured time of the
+committed example is in ``docs/reproduction.md``."""
 
 
 # ------------------------------------------------------------------- the study layer
@@ -40,7 +42,8 @@ def _make_study(**fields) -> simulate.Study:
 
 def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce):
     """Yields ``(study, results)`` scenario by scenario (:func:`experiments.study.run_studies`:
-    the next runs' programs compile while one runs)."""
+    the next runs' programs compile while one runs; the scenarios run as members of one
+    union, so each controller's program serves every scenario)."""
     from experiments import study as study_layer
 
     pairs = [(study, out / f"s{study.scenario_id}") for study in studies]

@@ -6,7 +6,8 @@
   numbers do not depend on the draw count, the devices or the processes (only on the
   block size, :func:`default_device_batch`); :func:`make_chunk_runner` and
   :func:`compile_chunk_runner` its compiled function, to share (or compile ahead, in a
-  thread);
+  thread); for a union of scenarios (:func:`fojax.scenarios.union`) one compiled
+  function serves every member (``run(..., member=i)``);
 * :class:`ChunkStore`: one file per finished range of draws, keyed by
   :func:`fingerprint`; :class:`StoreMismatch` names the settings that differ;
 * :func:`summarize`, :func:`metric_table`, :func:`status_counts`: per-metric means and
@@ -21,6 +22,7 @@ from fojax.study._run import (
     OTHER_DEVICE_BATCH,
     MonteCarloResult,
     batch_layout,
+    check_member,
     check_run_arguments,
     compile_chunk_runner,
     default_device_batch,
@@ -42,6 +44,7 @@ __all__ = [
     "MonteCarloResult",
     "StoreMismatch",
     "batch_layout",
+    "check_member",
     "check_run_arguments",
     "compile_chunk_runner",
     "default_device_batch",

@@ -170,6 +170,12 @@ def make_chunk_runner(
     any gains and keys of the same shapes. With ``mesh`` (a :func:`fojax.sharding.draw_mesh`
     of more than one device) the draws of each call are split over its devices; ``n``
     must then be a multiple of the mesh's size (:func:`run` makes it one).
+
+    For a union scenario (:func:`fojax.scenarios.union`) the function takes a third
+    argument, ``member``: the ``()`` int32 index of the member every draw of the call
+    belongs to, traced, so that one compiled program serves every member (``config``
+    then has the union's horizon; the snapshots cover it: :func:`run` trims them to the
+    member's own).
     """
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
@@ -177,14 +183,15 @@ def make_chunk_runner(
     controller = as_controller(controller)
     observer = metrics.Metrics(metrics_config)
 
-    def one(gains, key):
-        draw = scenarios.sample_draw(scenario, key, config.dt, dtype)
+    def one(gains, key, member=0):
+        draw = scenarios.sample_draw(scenario, key, config.dt, dtype, member)
         result = simulator.rollout(controller, gains, model, scenario, draw, config, observer)
         return result.status, result.outputs, result.trajectory
 
+    in_axes = (None, 0, None) if scenario.members else (None, 0)
     if mesh is not None and mesh.devices.size > 1:
-        return sharding.sharded_vmap(one, mesh, in_axes=(None, 0))
-    return jax.jit(jax.vmap(one, in_axes=(None, 0)))
+        return sharding.sharded_vmap(one, mesh, in_axes=in_axes)
+    return jax.jit(jax.vmap(one, in_axes=in_axes))
 
 
 def compile_chunk_runner(
@@ -203,8 +210,10 @@ def compile_chunk_runner(
 
     Lowering holds Python's lock, XLA's compilation does not: called in a worker thread
     it compiles while other runs go on (``experiments.study`` does so). Pass the result
-    to :func:`run` as ``runner``. With the persistent compilation cache on
-    (``jax_compilation_cache_dir``) a compiled program is read from there.
+    to :func:`run` as ``runner``. For a union scenario it takes the member index as a
+    third argument (:func:`make_chunk_runner`): one program for every member. With the
+    persistent compilation cache on (``jax_compilation_cache_dir``) a compiled program
+    is read from there.
     """
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     jitted = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
@@ -219,10 +228,15 @@ def compile_chunk_runner(
         keys_spec = jax.ShapeDtypeStruct(
             (draws_per_call, 2), jnp.uint32, sharding=sharding.draw_sharding(mesh)
         )
+        member_spec = jax.ShapeDtypeStruct(
+            (), jnp.int32, sharding=sharding.replicated_sharding(mesh)
+        )
     else:
         gains_spec = jax.tree.map(lambda g: jax.ShapeDtypeStruct(g.shape, g.dtype), gains)
         keys_spec = jax.ShapeDtypeStruct((draws_per_call, 2), jnp.uint32)
-    return jitted.lower(gains_spec, keys_spec).compile()
+        member_spec = jax.ShapeDtypeStruct((), jnp.int32)
+    specs = (gains_spec, keys_spec, member_spec) if scenario.members else (gains_spec, keys_spec)
+    return jitted.lower(*specs).compile()
 
 
 def numeric_xla_flags(flags: str | None = None) -> list[str]:
@@ -248,6 +262,7 @@ def fingerprint(
     mcfg,
     device_batch: int | None = None,
     backend: str | None = None,
+    member: int | None = None,
 ) -> dict:
     """Every setting draw ``i``'s numbers depend on, as a JSON-ready dict (nested
     dataclasses as dicts, functions by name): what the chunk store keys its draws by.
@@ -257,14 +272,23 @@ def fingerprint(
     default JAX's) and the ``XLA_FLAGS`` that change arithmetic
     (:func:`numeric_xla_flags`). Not in it, since they do not change a draw's numbers:
     the draw count, ``keep``, the devices and processes.
+
+    For a union scenario (:func:`fojax.scenarios.union`; its members are spelled out
+    under ``scenario.members``) it also holds ``member``, the index of the member whose
+    draws these are; a plain scenario's fingerprint has no ``member``.
     """
 
     def plain(obj):
         if dataclasses.is_dataclass(obj):
             return {f.name: plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        if isinstance(obj, tuple | list):  # e.g. a union's members
+            items = [plain(item) for item in obj]
+            same = all(a is b for a, b in zip(items, obj, strict=True))
+            return obj if same else items
         return obj.__name__ if callable(obj) else obj
 
     controller = as_controller(controller)
+    extra = {"member": int(member if member is not None else 0)} if scenario.members else {}
     return {
         "controller": controller.name,
         "controller_config": plain(controller),
@@ -277,6 +301,7 @@ def fingerprint(
         "device_batch": int(device_batch or default_device_batch(backend)),
         "backend": backend or jax.default_backend(),
         "xla_flags": numeric_xla_flags(),
+        **extra,
     }
 
 
@@ -327,7 +352,42 @@ def _place(runner_inputs, mesh):
     return gains, keys
 
 
+def _place_member(member: int, mesh):
+    value = np.asarray(member, np.int32)
+    if mesh is not None and mesh.devices.size > 1:
+        return sharding.replicate(value, mesh)
+    return value
+
+
 # ------------------------------------------------------------------------------ run
+
+
+def check_member(scenario: scenarios.Scenario, member) -> int | None:
+    """The member index :func:`run` uses (None for a plain scenario), or a ``ValueError``
+    saying what to pass: a union (``scenario.members``) needs ``0 <= member <
+    len(members)``; a plain scenario takes none (or 0)."""
+    if member is not None and (
+        isinstance(member, bool) or not isinstance(member, int | np.integer)
+    ):
+        raise ValueError(f"member must be an integer index, got {member!r}")
+    if not scenario.members:
+        if member not in (None, 0):
+            raise ValueError(
+                f"member={member} given for {scenario.name!r}, which is not a union of "
+                "scenarios (fojax.scenarios.union)"
+            )
+        return None
+    count = len(scenario.members)
+    if member is None:
+        raise ValueError(
+            f"{scenario.name!r} is a union of {count} scenarios: pass member= (0 to "
+            f"{count - 1}), the one whose draws to run"
+        )
+    if not 0 <= member < count:
+        raise ValueError(
+            f"member must be 0 to {count - 1} for this union of {count} scenarios, got {member}"
+        )
+    return int(member)
 
 
 def run(
@@ -345,6 +405,7 @@ def run(
     store: str | os.PathLike | None = None,
     runner: Callable | None = None,
     mesh=None,
+    member: int | None = None,
 ) -> MonteCarloResult:
     """Roll out draws ``0 ... draws - 1`` of ``scenario`` with seed ``seed``.
 
@@ -374,6 +435,12 @@ def run(
             (one per core on a CPU with
             ``XLA_FLAGS=--xla_force_host_platform_device_count=N``, the GPUs, or every
             process's devices after :func:`fojax.sharding.initialize`).
+        member: for a union scenario (:func:`fojax.scenarios.union`, with ``config``
+            of the union's horizon), the index of the member whose draws to run
+            (required; None or 0 for a plain scenario). Its draws are that scenario's
+            run alone (bit for bit in float64); the snapshots are trimmed to its own
+            horizon, and the store's :func:`fingerprint` holds the union and the
+            member. One runner (compiled program) serves every member.
 
     Returns a :class:`MonteCarloResult`, the same on every process.
     """
@@ -381,6 +448,7 @@ def run(
     if hasattr(controller, "check_gains"):
         controller.check_gains(gains)
     check_run_arguments(draws, seed, device_batch)
+    member = check_member(scenario, member)
     draws, seed = int(draws), int(seed)
     batch = int(device_batch or default_device_batch())
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
@@ -393,7 +461,7 @@ def run(
     chunk_store = None
     if store is not None and lead:
         settings = fingerprint(
-            controller, gains, scenario, config, seed, dtype, metrics_config, batch
+            controller, gains, scenario, config, seed, dtype, metrics_config, batch, member=member
         )
         chunk_store = ChunkStore(Path(store), settings)
     if chunk_store is not None:
@@ -414,6 +482,10 @@ def run(
     calls = [blocks[i : i + devices] for i in range(0, len(blocks), devices)]
     if runner is None and calls:
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
+    member_blocks = None  # a union member's snapshots stop at its own horizon
+    if scenario.members:
+        own_steps = int(round(scenario.members[member].horizon / config.dt))
+        member_blocks = own_steps // config.save_every
 
     computed: dict[int, tuple] = {}  # block -> (status, per_draw, snapshots or None)
     start_time = time.perf_counter()
@@ -424,9 +496,14 @@ def run(
         filled = call + [call[-1]] * (devices - len(call))  # a short last call: repeat
         indices = np.concatenate([np.arange(k * batch, (k + 1) * batch) for k in filled])
         keys = np.asarray(scenarios.draw_keys(seed, np.minimum(indices, MAX_DRAWS - 1)))
-        outputs = runner(*_place((gains, keys), mesh))
+        inputs = _place((gains, keys), mesh)
+        if scenario.members:
+            inputs = (*inputs, _place_member(member, mesh))
+        outputs = runner(*inputs)
         status, values, snapshots = _gathered(outputs, mesh)
         flat = flatten_snapshot(snapshots)
+        if member_blocks is not None:
+            flat = {name: v[:, :member_blocks] for name, v in flat.items()}
         for j, k in enumerate(call):
             part = slice(j * batch, (j + 1) * batch)
             first = k * batch
