@@ -258,6 +258,21 @@ def test_store_mismatch_names_the_fields(tmp_path):
     ) == ["--xla_cpu_foo=1"]
 
 
+def test_store_keys_the_library_code(tmp_path, monkeypatch):
+    """Draws stored by other fojax code (a changed default changes numbers, not
+    settings) are refused, naming the code."""
+    from fojax.study import _run
+
+    key = _run.code_version()
+    assert len(key) == 16 and key == _run.code_version()
+    args = (CONTROLLER, paper_gains(), SCENARIO, CONFIG, 3, jnp.float64, METRICS, 8)
+    study.ChunkStore(tmp_path, study.fingerprint(*args))
+    monkeypatch.setattr(_run, "code_version", lambda: "0123456789abcdef")
+    with pytest.raises(study.StoreMismatch, match="fojax_code") as info:
+        study.ChunkStore(tmp_path, study.fingerprint(*args))
+    assert [field for field, _, _ in info.value.differences] == ["fojax_code"]
+
+
 @pytest.mark.parametrize(
     "kwargs, message",
     [

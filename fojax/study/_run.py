@@ -31,6 +31,8 @@ shared file system.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import io
 import os
 import sys
@@ -252,6 +254,19 @@ def numeric_xla_flags(flags: str | None = None) -> list[str]:
     return sorted(kept)
 
 
+@functools.lru_cache(maxsize=1)
+def code_version() -> str:
+    """A hash of the library's source (every ``fojax/**/*.py``): draws stored by other
+    code are not reused, as a change of a default (a fractional operator's modes, a
+    plant constant) changes the numbers without changing any setting."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def fingerprint(
     controller,
     gains,
@@ -270,8 +285,9 @@ def fingerprint(
     With the settings of the rollout: the block size ``device_batch`` (default
     :func:`default_device_batch`), the platform ``backend`` (``cpu``, ``gpu``, ...;
     default JAX's) and the ``XLA_FLAGS`` that change arithmetic
-    (:func:`numeric_xla_flags`). Not in it, since they do not change a draw's numbers:
-    the draw count, ``keep``, the devices and processes.
+    (:func:`numeric_xla_flags`), and the library's code (:func:`code_version`). Not in
+    it, since they do not change a draw's numbers: the draw count, ``keep``, the
+    devices and processes.
 
     For a union scenario (:func:`fojax.scenarios.union`; its members are spelled out
     under ``scenario.members``) it also holds ``member``, the index of the member whose
@@ -301,6 +317,7 @@ def fingerprint(
         "device_batch": int(device_batch or default_device_batch(backend)),
         "backend": backend or jax.default_backend(),
         "xla_flags": numeric_xla_flags(),
+        "fojax_code": code_version(),
         **extra,
     }
 
