@@ -200,18 +200,19 @@ TUNE = [
     "0.1",
     "--eval-draws",
     "0",
+    "--method",
+    "adam",
     "--quiet",
 ]
 
 
 def test_two_processes_take_the_tuning_steps_of_one(tmp_path, cache):
-    """The default tuner (L-BFGS) compiled as a user's run is (optimised: the suite's
-    ``--xla_backend_optimization_level=0`` is dropped here; unoptimised, the 1- and
-    2-device gradient programs were measured to round apart, 1e-7 relative)."""
+    """Adam steps (fresh draws each step), compiled as the suite compiles (unoptimised):
+    bit for bit. The default L-BFGS was checked by hand compiled optimised, as a user's
+    run is (equal bit for bit); unoptimised, its 1- and 2-device gradient programs
+    round apart by 1e-7 relative (docs/distributed.md), and compiling the gradient
+    optimised twice would double this test's time."""
     env = _env(cache)
-    env["XLA_FLAGS"] = " ".join(
-        f for f in env["XLA_FLAGS"].split() if not f.startswith("--xla_backend_optimization_level")
-    )
     one, two = tmp_path / "one", tmp_path / "two"
     first = _start(TUNE + ["--out", str(one)], 1, env)
     _wait(first)
