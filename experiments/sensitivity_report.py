@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments.reproduce import claims as claims_module
+from experiments.reproduce.report import format_number as _fmt
 
 __all__ = ["MARKER", "PRECISION_METRICS", "TRUST_FRACTION", "precision_table", "write"]
 
@@ -66,16 +67,6 @@ PRECISION_METRICS = (
 
 
 # ------------------------------------------------------------------------- helpers
-
-
-def _fmt(value, digits: int = 3) -> str:
-    if value is None:
-        return "n/a"
-    if value == 0:
-        return "0"
-    if not math.isfinite(value):
-        return str(value)
-    return f"{value:.{digits}g}"
 
 
 def _verdicts(entry: dict) -> dict:

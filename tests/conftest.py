@@ -19,3 +19,19 @@ _cache = os.environ.get(
 jax.config.update("jax_compilation_cache_dir", _cache)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def close_normwise(got, want, err_msg=""):
+    """float32 comparison of two programs that may fuse and round apart: non-finite
+    values equal, the largest difference within 1e-4 of the array's largest magnitude
+    (a few 1e-5 of a signal's scale were measured on CPUs of different vector widths).
+    Import it: ``from conftest import close_normwise``."""
+    import numpy as np
+
+    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+    finite = np.isfinite(want)
+    np.testing.assert_array_equal(got[~finite], want[~finite], err_msg=err_msg)
+    got, want = got[finite], want[finite]
+    scale = max(float(np.max(np.abs(want), initial=0.0)), 1e-6)
+    worst = float(np.max(np.abs(got - want), initial=0.0))
+    assert worst <= 1e-4 * scale, f"{err_msg}: max difference {worst:.3g} against scale {scale:.3g}"

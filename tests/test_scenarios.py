@@ -11,6 +11,7 @@ import math  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from conftest import close_normwise  # noqa: E402
 
 from fojax import plant  # noqa: E402
 from fojax import scenarios as sc  # noqa: E402
@@ -215,22 +216,6 @@ def test_draw_float32():
 # ------------------------------------------------------------------- union scenarios
 
 
-def _close_normwise(got, want, err_msg=""):
-    """float32: the largest difference within 1e-4 of the array's largest magnitude.
-
-    The union and the lone scenario are two programs; XLA may fuse them differently,
-    so float32 values agree to rounding, amplified a little by the closed loop (a few
-    1e-5 of an array's scale on CPUs with different vector widths), not bit for bit.
-    """
-    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
-    finite = np.isfinite(want)
-    np.testing.assert_array_equal(got[~finite], want[~finite], err_msg=err_msg)
-    got, want = got[finite], want[finite]
-    scale = max(float(np.max(np.abs(want), initial=0.0)), 1e-6)
-    worst = float(np.max(np.abs(got - want), initial=0.0))
-    assert worst <= 1e-4 * scale, f"{err_msg}: max difference {worst:.3g} against scale {scale:.3g}"
-
-
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_a_union_runs_each_member_as_it_runs_alone(dtype):
     """One compiled rollout for three scenarios of different horizons: every member's
@@ -271,7 +256,7 @@ def test_a_union_runs_each_member_as_it_runs_alone(dtype):
         alone = run(member, member.horizon, keys, 0)
         blocks = alone.trajectory.time.shape[1]
         assert blocks == round(member.horizon / dt) // save_every
-        same = np.testing.assert_array_equal if dtype == jnp.float64 else _close_normwise
+        same = np.testing.assert_array_equal if dtype == jnp.float64 else close_normwise
         np.testing.assert_array_equal(together.status, alone.status)
         for name, value in alone.outputs.items():
             same(together.outputs[name], value, err_msg=name)

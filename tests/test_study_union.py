@@ -8,6 +8,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from conftest import close_normwise  # noqa: E402
 
 from experiments import study as study_layer  # noqa: E402
 from fojax import study as monte_carlo  # noqa: E402
@@ -113,17 +114,6 @@ def test_only_studies_with_the_same_settings_share_a_union(monkeypatch):
         study_layer.plan_unions(studies)
 
 
-def _close_normwise(got, want, err_msg=""):
-    """Within 1e-4 of the array's largest magnitude (``tests/test_scenarios.py``)."""
-    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
-    finite = np.isfinite(want)
-    np.testing.assert_array_equal(got[~finite], want[~finite], err_msg=err_msg)
-    got, want = got[finite], want[finite]
-    scale = max(float(np.max(np.abs(want), initial=0.0)), 1e-6)
-    worst = float(np.max(np.abs(got - want), initial=0.0))
-    assert worst <= 1e-4 * scale, f"{err_msg}: max difference {worst:.3g} against scale {scale:.3g}"
-
-
 def test_float32_and_a_horizon_dependent_operator_stay_within_rounding(tmp_path, monkeypatch):
     """The default reproduce settings' kind: float32, and sum-of-exponentials fractional
     operators, which the union sizes for its longest horizon (0.3 s) where scenario 3
@@ -133,4 +123,4 @@ def test_float32_and_a_horizon_dependent_operator_stay_within_rounding(tmp_path,
     assert len(compiled) == len(CONTROLLERS)
     alone, _ = _run(studies, tmp_path / "alone", monkeypatch, union=False)
     for study in studies:
-        _assert_same(together[study.scenario_id], alone[study.scenario_id], _close_normwise)
+        _assert_same(together[study.scenario_id], alone[study.scenario_id], close_normwise)

@@ -31,14 +31,18 @@ TABLE_METRICS = (
 MARK = {"better": "**better**", "worse": "**worse**", "equivalent": "equiv.", "inconclusive": "?"}
 
 
-def _fmt(value) -> str:
+def format_number(value, digits: int = 3) -> str:
+    """``value`` to ``digits`` significant digits; ``n/a`` for None, ``0`` for zero."""
     if value is None:
         return "n/a"
     if value == 0:
         return "0"
     if not math.isfinite(value):
         return str(value)
-    return f"{value:.3g}"
+    return f"{value:.{digits}g}"
+
+
+_fmt = format_number
 
 
 def _cell(stats: dict) -> str:
