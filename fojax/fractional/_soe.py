@@ -302,9 +302,10 @@ def _drive(taps: Array, samples: tuple) -> Array:
 
 
 def _history(modes: Array, readout: Array) -> Array:
-    """The two weighted sums of the modes, ``S + (2,)`` (sums, not a matrix product:
-    XLA's CPU backend hands small products to a library call that costs more)."""
-    return jnp.stack([jnp.sum(modes * readout[0], -1), jnp.sum(modes * readout[1], -1)], -1)
+    """The two weighted sums of the modes, ``S + (2,)``: one ``(..., modes) x (modes, 2)``
+    product, which XLA's CPU backend hands to its matrix-product library (measured
+    faster than two fused weighted sums: ``docs/performance.md``, round 4)."""
+    return modes @ readout.T
 
 
 @jax.custom_vjp
@@ -347,6 +348,17 @@ def _advance_and_read_bwd(residuals, cotangents):
 _advance_and_read.defvjp(_advance_and_read_fwd, _advance_and_read_bwd)
 
 
+MODE_LANES = 8
+"""The fused memory's mode axis is padded to a multiple of this (8 float32 lanes of an
+AVX2 vector; 23 modes measured slower than 24 or 32, ``docs/performance.md``)."""
+
+
+def _pad_modes(table: Array, modes: int) -> Array:
+    """``table`` with its last (mode) axis padded with zeros to ``modes`` entries."""
+    extra = modes - table.shape[-1]
+    return jnp.pad(table, [(0, 0)] * (table.ndim - 1) + [(0, extra)]) if extra else table
+
+
 class RatePairCoefficients(NamedTuple):
     """Weights of :class:`SOEIntegralWithRate` over the :class:`SumOfExponentials` modes.
 
@@ -364,6 +376,11 @@ class RatePairCoefficients(NamedTuple):
     Keeping the order-dependent weights apart from the fixed taps makes the gradient
     with respect to the orders accumulate one ``S + (modes,)`` array per step instead of
     ``S + (3, modes)`` (docs/performance.md).
+
+    ``modes`` here is the operator's mode count padded to a multiple of
+    :data:`MODE_LANES` with modes of zero weight, zero taps and no decay, which stay
+    zero: the arithmetic of the real modes is unchanged, and the mode axis, the minor
+    axis of every array of the memory, fills whole vectors.
     """
 
     mode_weights: Array
@@ -413,6 +430,11 @@ class SOEIntegralWithRate:
 
     operator: SumOfExponentials
 
+    @property
+    def n_modes(self) -> int:
+        """Modes of the state: the operator's, padded to a multiple of :data:`MODE_LANES`."""
+        return -(-self.operator.n_modes // MODE_LANES) * MODE_LANES
+
     def coefficients(self, b: Any, dtype: Any = None) -> Any:
         """Weights for integral orders ``b`` (rate order ``1 - b``)."""
         dtype = float_dtype(jnp.result_type(float) if dtype is None else dtype)
@@ -425,10 +447,11 @@ class SOEIntegralWithRate:
             [jnp.asarray(tb[name], dtype) for name in ("gain_u", "gain_u1", "gain_u2")]
         )  # (3, modes)
         rates = jnp.asarray(tb["rates"], dtype)
+        m = self.n_modes
         return RatePairCoefficients(
-            mode_weights=integral.history,
-            taps=gains,
-            readout=jnp.stack([jnp.ones_like(rates), -rates]),
+            mode_weights=_pad_modes(integral.history, m),
+            taps=_pad_modes(gains, m),
+            readout=_pad_modes(jnp.stack([jnp.ones_like(rates), -rates]), m),
             local=jnp.stack([integral.local, rate.local], axis=-2),
         )
 
@@ -437,7 +460,7 @@ class SOEIntegralWithRate:
         shape = tuple(shape)
         zeros = jnp.zeros(shape, dtype)
         return RatePairState(
-            modes=jnp.zeros(shape + (self.operator.n_modes,), dtype),
+            modes=jnp.zeros(shape + (self.n_modes,), dtype),
             u_prev=zeros,
             u_prev2=zeros,
             u_prev3=zeros,
@@ -452,7 +475,7 @@ class SOEIntegralWithRate:
         # interval [t_{k-2}, t_{k-1}] against the quadratic through u_{k-3}, u_{k-2},
         # u_{k-1} (on the first interval, the line through u_{k-2}, u_{k-1}).
         u_before = jnp.where(count > 2, state.u_prev3, 2.0 * state.u_prev2 - state.u_prev)
-        decay_m1 = jnp.asarray(self.operator._tables["decay_m1"], dtype)
+        decay_m1 = _pad_modes(jnp.asarray(self.operator._tables["decay_m1"], dtype), self.n_modes)
         modes, history = _advance_and_read(
             state.modes,
             coeffs.mode_weights,
