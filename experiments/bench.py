@@ -176,12 +176,24 @@ class _Workload:
         keys = scenarios.draw_keys(0, range(count))
         return jax.vmap(lambda k: scenarios.sample_draw(self.scenario, k, self.dt, "float32"))(keys)
 
-    def one_draw(self, gains, draw, observer=None):
-        from fojax import simulator
+    def run_draws(self, gains, draws, observer=None, per_draw_gains=False):
+        """The rollout of a batch of draws (``draws`` batch first, as :meth:`draws` makes
+        them), run with the batch last; results batch first. ``per_draw_gains``: one
+        copy of the gains per draw, so that under ``grad`` their cotangents stay per
+        draw inside the time loop and are summed once, after it."""
+        import jax
+        import jax.numpy as jnp
 
-        return simulator.rollout(
-            self.controller, gains, self.model, self.scenario, draw, self.config, observer
+        from fojax import scenarios, simulator
+
+        draws = scenarios.batch_last(draws)
+        if per_draw_gains:
+            n = draws.params.mass.shape[-1]
+            gains = jax.tree.map(lambda g: jnp.broadcast_to(g[..., None], g.shape + (n,)), gains)
+        result = simulator.rollout(
+            self.controller, gains, self.model, self.scenario, draws, self.config, observer
         )
+        return scenarios.batch_first(result)
 
 
 def _block_size(steps: int) -> int:
@@ -254,7 +266,7 @@ def measure_forward(
     n_chunks = math.ceil(count / chunk)
     all_draws = work.draws(n_chunks * padded_chunk)
     gains = sharding.replicate(work.gains, mesh)
-    run = sharding.sharded_vmap(work.one_draw, mesh, in_axes=(None, 0))
+    run = sharding.sharded_batch(work.run_draws, mesh, batched=(False, True))
 
     def place(first, size):
         return sharding.shard_draws(
@@ -310,18 +322,20 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
     draws = sharding.shard_draws(work.draws(padded), mesh)
     gains = sharding.replicate(work.gains, mesh)
 
-    def forward(gains, draws):
+    cost = observers.TrackingISE(work.dt)
+
+    def costs(gains, draws):
         # One copy of the gains per draw: their cotangents stay per draw inside the time
         # loop and are summed once, after it (see the module docstring).
-        n = draws.time_step.shape[0]
-        per_draw = jax.tree.map(lambda g: jnp.broadcast_to(g, (n,) + g.shape), gains)
-        cost = observers.TrackingISE(work.dt)
-        return jnp.mean(jax.vmap(lambda g, d: work.one_draw(g, d, cost).outputs)(per_draw, draws))
+        return work.run_draws(gains, draws, cost, per_draw_gains=True).outputs
 
-    replicated = sharding.replicated_sharding(mesh)
-    in_shardings = (replicated, sharding.draw_sharding(mesh))
-    forward_jit = jax.jit(forward, in_shardings=in_shardings)
-    gradient_jit = jax.jit(jax.grad(forward), in_shardings=in_shardings)
+    per_device = sharding.sharded_batch(costs, mesh, batched=(False, True))
+
+    def forward(gains, draws):
+        return jnp.mean(per_device(gains, draws))
+
+    forward_jit = jax.jit(forward)
+    gradient_jit = jax.jit(jax.grad(forward))
     forward_c, forward_compile_s = _compile(forward_jit, gains, draws)
     gradient_c, gradient_compile_s = _compile(gradient_jit, gains, draws)
     jax.block_until_ready(forward_c(gains, draws))

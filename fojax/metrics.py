@@ -2,8 +2,8 @@
 
 :class:`Metrics` is an observer (:mod:`fojax.observers`): nothing of the full-rate
 trajectory is stored; a small pytree (:class:`MetricsState`) folds in every control
-step and becomes the metrics of one draw at the end. Under ``vmap`` every leaf gains a
-leading ``(draws,)`` axis.
+step and becomes the metrics of one draw at the end. Over a batch of draws every leaf
+gains the batch's axes last (:mod:`fojax.observers`).
 
 Errors are :func:`fojax.observers.tracking_error` (``e = actual - reference``; the
 attitude against the attitude reference the attitude loop tracks), sampled at the
@@ -43,7 +43,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from fojax import plant
+from fojax import observers, plant
 
 Array = jax.Array
 
@@ -202,7 +202,7 @@ def _update(
     first = acc.count == 0
     magnitude = jnp.abs(error)
 
-    outside = magnitude > config.bands(dtype)
+    outside = magnitude > observers.per_component(config.bands(dtype), magnitude)
     last_outside = jnp.where(outside, t, acc.last_outside)
 
     undecided = (acc.direction == 0) & (magnitude > config.overshoot_threshold)
@@ -210,8 +210,10 @@ def _update(
     overshoot = jnp.maximum(acc.overshoot, jnp.maximum(-direction * error, 0.0))
 
     variation = acc.variation + jnp.where(first, 0.0, jnp.abs(inputs - acc.previous_input))
-    infeasible = jnp.any(plant.rotor_speeds_squared(mixer_params, inputs) < 0)
-    surface_outside = jnp.abs(surfaces) > config.reaching_bands(dtype)
+    infeasible = jnp.any(plant.rotor_speeds_squared(mixer_params, inputs) < 0, 0)
+    surface_outside = jnp.abs(surfaces) > observers.per_component(
+        config.reaching_bands(dtype), surfaces
+    )
     surface_last_outside = jnp.where(surface_outside, t, acc.surface_last_outside)
 
     return MetricsState(
@@ -253,8 +255,8 @@ def _finalize(config: MetricsConfig, acc: MetricsState) -> dict[str, Array]:
         ),
     )
     return {
-        "position_rmse": jnp.sqrt(jnp.sum(acc.squared_error[:3]) / horizon),
-        "attitude_rmse": jnp.sqrt(jnp.sum(acc.squared_error[3:]) / horizon),
+        "position_rmse": jnp.sqrt(jnp.sum(acc.squared_error[:3], 0) / horizon),
+        "attitude_rmse": jnp.sqrt(jnp.sum(acc.squared_error[3:], 0) / horizon),
         "rmse": jnp.sqrt(acc.squared_error / horizon),
         "iae": acc.absolute_error,
         "itae": acc.time_weighted_error,

@@ -10,8 +10,14 @@ pure functions, in the style of optax's transformations:
 ``finalize(acc) -> outputs``
     What it reports for the draw (a pytree of arrays).
 
-:func:`fojax.simulator.rollout` calls them at every control step; under ``vmap`` every
-leaf gains a leading ``(draws,)`` axis. :class:`Chain` runs several under names
+:func:`fojax.simulator.rollout` calls them at every control step. ``init`` returns
+the state of one draw; over a batch of draws the rollout broadcasts it, and every array
+an observer sees and keeps, the batch's axes last (``record.error`` ``(6, draws)``, a
+``(6,)`` sum ``(6, draws)``): write ``update`` with elementwise operations, indexing
+along the leading axes and reductions over named leading axes (``jnp.sum(e[:3], 0)``,
+never over all axes), and it runs unchanged on one draw and on a batch
+(:func:`per_component` shapes a ``(k,)`` constant to broadcast along the components).
+:class:`Chain` runs several under names
 (``Chain(metrics=..., cost=...)``), :class:`Status` (the per-draw failure flags) runs
 in every rollout. The per-draw metrics (:mod:`fojax.metrics`) and the tuning cost
 (:mod:`optimize.cost`) are observers; :func:`tracking_error` is the one definition of
@@ -41,6 +47,7 @@ __all__ = [
     "Status",
     "StepRecord",
     "TrackingISE",
+    "per_component",
     "tracking_error",
 ]
 
@@ -72,16 +79,24 @@ class StepRecord(NamedTuple):
     plant: plant.PlantParams
 
 
+def per_component(values: Any, like: Array) -> Array:
+    """``values`` ``(k,)`` (one per component) shaped to broadcast against ``like``, an
+    array ``(k,) + batch`` of one draw or of a batch (the batch's axes last): ``(k, 1)``
+    against ``(k, draws)``."""
+    values = jnp.asarray(values)
+    return values.reshape(values.shape + (1,) * (jnp.ndim(like) - values.ndim))
+
+
 def tracking_error(state: Array, reference: Array, attitude_reference: Array) -> Array:
     """``(6,)`` tracking errors ``e = actual - reference`` over ``(x, y, z, phi, theta,
     psi)``: the position against the reference trajectory, the attitude against the
     attitude reference the attitude loop tracks (``ControlInfo.attitude_reference``:
     the position loop's command after the command filter; ``psi`` against the
-    reference yaw).
+    reference yaw). Over a batch: ``state`` ``(12, draws)``, ``reference`` ``(4,)`` or
+    ``(4, draws)``, the result ``(6, draws)``.
     """
-    return jnp.concatenate(
-        [state[:3] - reference[:3], state[3:6] - attitude_reference.astype(state.dtype)]
-    )
+    position = state[:3] - per_component(reference[:3], state[:3])
+    return jnp.concatenate([position, state[3:6] - attitude_reference.astype(state.dtype)])
 
 
 class Observer(Protocol):
@@ -108,12 +123,12 @@ class Status:
     def update(self, acc: Array, record: StepRecord) -> Array:
         state, inputs = record.next_state, record.inputs
         finite = (
-            jnp.all(jnp.isfinite(state))
-            & jnp.all(jnp.isfinite(inputs))
-            & jnp.all(jnp.isfinite(record.info.surfaces))
+            jnp.all(jnp.isfinite(state), 0)
+            & jnp.all(jnp.isfinite(inputs), 0)
+            & jnp.all(jnp.isfinite(record.info.surfaces), 0)
         )
-        tilt = jnp.any(jnp.abs(state[3:5]) >= jnp.pi / 2)
-        actuator = jnp.any(plant.rotor_speeds_squared(record.plant, inputs) < 0)
+        tilt = jnp.any(jnp.abs(state[3:5]) >= jnp.pi / 2, 0)
+        actuator = jnp.any(plant.rotor_speeds_squared(record.plant, inputs) < 0, 0)
         flags = (
             jnp.where(finite, 0, NONFINITE)
             | jnp.where(tilt, TILT_LIMIT, 0)
@@ -137,7 +152,7 @@ class TrackingISE:
 
     def update(self, acc: Array, record: StepRecord) -> Array:
         error = record.error
-        return acc + self.dt * (jnp.sum(error[:3] ** 2) + jnp.sum(error[3:] ** 2))
+        return acc + self.dt * (jnp.sum(error[:3] ** 2, 0) + jnp.sum(error[3:] ** 2, 0))
 
     def finalize(self, acc: Array) -> Array:
         return acc

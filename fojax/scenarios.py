@@ -62,6 +62,9 @@ __all__ = [
     "reference_and_disturbance",
     "reference_with_derivatives",
     "sample_draw",
+    "sample_draws",
+    "batch_first",
+    "batch_last",
     "union",
 ]
 
@@ -344,8 +347,9 @@ def reference_and_disturbance(scenario: Scenario, member: Array, t: Array):
     ``member`` (a union's member index; ignored for a scenario) at time ``t``.
 
     Returns ``((position (4,), velocity (4,), acceleration (4,)), disturbance (6,))``.
-    For a union every member's functions are evaluated (time only: shared by every draw
-    under ``vmap``) and the draw's member is selected.
+    For a union every member's functions are evaluated (time only: shared by every
+    draw) and each draw's member is selected: ``member`` of shape ``batch`` gives
+    ``(4,) + batch`` and ``(6,) + batch`` (the batch's axes last).
     """
     if not scenario.members:
         return reference_with_derivatives(scenario.reference, t), scenario.disturbance(t)
@@ -354,7 +358,13 @@ def reference_and_disturbance(scenario: Scenario, member: Array, t: Array):
         for m in scenario.members
     ]
     stacked = jax.tree.map(lambda *leaves: jnp.stack(leaves), *values)
-    return jax.tree.map(lambda leaf: leaf[member], stacked)
+    member = jnp.asarray(member)
+    batch = tuple(range(member.ndim))
+    # (members, k)[member] is member.shape + (k,): the batch's axes go last.
+    return jax.tree.map(
+        lambda leaf: jnp.moveaxis(leaf[member], batch, tuple(a - len(batch) for a in batch)),
+        stacked,
+    )
 
 
 _SCENARIOS = {
@@ -533,6 +543,32 @@ def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None, member: A
         member=jnp.asarray(member, jnp.int32),
         steps=jnp.asarray(member_steps, jnp.int32),
     )
+
+
+def sample_draws(
+    scenario: Scenario, keys: Array, dt: float, dtype=None, member: Any = 0
+) -> Draw:
+    """:func:`sample_draw` for every key of ``keys`` ``(draws, 2)``, as one :class:`Draw`
+    with the batch's axis last (``params.mass`` ``(draws,)``, ``noise_accel`` ``(rows,
+    6, draws)``): what :func:`fojax.simulator.rollout` runs over a batch. ``member``: one
+    union member for every draw, or ``(draws,)``. Draw ``i`` is the same as
+    ``sample_draw(scenario, keys[i], ...)`` (one ``vmap``).
+    """
+    keys = jnp.asarray(keys)
+    member = jnp.broadcast_to(jnp.asarray(member, jnp.int32), keys.shape[:1])
+    draws = jax.vmap(lambda key, m: sample_draw(scenario, key, dt, dtype, m))(keys, member)
+    return batch_last(draws)
+
+
+def batch_last(tree: Any) -> Any:
+    """Every leaf's leading (draw) axis moved last: a batch laid out by ``vmap``
+    (``(draws, ...)``) as a rollout over the batch takes it (``(..., draws)``)."""
+    return jax.tree.map(lambda leaf: jnp.moveaxis(leaf, 0, -1), tree)
+
+
+def batch_first(tree: Any) -> Any:
+    """The inverse of :func:`batch_last`: every leaf's last (draw) axis moved first."""
+    return jax.tree.map(lambda leaf: jnp.moveaxis(leaf, -1, 0), tree)
 
 
 def held_row(table: Array, step: Array, hold_steps) -> Array:

@@ -1,11 +1,11 @@
 """Monte Carlo draws spread over every device: one mesh axis, ``"draws"``.
 
 Draws are independent, so a batch of draws splits over devices with no
-communication inside the time loop: the leading (draw) axis of every batched array is
-sharded over a one-dimensional :class:`jax.sharding.Mesh`, everything shared (gains,
-the nominal model) is replicated, and ``jax.jit`` partitions the vmapped rollout. Each
-device runs the same per-draw arithmetic as a single-device run, so the results are
-the same.
+communication inside the time loop: the leading (draw) axis of every batched input
+and output is sharded over a one-dimensional :class:`jax.sharding.Mesh`, everything
+shared (gains, the nominal model) is replicated, and each device runs the batched
+rollout on its own block (:func:`sharded_batch`). Each device runs the same program as
+a single-device run of its block, so the results are the same.
 
 On one host the mesh holds its local devices: GPUs, or CPU "devices" made with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (one per core; set before JAX
@@ -18,7 +18,7 @@ Typical use::
 
     mesh = sharding.draw_mesh()
     keys = sharding.shard_draws(scenarios.draw_keys(seed, range(n)), mesh)
-    run = sharding.sharded_vmap(one_draw, mesh, in_axes=(None, 0))
+    run = sharding.sharded_batch(run_draws, mesh, batched=(False, True))
     results = run(gains, keys)        # results sharded along the draws
 """
 
@@ -44,7 +44,7 @@ __all__ = [
     "replicate",
     "replicated_sharding",
     "shard_draws",
-    "sharded_vmap",
+    "sharded_batch",
 ]
 
 DRAW_AXIS = "draws"
@@ -255,24 +255,22 @@ def replicate(tree: Any, mesh: Mesh) -> Any:
     return jax.tree.map(place, tree)
 
 
-def sharded_vmap(fn: Callable, mesh: Mesh, in_axes: Sequence[int | None]) -> Callable:
-    """``jax.jit(jax.vmap(fn, in_axes))`` with the mapped arguments split over ``mesh``.
+def sharded_batch(fn: Callable, mesh: Mesh, batched: Sequence[bool]) -> Callable:
+    """``jax.jit(fn)`` with the draws split over ``mesh``: each device runs ``fn`` on its
+    own block of draws.
 
-    in_axes: one entry per positional argument of ``fn``, ``0`` for arguments batched
-        along their leading (draw) axis, ``None`` for shared ones (replicated).
-    The outputs are batched along their leading axis and sharded the same way. Inputs
-    may be given already placed (:func:`shard_draws`, :func:`replicate`) or as host
-    arrays; the compiled program is reused for inputs of the same shapes.
+    ``fn`` maps a batch of draws to results per draw (every output's leading axis the
+    draws, computed for each draw from its own inputs only). batched: one entry per
+    positional argument of ``fn``, ``True`` for arguments whose leading axis holds the
+    draws (split over the devices), ``False`` for shared ones (replicated). Each device
+    runs exactly the program ``fn`` compiles to for its block (``jax.shard_map``), so a
+    draw's numbers are those of a one-device run of the same block. Inputs may be given
+    already placed (:func:`shard_draws`, :func:`replicate`) or as host arrays; the
+    compiled program is reused for inputs of the same shapes.
     """
-    in_axes = tuple(in_axes)
-    for axis in in_axes:
-        if axis not in (0, None):
-            raise ValueError(f"in_axes entries must be 0 (batched) or None (shared), got {axis}")
-    shardings = tuple(
-        draw_sharding(mesh) if axis == 0 else replicated_sharding(mesh) for axis in in_axes
+    specs = tuple(PartitionSpec(DRAW_AXIS) if b else PartitionSpec() for b in batched)
+    mapped = jax.shard_map(
+        fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(DRAW_AXIS), check_vma=False
     )
-    return jax.jit(
-        jax.vmap(fn, in_axes=in_axes),
-        in_shardings=shardings,
-        out_shardings=draw_sharding(mesh),
-    )
+    shardings = tuple(draw_sharding(mesh) if b else replicated_sharding(mesh) for b in batched)
+    return jax.jit(mapped, in_shardings=shardings, out_shardings=draw_sharding(mesh))

@@ -1,4 +1,4 @@
-"""Closed-loop rollout: plant + controller + scenario, one draw, jit/vmap/grad-able.
+"""Closed-loop rollout: plant + controller + scenario over a batch of draws, jit/grad-able.
 
 Per step ``k`` (time ``t_k = k dt``): the reference and its exact derivatives at
 ``t_k`` (autodiff of the reference function), the controller's update from the
@@ -6,6 +6,16 @@ sampled state, then one RK4 step of the plant with the inputs, the disturbance a
 the drag coefficients held over the step (zero-order hold). What the rollout records
 beyond its snapshots (metrics, a tuning cost, the status flags) is folded in by
 observers (:mod:`fojax.observers`).
+
+**Batch last.** :func:`rollout` runs one draw or a batch of draws in one program: the
+draw's arrays with the batch's axes last (:func:`fojax.scenarios.sample_draws`: the
+state ``(12, draws)``, the errors ``(6, draws)``, the fractional memory ``(modes, 12,
+draws)``). Every per-axis quantity is then one array whose rows are contiguous runs
+over the draws, computed in vectorised passes, and the step is a few dozen arrays
+rather than hundreds of per-draw scalars: fewer kernels, fewer residuals under
+``grad`` and less to compile (docs/performance.md). The same code runs one draw
+(batch shape ``()``); the controller's law and the observers are written for one
+draw and run unchanged on the batch (:class:`fojax.controllers.ControlLaw`).
 
 The time loop is a ``lax.scan`` over blocks of ``save_every`` steps (an inner scan);
 one snapshot per block is kept, and each block is rematerialised under ``grad``
@@ -16,12 +26,9 @@ Loop layout (the arithmetic above, in another order): the controller's update fo
 step ``k + 1`` runs at the end of iteration ``k``, right after the plant step, and
 its command and diagnostics travel in the loop carry (the first update runs before
 the loop). The plant and the per-step bookkeeping then read the command from the
-carry, where it is computed once; when both ran in the same iteration, XLA's CPU
-backend recomputed the whole control law inside each of the ~20 kernels that read
-the command (every RK4 stage, the rotor speeds, the status flags; see
-docs/performance.md). The plant state is carried as its 12 entries (one contiguous
-array per entry under ``vmap``), stacked only where a ``(12,)`` array is needed, and
-with it the sines and cosines of its attitude, evaluated once per step
+carry, where it is computed once (XLA's CPU backend otherwise recomputes an operand
+inside every kernel reading it; see docs/performance.md). With the plant state the
+carry holds the sines and cosines of its attitude, evaluated once per step
 (:func:`fojax.plant.rk4_step_parts`).
 """
 
@@ -37,7 +44,7 @@ from jax import lax
 
 from fojax import observers, plant, scenarios
 from fojax.controllers.base import ControlInfo, Observation
-from fojax.controllers.cascade import as_controller
+from fojax.controllers.cascade import as_controller, broadcast_batch
 
 Array = jax.Array
 
@@ -127,12 +134,12 @@ class Snapshot(NamedTuple):
 
 
 class Rollout(NamedTuple):
-    """Result of one draw.
+    """Result of one draw or of a batch.
 
     final_state: ``(12,)``. status: ``()`` int32 bit flags
     (:data:`fojax.observers.STATUS_NAMES`). outputs: what the rollout's observer
     finalized (``None`` without one). trajectory: :class:`Snapshot` with a leading
-    ``(blocks,)`` axis.
+    ``(blocks,)`` axis. A batch adds its axes last to each.
     """
 
     final_state: Array
@@ -144,15 +151,15 @@ class Rollout(NamedTuple):
 class LoopState(NamedTuple):
     """The time loop's carry, at the start of step ``k``.
 
-    state: the plant state ``x_k`` as 12 scalars (one contiguous array each under
-    ``vmap``). trig: ``(6,)`` :func:`fojax.plant.attitude_trig` of ``x_k``. held: the
+    Shapes of one draw; a batch adds its axes last. state: the plant state ``x_k``
+    ``(12,)``. trig: ``(6,)`` :func:`fojax.plant.attitude_trig` of ``x_k``. held: the
     draw's ``(noise, drag)`` table rows in force at step ``k`` (each ``(6,)`` or
     ``None``). control: the controller's state after its update at ``t_k``. inputs,
     info: that update's command ``(4,)`` and :class:`ControlInfo`. status: ``()`` the
     :class:`fojax.observers.Status` flags so far. observed: the observer's state.
     """
 
-    state: tuple
+    state: Array
     trig: Array
     held: tuple
     control: Any
@@ -169,11 +176,9 @@ def _held_values(scenario: scenarios.Scenario, config: SimulationConfig):
 
     The draw's tables are laid out for ``config.dt`` (``sample_draw(..., dt=config.dt)``),
     so the row of step ``k`` is ``k // hold_steps`` with ``hold_steps`` known before
-    tracing. The row then does not depend on the draw, and under ``vmap`` each lookup
-    is one slice of the batched table instead of a gather per draw. The rollout reads
-    each step's values once, at the end of the step before, and carries them: a row of
-    a ``(draws, rows, 6)`` table is a strided read that XLA otherwise repeated inside
-    every kernel using it.
+    tracing. The row then does not depend on the draw: over a batch each lookup is one
+    contiguous slice ``(6, draws)`` of the ``(rows, 6, draws)`` table. The rollout reads
+    each step's values once, at the end of the step before, and carries them.
     """
     noise_steps, _ = scenarios.hold_layout(scenario.horizon, scenario.noise_hold, config.dt)
     drag_steps, _ = scenarios.hold_layout(scenario.horizon, scenario.drag_hold, config.dt)
@@ -190,6 +195,16 @@ def _held_values(scenario: scenarios.Scenario, config: SimulationConfig):
     return held
 
 
+def _per_draw(value: Array, ndim: int, batch: tuple[int, ...]) -> Array:
+    """``value`` with ``ndim`` axes of one draw (time only, shared by a batch) repeated
+    over the batch, its axes last; a value already per draw is kept."""
+    value = jnp.asarray(value)
+    if value.ndim == ndim + len(batch):
+        return value
+    value = value.reshape(value.shape + (1,) * len(batch))
+    return jnp.broadcast_to(value, value.shape[:ndim] + batch)
+
+
 def rollout(
     controller: Any,
     gains: Any,
@@ -199,31 +214,38 @@ def rollout(
     config: SimulationConfig,
     observer: Any = None,
 ) -> Rollout:
-    """Simulate one draw of ``scenario`` under ``controller`` with ``gains``.
+    """Simulate one draw, or a batch of draws, of ``scenario`` under ``controller``.
 
-    ``controller``: a :class:`fojax.controllers.Cascade` (:func:`fojax.make_controller`),
-    a bare :class:`fojax.controllers.ControlLaw` (run in a default cascade) or any
-    object with the controller interface. ``model`` is the nominal plant the
-    controller uses; ``draw.params`` is the simulated plant; ``draw`` must be sampled
-    for ``config.dt`` (its tables are read by step index). ``observer``, if given, is
-    an :class:`fojax.observers.Observer` (or a :class:`fojax.observers.Chain` of
-    them) folded over every step; its finalized outputs are ``Rollout.outputs``.
+    ``draw``: one :class:`fojax.scenarios.Draw` (:func:`fojax.scenarios.sample_draw`), or
+    a batch with the batch's axes last (:func:`fojax.scenarios.sample_draws`: every
+    leaf ``(..., draws)``); it must be sampled for ``config.dt`` (its tables are read by
+    step index). ``controller``: a :class:`fojax.controllers.Cascade`
+    (:func:`fojax.make_controller`), a bare :class:`fojax.controllers.ControlLaw` (run
+    in a default cascade) or any object with the controller interface. ``gains``:
+    shared by the batch (each field with its declared shape) or per draw (the batch's
+    axes last). ``model`` is the nominal plant the controller uses; ``draw.params`` is
+    the simulated plant. ``observer``, if given, is an
+    :class:`fojax.observers.Observer` (or a :class:`fojax.observers.Chain` of them)
+    folded over every step; its finalized outputs are ``Rollout.outputs``.
 
-    Pure and traceable: ``vmap`` over ``draw`` (and ``gains``) for Monte Carlo,
-    ``grad`` through ``outputs``. Gains are not checked here (they may be traced);
-    :func:`run` checks them.
+    Every per-draw array of the result has the batch's axes last (``final_state``
+    ``(12, draws)``, ``trajectory.state`` ``(blocks, 12, draws)``);
+    :func:`fojax.scenarios.batch_first` moves them first. Pure and traceable: ``grad``
+    through ``outputs``. Gains are not checked here (they may be traced);
+    :func:`fojax.study.run` checks them.
     """
     controller = as_controller(controller)
     dt = config.dt
     dtype = jnp.asarray(draw.params.mass).dtype
-    params = controller.prepare(gains, model)
-    state0 = scenarios.initial_state(scenario, dtype)
+    batch = tuple(jnp.shape(draw.params.mass))
+    params = controller.prepare(gains, model, batch)
+    state0 = _per_draw(scenarios.initial_state(scenario, dtype), 1, batch)
     status_observer = observers.Status()
 
     def reference_at(draw, k):
         """The time, the reference with its two derivatives and the deterministic
-        disturbance at step ``k`` (time only: shared by every draw under ``vmap``; for a
-        union scenario, the draw's member's)."""
+        disturbance at step ``k`` (time only: shared by every draw; for a union
+        scenario, each draw's member's, the batch last)."""
         t = k.astype(dtype) * dt
         derivatives, disturbance = scenarios.reference_and_disturbance(scenario, draw.member, t)
         return t, tuple(d.astype(dtype) for d in derivatives), disturbance.astype(dtype)
@@ -253,25 +275,26 @@ def rollout(
         applied = tuple(loop.inputs[i] for i in range(4))
         if config.rotor_speed_limit is not None:
             applied = plant.saturate_inputs(draw.params, applied, config.rotor_speed_limit)
-        next_state = plant.rk4_step_parts(
-            draw.params,
-            loop.state,
-            applied,
-            disturbance,
-            dt,
-            drag_position,
-            drag_attitude,
-            tuple(loop.trig[i] for i in range(6)),
+        next_state = jnp.stack(
+            plant.rk4_step_parts(
+                draw.params,
+                tuple(loop.state[i] for i in range(12)),
+                applied,
+                disturbance,
+                dt,
+                drag_position,
+                drag_attitude,
+                tuple(loop.trig[i] for i in range(6)),
+            )
         )
-        state_array = jnp.stack(loop.state)
         record = observers.StepRecord(
             time=t,
-            state=state_array,
-            next_state=jnp.stack(next_state),
+            state=loop.state,
+            next_state=next_state,
             reference=reference,
             inputs=loop.inputs,
             info=loop.info,
-            error=observers.tracking_error(state_array, reference, loop.info.attitude_reference),
+            error=observers.tracking_error(loop.state, reference, loop.info.attitude_reference),
             plant=draw.params,
         )
         status = status_observer.update(loop.status, record)
@@ -285,7 +308,7 @@ def rollout(
             )
         # The control update of step k + 1, from the new state.
         control, next_inputs, next_info = controller.step(
-            params, loop.control, observe(draw, k + 1, record.next_state)
+            params, loop.control, observe(draw, k + 1, next_state)
         )
         loop = LoopState(
             state=next_state,
@@ -309,9 +332,9 @@ def rollout(
         t_end = (block_index + 1).astype(dtype) * config.save_every * dt
         last = jax.tree.map(lambda x: x[-1], (refs, inputs, infos))
         snapshot = Snapshot(
-            t_end,
-            jnp.stack(loop.state),
-            last[0],
+            _per_draw(t_end, 0, batch),
+            loop.state,
+            _per_draw(last[0], 1, batch),
             last[1],
             last[2],
             jnp.min(inputs, axis=0),
@@ -319,17 +342,16 @@ def rollout(
         )
         return loop, snapshot
 
-    state0_parts = tuple(state0[i] for i in range(12))
     loop0 = LoopState(
-        state=state0_parts,
-        trig=jnp.stack(plant.attitude_trig(*state0_parts[3:6])),
+        state=state0,
+        trig=jnp.stack(plant.attitude_trig(*state0[3:6])),
         held=held_at(draw, jnp.zeros((), jnp.int32)),
         control=control1,
         inputs=inputs0,
         info=info0,
-        status=status_observer.init(dtype),
-        observed=observer.init(dtype) if observer is not None else None,
+        status=broadcast_batch(status_observer.init(dtype), batch),
+        observed=broadcast_batch(observer.init(dtype), batch) if observer is not None else None,
     )
     final, trajectory = lax.scan(block, loop0, jnp.arange(config.blocks))
     outputs = observer.finalize(final.observed) if observer is not None else None
-    return Rollout(jnp.stack(final.state), final.status, outputs, trajectory)
+    return Rollout(final.state, final.status, outputs, trajectory)

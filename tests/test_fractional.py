@@ -448,7 +448,7 @@ def test_integral_with_rate_reverse_pass_equals_autodiff():
         return jnp.sum(jnp.stack([integral, rate], -1) * probe)
 
     b = jnp.asarray([0.01, 0.3, 0.7, 0.99])
-    modes0 = jnp.asarray(rng.normal(size=(4, pair.n_modes)))
+    modes0 = jnp.asarray(rng.normal(size=(pair.n_modes, 4)))
     custom = jax.grad(loss, argnums=(0, 1, 2))(b, u, modes0, _soe._advance_and_read)
     plain = jax.grad(loss, argnums=(0, 1, 2))(b, u, modes0, _soe._advance_and_read.fun)
     for got, want in zip(custom, plain, strict=True):

@@ -169,7 +169,8 @@ class AFONFTSMC(ControlLaw):
         # Channels 0-5, the p/q terms: integral of order 1 - gamma1 (the S term) and its
         # time derivative, the derivative of order gamma1. Channels 6-11, the phi terms:
         # integral of order gamma2 and its time derivative, the derivative of order
-        # 1 - gamma2. All twelve share one memory (one array of modes).
+        # 1 - gamma2. All twelve share one memory (one array of modes); the orders are
+        # (12,) or, over a batch, (12, 1) / (12, draws).
         integral_orders = jnp.concatenate([1.0 - gains.gamma1, gains.gamma2])
         return AFONFTSMCParams(gains, self.memory.coefficients(integral_orders, dtype))
 
@@ -184,17 +185,17 @@ class AFONFTSMC(ControlLaw):
         )
 
     def step(
-        self, params: AFONFTSMCParams, state: AFONFTSMCState, error: tuple, error_rate: tuple
+        self, params: AFONFTSMCParams, state: AFONFTSMCState, error: Array, error_rate: Array
     ) -> tuple[AFONFTSMCState, LawOutput]:
         g = params.gains
 
         # Surfaces (16)-(18)/(37)-(39) and the fractional part of dS/dt.
-        p_terms = [g.surface_c1[i] * signed_power(e, g.ratio[i]) for i, e in enumerate(error)]
-        phi_terms = [g.surface_c2[i] * signed_power(e, g.power[i]) for i, e in enumerate(error)]
+        p_terms = g.surface_c1 * signed_power(error, g.ratio)
+        phi_terms = g.surface_c2 * signed_power(error, g.power)
         memory, (integral, rate) = self.memory.step(
-            params.surface_weights, state.surface_memory, jnp.stack(p_terms + phi_terms)
+            params.surface_weights, state.surface_memory, jnp.concatenate([p_terms, phi_terms])
         )
-        surface = tuple(error_rate[i] + integral[i] + integral[6 + i] for i in range(6))
+        surface = error_rate + integral[:6] + integral[6:]
 
         # The adaptive update (25)-(27)/(45)-(47) owed by the previous step (Euler).
         magnitude = jnp.abs(state.previous_surface)
@@ -209,25 +210,18 @@ class AFONFTSMC(ControlLaw):
         adaptive = state.adaptive + self.dt * g.adaptation * regressor * magnitude[:, None]
 
         # Reaching law (24)/(42)-(44) minus the fractional part of dS/dt.
-        acceleration = []
-        for i in range(6):
-            sw = switching(self.switching, surface[i], g.boundary_layer[i])
-            bound = (
-                adaptive[i, 0]
-                + adaptive[i, 1] * jnp.abs(error[i])
-                + adaptive[i, 2] * jnp.abs(error_rate[i])
-            )
-            reaching = (
-                -g.reaching_h1[i] * sw - g.reaching_h2[i] * surface[i] - (bound + g.mu[i]) * sw
-            )
-            acceleration.append(reaching - (rate[i] + rate[6 + i]))
+        sw = switching(self.switching, surface, g.boundary_layer)
+        bound = (
+            adaptive[:, 0] + adaptive[:, 1] * jnp.abs(error) + adaptive[:, 2] * jnp.abs(error_rate)
+        )
+        reaching = -g.reaching_h1 * sw - g.reaching_h2 * surface - (bound + g.mu) * sw
+        acceleration = reaching - (rate[:6] + rate[6:])
 
-        surfaces = jnp.stack(surface)
         new_state = AFONFTSMCState(
             surface_memory=memory,
             adaptive=adaptive,
-            previous_surface=surfaces,
-            previous_error=jnp.stack(error),
-            previous_error_rate=jnp.stack(error_rate),
+            previous_surface=surface,
+            previous_error=error,
+            previous_error_rate=error_rate,
         )
-        return new_state, LawOutput(tuple(acceleration), surface, adaptive)
+        return new_state, LawOutput(acceleration, surface, adaptive)

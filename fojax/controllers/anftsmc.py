@@ -127,9 +127,8 @@ class ANFTSMC(ControlLaw):
     def init(self, params: ANFTSMCGains, dtype: Any) -> Array:
         return jnp.zeros((6, 3), dtype)
 
-    def step(self, params: ANFTSMCGains, adaptive: Array, e1: tuple, e2: tuple):
+    def step(self, params: ANFTSMCGains, adaptive: Array, e1: Array, e2: Array):
         g = params
-        e1, e2 = jnp.stack(e1), jnp.stack(e2)
         beta = g.beta
         alpha = beta * g.alpha_ratio
         sigma = (

@@ -104,25 +104,17 @@ def _steady_state_error(gains, disturbance, kind: str) -> Array:
     return jnp.minimum(d / (1.0 + k * lam), layer)
 
 
-def _reach(kind: str, g, e1, e2, surface, surface_term_rate) -> tuple:
-    """``a = -e1 - lambda (surface term)' - k s - q_s sw(s)`` (B2)/(F2), six scalars."""
-    out = []
-    for i in range(6):
-        sw = switching(kind, surface[i], g.boundary_layer[i])
-        out.append(
-            -e1[i]
-            - g.surface[i] * surface_term_rate[i]
-            - g.reaching[i] * surface[i]
-            - g.switching[i] * sw
-        )
-    return tuple(out)
+def _reach(kind: str, g, e1, e2, surface, surface_term_rate) -> Array:
+    """``a = -e1 - lambda (surface term)' - k s - q_s sw(s)`` (B2)/(F2), ``(6,)``."""
+    sw = switching(kind, surface, g.boundary_layer)
+    return -e1 - g.surface * surface_term_rate - g.reaching * surface - g.switching * sw
 
 
 class FOBSMCParams(NamedTuple):
     """The gains and the fractional weights of ``(D^(gamma-1), D^gamma)``."""
 
     gains: Any
-    weights: tuple
+    weights: Any
 
 
 @register
@@ -150,11 +142,14 @@ class FOBSMC(ControlLaw):
         self.memory  # noqa: B018 (validates the method and its options before tracing)
 
     @functools.cached_property
-    def memory(self) -> fractional.MultiOrder:
+    def memory(self) -> Any:
+        """``D^(gamma-1) e1`` and its time derivative ``D^gamma e1`` from one memory: the
+        integral of order ``1 - gamma`` and its rate
+        (:func:`fojax.fractional.integral_with_rate`)."""
         operator = fractional.make_operator(
             self.fractional_method, self.dt, self.horizon, **dict(self.fractional_options)
         )
-        return fractional.MultiOrder(operator, 2)
+        return fractional.integral_with_rate(operator)
 
     def steady_state_error_bound(self, gains: FOBSMCGains, disturbance: Array) -> Array:
         """``(..., 6)`` steady-state ``|e1|`` under a constant disturbance ``d``: 0.
@@ -189,17 +184,15 @@ class FOBSMC(ControlLaw):
         return d * tail / (gain * jnp.asarray(gains.surface))
 
     def prepare(self, gains: FOBSMCGains, dtype: Any) -> FOBSMCParams:
-        return FOBSMCParams(
-            gains, self.memory.coefficients((gains.order - 1.0, gains.order), dtype)
-        )
+        return FOBSMCParams(gains, self.memory.coefficients(1.0 - gains.order, dtype))
 
     def init(self, params: FOBSMCParams, dtype: Any) -> Any:
         return self.memory.init((6,), dtype)
 
-    def step(self, params: FOBSMCParams, state: Any, e1: tuple, e2: tuple):
+    def step(self, params: FOBSMCParams, state: Any, e1: Array, e2: Array):
         g = params.gains
-        state, (integral, derivative) = self.memory.step(params.weights, state, jnp.stack(e1))
-        surface = tuple(e2[i] + g.surface[i] * integral[i] for i in range(6))
+        state, (integral, derivative) = self.memory.step(params.weights, state, e1)
+        surface = e2 + g.surface * integral
         return state, LawOutput(_reach(self.switching, g, e1, e2, surface, derivative), surface)
 
 
@@ -229,7 +222,7 @@ class BSMC(ControlLaw):
         """
         return _steady_state_error(gains, disturbance, self.switching)
 
-    def step(self, params: BSMCGains, state: Any, e1: tuple, e2: tuple):
+    def step(self, params: BSMCGains, state: Any, e1: Array, e2: Array):
         g = params
-        surface = tuple(e2[i] + g.surface[i] * e1[i] for i in range(6))
+        surface = e2 + g.surface * e1
         return state, LawOutput(_reach(self.switching, g, e1, e2, surface, e2), surface)

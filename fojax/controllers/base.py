@@ -52,6 +52,11 @@ SWITCHING_FUNCTIONS = ("sign", "sat", "tanh")
 class Observation(NamedTuple):
     """What a controller sees at time ``t_k``.
 
+    Shapes are those of one draw; a rollout over a batch of draws adds the batch's axes
+    last (``state`` ``(12, draws)``). The reference is a function of time only, shared
+    by every draw (``(4,)``), except in a union of scenarios, where it follows each
+    draw's scenario (``(4, draws)``).
+
     time: ``()`` s.
     state: ``(12,)`` plant state ``(x, y, z, phi, theta, psi, x', y', z', phi', theta', psi')``.
     reference: ``(4,)`` ``(x_r, y_r, z_r, psi_r)`` (m, rad).
@@ -67,7 +72,8 @@ class Observation(NamedTuple):
 
 
 class ControlInfo(NamedTuple):
-    """Diagnostics returned with each control update (fixed shapes for every controller).
+    """Diagnostics returned with each control update (fixed shapes for every controller;
+    a batch of draws adds its axes last).
 
     surfaces: ``(6,)`` sliding variables ``(S_x, S_y, S_z, S_phi, S_theta, S_psi)``
         (controllers without surfaces return their error measure or zeros).
@@ -85,11 +91,17 @@ class ControlInfo(NamedTuple):
 
 
 class Controller(Protocol):
-    """What :func:`fojax.simulator.rollout` needs from a controller."""
+    """What :func:`fojax.simulator.rollout` needs from a controller.
+
+    ``prepare`` receives the batch's shape (``()`` for one draw, ``(draws,)`` for a
+    rollout over a batch, which adds its axes last to every per-draw array): gains are
+    shared by the batch (each field with its declared shape) or given per draw (the
+    batch's axes last).
+    """
 
     name: str
 
-    def prepare(self, gains: Any, model: Any) -> Any: ...
+    def prepare(self, gains: Any, model: Any, batch_shape: tuple[int, ...] = ()) -> Any: ...
 
     def init(self, params: Any, observation: Observation) -> Any: ...
 
@@ -101,10 +113,11 @@ class Controller(Protocol):
 class LawOutput(NamedTuple):
     """What a control law returns for the six axes ``(x, y, z, phi, theta, psi)``.
 
-    acceleration: six scalars (a tuple, or a ``(6,)`` array): the commanded *error*
-        acceleration ``a_i`` of each axis (m/s^2, rad/s^2); the cascade adds the
-        reference's acceleration and cancels the nominal model's terms.
-    surface: six scalars: the law's sliding variable (or error measure) per axis.
+    acceleration: ``(6,)`` (a batch's axes last: ``(6, draws)``; a tuple of six is
+        stacked): the commanded *error* acceleration ``a_i`` of each axis (m/s^2,
+        rad/s^2); the cascade adds the reference's acceleration and cancels the
+        nominal model's terms.
+    surface: ``(6,)`` the law's sliding variable (or error measure) per axis.
     adaptive: ``(6, 3)`` adaptive estimates before this update, or ``None``.
     """
 
@@ -139,10 +152,20 @@ class ControlLaw:
     or keeps a state:
 
     ``prepare(gains, dtype) -> params``: per-run constants (default: the gains);
-    ``init(params, dtype) -> state``: the law's state at ``t = 0`` (default ``()``);
-    ``step(params, state, e1, e2) -> (state, LawOutput)``: ``e1``, ``e2`` are tuples of
-    six scalars (one per axis; each a ``(draws,)`` array under ``vmap``, the layout XLA
-    vectorises best); ``jnp.stack(e1)`` gives a ``(6,)`` array where that is simpler.
+    ``init(params, dtype) -> state``: the law's state at ``t = 0`` for one draw (default
+    ``()``); the cascade broadcasts it over a batch;
+    ``step(params, state, e1, e2) -> (state, LawOutput)``: ``e1``, ``e2`` are ``(6,)``
+    arrays, one entry per axis.
+
+    **One law for one draw and for a batch.** A rollout over a batch of draws runs the
+    same ``step`` on arrays with the batch's axes last: ``e1`` and ``e2`` are then
+    ``(6, draws)``, every gain field has a trailing axis (``(6, 1)`` when the gains are
+    shared by the batch, ``(6, draws)`` when they are given per draw; ``(6, 3, 1)`` for
+    a ``(6, 3)`` field) and the state's leaves have the batch's axes last. A law written
+    with elementwise operations, indexing and stacking along its leading axes (``e1[2]``,
+    ``adaptive[:, 0]``, ``jnp.stack(..., axis=1)``) and reductions over named leading
+    axes runs unchanged on both: XLA then computes each ``(6, draws)`` array in one
+    vectorised pass over the draws.
 
     Fields: ``dt`` (control step, s) and ``horizon`` (run length, s: sizes fractional
     memories); subclasses add their own options (``switching``, ``fractional_method``).
@@ -180,7 +203,7 @@ class ControlLaw:
     def init(self, params: Any, dtype: Any) -> Any:
         return ()
 
-    def step(self, params: Any, state: Any, e1: tuple, e2: tuple) -> tuple[Any, LawOutput]:
+    def step(self, params: Any, state: Any, e1: Array, e2: Array) -> tuple[Any, LawOutput]:
         raise NotImplementedError(f"{type(self).__name__} must implement step")
 
 

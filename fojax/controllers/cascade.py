@@ -21,11 +21,15 @@ unknown disturbance, eq. (11) with Assumption 3):
   previous command through the inverted mixer (10).
 
 The attitude loop tracks the filter's output at the start of the step, so the errors
-of all six axes are known before the law runs, and the law sees them at once. The
-step works on scalars, one per axis (tuples of six), and stacks only what it returns
-or stores: under ``vmap`` each scalar is one contiguous ``(draws,)`` array, which XLA's
-CPU backend computes in one vectorised loop, where a small stacked vector became a
-branchy loop recomputing its shared operands per element (docs/performance.md).
+of all six axes are known before the law runs, and the law sees them at once, as
+``(6,)`` arrays.
+
+Layout: one draw's arrays, or a batch's with its axes last (``state`` ``(12, draws)``,
+errors ``(6, draws)``, the command filter ``(2, 2, draws)``). With the batch last every
+per-axis quantity is one array whose rows are contiguous runs over the draws, which
+XLA's CPU backend computes in vectorised passes; a rollout under ``vmap`` (batch first)
+would make them ``(draws, 6)`` arrays with a minor axis of six, which it does not
+vectorise (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ Array = jax.Array
 
 __all__ = [
     "Cascade",
+    "broadcast_batch",
     "CascadeParams",
     "CascadeState",
     "as_controller",
@@ -198,27 +203,35 @@ class Cascade:
         self.law.check_gains(gains)
 
     # -- the controller interface (fojax.controllers.base) -------------------------------
-    def prepare(self, gains: Any, model: plant.PlantParams) -> CascadeParams:
+    def prepare(
+        self, gains: Any, model: plant.PlantParams, batch_shape: tuple[int, ...] = ()
+    ) -> CascadeParams:
+        """Per-run constants; ``gains`` shared by the batch or given per draw
+        (:meth:`fojax.controllers.GainSpec.broadcast`)."""
         dtype = jnp.asarray(jax.tree.leaves(gains)[0]).dtype
+        gains = self.law.GAINS.broadcast(gains, batch_shape)
         transition, gain = command_filter_update(
             self.filter_frequency, self.filter_damping, self.dt, dtype
         )
         return CascadeParams(model, self.law.prepare(gains, dtype), transition, gain)
 
     def init(self, params: CascadeParams, observation: Observation) -> CascadeState:
+        """The state at ``t = 0``: the law's state of one draw broadcast over the batch
+        (``observation.state`` ``(12,) + batch``)."""
         dtype = observation.state.dtype
+        batch = observation.state.shape[1:]
         attitude = observation.state[3:5]
         return CascadeState(
-            law=self.law.init(params.law, dtype),
+            law=broadcast_batch(self.law.init(params.law, dtype), batch),
             command_filter=jnp.stack([attitude, jnp.zeros_like(attitude)], axis=1),
-            last_inputs=plant.hover_inputs(params.model).astype(dtype),
+            last_inputs=broadcast_batch(plant.hover_inputs(params.model).astype(dtype), batch),
         )
 
     def step(
         self, params: CascadeParams, state: CascadeState, observation: Observation
     ) -> tuple[CascadeState, Array, ControlInfo]:
         model = params.model
-        x = observation.state
+        x = observation.state  # (12,) + batch
         ref, ref_vel, ref_acc = (
             observation.reference,
             observation.reference_velocity,
@@ -226,15 +239,15 @@ class Cascade:
         )
         yaw_reference = ref[3]
 
-        # Errors of both loops, eqs. (14)-(15), (40)-(41): the attitude loop tracks the
-        # command filter's output, known at the start of the step.
-        filt = state.command_filter
+        # Errors of both loops, eqs. (14)-(15), (40)-(41), (6,) + batch: the attitude
+        # loop tracks the command filter's output, known at the start of the step.
+        filt = state.command_filter  # (2, 2) + batch: rows (phi, theta), (value, rate)
         reference = (ref[0], ref[1], ref[2], filt[0, 0], filt[1, 0], yaw_reference)
         reference_rate = (ref_vel[0], ref_vel[1], ref_vel[2], filt[0, 1], filt[1, 1], ref_vel[3])
-        error = tuple(x[i] - reference[i] for i in range(6))
-        error_rate = tuple(x[6 + i] - reference_rate[i] for i in range(6))
+        error = jnp.stack([x[i] - reference[i] for i in range(6)])
+        error_rate = jnp.stack([x[6 + i] - reference_rate[i] for i in range(6)])
         law_state, out = self.law.step(params.law, state.law, error, error_rate)
-        accel = tuple(out.acceleration[i] for i in range(6))
+        accel = _axes(out.acceleration)
 
         # Position loop, eqs. (23) and (13).
         virtual = [
@@ -246,23 +259,16 @@ class Cascade:
 
         # Command filter: phi_r, theta_r and their two derivatives.
         w, zeta = self.filter_frequency, self.filter_damping
-        tilt_reference = (phi_r, theta_r)
-        filtered_accel = [
-            w * w * (tilt_reference[i] - filt[i, 0]) - 2.0 * zeta * w * filt[i, 1] for i in range(2)
-        ]
+        tilt_reference = jnp.stack([phi_r, theta_r])
+        value, rate = filt[:, 0], filt[:, 1]
+        filtered_accel = w * w * (tilt_reference - value) - 2.0 * zeta * w * rate
         transition, gain = params.filter_transition, params.filter_input
         command_filter = jnp.stack(
             [
-                jnp.stack(
-                    [
-                        filt[i, 0] * transition[j, 0]
-                        + filt[i, 1] * transition[j, 1]
-                        + tilt_reference[i] * gain[j]
-                        for j in range(2)
-                    ]
-                )
-                for i in range(2)
-            ]
+                value * transition[j, 0] + rate * transition[j, 1] + tilt_reference * gain[j]
+                for j in range(2)
+            ],
+            axis=1,
         )
 
         # Attitude loop, eqs. (42)-(44).
@@ -275,15 +281,42 @@ class Cascade:
         ]
 
         inputs = jnp.stack([thrust, *torque])
-        surfaces = jnp.stack([out.surface[i] for i in range(6)])
-        adaptive = jnp.zeros((6, 3), x.dtype) if out.adaptive is None else out.adaptive
+        surfaces = _axes(out.surface)
+        if out.adaptive is None:
+            adaptive = jnp.zeros((6, 3) + surfaces.shape[1:], x.dtype)
+        else:
+            adaptive = jnp.broadcast_to(out.adaptive, (6, 3) + surfaces.shape[1:])
         new_state = CascadeState(law_state, command_filter, inputs)
         info = ControlInfo(
             surfaces=surfaces,
-            attitude_reference=jnp.stack([filt[0, 0], filt[1, 0], yaw_reference]),
+            attitude_reference=jnp.stack(
+                jnp.broadcast_arrays(filt[0, 0], filt[1, 0], yaw_reference)
+            ),
             adaptive=adaptive,
         )
         return new_state, inputs, info
+
+
+def _axes(values: Any) -> Array:
+    """A law's per-axis output as one ``(6,) + batch`` array (a tuple of six stacked)."""
+    if isinstance(values, tuple | list):
+        return jnp.stack(jnp.broadcast_arrays(*values))
+    return jnp.asarray(values)
+
+
+def broadcast_batch(tree: Any, batch_shape: tuple[int, ...]) -> Any:
+    """Every leaf of ``tree`` (one draw's arrays) repeated over a batch of shape
+    ``batch_shape``, the batch's axes last (``(6, 3)`` -> ``(6, 3, draws)``)."""
+    batch_shape = tuple(batch_shape)
+    if not batch_shape:
+        return tree
+    return jax.tree.map(
+        lambda leaf: jnp.broadcast_to(
+            jnp.reshape(leaf, jnp.shape(leaf) + (1,) * len(batch_shape)),
+            jnp.shape(leaf) + batch_shape,
+        ),
+        tree,
+    )
 
 
 def as_controller(controller: Any) -> Any:

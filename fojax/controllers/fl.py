@@ -74,8 +74,8 @@ class FL(ControlLaw):
         ``d`` ``(..., 6)`` (m/s^2, rad/s^2) on the nominal double integrator."""
         return jnp.asarray(disturbance) / jnp.asarray(gains.proportional)
 
-    def step(self, params: FLGains, state: Any, e1: tuple, e2: tuple):
+    def step(self, params: FLGains, state: Any, e1: Array, e2: Array):
         kp, kd = params.proportional, params.derivative
-        acceleration = tuple(-kp[i] * e1[i] - kd[i] * e2[i] for i in range(6))
-        surface = tuple(e2[i] + kp[i] / kd[i] * e1[i] for i in range(6))
+        acceleration = -kp * e1 - kd * e2
+        surface = e2 + kp / kd * e1
         return state, LawOutput(acceleration, surface)

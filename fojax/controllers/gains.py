@@ -131,6 +131,29 @@ class GainSpec:
         dtype = jnp.result_type(float) if dtype is None else dtype
         return self.type(*(jnp.asarray(f.default, dtype) for f in self.fields))
 
+    def broadcast(self, gains: Any, batch_shape: tuple[int, ...]) -> Any:
+        """``gains`` laid out for a rollout over a batch of shape ``batch_shape`` (the
+        batch's axes last): a field with its declared shape is shared by the batch and
+        gets trailing axes of size 1 (``(6,)`` -> ``(6, 1)``); a field given per draw has
+        the declared shape followed by ``batch_shape`` and is kept. ``ValueError``
+        otherwise. Shapes only: traceable."""
+        batch_shape = tuple(batch_shape)
+        if not batch_shape:
+            return gains
+        fields = []
+        for f in self.fields:
+            value = jnp.asarray(getattr(gains, f.name))
+            if value.shape == f.shape:
+                value = value.reshape(f.shape + (1,) * len(batch_shape))
+            elif value.shape != f.shape + batch_shape:
+                raise ValueError(
+                    f"{self.label} gains: {f.name} must have shape {f.shape} (shared by the "
+                    f"batch) or {f.shape + batch_shape} (one value per draw, the batch last), "
+                    f"got {value.shape}"
+                )
+            fields.append(value)
+        return self.type(*fields)
+
     def problems(self, gains: Any) -> list[str]:
         """Every way ``gains`` break the declaration, in words (empty when valid)."""
         if not isinstance(gains, tuple) or getattr(gains, "_fields", None) != self.names:

@@ -56,16 +56,38 @@ def float_dtype(dtype: Any) -> Any:
 def per_order(build, alpha: Any, dtype: Any) -> Any:
     """``build(alpha_scalar, dtype)`` mapped over the entries of ``alpha``.
 
-    The result's leaves get ``alpha.shape`` as leading axes, so one operator state of
-    shape ``S + (modes,)`` can carry a different order per channel when
-    ``alpha.shape`` broadcasts against ``S``.
+    The result's leaves keep their own axes first and get ``alpha.shape`` as trailing
+    axes (``(modes,) + alpha.shape``), the layout of the operators' states (their own
+    axes first, the signal's shape ``S`` last): one state can carry a different order
+    per channel when ``alpha.shape`` broadcasts against ``S`` (:func:`align`).
     """
     dtype = float_dtype(jnp.result_type(float) if dtype is None else dtype)
     alpha = jnp.asarray(alpha, dtype)
     if alpha.ndim == 0:
         return build(alpha, dtype)
     flat = jax.vmap(lambda a: build(a, dtype))(alpha.reshape(-1))
-    return jax.tree.map(lambda leaf: leaf.reshape(alpha.shape + leaf.shape[1:]), flat)
+    return jax.tree.map(
+        lambda leaf: jnp.moveaxis(leaf, 0, -1).reshape(leaf.shape[1:] + alpha.shape), flat
+    )
+
+
+def align(x: Array, own: int, signal_ndim: int) -> Array:
+    """``x`` of shape ``own axes + O`` (a coefficient: its ``own`` leading axes, then the
+    orders' shape ``O``) with ones inserted after its own axes so that ``O`` lines up
+    with the last axes of a signal of ``signal_ndim`` axes, numpy's rule: an order per
+    channel ``(12, 1)`` against signals ``(12, draws)``, one order ``()`` against any."""
+    missing = own + signal_ndim - x.ndim
+    if missing < 0:
+        raise ValueError(
+            f"orders of shape {x.shape[own:]} have more axes than the signal ({signal_ndim})"
+        )
+    return x.reshape(x.shape[:own] + (1,) * missing + x.shape[own:])
+
+
+def lead(table: Array, signal_ndim: int) -> Array:
+    """A ``(modes,)`` table shaped ``(modes,) + (1,) * signal_ndim``: one value per mode,
+    broadcast over the signal."""
+    return table.reshape(table.shape + (1,) * signal_ndim)
 
 
 def select(pred: Array, on_true: Any, on_false: Any) -> Any:

@@ -9,17 +9,24 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from fojax.fractional._common import Array, check_positive_finite, float_dtype, per_order
+from fojax.fractional._common import (
+    Array,
+    align,
+    check_positive_finite,
+    float_dtype,
+    per_order,
+)
 
 
 class GLCoefficients(NamedTuple):
-    """``weights``: ``(memory,)`` ``dt**-alpha * (-1)**j binom(alpha, j)``."""
+    """``weights``: ``(memory,) + O`` ``dt**-alpha * (-1)**j binom(alpha, j)`` for orders
+    of shape ``O``."""
 
     weights: Array
 
 
 class GLState(NamedTuple):
-    """``history``: ``S + (memory,)`` the last samples, newest first."""
+    """``history``: ``(memory,) + S`` the last samples, newest first."""
 
     history: Array
 
@@ -73,12 +80,12 @@ class GrunwaldLetnikov:
 
     def init(self, shape: tuple[int, ...] = (), dtype: Any = None) -> GLState:
         dtype = float_dtype(jnp.result_type(float) if dtype is None else dtype)
-        return GLState(jnp.zeros(tuple(shape) + (self.memory,), dtype))
+        return GLState(jnp.zeros((self.memory,) + tuple(shape), dtype))
 
     def step(self, coeffs: GLCoefficients, state: GLState, u: Array) -> tuple[GLState, Array]:
         u = jnp.asarray(u, state.history.dtype)
-        history = jnp.concatenate([u[..., None], state.history[..., :-1]], axis=-1)
-        return GLState(history), jnp.sum(history * coeffs.weights, axis=-1)
+        history = jnp.concatenate([u[None], state.history[:-1]], axis=0)
+        return GLState(history), jnp.sum(history * align(coeffs.weights, 1, u.ndim), 0)
 
     def cost(self) -> dict[str, int]:
         m = int(self.memory)

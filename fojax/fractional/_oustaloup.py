@@ -12,6 +12,7 @@ import numpy as np
 from fojax.fractional._common import (
     ORDER_FLOOR,
     Array,
+    align,
     check_positive_finite,
     expint_moments,
     float_dtype,
@@ -194,7 +195,7 @@ class Oustaloup:
         dtype = float_dtype(jnp.result_type(float) if dtype is None else dtype)
         shape = tuple(shape)
         return ModalState(
-            modes=jnp.zeros(shape + (self.n_modes,), dtype),
+            modes=jnp.zeros((self.n_modes,) + shape, dtype),
             u_prev=jnp.zeros(shape, dtype),
             count=jnp.zeros((), jnp.int32),
         )
@@ -204,9 +205,12 @@ class Oustaloup:
     ) -> tuple[ModalState, Array]:
         dtype = state.modes.dtype
         u = jnp.asarray(u, dtype)
-        increment = coeffs.gain_u * u[..., None] + coeffs.gain_u1 * state.u_prev[..., None]
-        modes = coeffs.decay * state.modes + jnp.where(state.count > 0, increment, 0.0)
-        y = coeffs.direct * u + jnp.sum(modes * coeffs.residue, axis=-1)
+        n = u.ndim
+        increment = align(coeffs.gain_u, 1, n) * u + align(coeffs.gain_u1, 1, n) * state.u_prev
+        modes = align(coeffs.decay, 1, n) * state.modes + jnp.where(
+            state.count > 0, increment, 0.0
+        )
+        y = align(coeffs.direct, 0, n) * u + jnp.sum(modes * align(coeffs.residue, 1, n), 0)
         return ModalState(modes=modes, u_prev=u, count=state.count + 1), y
 
     def cost(self) -> dict[str, int]:

@@ -15,9 +15,11 @@ from jax.scipy.special import gammaln
 from fojax.fractional._common import (
     ORDER_FLOOR,
     Array,
+    align,
     check_positive_finite,
     expint_moments_np,
     float_dtype,
+    lead,
     per_order,
     select,
 )
@@ -26,10 +28,12 @@ from fojax.fractional._common import (
 class SOECoefficients(NamedTuple):
     """Order-dependent weights of :class:`SumOfExponentials`.
 
-    history: ``(modes,)`` weights applied to the mode states ``y_j(t_{k-1})``.
-    local: ``(3,)`` weights of ``(u_k, u_{k-1}, u_{k-2})`` (last-step product
+    For orders of shape ``O`` (one per channel; the leaves' own axes first):
+
+    history: ``(modes,) + O`` weights applied to the mode states ``y_j(t_{k-1})``.
+    local: ``(3,) + O`` weights of ``(u_k, u_{k-1}, u_{k-2})`` (last-step product
         integration, plus the history's boundary term for derivatives).
-    first: ``()`` weight of ``u_0`` at ``t_0`` (1 for the identity, else 0).
+    first: ``O`` weight of ``u_0`` at ``t_0`` (1 for the identity, else 0).
     """
 
     history: Array
@@ -40,7 +44,7 @@ class SOECoefficients(NamedTuple):
 class SOEState(NamedTuple):
     """Memory of :class:`SumOfExponentials` for a signal of shape ``S``.
 
-    modes: ``S + (modes,)`` the exponentially weighted integrals
+    modes: ``(modes,) + S`` the exponentially weighted integrals
         ``y_j(t) = int_0^t exp(-s_j (t - tau)) u(tau) dtau`` at the previous sample.
     u_prev, u_prev2: ``S`` the two previous samples.
     count: ``()`` int32, number of samples consumed.
@@ -197,8 +201,8 @@ class SumOfExponentials:
         # Integral of order b = -alpha (b = 0: identity).
         b = jnp.clip(-alpha, 0.0, 1.0 - ORDER_FLOOR)
         w_int = self.kernel_weights(b, 1.0 - b, dtype)
-        lead = jnp.exp(b * math.log(dt) - gammaln(b + 1.0))  # dt^b / Gamma(b + 1)
-        local_int = lead * jnp.stack(
+        lead_int = jnp.exp(b * math.log(dt) - gammaln(b + 1.0))  # dt^b / Gamma(b + 1)
+        local_int = lead_int * jnp.stack(
             [
                 1.0 - 1.5 * b / (b + 1.0) + 0.5 * b / (b + 2.0),
                 2.0 * b / (b + 1.0) - b / (b + 2.0),
@@ -230,7 +234,7 @@ class SumOfExponentials:
         dtype = float_dtype(jnp.result_type(float) if dtype is None else dtype)
         shape = tuple(shape)
         return SOEState(
-            modes=jnp.zeros(shape + (self.n_modes,), dtype),
+            modes=jnp.zeros((self.n_modes,) + shape, dtype),
             u_prev=jnp.zeros(shape, dtype),
             u_prev2=jnp.zeros(shape, dtype),
             count=jnp.zeros((), jnp.int32),
@@ -244,14 +248,12 @@ class SumOfExponentials:
         """
         dtype = state.modes.dtype
         u = jnp.asarray(u, dtype)
+        n = u.ndim
         u_prev2 = self._previous2(state, u)
-        local = (
-            coeffs.local[..., 0] * u
-            + coeffs.local[..., 1] * state.u_prev
-            + coeffs.local[..., 2] * u_prev2
-        )
-        history = jnp.sum(state.modes * coeffs.history, axis=-1)
-        return jnp.where(state.count > 0, history + local, coeffs.first * u)
+        weights = align(coeffs.local, 1, n)
+        local = weights[0] * u + weights[1] * state.u_prev + weights[2] * u_prev2
+        history = jnp.sum(state.modes * align(coeffs.history, 1, n), 0)
+        return jnp.where(state.count > 0, history + local, align(coeffs.first, 0, n) * u)
 
     def advance(self, state: SOEState, u: Array) -> SOEState:
         """Consume ``u = u(t_k)``: advance the modes to ``t_k``."""
@@ -259,15 +261,17 @@ class SumOfExponentials:
         dtype = state.modes.dtype
         u = jnp.asarray(u, dtype)
         u_prev2 = self._previous2(state, u)
+        n = u.ndim
+
+        def table(name):
+            return lead(jnp.asarray(tb[name], dtype), n)
+
         increment = (
-            jnp.asarray(tb["gain_u"], dtype) * u[..., None]
-            + jnp.asarray(tb["gain_u1"], dtype) * state.u_prev[..., None]
-            + jnp.asarray(tb["gain_u2"], dtype) * u_prev2[..., None]
+            table("gain_u") * u + table("gain_u1") * state.u_prev + table("gain_u2") * u_prev2
         )
         # y + (exp(-z) - 1) y keeps slow modes exact in float32 (exp(-z) ~ 1 - 1e-6).
         modes = state.modes + (
-            jnp.asarray(tb["decay_m1"], dtype) * state.modes
-            + jnp.where(state.count > 0, increment, 0.0)
+            table("decay_m1") * state.modes + jnp.where(state.count > 0, increment, 0.0)
         )
         return SOEState(modes=modes, u_prev=u, u_prev2=state.u_prev, count=state.count + 1)
 
@@ -290,102 +294,104 @@ class SumOfExponentials:
 
 
 # ----------------------------------------------- an integral and its rate, fused
+#
+# The fused memory keeps its own axes first and the signal's shape last: the modes of a
+# signal of shape ``S`` are one ``(modes,) + S`` array. A closed loop over a batch of
+# draws passes signals of shape ``(channels, draws)`` (batch last), so that every
+# ``(mode, channel)`` row is one contiguous run over the draws: the update is one
+# vectorised pass over the whole array and the read-out a sum over its leading axis.
+
+
+def _unbroadcast(cotangent: Array, shape: tuple[int, ...]) -> Array:
+    """``cotangent`` summed down to ``shape`` (the adjoint of broadcasting to its shape)."""
+    extra = cotangent.ndim - len(shape)
+    axes = tuple(range(extra)) + tuple(
+        extra + i for i, n in enumerate(shape) if n == 1 and cotangent.shape[extra + i] != 1
+    )
+    return jnp.sum(cotangent, axis=axes).reshape(shape) if axes else cotangent
 
 
 def _drive(taps: Array, samples: tuple) -> Array:
-    """``sum_i taps_i u_i``: the unscaled growth of every mode, ``S + (modes,)``.
-
-    Written as explicit multiply-adds (not a contraction over the 3 samples), so that
-    they fuse with their neighbours instead of becoming small matrix products.
-    """
-    return sum(taps[i] * sample[..., None] for i, sample in enumerate(samples))
+    """``sum_i taps_i u_i``: the unscaled growth of every mode, ``(modes,) + S``, as
+    explicit multiply-adds (they fuse with their neighbours)."""
+    ndim = samples[0].ndim
+    return sum(lead(taps[i], ndim) * sample for i, sample in enumerate(samples))
 
 
-def _history(modes: Array, readout: Array) -> Array:
-    """The two weighted sums of the modes, ``S + (2,)``: one ``(..., modes) x (modes, 2)``
-    product, which XLA's CPU backend hands to its matrix-product library (measured
-    faster than two fused weighted sums: ``docs/performance.md``, round 4)."""
-    return modes @ readout.T
+def _history(modes: Array, rates: Array) -> tuple[Array, Array]:
+    """The two read-outs of the scaled modes, each of the signal's shape: the integral's
+    history ``sum_j z_j`` and the rate's ``-sum_j s_j z_j`` (sums over the leading mode
+    axis, vectorised over the signal)."""
+    return jnp.sum(modes, 0), -jnp.sum(lead(rates, modes.ndim - 1) * modes, 0)
 
 
 @jax.custom_vjp
-def _advance_and_read(modes, weights, taps, readout, decay_m1, samples, active):
-    """Advance the scaled modes by one interval and read the two histories out.
+def _advance_and_read(modes, weights, taps, rates, decay_m1, samples, active):
+    """Advance the scaled modes ``(modes,) + S`` by one interval and read the two
+    histories out.
 
     ``modes + (decay_m1 modes + weights drive)`` (``z + (exp(-z) - 1) z`` keeps slow
     modes exact in float32, where ``exp(-z) ~ 1 - 1e-6``), the growth only where
-    ``active``; returns ``(modes, history)``.
+    ``active``; returns ``(modes, (integral history, rate history))``.
 
     The map is linear in the modes, so its adjoint is the same recursion run backwards
     over the cotangents: the reverse pass keeps no mode state (only the three samples
-    per channel) and recomputes nothing of the modes. ``taps``, ``readout`` and
+    per channel) and recomputes nothing of the modes. ``taps``, ``rates`` and
     ``decay_m1`` are fixed tables of the operator (not functions of the order): they
-    get no cotangent.
+    get no cotangent. ``weights`` may be shared by the signal's entries (axes of size
+    1): their cotangent is then summed over them.
     """
+    ndim = modes.ndim - 1
     growth = jnp.where(active, weights * _drive(taps, samples), 0.0)
-    modes = modes + (decay_m1 * modes + growth)
-    return modes, _history(modes, readout)
+    modes = modes + (lead(decay_m1, ndim) * modes + growth)
+    return modes, _history(modes, rates)
 
 
-def _advance_and_read_fwd(modes, weights, taps, readout, decay_m1, samples, active):
-    out = _advance_and_read(modes, weights, taps, readout, decay_m1, samples, active)
-    return out, (weights, taps, readout, decay_m1, samples, active)
+def _advance_and_read_fwd(modes, weights, taps, rates, decay_m1, samples, active):
+    out = _advance_and_read(modes, weights, taps, rates, decay_m1, samples, active)
+    return out, (weights, taps, rates, decay_m1, samples, active)
 
 
 def _advance_and_read_bwd(residuals, cotangents):
-    weights, taps, readout, decay_m1, samples, active = residuals
-    ct_modes_out, ct_history = cotangents
-    total = ct_modes_out + (ct_history[..., 0:1] * readout[0] + ct_history[..., 1:2] * readout[1])
+    weights, taps, rates, decay_m1, samples, active = residuals
+    ct_modes_out, (ct_integral, ct_rate) = cotangents
+    ndim = ct_modes_out.ndim - 1
+    total = ct_modes_out + (ct_integral - lead(rates, ndim) * ct_rate)
     ct_growth = jnp.where(active, total, 0.0)
-    ct_weights = ct_growth * _drive(taps, samples)
+    ct_weights = _unbroadcast(ct_growth * _drive(taps, samples), weights.shape)
     scaled = ct_growth * weights
-    ct_samples = tuple(jnp.sum(scaled * taps[i], -1) for i in range(3))
-    ct_modes = total + decay_m1 * total
-    zeros = jax.tree.map(jnp.zeros_like, (taps, readout, decay_m1))
+    ct_samples = tuple(jnp.sum(lead(taps[i], ndim) * scaled, 0) for i in range(3))
+    ct_modes = total + lead(decay_m1, ndim) * total
+    zeros = jax.tree.map(jnp.zeros_like, (taps, rates, decay_m1))
     return (ct_modes, ct_weights, *zeros, ct_samples, None)
 
 
 _advance_and_read.defvjp(_advance_and_read_fwd, _advance_and_read_bwd)
 
 
-MODE_LANES = 8
-"""The fused memory's mode axis is padded to a multiple of this (8 float32 lanes of an
-AVX2 vector; 23 modes measured slower than 24 or 32, ``docs/performance.md``)."""
-
-
-def _pad_modes(table: Array, modes: int) -> Array:
-    """``table`` with its last (mode) axis padded with zeros to ``modes`` entries."""
-    extra = modes - table.shape[-1]
-    return jnp.pad(table, [(0, 0)] * (table.ndim - 1) + [(0, extra)]) if extra else table
-
-
 class RatePairCoefficients(NamedTuple):
     """Weights of :class:`SOEIntegralWithRate` over the :class:`SumOfExponentials` modes.
 
-    For channel orders of shape ``S`` (``S`` broadcast against the signal):
+    For channel orders of shape ``O`` (broadcast against the signal's shape ``S`` by
+    numpy's rule, aligned on the last axes):
 
-    mode_weights: ``S + (modes,)`` the scales ``w_j(b) exp(-s_j dt)`` of the modes
+    mode_weights: ``(modes,) + O`` the scales ``w_j(b) exp(-s_j dt)`` of the modes
         ``z_j = w_j exp(-s_j dt) y_j``: the only order-dependent part of the update.
     taps: ``(3, modes)`` gains of ``(u_k, u_{k-1}, u_{k-2})`` into the unscaled modes
         ``y_j`` (the same for every order): ``z_j`` grows by
         ``mode_weights_j * sum_i taps_ij u_(k-i)``.
-    readout: ``(2, modes)`` ``(1, -s_j)``: the integral's history is ``sum_j z_j``, the
-        rate's history ``-sum_j s_j z_j`` (the same for every order).
-    local: ``S + (2, 3)`` weights of ``(u_k, u_{k-1}, u_{k-2})`` for (integral, rate).
+    rates: ``(modes,)`` the decay rates ``s_j``: the integral's history is
+        ``sum_j z_j``, the rate's ``-sum_j s_j z_j`` (the same for every order).
+    local: ``(2, 3) + O`` weights of ``(u_k, u_{k-1}, u_{k-2})`` for (integral, rate).
 
     Keeping the order-dependent weights apart from the fixed taps makes the gradient
-    with respect to the orders accumulate one ``S + (modes,)`` array per step instead of
-    ``S + (3, modes)`` (docs/performance.md).
-
-    ``modes`` here is the operator's mode count padded to a multiple of
-    :data:`MODE_LANES` with modes of zero weight, zero taps and no decay, which stay
-    zero: the arithmetic of the real modes is unchanged, and the mode axis, the minor
-    axis of every array of the memory, fills whole vectors.
+    with respect to the orders accumulate one ``(modes,) + O`` array per step instead
+    of ``(3, modes) + O`` (docs/performance.md).
     """
 
     mode_weights: Array
     taps: Array
-    readout: Array
+    rates: Array
     local: Array
 
 
@@ -394,9 +400,10 @@ class RatePairState(NamedTuple):
 
     The modes lag one sample behind (see :class:`SOEIntegralWithRate`):
 
-    modes: ``S + (modes,)`` scaled modes ``z_j`` at ``t_{k-2}`` when ``u_k`` comes next.
+    modes: ``(modes,) + S`` scaled modes ``z_j`` at ``t_{k-2}`` when ``u_k`` comes next.
     u_prev, u_prev2, u_prev3: ``S`` the samples ``u_{k-1}``, ``u_{k-2}``, ``u_{k-3}``.
-    count: ``()`` int32, number of samples consumed (``k``).
+    count: ``()`` int32, number of samples consumed (``k``); any shape broadcasting
+        against ``S`` (a batch of memories started together may carry one per draw).
     """
 
     modes: Array
@@ -413,9 +420,9 @@ class SOEIntegralWithRate:
 
     Both orders share the kernel weights ``w_j(b)``, so the modes are stored scaled,
     ``z_j = w_j exp(-s_j dt) y_j``: the integral's history is then ``sum_j z_j`` and the
-    rate's ``-sum_j s_j z_j``, one contraction ``(2, modes)`` with fixed weights for
-    every channel and order (one small matrix product per step), and each mode is read
-    and written once per step.
+    rate's ``-sum_j s_j z_j``, two sums over the modes with fixed weights for every
+    channel and order, and each mode is read and written once per step. The modes are
+    one ``(modes,) + S`` array, the mode axis first (see the note above).
 
     The step advances the modes over the interval before last, ``[t_{k-2}, t_{k-1}]``,
     with samples it already holds, then reads them out: the same arithmetic as
@@ -424,16 +431,16 @@ class SOEIntegralWithRate:
     computed. Compiled, it is then one pass over the modes that does not recompute the
     expressions producing ``u_k`` for every mode.
 
-    ``coefficients(b)`` takes the integral orders ``b`` in ``(0, 1)`` (any shape, one
-    per channel); ``step(coeffs, state, u) -> (state, (integral, rate))``.
+    ``coefficients(b)`` takes the integral orders ``b`` in ``(0, 1)`` (any shape ``O``,
+    one per channel, broadcasting against the signal: ``(12, 1)`` for a ``(12, draws)``
+    signal); ``step(coeffs, state, u) -> (state, (integral, rate))``.
     """
 
     operator: SumOfExponentials
 
     @property
     def n_modes(self) -> int:
-        """Modes of the state: the operator's, padded to a multiple of :data:`MODE_LANES`."""
-        return -(-self.operator.n_modes // MODE_LANES) * MODE_LANES
+        return self.operator.n_modes
 
     def coefficients(self, b: Any, dtype: Any = None) -> Any:
         """Weights for integral orders ``b`` (rate order ``1 - b``)."""
@@ -443,16 +450,14 @@ class SOEIntegralWithRate:
         tb = op._tables
         integral = op.coefficients(-b, dtype)
         rate = op.coefficients(1.0 - b, dtype)
-        gains = jnp.stack(
+        taps = jnp.stack(
             [jnp.asarray(tb[name], dtype) for name in ("gain_u", "gain_u1", "gain_u2")]
         )  # (3, modes)
-        rates = jnp.asarray(tb["rates"], dtype)
-        m = self.n_modes
         return RatePairCoefficients(
-            mode_weights=_pad_modes(integral.history, m),
-            taps=_pad_modes(gains, m),
-            readout=_pad_modes(jnp.stack([jnp.ones_like(rates), -rates]), m),
-            local=jnp.stack([integral.local, rate.local], axis=-2),
+            mode_weights=integral.history,
+            taps=taps,
+            rates=jnp.asarray(tb["rates"], dtype),
+            local=jnp.stack([integral.local, rate.local]),
         )
 
     def init(self, shape: tuple[int, ...] = (), dtype: Any = None) -> Any:
@@ -460,7 +465,7 @@ class SOEIntegralWithRate:
         shape = tuple(shape)
         zeros = jnp.zeros(shape, dtype)
         return RatePairState(
-            modes=jnp.zeros(shape + (self.n_modes,), dtype),
+            modes=jnp.zeros((self.n_modes,) + shape, dtype),
             u_prev=zeros,
             u_prev2=zeros,
             u_prev3=zeros,
@@ -470,29 +475,30 @@ class SOEIntegralWithRate:
     def step(self, coeffs: Any, state: Any, u: Array) -> tuple[Any, tuple[Array, Array]]:
         dtype = state.modes.dtype
         u = jnp.asarray(u, dtype)
+        ndim = state.modes.ndim - 1
         count = state.count
         # The advance that the previous step (sample u_{k-1}, count k - 1) owed: the
         # interval [t_{k-2}, t_{k-1}] against the quadratic through u_{k-3}, u_{k-2},
         # u_{k-1} (on the first interval, the line through u_{k-2}, u_{k-1}).
         u_before = jnp.where(count > 2, state.u_prev3, 2.0 * state.u_prev2 - state.u_prev)
-        decay_m1 = _pad_modes(jnp.asarray(self.operator._tables["decay_m1"], dtype), self.n_modes)
-        modes, history = _advance_and_read(
+        decay_m1 = jnp.asarray(self.operator._tables["decay_m1"], dtype)
+        modes, (integral, rate) = _advance_and_read(
             state.modes,
-            coeffs.mode_weights,
+            align(coeffs.mode_weights, 1, ndim),
             coeffs.taps,
-            coeffs.readout,
+            coeffs.rates,
             decay_m1,
             (state.u_prev, state.u_prev2, u_before),
             count > 1,
-        )  # the modes now at t_{k-1}; history S + (2,)
+        )  # the modes now at t_{k-1}
 
         # On the first step, extrapolate linearly so that the quadratic is the line.
         u_prev2 = jnp.where(count > 1, state.u_prev2, 2.0 * state.u_prev - u)
-        local = sum(
-            coeffs.local[..., i] * sample[..., None]
-            for i, sample in enumerate((u, state.u_prev, u_prev2))
-        )
-        outputs = jnp.where(count > 0, history + local, 0.0)
+        local = align(coeffs.local, 2, ndim)
+        samples = (u, state.u_prev, u_prev2)
+        integral = integral + sum(local[0, i] * x for i, x in enumerate(samples))
+        rate = rate + sum(local[1, i] * x for i, x in enumerate(samples))
+        started = count > 0
         new_state = RatePairState(
             modes=modes,
             u_prev=u,
@@ -500,4 +506,4 @@ class SOEIntegralWithRate:
             u_prev3=state.u_prev2,
             count=count + 1,
         )
-        return new_state, (outputs[..., 0], outputs[..., 1])
+        return new_state, (jnp.where(started, integral, 0.0), jnp.where(started, rate, 0.0))

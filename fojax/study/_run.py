@@ -185,15 +185,15 @@ def make_chunk_runner(
     controller = as_controller(controller)
     observer = metrics.Metrics(metrics_config)
 
-    def one(gains, key, member=0):
-        draw = scenarios.sample_draw(scenario, key, config.dt, dtype, member)
-        result = simulator.rollout(controller, gains, model, scenario, draw, config, observer)
-        return result.status, result.outputs, result.trajectory
+    def batch(gains, keys, member=0):
+        draws = scenarios.sample_draws(scenario, keys, config.dt, dtype, member)
+        result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
+        return scenarios.batch_first((result.status, result.outputs, result.trajectory))
 
-    in_axes = (None, 0, None) if scenario.members else (None, 0)
+    batched = (False, True, False) if scenario.members else (False, True)
     if mesh is not None and mesh.devices.size > 1:
-        return sharding.sharded_vmap(one, mesh, in_axes=in_axes)
-    return jax.jit(jax.vmap(one, in_axes=in_axes))
+        return sharding.sharded_batch(batch, mesh, batched)
+    return jax.jit(batch)
 
 
 def compile_chunk_runner(
