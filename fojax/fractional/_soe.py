@@ -319,10 +319,16 @@ def _drive(taps: Array, samples: tuple) -> Array:
 
 
 def _history(modes: Array, rates: Array) -> tuple[Array, Array]:
-    """The two read-outs of the scaled modes, each of the signal's shape: the integral's
-    history ``sum_j z_j`` and the rate's ``-sum_j s_j z_j`` (sums over the leading mode
-    axis, vectorised over the signal)."""
-    return jnp.sum(modes, 0), -jnp.sum(lead(rates, modes.ndim - 1) * modes, 0)
+    """The two read-outs of the scaled modes ``(modes,) + S``, each of the signal's shape
+    ``S``: the integral's history ``sum_j z_j`` and the rate's ``-sum_j s_j z_j``, as one
+    ``(2, modes) x (modes, prod(S))`` product. XLA's CPU backend hands it to its
+    matrix-product library, which streams the modes once for both; written as sums over
+    the mode axis they became two library reductions several times slower, and written
+    as 2 x 24 explicit additions they were fused into (and recomputed by) every kernel
+    reading the histories (docs/performance.md, round 4)."""
+    readout = jnp.stack([jnp.ones_like(rates), -rates])
+    history = jnp.tensordot(readout, modes, axes=1)
+    return history[0], history[1]
 
 
 @jax.custom_vjp
