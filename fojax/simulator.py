@@ -151,19 +151,26 @@ class Rollout(NamedTuple):
 class LoopState(NamedTuple):
     """The time loop's carry, at the start of step ``k``.
 
-    Shapes of one draw; a batch adds its axes last. state: the plant state ``x_k``
-    ``(12,)``. trig: ``(6,)`` :func:`fojax.plant.attitude_trig` of ``x_k``. held: the
-    draw's ``(noise, drag)`` table rows in force at step ``k`` (each ``(6,)`` or
+    Shapes of one draw; a batch adds its axes last. state: the plant state ``x_k`` as
+    its 12 entries. trig: ``(6,)`` :func:`fojax.plant.attitude_trig` of ``x_k``. held:
+    the draw's ``(noise, drag)`` table rows in force at step ``k`` (each ``(6,)`` or
     ``None``). control: the controller's state after its update at ``t_k``. inputs,
-    info: that update's command ``(4,)`` and :class:`ControlInfo`. status: ``()`` the
-    :class:`fojax.observers.Status` flags so far. observed: the observer's state.
+    info: that update's command as its 4 entries and :class:`ControlInfo`. status:
+    ``()`` the :class:`fojax.observers.Status` flags so far. observed: the observer's
+    state.
+
+    The state and the command are carried entry by entry: each entry is computed by its
+    own arithmetic (an RK4 combination, eq. (13), a torque), and stacked into one array
+    the stack would be their one reader, which XLA fuses into a single branchy,
+    unvectorised concatenation kernel; carried apart, every entry is one vectorised
+    kernel, and the arrays built from them where a step needs one read stored values.
     """
 
-    state: Array
+    state: tuple
     trig: Array
     held: tuple
     control: Any
-    inputs: Array
+    inputs: tuple
     info: ControlInfo
     status: Array
     observed: Any
@@ -272,29 +279,28 @@ def rollout(
             deterministic[i] if noise is None else deterministic[i] + noise[i].astype(dtype)
             for i in range(6)
         )
-        applied = tuple(loop.inputs[i] for i in range(4))
+        applied = loop.inputs
         if config.rotor_speed_limit is not None:
             applied = plant.saturate_inputs(draw.params, applied, config.rotor_speed_limit)
-        next_state = jnp.stack(
-            plant.rk4_step_parts(
-                draw.params,
-                tuple(loop.state[i] for i in range(12)),
-                applied,
-                disturbance,
-                dt,
-                drag_position,
-                drag_attitude,
-                tuple(loop.trig[i] for i in range(6)),
-            )
+        next_state = plant.rk4_step_parts(
+            draw.params,
+            loop.state,
+            applied,
+            disturbance,
+            dt,
+            drag_position,
+            drag_attitude,
+            tuple(loop.trig[i] for i in range(6)),
         )
+        state = jnp.stack(loop.state)
         record = observers.StepRecord(
             time=t,
-            state=loop.state,
-            next_state=next_state,
+            state=state,
+            next_state=jnp.stack(next_state),
             reference=reference,
-            inputs=loop.inputs,
+            inputs=jnp.stack(loop.inputs),
             info=loop.info,
-            error=observers.tracking_error(loop.state, reference, loop.info.attitude_reference),
+            error=observers.tracking_error(state, reference, loop.info.attitude_reference),
             plant=draw.params,
         )
         status = status_observer.update(loop.status, record)
@@ -308,14 +314,14 @@ def rollout(
             )
         # The control update of step k + 1, from the new state.
         control, next_inputs, next_info = controller.step(
-            params, loop.control, observe(draw, k + 1, next_state)
+            params, loop.control, observe(draw, k + 1, record.next_state)
         )
         loop = LoopState(
             state=next_state,
             trig=jnp.stack(plant.attitude_trig(*next_state[3:6])),
             held=held_at(draw, k + 1),
             control=control,
-            inputs=next_inputs,
+            inputs=_entries(next_inputs),
             info=next_info,
             status=status,
             observed=observed,
@@ -333,7 +339,7 @@ def rollout(
         last = jax.tree.map(lambda x: x[-1], (refs, inputs, infos))
         snapshot = Snapshot(
             _per_draw(t_end, 0, batch),
-            loop.state,
+            jnp.stack(loop.state),
             _per_draw(last[0], 1, batch),
             last[1],
             last[2],
@@ -343,15 +349,21 @@ def rollout(
         return loop, snapshot
 
     loop0 = LoopState(
-        state=state0,
+        state=_entries(state0),
         trig=jnp.stack(plant.attitude_trig(*state0[3:6])),
         held=held_at(draw, jnp.zeros((), jnp.int32)),
         control=control1,
-        inputs=inputs0,
+        inputs=_entries(inputs0),
         info=info0,
         status=broadcast_batch(status_observer.init(dtype), batch),
         observed=broadcast_batch(observer.init(dtype), batch) if observer is not None else None,
     )
     final, trajectory = lax.scan(block, loop0, jnp.arange(config.blocks))
     outputs = observer.finalize(final.observed) if observer is not None else None
-    return Rollout(final.state, final.status, outputs, trajectory)
+    return Rollout(jnp.stack(final.state), final.status, outputs, trajectory)
+
+
+def _entries(array: Array) -> tuple:
+    """The entries ``array[i]`` along the leading axis (XLA folds the slices of a stack
+    into its operands)."""
+    return tuple(array[i] for i in range(array.shape[0]))

@@ -189,11 +189,15 @@ class AFONFTSMC(ControlLaw):
     ) -> tuple[AFONFTSMCState, LawOutput]:
         g = params.gains
 
-        # Surfaces (16)-(18)/(37)-(39) and the fractional part of dS/dt.
-        p_terms = g.surface_c1 * signed_power(error, g.ratio)
-        phi_terms = g.surface_c2 * signed_power(error, g.power)
+        # Surfaces (16)-(18)/(37)-(39) and the fractional part of dS/dt: the 12 memory
+        # channels c1 sig^(p/q)(e1), then c2 sig^phi(e1), as one array (the stacking done
+        # on the errors, so that the powers are computed on the whole array).
+        twice = jnp.concatenate([error, error])
+        signals = jnp.concatenate([g.surface_c1, g.surface_c2]) * signed_power(
+            twice, jnp.concatenate([g.ratio, g.power])
+        )
         memory, (integral, rate) = self.memory.step(
-            params.surface_weights, state.surface_memory, jnp.concatenate([p_terms, phi_terms])
+            params.surface_weights, state.surface_memory, signals
         )
         surface = error_rate + integral[:6] + integral[6:]
 

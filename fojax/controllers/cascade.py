@@ -143,7 +143,10 @@ class CascadeState(NamedTuple):
 
     law: the law's state (fractional memories, adaptive estimates) or ``()``.
     command_filter: ``(2, 2)`` rows ``(phi, theta)``, columns ``(value, rate)``.
-    last_inputs: ``(4,)`` the previous command (for the gyroscopic term).
+    last_inputs: the previous command (for the gyroscopic term), its four entries
+        ``(u_F, tau_x, tau_y, tau_z)`` (each ``()``, or the batch's shape). Kept apart:
+        stacked, the stack would be the one reader of the command's arithmetic, which
+        XLA fuses into one unvectorised concatenation kernel.
     """
 
     law: Any
@@ -224,7 +227,9 @@ class Cascade:
         return CascadeState(
             law=broadcast_batch(self.law.init(params.law, dtype), batch),
             command_filter=jnp.stack([attitude, jnp.zeros_like(attitude)], axis=1),
-            last_inputs=broadcast_batch(plant.hover_inputs(params.model).astype(dtype), batch),
+            last_inputs=tuple(
+                broadcast_batch(plant.hover_inputs(params.model).astype(dtype), batch)
+            ),
         )
 
     def step(
@@ -257,19 +262,24 @@ class Cascade:
             model, *virtual, jnp.cos(yaw_reference), jnp.sin(yaw_reference), self.thrust_floor
         )
 
-        # Command filter: phi_r, theta_r and their two derivatives.
+        # Command filter: phi_r, theta_r and their two derivatives. Row by row: a stack
+        # of (phi_r, theta_r) would be the one reader of eq. (13)'s arithmetic, which XLA
+        # then fuses into a branchy, unvectorised concatenation kernel.
         w, zeta = self.filter_frequency, self.filter_damping
-        tilt_reference = jnp.stack([phi_r, theta_r])
-        value, rate = filt[:, 0], filt[:, 1]
-        filtered_accel = w * w * (tilt_reference - value) - 2.0 * zeta * w * rate
         transition, gain = params.filter_transition, params.filter_input
-        command_filter = jnp.stack(
-            [
-                value * transition[j, 0] + rate * transition[j, 1] + tilt_reference * gain[j]
-                for j in range(2)
-            ],
-            axis=1,
-        )
+        filtered_accel, command_filter = [], []
+        for i, tilt in enumerate((phi_r, theta_r)):
+            value, rate = filt[i, 0], filt[i, 1]
+            filtered_accel.append(w * w * (tilt - value) - 2.0 * zeta * w * rate)
+            command_filter.append(
+                jnp.stack(
+                    [
+                        value * transition[j, 0] + rate * transition[j, 1] + tilt * gain[j]
+                        for j in range(2)
+                    ]
+                )
+            )
+        command_filter = jnp.stack(command_filter)
 
         # Attitude loop, eqs. (42)-(44).
         omega_r = plant.rotor_speed_sum(model, state.last_inputs)
@@ -280,7 +290,7 @@ class Cascade:
             for i in range(3)
         ]
 
-        inputs = jnp.stack([thrust, *torque])
+        inputs = (thrust, *torque)
         surfaces = _axes(out.surface)
         if out.adaptive is None:
             adaptive = jnp.zeros((6, 3) + surfaces.shape[1:], x.dtype)
@@ -294,7 +304,7 @@ class Cascade:
             ),
             adaptive=adaptive,
         )
-        return new_state, inputs, info
+        return new_state, jnp.stack(inputs), info
 
 
 def _axes(values: Any) -> Array:
