@@ -331,6 +331,21 @@ def rollout(
     def one_step(loop, k):
         return step(params, draw, loop, k)
 
+    import os
+    _pol = os.environ.get("FOJAX_POLICY")
+    if _pol == "nothing":
+        one_step = jax.checkpoint(one_step, policy=jax.checkpoint_policies.nothing_saveable)
+    elif _pol == "expensive":
+        names = {"exp", "log", "log1p", "expm1", "atan", "atan2", "sqrt", "rsqrt", "div", "tanh", "sin", "cos", "pow", "custom_vjp_call", "custom_vjp_call_jaxpr", "dot_general", "reduce_sum", "integer_pow"}
+        def policy(prim, *args, **params):
+            return prim.name in names
+        one_step = jax.checkpoint(one_step, policy=policy)
+    elif _pol == "exp2":
+        names = {"exp", "log", "log1p", "expm1", "atan", "atan2", "sqrt", "rsqrt", "div", "tanh", "sin", "cos", "pow", "dot_general"}
+        def policy(prim, *args, **params):
+            return prim.name in names
+        one_step = jax.checkpoint(one_step, policy=policy)
+
     @jax.checkpoint
     def block(loop: LoopState, block_index):
         ks = block_index * config.save_every + jnp.arange(config.save_every)

@@ -439,18 +439,18 @@ def test_integral_with_rate_reverse_pass_equals_autodiff():
     def loss(b, u, modes0, advance):
         coeffs = pair.coefficients(b, jnp.float64)
         state = pair.init((4,), jnp.float64)._replace(modes=modes0)
-        original = _soe._advance_and_read
-        _soe._advance_and_read = advance
+        original = _soe._memory_step
+        _soe._memory_step = advance
         try:
             _, (integral, rate) = lax.scan(lambda s, x: pair.step(coeffs, s, x), state, u)
         finally:
-            _soe._advance_and_read = original
+            _soe._memory_step = original
         return jnp.sum(jnp.stack([integral, rate], -1) * probe)
 
     b = jnp.asarray([0.01, 0.3, 0.7, 0.99])
     modes0 = jnp.asarray(rng.normal(size=(pair.n_modes, 4)))
-    custom = jax.grad(loss, argnums=(0, 1, 2))(b, u, modes0, _soe._advance_and_read)
-    plain = jax.grad(loss, argnums=(0, 1, 2))(b, u, modes0, _soe._advance_and_read.fun)
+    custom = jax.grad(loss, argnums=(0, 1, 2))(b, u, modes0, _soe._memory_step)
+    plain = jax.grad(loss, argnums=(0, 1, 2))(b, u, modes0, _soe._memory_step.fun)
     for got, want in zip(custom, plain, strict=True):
         assert float(jnp.max(jnp.abs(want))) > 0
         np.testing.assert_allclose(

@@ -318,61 +318,90 @@ def _drive(taps: Array, samples: tuple) -> Array:
     return sum(lead(taps[i], ndim) * sample for i, sample in enumerate(samples))
 
 
-def _history(modes: Array, rates: Array) -> tuple[Array, Array]:
-    """The two read-outs of the scaled modes ``(modes,) + S``, each of the signal's shape
-    ``S``: the integral's history ``sum_j z_j`` and the rate's ``-sum_j s_j z_j``, as one
-    ``(2, modes) x (modes, prod(S))`` product. XLA's CPU backend hands it to its
-    matrix-product library, which streams the modes once for both; written as sums over
-    the mode axis they became two library reductions several times slower, and written
-    as 2 x 24 explicit additions they were fused into (and recomputed by) every kernel
-    reading the histories (docs/performance.md, round 4)."""
-    readout = jnp.stack([jnp.ones_like(rates), -rates])
-    history = jnp.tensordot(readout, modes, axes=1)
-    return history[0], history[1]
+def _contract(table: Array, values: Array) -> Array:
+    """``table`` ``(k, modes)`` contracted with ``values`` ``(modes,) + S`` over the modes:
+    ``(k,) + S``, one ``(k, modes) x (modes, prod(S))`` product. XLA's CPU backend hands
+    it to its matrix-product library, which streams the modes once for all ``k`` rows;
+    written as sums over the mode axis they became ``k`` library reductions several
+    times slower, and written as explicit additions they were fused into (and
+    recomputed by) every kernel reading them (docs/performance.md, round 4)."""
+    return jnp.tensordot(table, values, axes=1)
+
+
+def _readout(rates: Array) -> Array:
+    """``(2, modes)``: the integral's history ``sum_j z_j`` and the rate's
+    ``-sum_j s_j z_j`` of the scaled modes."""
+    return jnp.stack([jnp.ones_like(rates), -rates])
+
+
+def _local(local: Array, samples: tuple) -> tuple:
+    """The last step's product-integration terms ``sum_i local[j, i] x_i`` of the
+    integral (``j = 0``) and the rate (``j = 1``)."""
+    return tuple(sum(local[j, i] * x for i, x in enumerate(samples)) for j in range(2))
 
 
 @jax.custom_vjp
-def _advance_and_read(modes, weights, taps, rates, decay_m1, samples, active):
-    """Advance the scaled modes ``(modes,) + S`` by one interval and read the two
-    histories out.
+def _memory_step(modes, weights, local, taps, rates, decay_m1, drive, samples, active, started):
+    """One step of the fused memory: advance the scaled modes ``(modes,) + S`` over one
+    interval from the ``drive`` samples (the growth only where ``active``), read the two
+    histories out and add the last step's terms of the ``samples``; returns ``(modes,
+    integral, rate)``, the outputs zero where not ``started``.
 
-    ``modes + (decay_m1 modes + weights drive)`` (``z + (exp(-z) - 1) z`` keeps slow
-    modes exact in float32, where ``exp(-z) ~ 1 - 1e-6``), the growth only where
-    ``active``; returns ``(modes, (integral history, rate history))``.
-
-    The map is linear in the modes, so its adjoint is the same recursion run backwards
-    over the cotangents: the reverse pass keeps no mode state (only the three samples
-    per channel) and recomputes nothing of the modes. ``taps``, ``rates`` and
-    ``decay_m1`` are fixed tables of the operator (not functions of the order): they
-    get no cotangent. ``weights`` may be shared by the signal's entries (axes of size
-    1): their cotangent is then summed over them.
+    ``modes + (decay_m1 modes + weights sum_i taps_i drive_i)`` (``z + (exp(-z) - 1) z``
+    keeps slow modes exact in float32, where ``exp(-z) ~ 1 - 1e-6``). The map is linear
+    in the modes, so its adjoint is the same recursion run backwards over the
+    cotangents: the reverse pass keeps no mode state, only the samples, and its work is
+    one pass over the modes plus one product for the samples' cotangents. ``taps``,
+    ``rates`` and ``decay_m1`` are fixed tables of the operator (not functions of the
+    order): they get no cotangent. ``weights`` and ``local`` may be shared by the
+    signal's entries (axes of size 1): their cotangents are then summed over them.
     """
     ndim = modes.ndim - 1
-    growth = jnp.where(active, weights * _drive(taps, samples), 0.0)
+    growth = jnp.where(active, weights * _drive(taps, drive), 0.0)
     modes = modes + (lead(decay_m1, ndim) * modes + growth)
-    return modes, _history(modes, rates)
+    history = _contract(_readout(rates), modes)
+    terms = _local(local, samples)
+    integral, rate = (jnp.where(started, history[j] + terms[j], 0.0) for j in range(2))
+    return modes, integral, rate
 
 
-def _advance_and_read_fwd(modes, weights, taps, rates, decay_m1, samples, active):
-    out = _advance_and_read(modes, weights, taps, rates, decay_m1, samples, active)
-    return out, (weights, taps, rates, decay_m1, samples, active)
+def _memory_step_fwd(modes, weights, local, taps, rates, decay_m1, drive, samples, active, started):
+    out = _memory_step(
+        modes, weights, local, taps, rates, decay_m1, drive, samples, active, started
+    )
+    return out, (weights, local, taps, rates, decay_m1, drive, samples, active, started)
 
 
-def _advance_and_read_bwd(residuals, cotangents):
-    weights, taps, rates, decay_m1, samples, active = residuals
-    ct_modes_out, (ct_integral, ct_rate) = cotangents
+def _memory_step_bwd(residuals, cotangents):
+    weights, local, taps, rates, decay_m1, drive, samples, active, started = residuals
+    ct_modes_out, ct_integral, ct_rate = cotangents
     ndim = ct_modes_out.ndim - 1
-    total = ct_modes_out + (ct_integral - lead(rates, ndim) * ct_rate)
+    ct_out = (jnp.where(started, ct_integral, 0.0), jnp.where(started, ct_rate, 0.0))
+    ct_local = _unbroadcast(
+        jnp.stack([jnp.stack([ct * x for x in samples]) for ct in ct_out]), local.shape
+    )
+    ct_samples = tuple(
+        local[0, i] * ct_out[0] + local[1, i] * ct_out[1] for i in range(len(samples))
+    )
+    total = ct_modes_out + (ct_out[0] - lead(rates, ndim) * ct_out[1])
     ct_growth = jnp.where(active, total, 0.0)
-    ct_weights = _unbroadcast(ct_growth * _drive(taps, samples), weights.shape)
-    scaled = ct_growth * weights
-    ct_samples = tuple(jnp.sum(lead(taps[i], ndim) * scaled, 0) for i in range(3))
+    ct_weights = _unbroadcast(ct_growth * _drive(taps, drive), weights.shape)
+    ct_drive = _contract(taps, ct_growth * weights)
     ct_modes = total + lead(decay_m1, ndim) * total
     zeros = jax.tree.map(jnp.zeros_like, (taps, rates, decay_m1))
-    return (ct_modes, ct_weights, *zeros, ct_samples, None)
+    return (
+        ct_modes,
+        ct_weights,
+        ct_local,
+        *zeros,
+        tuple(ct_drive[i] for i in range(len(drive))),
+        ct_samples,
+        None,
+        None,
+    )
 
 
-_advance_and_read.defvjp(_advance_and_read_fwd, _advance_and_read_bwd)
+_memory_step.defvjp(_memory_step_fwd, _memory_step_bwd)
 
 
 class RatePairCoefficients(NamedTuple):
@@ -485,26 +514,23 @@ class SOEIntegralWithRate:
         count = state.count
         # The advance that the previous step (sample u_{k-1}, count k - 1) owed: the
         # interval [t_{k-2}, t_{k-1}] against the quadratic through u_{k-3}, u_{k-2},
-        # u_{k-1} (on the first interval, the line through u_{k-2}, u_{k-1}).
+        # u_{k-1} (on the first interval, the line through u_{k-2}, u_{k-1}); the modes
+        # are then at t_{k-1}.
         u_before = jnp.where(count > 2, state.u_prev3, 2.0 * state.u_prev2 - state.u_prev)
-        decay_m1 = jnp.asarray(self.operator._tables["decay_m1"], dtype)
-        modes, (integral, rate) = _advance_and_read(
-            state.modes,
-            align(coeffs.mode_weights, 1, ndim),
-            coeffs.taps,
-            coeffs.rates,
-            decay_m1,
-            (state.u_prev, state.u_prev2, u_before),
-            count > 1,
-        )  # the modes now at t_{k-1}
-
         # On the first step, extrapolate linearly so that the quadratic is the line.
         u_prev2 = jnp.where(count > 1, state.u_prev2, 2.0 * state.u_prev - u)
-        local = align(coeffs.local, 2, ndim)
-        samples = (u, state.u_prev, u_prev2)
-        integral = integral + sum(local[0, i] * x for i, x in enumerate(samples))
-        rate = rate + sum(local[1, i] * x for i, x in enumerate(samples))
-        started = count > 0
+        modes, integral, rate = _memory_step(
+            state.modes,
+            align(coeffs.mode_weights, 1, ndim),
+            align(coeffs.local, 2, ndim),
+            coeffs.taps,
+            coeffs.rates,
+            jnp.asarray(self.operator._tables["decay_m1"], dtype),
+            (state.u_prev, state.u_prev2, u_before),
+            (u, state.u_prev, u_prev2),
+            count > 1,
+            count > 0,
+        )
         new_state = RatePairState(
             modes=modes,
             u_prev=u,
@@ -512,4 +538,4 @@ class SOEIntegralWithRate:
             u_prev3=state.u_prev2,
             count=count + 1,
         )
-        return new_state, (jnp.where(started, integral, 0.0), jnp.where(started, rate, 0.0))
+        return new_state, (integral, rate)
