@@ -66,6 +66,8 @@ __all__ = [
     "STATE_SIZE",
     "VELOCITY",
     "PlantParams",
+    "AttitudeTrig",
+    "StateBlocks",
     "attitude_trig",
     "derivatives",
     "hover_inputs",
@@ -74,12 +76,13 @@ __all__ = [
     "mixer",
     "nominal_params",
     "rk4_step",
-    "rk4_step_parts",
+    "rk4_step_blocks",
     "rotor_speed_sum",
     "rotor_speeds_squared",
     "saturate_inputs",
     "signed_square",
     "split_state",
+    "state_blocks",
 ]
 
 STATE_SIZE = 12
@@ -295,15 +298,14 @@ def hover_state(position=(0.0, 0.0, 0.0), yaw=0.0, dtype=None) -> Array:
 
 # ------------------------------------------------------------------------- dynamics
 #
-# The dynamics are written on scalars (``(12,)`` states unpacked into their entries)
-# and stacked once at the end. Under ``vmap`` each scalar becomes one contiguous
-# ``(draws,)`` array, so XLA's CPU backend emits one vectorised loop over the draws
-# per value. Built as small stacked vectors instead, every element of such a vector
-# became one branch of a loop fusion that recomputed the shared operands (all six
-# sin/cos of the attitude, for each thrust-direction component) and did not vectorise
-# (docs/performance.md). Each acceleration ends with its division by the mass or the
-# inertia: XLA keeps a division it would have to duplicate as a kernel of its own, so
-# an RK4 stage's accelerations are computed once and read by the next stage.
+# The dynamics work on the state's four blocks of three, position, attitude, velocity
+# and angular rate, each ``(3,)`` for one draw or ``(3, draws)`` for a batch (the
+# batch's axes last: every row a contiguous run over the draws, computed in one
+# vectorised pass). Per RK4 stage that is a handful of arrays, not one per entry: the
+# number of kernels, and of values kept for the reverse pass, follows the number of
+# arrays (docs/performance.md). Each acceleration ends with its division by the mass
+# or the inertia: XLA keeps a division it would have to duplicate as a kernel of its
+# own, so an RK4 stage's accelerations are computed once and read by the next stage.
 
 
 def signed_square(w: Array) -> Array:
@@ -316,10 +318,10 @@ def _unstack(vector: Array, size: int) -> tuple:
     return tuple(vector[i] for i in range(size))
 
 
-def _drag_parts(params: PlantParams, drag_position, drag_attitude) -> tuple[tuple, tuple]:
-    k_p = params.drag_position if drag_position is None else drag_position
-    k_phi = params.drag_attitude if drag_attitude is None else drag_attitude
-    return _unstack(k_p, 3), _unstack(k_phi, 3)
+def _column(values, like: Array) -> Array:
+    """``values`` ``(3,)`` shaped to broadcast against a block ``like`` ``(3,) + batch``."""
+    values = jnp.asarray(values)
+    return values.reshape(values.shape + (1,) * (jnp.ndim(like) - values.ndim))
 
 
 def _rotor_speed_sum_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z) -> Array:
@@ -329,9 +331,17 @@ def _rotor_speed_sum_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z) -> 
     return speeds[0] - speeds[1] + speeds[2] - speeds[3]
 
 
-def attitude_trig(phi: Array, theta: Array, psi: Array) -> tuple:
-    """``(cos phi, sin phi, cos theta, sin theta, cos psi, sin psi)`` of the Euler angles."""
-    return (jnp.cos(phi), jnp.sin(phi), jnp.cos(theta), jnp.sin(theta), jnp.cos(psi), jnp.sin(psi))
+class AttitudeTrig(NamedTuple):
+    """``cos`` and ``sin`` of the Euler angles ``(phi, theta, psi)``, each ``(3,)`` (a
+    batch's axes last)."""
+
+    cos: Array
+    sin: Array
+
+
+def attitude_trig(attitude: Array) -> AttitudeTrig:
+    """:class:`AttitudeTrig` of the Euler angles ``attitude`` ``(3,) + batch``."""
+    return AttitudeTrig(jnp.cos(attitude), jnp.sin(attitude))
 
 
 # Taylor coefficients of (cos d - 1) / d^2 and sin(d) / d in powers of d^2, to d^14 and
@@ -348,8 +358,9 @@ def _horner(x: Array, coefficients: tuple) -> Array:
     return result
 
 
-def _rotate(trig: tuple, increments: tuple) -> tuple:
-    """:func:`attitude_trig` of the angles shifted by small ``increments``, from ``trig``.
+def _rotate(trig: AttitudeTrig, increment: Array) -> AttitudeTrig:
+    """:func:`attitude_trig` of the angles shifted by a small ``increment`` ``(3,) +
+    batch``, from ``trig``.
 
     ``cos(a + d) = cos a + (cos a (cos d - 1) - sin a sin d)`` and likewise for ``sin``,
     with ``cos d - 1`` and ``sin d`` from their Taylor series (:data:`_SIN_SERIES`):
@@ -357,45 +368,71 @@ def _rotate(trig: tuple, increments: tuple) -> tuple:
     of 1000 rad/s over a 1 ms step). Multiply-adds instead of the sine and cosine that
     XLA's CPU backend evaluates at ~2 ns each, and again in every kernel reading them.
     """
-    out = []
-    for i, d in enumerate(increments):
-        c, s = trig[2 * i], trig[2 * i + 1]
-        d2 = d * d
-        cos_m1 = d2 * _horner(d2, _COS_M1_SERIES)
-        sin_d = d * _horner(d2, _SIN_SERIES)
-        out += [c + (c * cos_m1 - s * sin_d), s + (s * cos_m1 + c * sin_d)]
-    return tuple(out)
+    c, s = trig
+    d2 = increment * increment
+    cos_m1 = d2 * _horner(d2, _COS_M1_SERIES)
+    sin_d = increment * _horner(d2, _SIN_SERIES)
+    return AttitudeTrig(c + (c * cos_m1 - s * sin_d), s + (s * cos_m1 + c * sin_d))
 
 
-def _derivative_parts(
-    params: PlantParams, x: tuple, trig: tuple, inputs: tuple, omega_r, d: tuple, k_p, k_phi
-):
-    """:func:`derivatives` on scalars: ``x`` 12, ``trig`` 6 (:func:`attitude_trig` of
-    ``x``), ``inputs`` 4, ``d`` 6, ``k_p``/``k_phi`` 3 entries; ``omega_r`` the rotor
-    speed sum of ``inputs``. Returns 12 scalars."""
-    vx, vy, vz = x[6], x[7], x[8]
-    p, q, r = x[9], x[10], x[11]
-    thrust, tau_x, tau_y, tau_z = inputs
-    i11, i22, i33 = params.inertia[0], params.inertia[1], params.inertia[2]
-    j_r = params.rotor_inertia
+def _accelerations(
+    params: PlantParams,
+    velocity: Array,
+    rate: Array,
+    trig: AttitudeTrig,
+    thrust: Array,
+    torque: Array,
+    omega_r: Array,
+    disturbance: tuple[Array, Array],
+    k_p: Array,
+    k_phi: Array,
+) -> tuple[Array, Array]:
+    """Eq. (11) on blocks: the translational ``(x'', y'', z'')`` and angular
+    ``(phi'', theta'', psi'')`` accelerations, each ``(3,) + batch``.
+
+    ``velocity``, ``rate``: ``(3,) + batch``; ``trig`` of the attitude; ``thrust``
+    ``batch``, ``torque`` ``(3,) + batch``; ``omega_r`` the rotor speed sum of the
+    inputs; ``disturbance`` ``(d_p, d_eta)`` and the drag coefficients ``k_p``, ``k_phi``
+    ``(3,) + batch`` (or ``(3,)``).
+    """
+    cos, sin = trig
+    c_phi, c_theta, c_psi = cos[0], cos[1], cos[2]
+    s_phi, s_theta, s_psi = sin[0], sin[1], sin[2]
     m = params.mass
-
-    # Eq. (11a)-(11c) multiplied through by the inertia, divided once at the end.
-    roll_accel = (
-        (i22 - i33) * q * r - j_r * q * omega_r - k_phi[0] * signed_square(p) + tau_x
-    ) / i11 + d[3]
-    pitch_accel = (
-        (i33 - i11) * p * r + j_r * p * omega_r - k_phi[1] * signed_square(q) + tau_y
-    ) / i22 + d[4]
-    yaw_accel = ((i11 - i22) * p * q - k_phi[2] * signed_square(r) + tau_z) / i33 + d[5]
+    inertia = params.inertia
+    j_r = params.rotor_inertia
 
     # Eq. (11d)-(11f), forces divided by the mass at the end.
-    c_phi, s_phi, c_theta, s_theta, c_psi, s_psi = trig
     s_theta_c_phi = s_theta * c_phi
-    x_accel = ((c_psi * s_theta_c_phi + s_psi * s_phi) * thrust - k_p[0] * vx) / m + d[0]
-    y_accel = ((s_psi * s_theta_c_phi - c_psi * s_phi) * thrust - k_p[1] * vy) / m + d[1]
-    z_accel = (c_theta * c_phi * thrust - k_p[2] * vz) / m - params.gravity + d[2]
-    return (vx, vy, vz, p, q, r, x_accel, y_accel, z_accel, roll_accel, pitch_accel, yaw_accel)
+    direction = jnp.stack(
+        [
+            c_psi * s_theta_c_phi + s_psi * s_phi,
+            s_psi * s_theta_c_phi - c_psi * s_phi,
+            c_theta * c_phi,
+        ]
+    )
+    zero = jnp.zeros_like(params.gravity)
+    gravity = jnp.stack([zero, zero, params.gravity])
+    translational = (
+        (direction * thrust - _column(k_p, velocity) * velocity) / m
+        - _column(gravity, velocity)
+        + disturbance[0]
+    )
+
+    # Eq. (11a)-(11c) multiplied through by the inertia, divided once at the end.
+    p, q, r = rate[0], rate[1], rate[2]
+    i11, i22, i33 = inertia[0], inertia[1], inertia[2]
+    coupling = jnp.stack(
+        [
+            (i22 - i33) * q * r - j_r * q * omega_r,
+            (i33 - i11) * p * r + j_r * p * omega_r,
+            (i11 - i22) * p * q,
+        ]
+    )
+    angular = (coupling - _column(k_phi, rate) * signed_square(rate) + torque) / _column(
+        inertia, rate
+    ) + disturbance[1]
+    return translational, angular
 
 
 def derivatives(
@@ -417,64 +454,94 @@ def derivatives(
     drag_attitude: optional ``(3,)`` override of ``K_phi`` (time-varying drag).
 
     Returns ``(x', y', z', phi', theta', psi', x'', y'', z'', phi'', theta'', psi'')``.
+    Every array may carry a batch's axes last (``state`` ``(12, draws)``).
     """
-    k_p, k_phi = _drag_parts(params, drag_position, drag_attitude)
-    u = _unstack(inputs, 4)
-    omega_r = _rotor_speed_sum_parts(params, *u)
-    x = _unstack(state, 12)
-    parts = _derivative_parts(
-        params, x, attitude_trig(*x[3:6]), u, omega_r, _unstack(disturbance_accel, 6), k_p, k_phi
+    k_p = params.drag_position if drag_position is None else drag_position
+    k_phi = params.drag_attitude if drag_attitude is None else drag_attitude
+    omega_r = _rotor_speed_sum_parts(params, *_unstack(inputs, 4))
+    velocity, rate = state[6:9], state[9:12]
+    translational, angular = _accelerations(
+        params,
+        velocity,
+        rate,
+        attitude_trig(state[3:6]),
+        inputs[0],
+        inputs[1:4],
+        omega_r,
+        (disturbance_accel[:3], disturbance_accel[3:6]),
+        k_p,
+        k_phi,
     )
-    return jnp.stack([v.astype(state.dtype) for v in parts])
+    return jnp.concatenate([velocity, rate, translational, angular]).astype(state.dtype)
 
 
-def rk4_step_parts(
+class StateBlocks(NamedTuple):
+    """The state's four blocks, each ``(3,)`` (a batch's axes last): position
+    ``(x, y, z)``, attitude ``(phi, theta, psi)``, their rates."""
+
+    position: Array
+    attitude: Array
+    velocity: Array
+    rate: Array
+
+
+def state_blocks(state: Array) -> StateBlocks:
+    """The :class:`StateBlocks` of a ``(12,) + batch`` state."""
+    return StateBlocks(state[0:3], state[3:6], state[6:9], state[9:12])
+
+
+def rk4_step_blocks(
     params: PlantParams,
-    state: tuple,
-    inputs: tuple,
-    disturbance_accel: tuple,
+    state: StateBlocks,
+    thrust: Array,
+    torque: Array,
+    disturbance: tuple[Array, Array],
     dt,
-    drag_position: tuple | None = None,
-    drag_attitude: tuple | None = None,
-    trig: tuple | None = None,
-) -> tuple:
-    """:func:`rk4_step` on unstacked values: ``state`` a tuple of 12 scalars, ``inputs``
-    of 4, ``disturbance_accel`` of 6, the drag overrides of 3 each (or ``None``);
-    ``trig``, if given, is :func:`attitude_trig` of ``state`` (computed when ``None``).
+    drag_position: Array | None = None,
+    drag_attitude: Array | None = None,
+    trig: AttitudeTrig | None = None,
+) -> StateBlocks:
+    """One classical Runge-Kutta step of eq. (11) on the state's blocks.
 
-    Returns the 12 scalars of the next state. The closed-loop simulator keeps its state
-    unstacked this way (see the note above :func:`derivatives`), and with it the trig
-    of the attitude, computed once per step. The stages' trig follows from it by
-    :func:`_rotate` (the attitude moves by at most ``dt`` times the rates in a stage),
-    so a step evaluates no sine or cosine itself.
+    ``state``: :class:`StateBlocks`; ``thrust`` ``batch``, ``torque`` ``(3,) + batch``,
+    ``disturbance`` ``(d_p, d_eta)`` ``(3,) + batch`` each, held over the step; the drag
+    overrides ``(3,) + batch`` (``None``: the parameters'); ``trig``, if given, is
+    :func:`attitude_trig` of the attitude (computed when ``None``).
+
+    The closed-loop simulator carries the trig of the attitude with the state, computed
+    once per step; the stages' trig follows from it by :func:`_rotate` (the attitude
+    moves by at most ``dt`` times the rates in a stage), so a step evaluates no sine or
+    cosine itself.
     """
-    dtype = state[0].dtype
-    if drag_position is None:
-        drag_position = _unstack(params.drag_position, 3)
-    if drag_attitude is None:
-        drag_attitude = _unstack(params.drag_attitude, 3)
+    dtype = state.position.dtype
+    k_p = params.drag_position if drag_position is None else drag_position
+    k_phi = params.drag_attitude if drag_attitude is None else drag_attitude
     if trig is None:
-        trig = attitude_trig(*state[3:6])
-    omega_r = _rotor_speed_sum_parts(params, *inputs)  # inputs are held over the step
+        trig = attitude_trig(state.attitude)
+    # The inputs are held over the step.
+    omega_r = _rotor_speed_sum_parts(params, thrust, torque[0], torque[1], torque[2])
     dt = jnp.asarray(dt, dtype=dtype)
 
-    def f(x, x_trig):
-        return _derivative_parts(
-            params, x, x_trig, inputs, omega_r, disturbance_accel, drag_position, drag_attitude
+    def f(velocity, rate, stage_trig):
+        translational, angular = _accelerations(
+            params, velocity, rate, stage_trig, thrust, torque, omega_r, disturbance, k_p, k_phi
         )
+        return StateBlocks(velocity, rate, translational, angular)
 
     def stage(h, k):
-        """The state ``x + h k`` and its attitude trig."""
-        x = tuple(xi + h * ki for xi, ki in zip(state, k, strict=True))
-        return f(x, _rotate(trig, tuple(h * ki for ki in k[3:6])))
+        """The derivative at the state ``x + h k``."""
+        x = StateBlocks(*(xi + h * ki for xi, ki in zip(state, k, strict=True)))
+        return f(x.velocity, x.rate, _rotate(trig, h * k.attitude))
 
-    k1 = f(state, trig)
+    k1 = f(state.velocity, state.rate, trig)
     k2 = stage(0.5 * dt, k1)
     k3 = stage(0.5 * dt, k2)
     k4 = stage(dt, k3)
-    return tuple(
-        (xi + dt / 6.0 * (a + 2.0 * b + 2.0 * c + e)).astype(dtype)
-        for xi, a, b, c, e in zip(state, k1, k2, k3, k4, strict=True)
+    return StateBlocks(
+        *(
+            (xi + dt / 6.0 * (a + 2.0 * b + 2.0 * c + e)).astype(dtype)
+            for xi, a, b, c, e in zip(state, k1, k2, k3, k4, strict=True)
+        )
     )
 
 
@@ -491,16 +558,17 @@ def rk4_step(
 
     ``inputs``, ``disturbance_accel`` and the drag overrides are held constant over the
     step (zero-order hold), so the step is fourth-order accurate in ``dt`` for smooth
-    dynamics. Pure: ``jit``, ``vmap`` and ``grad`` apply.
+    dynamics. Pure: ``jit``, ``vmap`` and ``grad`` apply; every array may carry a
+    batch's axes last.
     """
-    k_p, k_phi = _drag_parts(params, drag_position, drag_attitude)
-    parts = rk4_step_parts(
+    blocks = rk4_step_blocks(
         params,
-        _unstack(state, 12),
-        _unstack(inputs, 4),
-        _unstack(disturbance_accel, 6),
+        state_blocks(state),
+        inputs[0],
+        inputs[1:4],
+        (disturbance_accel[:3], disturbance_accel[3:6]),
         dt,
-        k_p,
-        k_phi,
+        drag_position,
+        drag_attitude,
     )
-    return jnp.stack(parts)
+    return jnp.concatenate(blocks)

@@ -29,7 +29,7 @@ the loop). The plant and the per-step bookkeeping then read the command from the
 carry, where it is computed once (XLA's CPU backend otherwise recomputes an operand
 inside every kernel reading it; see docs/performance.md). With the plant state the
 carry holds the sines and cosines of its attitude, evaluated once per step
-(:func:`fojax.plant.rk4_step_parts`).
+(:func:`fojax.plant.rk4_step_blocks`).
 """
 
 from __future__ import annotations
@@ -152,22 +152,22 @@ class LoopState(NamedTuple):
     """The time loop's carry, at the start of step ``k``.
 
     Shapes of one draw; a batch adds its axes last. state: the plant state ``x_k`` as
-    its 12 entries. trig: ``(6,)`` :func:`fojax.plant.attitude_trig` of ``x_k``. held:
-    the draw's ``(noise, drag)`` table rows in force at step ``k`` (each ``(6,)`` or
-    ``None``). control: the controller's state after its update at ``t_k``. inputs,
-    info: that update's command as its 4 entries and :class:`ControlInfo`. status:
-    ``()`` the :class:`fojax.observers.Status` flags so far. observed: the observer's
-    state.
+    its four blocks of three (:class:`fojax.plant.StateBlocks`). trig: the
+    :class:`fojax.plant.AttitudeTrig` of ``x_k``. held: the draw's ``(noise, drag)``
+    table rows in force at step ``k`` (each ``(6,)`` or ``None``). control: the
+    controller's state after its update at ``t_k``. inputs, info: that update's command
+    as its 4 entries and :class:`ControlInfo`. status: ``()`` the
+    :class:`fojax.observers.Status` flags so far. observed: the observer's state.
 
-    The state and the command are carried entry by entry: each entry is computed by its
-    own arithmetic (an RK4 combination, eq. (13), a torque), and stacked into one array
-    the stack would be their one reader, which XLA fuses into a single branchy,
-    unvectorised concatenation kernel; carried apart, every entry is one vectorised
-    kernel, and the arrays built from them where a step needs one read stored values.
+    The command is carried entry by entry: each entry is computed by its own
+    arithmetic (eq. (13), a torque), and stacked into one array the stack would be their
+    one reader, which XLA fuses into a single branchy, unvectorised concatenation
+    kernel; carried apart, every entry is one vectorised kernel, and the arrays built
+    from them where a step needs one read stored values.
     """
 
-    state: tuple
-    trig: Array
+    state: plant.StateBlocks
+    trig: plant.AttitudeTrig
     held: tuple
     control: Any
     inputs: tuple
@@ -271,32 +271,31 @@ def rollout(
         t, (reference, _, _), deterministic = reference_at(draw, k)
         noise, drag = loop.held
         k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
-        drag_position = tuple(k_p[i] if drag is None else k_p[i] * drag[i] for i in range(3))
-        drag_attitude = tuple(
-            k_phi[i] if drag is None else k_phi[i] * drag[3 + i] for i in range(3)
-        )
-        disturbance = tuple(
-            deterministic[i] if noise is None else deterministic[i] + noise[i].astype(dtype)
-            for i in range(6)
-        )
+        if drag is not None:
+            k_p, k_phi = k_p * drag[:3], k_phi * drag[3:]
+        deterministic = observers.per_component(deterministic, loop.state.position)
+        if noise is not None:
+            deterministic = deterministic + noise.astype(dtype)
+        disturbance = (deterministic[:3], deterministic[3:])
         applied = loop.inputs
         if config.rotor_speed_limit is not None:
             applied = plant.saturate_inputs(draw.params, applied, config.rotor_speed_limit)
-        next_state = plant.rk4_step_parts(
+        next_state = plant.rk4_step_blocks(
             draw.params,
             loop.state,
-            applied,
+            applied[0],
+            jnp.stack(applied[1:]),
             disturbance,
             dt,
-            drag_position,
-            drag_attitude,
-            tuple(loop.trig[i] for i in range(6)),
+            k_p,
+            k_phi,
+            loop.trig,
         )
-        state = jnp.stack(loop.state)
+        state = jnp.concatenate(loop.state)
         record = observers.StepRecord(
             time=t,
             state=state,
-            next_state=jnp.stack(next_state),
+            next_state=jnp.concatenate(next_state),
             reference=reference,
             inputs=jnp.stack(loop.inputs),
             info=loop.info,
@@ -318,7 +317,7 @@ def rollout(
         )
         loop = LoopState(
             state=next_state,
-            trig=jnp.stack(plant.attitude_trig(*next_state[3:6])),
+            trig=plant.attitude_trig(next_state.attitude),
             held=held_at(draw, k + 1),
             control=control,
             inputs=_entries(next_inputs),
@@ -364,8 +363,8 @@ def rollout(
         return loop, snapshot
 
     loop0 = LoopState(
-        state=_entries(state0),
-        trig=jnp.stack(plant.attitude_trig(*state0[3:6])),
+        state=plant.state_blocks(state0),
+        trig=plant.attitude_trig(state0[3:6]),
         held=held_at(draw, jnp.zeros((), jnp.int32)),
         control=control1,
         inputs=_entries(inputs0),
@@ -375,7 +374,7 @@ def rollout(
     )
     final, trajectory = lax.scan(block, loop0, jnp.arange(config.blocks))
     outputs = observer.finalize(final.observed) if observer is not None else None
-    return Rollout(jnp.stack(final.state), final.status, outputs, trajectory)
+    return Rollout(jnp.concatenate(final.state), final.status, outputs, trajectory)
 
 
 def _entries(array: Array) -> tuple:
