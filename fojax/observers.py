@@ -92,11 +92,14 @@ def tracking_error(state: Array, reference: Array, attitude_reference: Array) ->
     psi)``: the position against the reference trajectory, the attitude against the
     attitude reference the attitude loop tracks (``ControlInfo.attitude_reference``:
     the position loop's command after the command filter; ``psi`` against the
-    reference yaw). Over a batch: ``state`` ``(12, draws)``, ``reference`` ``(4,)`` or
-    ``(4, draws)``, the result ``(6, draws)``.
+    reference yaw). ``state``: the ``(12,)`` state or its blocks
+    (:class:`fojax.plant.StateBlocks`). Over a batch: ``state`` ``(12, draws)``,
+    ``reference`` ``(4,)`` or ``(4, draws)``, the result ``(6, draws)``.
     """
-    position = state[:3] - per_component(reference[:3], state[:3])
-    return jnp.concatenate([position, state[3:6] - attitude_reference.astype(state.dtype)])
+    state = plant.state_blocks(state)
+    position = state.position - per_component(reference[:3], state.position)
+    attitude = state.attitude - attitude_reference.astype(state.attitude.dtype)
+    return jnp.concatenate([position, attitude])
 
 
 class Observer(Protocol):

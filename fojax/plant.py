@@ -485,8 +485,10 @@ class StateBlocks(NamedTuple):
     rate: Array
 
 
-def state_blocks(state: Array) -> StateBlocks:
-    """The :class:`StateBlocks` of a ``(12,) + batch`` state."""
+def state_blocks(state: Array | StateBlocks) -> StateBlocks:
+    """The :class:`StateBlocks` of a ``(12,) + batch`` state (blocks as they are)."""
+    if isinstance(state, StateBlocks):
+        return state
     return StateBlocks(state[0:3], state[3:6], state[6:9], state[9:12])
 
 

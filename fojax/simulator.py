@@ -261,7 +261,7 @@ def rollout(
         t, (ref, ref_vel, ref_acc), _ = reference_at(draw, k)
         return Observation(t, state, ref, ref_vel, ref_acc)
 
-    obs0 = observe(draw, jnp.zeros((), jnp.int32), state0)
+    obs0 = observe(draw, jnp.zeros((), jnp.int32), plant.state_blocks(state0))
     control0 = controller.init(params, obs0)
     # The first control update; later ones run at the end of the iteration before.
     control1, inputs0, info0 = controller.step(params, control0, obs0)
@@ -299,7 +299,7 @@ def rollout(
             reference=reference,
             inputs=jnp.stack(loop.inputs),
             info=loop.info,
-            error=observers.tracking_error(state, reference, loop.info.attitude_reference),
+            error=observers.tracking_error(loop.state, reference, loop.info.attitude_reference),
             plant=draw.params,
         )
         status = status_observer.update(loop.status, record)
@@ -313,7 +313,7 @@ def rollout(
             )
         # The control update of step k + 1, from the new state.
         control, next_inputs, next_info = controller.step(
-            params, loop.control, observe(draw, k + 1, record.next_state)
+            params, loop.control, observe(draw, k + 1, next_state)
         )
         loop = LoopState(
             state=next_state,

@@ -58,7 +58,11 @@ class Observation(NamedTuple):
     draw's scenario (``(4, draws)``).
 
     time: ``()`` s.
-    state: ``(12,)`` plant state ``(x, y, z, phi, theta, psi, x', y', z', phi', theta', psi')``.
+    state: the plant state ``(x, y, z, phi, theta, psi, x', y', z', phi', theta', psi')``,
+        a ``(12,)`` array or its four blocks of three (:class:`fojax.plant.StateBlocks`,
+        what the rollout passes; :func:`fojax.plant.state_blocks` turns either into
+        blocks). Blocks, because a ``(12,)`` array read entry by entry makes the reverse
+        pass add twelve padded cotangents per step.
     reference: ``(4,)`` ``(x_r, y_r, z_r, psi_r)`` (m, rad).
     reference_velocity: ``(4,)`` its exact first time derivative.
     reference_acceleration: ``(4,)`` its exact second time derivative.

@@ -47,6 +47,7 @@ from fojax.controllers.base import (
     Observation,
     check_positive,
 )
+from fojax.observers import per_component
 
 Array = jax.Array
 
@@ -220,10 +221,11 @@ class Cascade:
 
     def init(self, params: CascadeParams, observation: Observation) -> CascadeState:
         """The state at ``t = 0``: the law's state of one draw broadcast over the batch
-        (``observation.state`` ``(12,) + batch``)."""
-        dtype = observation.state.dtype
-        batch = observation.state.shape[1:]
-        attitude = observation.state[3:5]
+        (``observation.state`` ``(12,) + batch`` or its blocks)."""
+        state = plant.state_blocks(observation.state)
+        dtype = state.position.dtype
+        batch = state.position.shape[1:]
+        attitude = state.attitude[0:2]
         return CascadeState(
             law=broadcast_batch(self.law.init(params.law, dtype), batch),
             command_filter=jnp.stack([attitude, jnp.zeros_like(attitude)], axis=1),
@@ -236,7 +238,7 @@ class Cascade:
         self, params: CascadeParams, state: CascadeState, observation: Observation
     ) -> tuple[CascadeState, Array, ControlInfo]:
         model = params.model
-        x = observation.state  # (12,) + batch
+        x = plant.state_blocks(observation.state)  # (3,) + batch each
         ref, ref_vel, ref_acc = (
             observation.reference,
             observation.reference_velocity,
@@ -247,19 +249,33 @@ class Cascade:
         # Errors of both loops, eqs. (14)-(15), (40)-(41), (6,) + batch: the attitude
         # loop tracks the command filter's output, known at the start of the step.
         filt = state.command_filter  # (2, 2) + batch: rows (phi, theta), (value, rate)
-        reference = (ref[0], ref[1], ref[2], filt[0, 0], filt[1, 0], yaw_reference)
-        reference_rate = (ref_vel[0], ref_vel[1], ref_vel[2], filt[0, 1], filt[1, 1], ref_vel[3])
-        error = jnp.stack([x[i] - reference[i] for i in range(6)])
-        error_rate = jnp.stack([x[6 + i] - reference_rate[i] for i in range(6)])
+        attitude_reference = jnp.stack(jnp.broadcast_arrays(filt[0, 0], filt[1, 0], ref[3]))
+        attitude_rate_reference = jnp.stack(
+            jnp.broadcast_arrays(filt[0, 1], filt[1, 1], ref_vel[3])
+        )
+        error = jnp.concatenate(
+            [x.position - per_component(ref[:3], x.position), x.attitude - attitude_reference]
+        )
+        error_rate = jnp.concatenate(
+            [x.velocity - per_component(ref_vel[:3], x.velocity), x.rate - attitude_rate_reference]
+        )
         law_state, out = self.law.step(params.law, state.law, error, error_rate)
         accel = _axes(out.acceleration)
 
         # Position loop, eqs. (23) and (13).
-        virtual = [
-            model.drag_position[i] / model.mass * x[6 + i] + ref_acc[i] + accel[i] for i in range(3)
-        ]
+        virtual = (
+            per_component(model.drag_position / model.mass, x.velocity) * x.velocity
+            + per_component(ref_acc[:3], x.velocity)
+            + accel[:3]
+        )
         thrust, phi_r, theta_r = thrust_and_attitude(
-            model, *virtual, jnp.cos(yaw_reference), jnp.sin(yaw_reference), self.thrust_floor
+            model,
+            virtual[0],
+            virtual[1],
+            virtual[2],
+            jnp.cos(yaw_reference),
+            jnp.sin(yaw_reference),
+            self.thrust_floor,
         )
 
         # Command filter: phi_r, theta_r and their two derivatives. Row by row: a stack
@@ -283,7 +299,7 @@ class Cascade:
 
         # Attitude loop, eqs. (42)-(44).
         omega_r = plant.rotor_speed_sum(model, state.last_inputs)
-        drift = attitude_drift(model, x[9], x[10], x[11], omega_r)
+        drift = attitude_drift(model, x.rate[0], x.rate[1], x.rate[2], omega_r)
         attitude_reference_accel = (filtered_accel[0], filtered_accel[1], ref_acc[3])
         torque = [
             model.inertia[i] * (-drift[i] + attitude_reference_accel[i] + accel[3 + i])
@@ -293,16 +309,12 @@ class Cascade:
         inputs = (thrust, *torque)
         surfaces = _axes(out.surface)
         if out.adaptive is None:
-            adaptive = jnp.zeros((6, 3) + surfaces.shape[1:], x.dtype)
+            adaptive = jnp.zeros((6, 3) + surfaces.shape[1:], surfaces.dtype)
         else:
             adaptive = jnp.broadcast_to(out.adaptive, (6, 3) + surfaces.shape[1:])
         new_state = CascadeState(law_state, command_filter, inputs)
         info = ControlInfo(
-            surfaces=surfaces,
-            attitude_reference=jnp.stack(
-                jnp.broadcast_arrays(filt[0, 0], filt[1, 0], yaw_reference)
-            ),
-            adaptive=adaptive,
+            surfaces=surfaces, attitude_reference=attitude_reference, adaptive=adaptive
         )
         return new_state, jnp.stack(inputs), info
 
