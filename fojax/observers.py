@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from fojax import plant
+from fojax._arrays import unstack
 from fojax.controllers.base import ControlInfo
 
 Array = jax.Array
@@ -154,8 +155,8 @@ class TrackingISE:
         return jnp.zeros((), dtype)
 
     def update(self, acc: Array, record: StepRecord) -> Array:
-        error = record.error
-        return acc + self.dt * (jnp.sum(error[:3] ** 2, 0) + jnp.sum(error[3:] ** 2, 0))
+        position, attitude = unstack(record.error, (3, 3))
+        return acc + self.dt * (jnp.sum(position**2, 0) + jnp.sum(attitude**2, 0))
 
     def finalize(self, acc: Array) -> Array:
         return acc

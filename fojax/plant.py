@@ -57,6 +57,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from fojax._arrays import unstack
+
 Array = jax.Array
 
 __all__ = [
@@ -395,9 +397,8 @@ def _accelerations(
     inputs; ``disturbance`` ``(d_p, d_eta)`` and the drag coefficients ``k_p``, ``k_phi``
     ``(3,) + batch`` (or ``(3,)``).
     """
-    cos, sin = trig
-    c_phi, c_theta, c_psi = cos[0], cos[1], cos[2]
-    s_phi, s_theta, s_psi = sin[0], sin[1], sin[2]
+    c_phi, c_theta, c_psi = unstack(trig.cos)
+    s_phi, s_theta, s_psi = unstack(trig.sin)
     m = params.mass
     inertia = params.inertia
     j_r = params.rotor_inertia
@@ -420,8 +421,8 @@ def _accelerations(
     )
 
     # Eq. (11a)-(11c) multiplied through by the inertia, divided once at the end.
-    p, q, r = rate[0], rate[1], rate[2]
-    i11, i22, i33 = inertia[0], inertia[1], inertia[2]
+    p, q, r = unstack(rate)
+    i11, i22, i33 = unstack(inertia)
     coupling = jnp.stack(
         [
             (i22 - i33) * q * r - j_r * q * omega_r,
@@ -521,7 +522,7 @@ def rk4_step_blocks(
     if trig is None:
         trig = attitude_trig(state.attitude)
     # The inputs are held over the step.
-    omega_r = _rotor_speed_sum_parts(params, thrust, torque[0], torque[1], torque[2])
+    omega_r = _rotor_speed_sum_parts(params, thrust, *unstack(torque))
     dt = jnp.asarray(dt, dtype=dtype)
 
     def f(velocity, rate, stage_trig):

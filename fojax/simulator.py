@@ -43,6 +43,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from fojax import observers, plant, scenarios
+from fojax._arrays import unstack
 from fojax.controllers.base import ControlInfo, Observation
 from fojax.controllers.cascade import as_controller, broadcast_batch
 
@@ -378,6 +379,6 @@ def rollout(
 
 
 def _entries(array: Array) -> tuple:
-    """The entries ``array[i]`` along the leading axis (XLA folds the slices of a stack
-    into its operands)."""
-    return tuple(array[i] for i in range(array.shape[0]))
+    """The entries of ``array`` along its leading axis (:func:`fojax._arrays.unstack`;
+    XLA folds the pieces of a stack into its operands)."""
+    return unstack(array)

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from fojax import observers, plant, scenarios, simulator
+from fojax._arrays import unstack
 
 Array = jax.Array
 
@@ -155,25 +156,28 @@ class CostObserver:
     def update(self, acc: CostTerms, record) -> CostTerms:
         dtype = record.state.dtype
         model = plant.nominal_params(dtype)
-        scale = jnp.concatenate([model.mass[None], model.inertia]).astype(dtype)
-        hover = plant.hover_inputs(model).astype(dtype)
-        position_error, attitude_error = record.error[:3], record.error[3:]
+        inputs = record.inputs
+        scale = observers.per_component(
+            jnp.concatenate([model.mass[None], model.inertia]).astype(dtype), inputs
+        )
+        hover = observers.per_component(plant.hover_inputs(model).astype(dtype), inputs)
+        position_error, attitude_error = unstack(record.error, (3, 3))
         if self.config.error == "itae":
-            position = record.time * jnp.sum(jnp.abs(position_error))
-            attitude = record.time * jnp.sum(jnp.abs(attitude_error))
+            position = record.time * jnp.sum(jnp.abs(position_error), 0)
+            attitude = record.time * jnp.sum(jnp.abs(attitude_error), 0)
         else:
-            position = jnp.sum(position_error**2)
-            attitude = jnp.sum(attitude_error**2)
-        accel = (record.inputs - hover) / scale
-        jump = jnp.where(acc.started, jnp.sum(jnp.abs(accel - acc.previous)), 0.0)
+            position = jnp.sum(position_error**2, 0)
+            attitude = jnp.sum(attitude_error**2, 0)
+        accel = (inputs - hover) / scale
+        jump = jnp.where(acc.started, jnp.sum(jnp.abs(accel - acc.previous), 0), 0.0)
         dt = self.dt
         return CostTerms(
             position=acc.position + dt * position,
             attitude=acc.attitude + dt * attitude,
-            effort=acc.effort + dt * jnp.sum(accel**2),
+            effort=acc.effort + dt * jnp.sum(accel**2, 0),
             chattering=acc.chattering + jump,
             previous=accel,
-            started=jnp.ones((), bool),
+            started=jnp.ones_like(acc.started),
         )
 
     def finalize(self, acc: CostTerms) -> Array:

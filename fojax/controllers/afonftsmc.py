@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 
 from fojax import fractional
+from fojax._arrays import unstack
 from fojax.controllers.base import ControlLaw, LawOutput, signed_power, switching
 from fojax.controllers.gains import Bounds, GainField, GainSpec, per_axis
 from fojax.controllers.registry import register
@@ -199,7 +200,8 @@ class AFONFTSMC(ControlLaw):
         memory, (integral, rate) = self.memory.step(
             params.surface_weights, state.surface_memory, signals
         )
-        surface = error_rate + integral[:6] + integral[6:]
+        p_integral, phi_integral = unstack(integral, (6, 6))
+        surface = error_rate + p_integral + phi_integral
 
         # The adaptive update (25)-(27)/(45)-(47) owed by the previous step (Euler).
         magnitude = jnp.abs(state.previous_surface)
@@ -215,11 +217,11 @@ class AFONFTSMC(ControlLaw):
 
         # Reaching law (24)/(42)-(44) minus the fractional part of dS/dt.
         sw = switching(self.switching, surface, g.boundary_layer)
-        bound = (
-            adaptive[:, 0] + adaptive[:, 1] * jnp.abs(error) + adaptive[:, 2] * jnp.abs(error_rate)
-        )
+        b0, b1, b2 = unstack(adaptive, axis=1)
+        bound = b0 + b1 * jnp.abs(error) + b2 * jnp.abs(error_rate)
         reaching = -g.reaching_h1 * sw - g.reaching_h2 * surface - (bound + g.mu) * sw
-        acceleration = reaching - (rate[:6] + rate[6:])
+        p_rate, phi_rate = unstack(rate, (6, 6))
+        acceleration = reaching - (p_rate + phi_rate)
 
         new_state = AFONFTSMCState(
             surface_memory=memory,

@@ -45,6 +45,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from fojax._arrays import unstack
 from fojax.controllers.base import ControlLaw, LawOutput, abs_power, signed_power, switching
 from fojax.controllers.gains import Bounds, GainField, GainSpec, per_axis
 from fojax.controllers.registry import register
@@ -134,7 +135,8 @@ class ANFTSMC(ControlLaw):
         sigma = (
             e1 + g.surface_b * signed_power(e1, alpha) + g.surface_b_rate * signed_power(e2, beta)
         )
-        gain = adaptive[:, 0] + adaptive[:, 1] * jnp.abs(e1) + adaptive[:, 2] * jnp.abs(e2)
+        a0, a1, a2 = unstack(adaptive, axis=1)
+        gain = a0 + a1 * jnp.abs(e1) + a2 * jnp.abs(e2)
         gain = gain + g.switching
         sw = switching(self.switching, sigma, g.boundary_layer)
         equivalent = (

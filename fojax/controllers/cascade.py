@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 
 from fojax import plant
+from fojax._arrays import unstack
 from fojax.controllers.base import (
     ControlInfo,
     ControlLaw,
@@ -260,19 +261,17 @@ class Cascade:
             [x.velocity - per_component(ref_vel[:3], x.velocity), x.rate - attitude_rate_reference]
         )
         law_state, out = self.law.step(params.law, state.law, error, error_rate)
-        accel = _axes(out.acceleration)
+        position_accel, attitude_accel = unstack(_axes(out.acceleration), (3, 3))
 
         # Position loop, eqs. (23) and (13).
         virtual = (
             per_component(model.drag_position / model.mass, x.velocity) * x.velocity
             + per_component(ref_acc[:3], x.velocity)
-            + accel[:3]
+            + position_accel
         )
         thrust, phi_r, theta_r = thrust_and_attitude(
             model,
-            virtual[0],
-            virtual[1],
-            virtual[2],
+            *unstack(virtual),
             jnp.cos(yaw_reference),
             jnp.sin(yaw_reference),
             self.thrust_floor,
@@ -284,8 +283,8 @@ class Cascade:
         w, zeta = self.filter_frequency, self.filter_damping
         transition, gain = params.filter_transition, params.filter_input
         filtered_accel, command_filter = [], []
-        for i, tilt in enumerate((phi_r, theta_r)):
-            value, rate = filt[i, 0], filt[i, 1]
+        for row, tilt in zip(unstack(filt), (phi_r, theta_r), strict=True):
+            value, rate = unstack(row)
             filtered_accel.append(w * w * (tilt - value) - 2.0 * zeta * w * rate)
             command_filter.append(
                 jnp.stack(
@@ -299,11 +298,11 @@ class Cascade:
 
         # Attitude loop, eqs. (42)-(44).
         omega_r = plant.rotor_speed_sum(model, state.last_inputs)
-        drift = attitude_drift(model, x.rate[0], x.rate[1], x.rate[2], omega_r)
+        drift = attitude_drift(model, *unstack(x.rate), omega_r)
         attitude_reference_accel = (filtered_accel[0], filtered_accel[1], ref_acc[3])
         torque = [
-            model.inertia[i] * (-drift[i] + attitude_reference_accel[i] + accel[3 + i])
-            for i in range(3)
+            model.inertia[i] * (-drift[i] + attitude_reference_accel[i] + accel)
+            for i, accel in enumerate(unstack(attitude_accel))
         ]
 
         inputs = (thrust, *torque)
