@@ -331,20 +331,7 @@ def rollout(
     def one_step(loop, k):
         return step(params, draw, loop, k)
 
-    import os
-    _pol = os.environ.get("FOJAX_POLICY")
-    if _pol == "nothing":
-        one_step = jax.checkpoint(one_step, policy=jax.checkpoint_policies.nothing_saveable)
-    elif _pol == "expensive":
-        names = {"exp", "log", "log1p", "expm1", "atan", "atan2", "sqrt", "rsqrt", "div", "tanh", "sin", "cos", "pow", "custom_vjp_call", "custom_vjp_call_jaxpr", "dot_general", "reduce_sum", "integer_pow"}
-        def policy(prim, *args, **params):
-            return prim.name in names
-        one_step = jax.checkpoint(one_step, policy=policy)
-    elif _pol == "exp2":
-        names = {"exp", "log", "log1p", "expm1", "atan", "atan2", "sqrt", "rsqrt", "div", "tanh", "sin", "cos", "pow", "dot_general"}
-        def policy(prim, *args, **params):
-            return prim.name in names
-        one_step = jax.checkpoint(one_step, policy=policy)
+    one_step = jax.checkpoint(one_step, policy=_save_expensive)
 
     @jax.checkpoint
     def block(loop: LoopState, block_index):
@@ -376,6 +363,26 @@ def rollout(
     final, trajectory = lax.scan(block, loop0, jnp.arange(config.blocks))
     outputs = observer.finalize(final.observed) if observer is not None else None
     return Rollout(jnp.concatenate(final.state), final.status, outputs, trajectory)
+
+
+_EXPENSIVE = frozenset(
+    {
+        "exp", "exp2", "expm1", "log", "log1p", "pow", "sqrt", "rsqrt", "cbrt", "div",
+        "tanh", "logistic", "sin", "cos", "tan", "atan", "atan2", "asin", "acos",
+        "dot_general", "custom_vjp_call", "custom_vjp_call_jaxpr",
+    }
+)  # fmt: skip
+"""Primitives whose outputs the reverse pass keeps (:func:`_save_expensive`)."""
+
+
+def _save_expensive(primitive, *_, **__) -> bool:
+    """The checkpoint policy of one step under ``grad``: keep the outputs of the
+    operations XLA's CPU backend treats as expensive (transcendentals, divisions,
+    products, the fractional memory's step), recompute everything else in the reverse
+    pass, where XLA fuses the recomputation into the kernels that need it. Keeping every
+    intermediate instead costs one memory write per value and step (measured slower,
+    docs/performance.md)."""
+    return primitive.name in _EXPENSIVE
 
 
 def _entries(array: Array) -> tuple:

@@ -228,7 +228,7 @@ class Cascade:
         batch = state.position.shape[1:]
         attitude = state.attitude[0:2]
         return CascadeState(
-            law=broadcast_batch(self.law.init(params.law, dtype), batch),
+            law=broadcast_batch(self.law.init(params.law, dtype), batch, floating_only=True),
             command_filter=jnp.stack([attitude, jnp.zeros_like(attitude)], axis=1),
             last_inputs=tuple(
                 broadcast_batch(plant.hover_inputs(params.model).astype(dtype), batch)
@@ -325,19 +325,28 @@ def _axes(values: Any) -> Array:
     return jnp.asarray(values)
 
 
-def broadcast_batch(tree: Any, batch_shape: tuple[int, ...]) -> Any:
+def broadcast_batch(
+    tree: Any, batch_shape: tuple[int, ...], floating_only: bool = False
+) -> Any:
     """Every leaf of ``tree`` (one draw's arrays) repeated over a batch of shape
-    ``batch_shape``, the batch's axes last (``(6, 3)`` -> ``(6, 3, draws)``)."""
+    ``batch_shape``, the batch's axes last (``(6, 3)`` -> ``(6, 3, draws)``).
+
+    ``floating_only``: integer and boolean leaves stay as they are, shared by the batch
+    (a law's step counters: every draw of a batch starts and steps together; a flag
+    that is the same for every draw keeps a scalar predicate that XLA vectorises around).
+    """
     batch_shape = tuple(batch_shape)
     if not batch_shape:
         return tree
-    return jax.tree.map(
-        lambda leaf: jnp.broadcast_to(
-            jnp.reshape(leaf, jnp.shape(leaf) + (1,) * len(batch_shape)),
-            jnp.shape(leaf) + batch_shape,
-        ),
-        tree,
-    )
+
+    def repeat(leaf):
+        if floating_only and not jnp.issubdtype(jnp.result_type(leaf), jnp.floating):
+            return leaf
+        shape = jnp.shape(leaf)
+        expanded = jnp.reshape(leaf, shape + (1,) * len(batch_shape))
+        return jnp.broadcast_to(expanded, shape + batch_shape)
+
+    return jax.tree.map(repeat, tree)
 
 
 def as_controller(controller: Any) -> Any:
