@@ -194,10 +194,10 @@ def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
         "filter_damping": controller.filter_damping,
         "gains": {name: as_np(getattr(gains, name)) for name in gains._fields},
         "nominal": {name: as_np(getattr(model, name)) for name in model._fields},
-        "mode_weights": as_np(weights.mode_weights),  # (12, modes)
+        "mode_weights": as_np(weights.mode_weights).T,  # (12, modes)
         "taps": as_np(weights.taps),  # (3, modes)
-        "readout": as_np(weights.readout),  # (2, modes)
-        "local": as_np(weights.local),  # (12, 2, 3)
+        "readout": as_np(np.stack([np.ones_like(weights.rates), -weights.rates])),  # (2, modes)
+        "local": as_np(np.moveaxis(weights.local, -1, 0)),  # (12, 2, 3)
         "decay_m1": as_np(operator._tables["decay_m1"]),  # (modes,)
         "filter_transition": as_np(params.filter_transition),  # (2, 2)
         "filter_input": as_np(params.filter_input),  # (2,)

@@ -254,18 +254,22 @@ def _finalize(config: MetricsConfig, acc: MetricsState) -> dict[str, Array]:
             acc.surface_last_outside + dt,
         ),
     )
+    # Times 1 / T rather than divided by T (a draw's, broadcast): XLA rewrites such a
+    # division into that product in some programs and not in others, and a draw's
+    # numbers must not depend on the program it ran in (the devices, the batch).
+    per_second = 1.0 / horizon
     return {
-        "position_rmse": jnp.sqrt(jnp.sum(acc.squared_error[:3], 0) / horizon),
-        "attitude_rmse": jnp.sqrt(jnp.sum(acc.squared_error[3:], 0) / horizon),
-        "rmse": jnp.sqrt(acc.squared_error / horizon),
+        "position_rmse": jnp.sqrt(jnp.sum(acc.squared_error[:3], 0) * per_second),
+        "attitude_rmse": jnp.sqrt(jnp.sum(acc.squared_error[3:], 0) * per_second),
+        "rmse": jnp.sqrt(acc.squared_error * per_second),
         "iae": acc.absolute_error,
         "itae": acc.time_weighted_error,
         "max_error": acc.max_error,
         "settling_time": settling.astype(acc.max_error.dtype),
         "overshoot": acc.overshoot,
-        "control_effort": jnp.sqrt(acc.squared_input / horizon),
+        "control_effort": jnp.sqrt(acc.squared_input * per_second),
         "chattering": acc.variation,
-        "actuator_saturation": acc.saturated_time / horizon,
+        "actuator_saturation": acc.saturated_time * per_second,
         "reaching_time": reaching.astype(acc.max_error.dtype),
         "initial_surface": acc.initial_surface,
     }

@@ -68,7 +68,6 @@ __all__ = [
     "STATE_SIZE",
     "VELOCITY",
     "PlantParams",
-    "AttitudeTrig",
     "StateBlocks",
     "attitude_trig",
     "derivatives",
@@ -78,7 +77,7 @@ __all__ = [
     "mixer",
     "nominal_params",
     "rk4_step",
-    "rk4_step_blocks",
+    "rk4_step_parts",
     "rotor_speed_sum",
     "rotor_speeds_squared",
     "saturate_inputs",
@@ -320,12 +319,6 @@ def _unstack(vector: Array, size: int) -> tuple:
     return tuple(vector[i] for i in range(size))
 
 
-def _column(values, like: Array) -> Array:
-    """``values`` ``(3,)`` shaped to broadcast against a block ``like`` ``(3,) + batch``."""
-    values = jnp.asarray(values)
-    return values.reshape(values.shape + (1,) * (jnp.ndim(like) - values.ndim))
-
-
 def _rotor_speed_sum_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z) -> Array:
     """:func:`rotor_speed_sum` from the four scalar inputs."""
     squared = _rotor_speeds_squared_parts(params, thrust, tau_x, tau_y, tau_z)
@@ -333,17 +326,9 @@ def _rotor_speed_sum_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z) -> 
     return speeds[0] - speeds[1] + speeds[2] - speeds[3]
 
 
-class AttitudeTrig(NamedTuple):
-    """``cos`` and ``sin`` of the Euler angles ``(phi, theta, psi)``, each ``(3,)`` (a
-    batch's axes last)."""
-
-    cos: Array
-    sin: Array
-
-
-def attitude_trig(attitude: Array) -> AttitudeTrig:
-    """:class:`AttitudeTrig` of the Euler angles ``attitude`` ``(3,) + batch``."""
-    return AttitudeTrig(jnp.cos(attitude), jnp.sin(attitude))
+def attitude_trig(phi: Array, theta: Array, psi: Array) -> tuple:
+    """``(cos phi, sin phi, cos theta, sin theta, cos psi, sin psi)`` of the Euler angles."""
+    return (jnp.cos(phi), jnp.sin(phi), jnp.cos(theta), jnp.sin(theta), jnp.cos(psi), jnp.sin(psi))
 
 
 # Taylor coefficients of (cos d - 1) / d^2 and sin(d) / d in powers of d^2, to d^14 and
@@ -360,9 +345,49 @@ def _horner(x: Array, coefficients: tuple) -> Array:
     return result
 
 
-def _rotate(trig: AttitudeTrig, increment: Array) -> AttitudeTrig:
-    """:func:`attitude_trig` of the angles shifted by a small ``increment`` ``(3,) +
-    batch``, from ``trig``.
+def _derivative_parts(
+    params: PlantParams, x: tuple, trig: tuple, inputs: tuple, omega_r, d: tuple, k_p, k_phi
+) -> tuple:
+    """Eq. (11) entry by entry: ``x`` the 12 state entries, ``trig`` the 6 of
+    :func:`attitude_trig` (``cos phi, sin phi, cos theta, ...``), ``inputs`` 4, ``d`` 6,
+    ``k_p``/``k_phi`` 3 each; ``omega_r`` the rotor speed sum of ``inputs``. Each entry
+    is ``()`` or a batch's shape. Returns the 12 entries of the derivative.
+
+    Written entry by entry, the arithmetic of each acceleration is one expression that
+    XLA compiles alike in every program (one device or partitioned over several); the
+    same arithmetic on ``(3, draws)`` blocks was fused, and so rounded, differently by a
+    partitioned program. Each acceleration ends with its division by the mass or the
+    inertia: XLA keeps such a division as a kernel of its own, so an RK4 stage's
+    accelerations are computed once and read by the next stage.
+    """
+    vx, vy, vz = x[6], x[7], x[8]
+    p, q, r = x[9], x[10], x[11]
+    thrust, tau_x, tau_y, tau_z = inputs
+    i11, i22, i33 = unstack(params.inertia)
+    j_r = params.rotor_inertia
+    m = params.mass
+
+    # Eq. (11a)-(11c) multiplied through by the inertia, divided once at the end.
+    roll_accel = (
+        (i22 - i33) * q * r - j_r * q * omega_r - k_phi[0] * signed_square(p) + tau_x
+    ) / i11 + d[3]
+    pitch_accel = (
+        (i33 - i11) * p * r + j_r * p * omega_r - k_phi[1] * signed_square(q) + tau_y
+    ) / i22 + d[4]
+    yaw_accel = ((i11 - i22) * p * q - k_phi[2] * signed_square(r) + tau_z) / i33 + d[5]
+
+    # Eq. (11d)-(11f), forces divided by the mass at the end.
+    c_phi, s_phi, c_theta, s_theta, c_psi, s_psi = trig
+    s_theta_c_phi = s_theta * c_phi
+    x_accel = ((c_psi * s_theta_c_phi + s_psi * s_phi) * thrust - k_p[0] * vx) / m + d[0]
+    y_accel = ((s_psi * s_theta_c_phi - c_psi * s_phi) * thrust - k_p[1] * vy) / m + d[1]
+    z_accel = (c_theta * c_phi * thrust - k_p[2] * vz) / m - params.gravity + d[2]
+    return (vx, vy, vz, p, q, r, x_accel, y_accel, z_accel, roll_accel, pitch_accel, yaw_accel)
+
+
+def _rotate(trig: tuple, increments: tuple) -> tuple:
+    """:func:`attitude_trig` of the angles shifted by small ``increments`` (3 entries),
+    from ``trig`` (the 6 entries ``(cos phi, sin phi, cos theta, ...)``).
 
     ``cos(a + d) = cos a + (cos a (cos d - 1) - sin a sin d)`` and likewise for ``sin``,
     with ``cos d - 1`` and ``sin d`` from their Taylor series (:data:`_SIN_SERIES`):
@@ -370,70 +395,14 @@ def _rotate(trig: AttitudeTrig, increment: Array) -> AttitudeTrig:
     of 1000 rad/s over a 1 ms step). Multiply-adds instead of the sine and cosine that
     XLA's CPU backend evaluates at ~2 ns each, and again in every kernel reading them.
     """
-    c, s = trig
-    d2 = increment * increment
-    cos_m1 = d2 * _horner(d2, _COS_M1_SERIES)
-    sin_d = increment * _horner(d2, _SIN_SERIES)
-    return AttitudeTrig(c + (c * cos_m1 - s * sin_d), s + (s * cos_m1 + c * sin_d))
-
-
-def _accelerations(
-    params: PlantParams,
-    velocity: Array,
-    rate: Array,
-    trig: AttitudeTrig,
-    thrust: Array,
-    torque: Array,
-    omega_r: Array,
-    disturbance: tuple[Array, Array],
-    k_p: Array,
-    k_phi: Array,
-) -> tuple[Array, Array]:
-    """Eq. (11) on blocks: the translational ``(x'', y'', z'')`` and angular
-    ``(phi'', theta'', psi'')`` accelerations, each ``(3,) + batch``.
-
-    ``velocity``, ``rate``: ``(3,) + batch``; ``trig`` of the attitude; ``thrust``
-    ``batch``, ``torque`` ``(3,) + batch``; ``omega_r`` the rotor speed sum of the
-    inputs; ``disturbance`` ``(d_p, d_eta)`` and the drag coefficients ``k_p``, ``k_phi``
-    ``(3,) + batch`` (or ``(3,)``).
-    """
-    c_phi, c_theta, c_psi = unstack(trig.cos)
-    s_phi, s_theta, s_psi = unstack(trig.sin)
-    m = params.mass
-    inertia = params.inertia
-    j_r = params.rotor_inertia
-
-    # Eq. (11d)-(11f), forces divided by the mass at the end.
-    s_theta_c_phi = s_theta * c_phi
-    direction = jnp.stack(
-        [
-            c_psi * s_theta_c_phi + s_psi * s_phi,
-            s_psi * s_theta_c_phi - c_psi * s_phi,
-            c_theta * c_phi,
-        ]
-    )
-    zero = jnp.zeros_like(params.gravity)
-    gravity = jnp.stack([zero, zero, params.gravity])
-    translational = (
-        (direction * thrust - _column(k_p, velocity) * velocity) / m
-        - _column(gravity, velocity)
-        + disturbance[0]
-    )
-
-    # Eq. (11a)-(11c) multiplied through by the inertia, divided once at the end.
-    p, q, r = unstack(rate)
-    i11, i22, i33 = unstack(inertia)
-    coupling = jnp.stack(
-        [
-            (i22 - i33) * q * r - j_r * q * omega_r,
-            (i33 - i11) * p * r + j_r * p * omega_r,
-            (i11 - i22) * p * q,
-        ]
-    )
-    angular = (coupling - _column(k_phi, rate) * signed_square(rate) + torque) / _column(
-        inertia, rate
-    ) + disturbance[1]
-    return translational, angular
+    out = []
+    for i, d in enumerate(increments):
+        c, s = trig[2 * i], trig[2 * i + 1]
+        d2 = d * d
+        cos_m1 = d2 * _horner(d2, _COS_M1_SERIES)
+        sin_d = d * _horner(d2, _SIN_SERIES)
+        out += [c + (c * cos_m1 - s * sin_d), s + (s * cos_m1 + c * sin_d)]
+    return tuple(out)
 
 
 def derivatives(
@@ -459,21 +428,14 @@ def derivatives(
     """
     k_p = params.drag_position if drag_position is None else drag_position
     k_phi = params.drag_attitude if drag_attitude is None else drag_attitude
-    omega_r = _rotor_speed_sum_parts(params, *_unstack(inputs, 4))
-    velocity, rate = state[6:9], state[9:12]
-    translational, angular = _accelerations(
-        params,
-        velocity,
-        rate,
-        attitude_trig(state[3:6]),
-        inputs[0],
-        inputs[1:4],
-        omega_r,
-        (disturbance_accel[:3], disturbance_accel[3:6]),
-        k_p,
-        k_phi,
+    u = unstack(inputs)
+    omega_r = _rotor_speed_sum_parts(params, *u)
+    x = unstack(state)
+    trig = attitude_trig(*x[3:6])
+    parts = _derivative_parts(
+        params, x, trig, u, omega_r, unstack(disturbance_accel), unstack(k_p), unstack(k_phi)
     )
-    return jnp.concatenate([velocity, rate, translational, angular]).astype(state.dtype)
+    return jnp.stack([jnp.broadcast_to(v, x[0].shape).astype(state.dtype) for v in parts])
 
 
 class StateBlocks(NamedTuple):
@@ -493,58 +455,48 @@ def state_blocks(state: Array | StateBlocks) -> StateBlocks:
     return StateBlocks(state[0:3], state[3:6], state[6:9], state[9:12])
 
 
-def rk4_step_blocks(
+def rk4_step_parts(
     params: PlantParams,
-    state: StateBlocks,
-    thrust: Array,
-    torque: Array,
-    disturbance: tuple[Array, Array],
+    state: tuple,
+    inputs: tuple,
+    disturbance: tuple,
     dt,
-    drag_position: Array | None = None,
-    drag_attitude: Array | None = None,
-    trig: AttitudeTrig | None = None,
-) -> StateBlocks:
-    """One classical Runge-Kutta step of eq. (11) on the state's blocks.
+    drag_position: tuple,
+    drag_attitude: tuple,
+    trig: tuple,
+) -> tuple:
+    """One classical Runge-Kutta step of eq. (11), entry by entry: ``state`` the 12
+    entries, ``inputs`` 4, ``disturbance`` 6, the drag coefficients 3 each, held over
+    the step, ``trig`` the 6 entries of :func:`attitude_trig` of the attitude (``cos
+    phi, sin phi, cos theta, ...``); each entry ``()`` or a batch's shape. Returns the 12
+    entries of the next state.
 
-    ``state``: :class:`StateBlocks`; ``thrust`` ``batch``, ``torque`` ``(3,) + batch``,
-    ``disturbance`` ``(d_p, d_eta)`` ``(3,) + batch`` each, held over the step; the drag
-    overrides ``(3,) + batch`` (``None``: the parameters'); ``trig``, if given, is
-    :func:`attitude_trig` of the attitude (computed when ``None``).
-
-    The closed-loop simulator carries the trig of the attitude with the state, computed
-    once per step; the stages' trig follows from it by :func:`_rotate` (the attitude
-    moves by at most ``dt`` times the rates in a stage), so a step evaluates no sine or
-    cosine itself.
+    The closed-loop simulator carries the state and the trig of its attitude entry by
+    entry (see :func:`_derivative_parts`), the trig computed once per step; the stages'
+    trig follows from it by :func:`_rotate` (the attitude moves by at most ``dt`` times
+    the rates in a stage), so a step evaluates no sine or cosine itself.
     """
-    dtype = state.position.dtype
-    k_p = params.drag_position if drag_position is None else drag_position
-    k_phi = params.drag_attitude if drag_attitude is None else drag_attitude
-    if trig is None:
-        trig = attitude_trig(state.attitude)
-    # The inputs are held over the step.
-    omega_r = _rotor_speed_sum_parts(params, thrust, *unstack(torque))
+    dtype = state[0].dtype
+    omega_r = _rotor_speed_sum_parts(params, *inputs)  # the inputs are held over the step
     dt = jnp.asarray(dt, dtype=dtype)
 
-    def f(velocity, rate, stage_trig):
-        translational, angular = _accelerations(
-            params, velocity, rate, stage_trig, thrust, torque, omega_r, disturbance, k_p, k_phi
+    def f(x, x_trig):
+        return _derivative_parts(
+            params, x, x_trig, inputs, omega_r, disturbance, drag_position, drag_attitude
         )
-        return StateBlocks(velocity, rate, translational, angular)
 
     def stage(h, k):
         """The derivative at the state ``x + h k``."""
-        x = StateBlocks(*(xi + h * ki for xi, ki in zip(state, k, strict=True)))
-        return f(x.velocity, x.rate, _rotate(trig, h * k.attitude))
+        x = tuple(xi + h * ki for xi, ki in zip(state, k, strict=True))
+        return f(x, _rotate(trig, tuple(h * ki for ki in k[3:6])))
 
-    k1 = f(state.velocity, state.rate, trig)
+    k1 = f(state, trig)
     k2 = stage(0.5 * dt, k1)
     k3 = stage(0.5 * dt, k2)
     k4 = stage(dt, k3)
-    return StateBlocks(
-        *(
-            (xi + dt / 6.0 * (a + 2.0 * b + 2.0 * c + e)).astype(dtype)
-            for xi, a, b, c, e in zip(state, k1, k2, k3, k4, strict=True)
-        )
+    return tuple(
+        (xi + dt / 6.0 * (a + 2.0 * b + 2.0 * c + e)).astype(dtype)
+        for xi, a, b, c, e in zip(state, k1, k2, k3, k4, strict=True)
     )
 
 
@@ -564,14 +516,17 @@ def rk4_step(
     dynamics. Pure: ``jit``, ``vmap`` and ``grad`` apply; every array may carry a
     batch's axes last.
     """
-    blocks = rk4_step_blocks(
+    k_p = params.drag_position if drag_position is None else drag_position
+    k_phi = params.drag_attitude if drag_attitude is None else drag_attitude
+    x = unstack(state)
+    parts = rk4_step_parts(
         params,
-        state_blocks(state),
-        inputs[0],
-        inputs[1:4],
-        (disturbance_accel[:3], disturbance_accel[3:6]),
+        x,
+        unstack(inputs),
+        unstack(disturbance_accel),
         dt,
-        drag_position,
-        drag_attitude,
+        unstack(k_p),
+        unstack(k_phi),
+        attitude_trig(*x[3:6]),
     )
-    return jnp.concatenate(blocks)
+    return jnp.stack(parts)

@@ -39,6 +39,7 @@ __all__ = [
     "draw_mesh",
     "draw_sharding",
     "detect_cluster",
+    "one_device_mesh",
     "initialize",
     "pad_draws",
     "replicate",
@@ -175,6 +176,16 @@ def draw_mesh(devices: Sequence[Any] | None = None) -> Mesh:
     return Mesh(np.array(devices), (DRAW_AXIS,))
 
 
+def one_device_mesh() -> Mesh:
+    """The mesh of this process's first device: where a batch runs when no mesh is given.
+
+    Every batch runs as the per-device program of a mesh (:func:`sharded_batch`), one
+    device included: XLA compiles a program partitioned over a mesh differently from a
+    plain one (it fuses, and so rounds, some steps differently), and a draw's numbers
+    must not depend on how many devices there are."""
+    return draw_mesh(jax.local_devices()[:1])
+
+
 def draw_sharding(mesh: Mesh) -> NamedSharding:
     """Leading (draw) axis split over the mesh, other axes whole."""
     return NamedSharding(mesh, PartitionSpec(DRAW_AXIS))
@@ -255,7 +266,9 @@ def replicate(tree: Any, mesh: Mesh) -> Any:
     return jax.tree.map(place, tree)
 
 
-def sharded_batch(fn: Callable, mesh: Mesh, batched: Sequence[bool]) -> Callable:
+def sharded_batch(
+    fn: Callable, mesh: Mesh, batched: Sequence[bool], compiler_options: dict | None = None
+) -> Callable:
     """``jax.jit(fn)`` with the draws split over ``mesh``: each device runs ``fn`` on its
     own block of draws.
 
@@ -266,11 +279,22 @@ def sharded_batch(fn: Callable, mesh: Mesh, batched: Sequence[bool]) -> Callable
     runs exactly the program ``fn`` compiles to for its block (``jax.shard_map``), so a
     draw's numbers are those of a one-device run of the same block. Inputs may be given
     already placed (:func:`shard_draws`, :func:`replicate`) or as host arrays; the
-    compiled program is reused for inputs of the same shapes.
+    compiled program is reused for inputs of the same shapes. ``compiler_options``: XLA's
+    options for the program (``jax.jit``'s).
     """
+    batched = tuple(batched)
+    if not all(isinstance(b, bool) for b in batched):
+        raise ValueError(
+            f"batched entries must be True (batched) or False (shared), got {batched}"
+        )
     specs = tuple(PartitionSpec(DRAW_AXIS) if b else PartitionSpec() for b in batched)
     mapped = jax.shard_map(
         fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(DRAW_AXIS), check_vma=False
     )
     shardings = tuple(draw_sharding(mesh) if b else replicated_sharding(mesh) for b in batched)
-    return jax.jit(mapped, in_shardings=shardings, out_shardings=draw_sharding(mesh))
+    return jax.jit(
+        mapped,
+        in_shardings=shardings,
+        out_shardings=draw_sharding(mesh),
+        compiler_options=compiler_options,
+    )

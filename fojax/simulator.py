@@ -153,22 +153,25 @@ class LoopState(NamedTuple):
     """The time loop's carry, at the start of step ``k``.
 
     Shapes of one draw; a batch adds its axes last. state: the plant state ``x_k`` as
-    its four blocks of three (:class:`fojax.plant.StateBlocks`). trig: the
-    :class:`fojax.plant.AttitudeTrig` of ``x_k``. held: the draw's ``(noise, drag)``
+    its 12 entries. trig: the 6 entries of :func:`fojax.plant.attitude_trig` of ``x_k``.
+    held: the draw's ``(noise, drag)``
     table rows in force at step ``k`` (each ``(6,)`` or ``None``). control: the
     controller's state after its update at ``t_k``. inputs, info: that update's command
     as its 4 entries and :class:`ControlInfo`. status: ``()`` the
     :class:`fojax.observers.Status` flags so far. observed: the observer's state.
 
-    The command is carried entry by entry: each entry is computed by its own
-    arithmetic (eq. (13), a torque), and stacked into one array the stack would be their
-    one reader, which XLA fuses into a single branchy, unvectorised concatenation
-    kernel; carried apart, every entry is one vectorised kernel, and the arrays built
-    from them where a step needs one read stored values.
+    The state and the command are carried entry by entry: each entry is computed by its
+    own arithmetic (an RK4 combination, eq. (13), a torque), and stacked into one array
+    the stack would be their one reader, which XLA fuses into a single branchy,
+    unvectorised concatenation kernel; carried apart, every entry is one vectorised
+    kernel, and the arrays built from them where a step needs one (the controller's
+    blocks of three, the observers' ``(12,)`` state) read stored values. Entry by entry,
+    the plant's arithmetic also compiles alike in every program (one device or a
+    partitioned mesh), so that a draw's numbers do not depend on the devices.
     """
 
-    state: plant.StateBlocks
-    trig: plant.AttitudeTrig
+    state: tuple
+    trig: tuple
     held: tuple
     control: Any
     inputs: tuple
@@ -274,33 +277,32 @@ def rollout(
         k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
         if drag is not None:
             k_p, k_phi = k_p * drag[:3], k_phi * drag[3:]
-        deterministic = observers.per_component(deterministic, loop.state.position)
+        deterministic = observers.per_component(deterministic, loop.state[0][None])
         if noise is not None:
             deterministic = deterministic + noise.astype(dtype)
-        disturbance = (deterministic[:3], deterministic[3:])
         applied = loop.inputs
         if config.rotor_speed_limit is not None:
             applied = plant.saturate_inputs(draw.params, applied, config.rotor_speed_limit)
-        next_state = plant.rk4_step_blocks(
+        next_state = plant.rk4_step_parts(
             draw.params,
             loop.state,
-            applied[0],
-            jnp.stack(applied[1:]),
-            disturbance,
+            applied,
+            unstack(deterministic),
             dt,
-            k_p,
-            k_phi,
+            unstack(k_p),
+            unstack(k_phi),
             loop.trig,
         )
-        state = jnp.concatenate(loop.state)
+        blocks = _blocks(loop.state)
+        state = jnp.concatenate(blocks)
         record = observers.StepRecord(
             time=t,
             state=state,
-            next_state=jnp.concatenate(next_state),
+            next_state=jnp.stack(next_state),
             reference=reference,
             inputs=jnp.stack(loop.inputs),
             info=loop.info,
-            error=observers.tracking_error(loop.state, reference, loop.info.attitude_reference),
+            error=observers.tracking_error(blocks, reference, loop.info.attitude_reference),
             plant=draw.params,
         )
         status = status_observer.update(loop.status, record)
@@ -314,11 +316,11 @@ def rollout(
             )
         # The control update of step k + 1, from the new state.
         control, next_inputs, next_info = controller.step(
-            params, loop.control, observe(draw, k + 1, next_state)
+            params, loop.control, observe(draw, k + 1, _blocks(next_state))
         )
         loop = LoopState(
             state=next_state,
-            trig=plant.attitude_trig(next_state.attitude),
+            trig=plant.attitude_trig(*next_state[3:6]),
             held=held_at(draw, k + 1),
             control=control,
             inputs=_entries(next_inputs),
@@ -351,8 +353,8 @@ def rollout(
         return loop, snapshot
 
     loop0 = LoopState(
-        state=plant.state_blocks(state0),
-        trig=plant.attitude_trig(state0[3:6]),
+        state=_entries(state0),
+        trig=plant.attitude_trig(*_entries(state0)[3:6]),
         held=held_at(draw, jnp.zeros((), jnp.int32)),
         control=control1,
         inputs=_entries(inputs0),
@@ -362,7 +364,12 @@ def rollout(
     )
     final, trajectory = lax.scan(block, loop0, jnp.arange(config.blocks))
     outputs = observer.finalize(final.observed) if observer is not None else None
-    return Rollout(jnp.concatenate(final.state), final.status, outputs, trajectory)
+    return Rollout(jnp.stack(final.state), final.status, outputs, trajectory)
+
+
+def _blocks(entries: tuple) -> plant.StateBlocks:
+    """The state's blocks, stacked from its 12 carried entries."""
+    return plant.StateBlocks(*(jnp.stack(entries[3 * i : 3 * i + 3]) for i in range(4)))
 
 
 _EXPENSIVE = frozenset(

@@ -17,9 +17,10 @@ A draw that diverges (status ``nonfinite`` or ``tilt_limit``, or a non-finite ``
 costs ``divergence_cost`` and contributes no gradient. Over a minibatch of ``n``
 draws, ``objective="mean"`` is the mean of ``J``, ``objective="cvar"`` the mean of the
 ``ceil(cvar_fraction n)`` largest (the conditional value at risk of the worst tail).
-Gradients are per draw (``vmap`` of ``grad``), so one diverged draw cannot poison the
-others with NaN; the objective's gradient is ``sum_i w_i grad J_i`` with the mean's or
-the tail's weights ``w_i``.
+Gradients are per draw (:func:`per_draw_gradients`: one copy of the gains per draw in
+one batch-last rollout), so one diverged draw cannot poison the others with NaN; the
+objective's gradient is ``sum_i w_i grad J_i`` with the mean's or the tail's weights
+``w_i``.
 """
 
 from __future__ import annotations
@@ -45,7 +46,9 @@ __all__ = [
     "CostTerms",
     "DrawCosts",
     "combine",
+    "make_batch_cost",
     "make_draw_cost",
+    "per_draw_gradients",
 ]
 
 ERRORS = ("ise", "itae")
@@ -185,6 +188,37 @@ class CostObserver:
         return jnp.stack([acc.position, acc.attitude, acc.effort, acc.chattering])
 
 
+def make_batch_cost(
+    controller: Any,
+    scenario: scenarios.Scenario,
+    sim_config: simulator.SimulationConfig,
+    cost_config: CostConfig,
+    dtype: Any = None,
+):
+    """``cost(gains, keys) -> (J (n,), terms (n, 4), status (n,))`` of the draws ``keys``
+    ``(n, 2)`` (:func:`fojax.scenarios.draw_keys`), run as one batch-last rollout.
+
+    ``gains``: shared by the draws (each field with its declared shape) or one copy per
+    draw (the draws' axis last: per-draw gradients, :func:`per_draw_gradients`).
+    ``controller`` is built for the run (its ``horizon`` should equal
+    ``sim_config.horizon``); the controller's nominal model is
+    :func:`fojax.plant.nominal_params`. ``J`` is the raw weighted sum (non-finite when
+    a draw diverged; :func:`guard` handles that). Pure.
+    """
+    dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
+    model = plant.nominal_params(dtype)
+    observer = CostObserver(cost_config, sim_config.dt)
+    weights = jnp.asarray(cost_config.weights, dtype)
+
+    def cost(gains, keys):
+        draws = scenarios.sample_draws(scenario, keys, sim_config.dt, dtype)
+        result = simulator.rollout(controller, gains, model, scenario, draws, sim_config, observer)
+        terms = result.outputs  # (4, n)
+        return jnp.sum(weights[:, None] * terms, 0), terms.T, result.status
+
+    return cost
+
+
 def make_draw_cost(
     controller: Any,
     scenario: scenarios.Scenario,
@@ -192,26 +226,35 @@ def make_draw_cost(
     cost_config: CostConfig,
     dtype: Any = None,
 ):
-    """``cost(gains, key) -> (J (), terms (4,), status ())`` of one draw (pure; vmap it).
-
-    ``controller`` is built for the run (its ``horizon`` should equal
-    ``sim_config.horizon``); the controller's nominal model is
-    :func:`fojax.plant.nominal_params`; ``key`` comes from
-    :func:`fojax.scenarios.draw_keys`. ``J`` is the raw weighted sum (non-finite when
-    the draw diverged; :func:`combine` handles that).
-    """
-    dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
-    model = plant.nominal_params(dtype)
-    observer = CostObserver(cost_config, sim_config.dt)
-    weights = jnp.asarray(cost_config.weights, dtype)
+    """``cost(gains, key) -> (J (), terms (4,), status ())`` of one draw: the batch cost
+    (:func:`make_batch_cost`) of a batch of one."""
+    batch_cost = make_batch_cost(controller, scenario, sim_config, cost_config, dtype)
 
     def cost(gains, key):
-        draw = scenarios.sample_draw(scenario, key, sim_config.dt, dtype)
-        result = simulator.rollout(controller, gains, model, scenario, draw, sim_config, observer)
-        terms = result.outputs
-        return jnp.sum(weights * terms), terms, result.status
+        j, terms, status = batch_cost(gains, jnp.asarray(key)[None])
+        return j[0], terms[0], status[0]
 
     return cost
+
+
+def per_draw_gradients(batch_cost, gains: Any, keys: Array):
+    """``(J (n,), terms (n, 4), status (n,), gradients)``: the cost of every draw and its
+    gradient with respect to ``gains``, per draw (each gains field ``(n,) + shape``).
+
+    One batch-last rollout with one copy of the gains per draw, differentiated once: each
+    draw's cost depends on its own copy only, so the gradient of the sum of the costs
+    with respect to the copies is the stack of the per-draw gradients, and a draw that
+    diverges (non-finite cost or gradient) does not touch the others'.
+    """
+    n = keys.shape[0]
+    copies = jax.tree.map(lambda g: jnp.broadcast_to(g[..., None], g.shape + (n,)), gains)
+
+    def total(copies):
+        j, terms, status = batch_cost(copies, keys)
+        return jnp.sum(j), (j, terms, status)
+
+    gradients, (j, terms, status) = jax.grad(total, has_aux=True)(copies)
+    return j, terms, status, jax.tree.map(lambda g: jnp.moveaxis(g, -1, 0), gradients)
 
 
 def guard(cost_config: CostConfig, cost: Array, status: Array) -> tuple[Array, Array]:

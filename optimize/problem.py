@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import scenarios, simulator
+from fojax import scenarios, sharding, simulator
 from fojax.controllers import registry
 from optimize import cost as cost_lib
 from optimize import params as params_lib
@@ -240,7 +240,7 @@ class TuningProblem:
             dt=spec.dt, horizon=spec.horizon, save_every=spec.block
         )
         self.controller = spec.make_controller("tanh", spec.horizon)
-        draw_cost = cost_lib.make_draw_cost(
+        batch_cost = cost_lib.make_batch_cost(
             self.controller, self.scenario, self.sim_config, spec.cost, dtype
         )
         cost_config = spec.cost
@@ -251,20 +251,30 @@ class TuningProblem:
             gains = param_map.to_gains(params, base_gains)
             return _scale_width(gains, base_gains, widths, width_scale)
 
-        def one(params, width_scale, key):
-            j, terms, status = draw_cost(gains_of(params, width_scale), key)
-            return j, (terms, status)
-
         def value(params, width_scale, keys):
-            j, (terms, status) = jax.vmap(one, in_axes=(None, None, 0))(params, width_scale, keys)
+            j, terms, status = batch_cost(gains_of(params, width_scale), keys)
             effective, diverged = cost_lib.guard(cost_config, j, status)
             objective, _ = cost_lib.combine(cost_config, effective)
             costs = cost_lib.DrawCosts(effective, terms, status, diverged)
             return Step(objective, costs, None, jnp.zeros((), jnp.int32))
 
         def per_draw_grads(params, width_scale, keys):
-            grad_one = jax.value_and_grad(one, has_aux=True)
-            return jax.vmap(grad_one, in_axes=(None, None, 0))(params, width_scale, keys)
+            # One copy of the parameters per draw (the draws last), mapped onto gains per
+            # draw, one batch-last rollout: the gradient with respect to the copies is
+            # the stack of the per-draw gradients (optimize.cost.per_draw_gradients).
+            n = keys.shape[0]
+
+            def per_draw_gains(copies):
+                to_gains = jax.vmap(gains_of, in_axes=(-1, None), out_axes=-1)
+                return to_gains(copies, width_scale)
+
+            def total(copies):
+                j, terms, status = batch_cost(per_draw_gains(copies), keys)
+                return jnp.sum(j), (j, (terms, status))
+
+            copies = jax.tree.map(lambda p: jnp.broadcast_to(p[..., None], p.shape + (n,)), params)
+            grads, out = jax.grad(total, has_aux=True)(copies)
+            return out, jax.tree.map(lambda g: jnp.moveaxis(g, -1, 0), grads)
 
         def reduce_draws(per_draw):
             (j, (terms, status)), grads = per_draw
@@ -291,18 +301,19 @@ class TuningProblem:
             costs = cost_lib.DrawCosts(effective, terms, status, diverged)
             return Step(objective, costs, gradient, bad)
 
-        def value_and_grad(params, width_scale, keys):
-            return reduce_draws(per_draw_grads(params, width_scale, keys))
-
         options = COMPILE_MODES[spec.compile]
         self._value = jax.jit(value, compiler_options=options)
-        self._value_and_grad = jax.jit(value_and_grad, compiler_options=options)
         self._gains_of = gains_of
+        # The gradient always runs as a mesh's per-device program (one device when no
+        # mesh is given): every mesh then gives the same numbers (fojax.sharding).
         self.mesh = mesh
-        if mesh is not None:
-            self._value_and_grad = _over_mesh(
-                per_draw_grads, jax.jit(reduce_draws), mesh, device_batch, options
-            )
+        self._value_and_grad = _over_mesh(
+            per_draw_grads,
+            jax.jit(reduce_draws),
+            mesh or sharding.one_device_mesh(),
+            device_batch,
+            options,
+        )
         template = {f.name: jnp.zeros(f.param_shape, dtype) for f in param_map.fields}
         _, self._unravel = param_map.ravel(template)
 
@@ -402,15 +413,9 @@ def _over_mesh(per_draw, reduce, mesh, device_batch=None, compiler_options=None)
     processes, gives the same per-draw values and hence the same objective and
     gradient, bit for bit, for a given ``device_batch`` (XLA rounds a draw according to
     its batch: :mod:`fojax.study`)."""
-    from fojax import sharding
-
     devices = int(mesh.devices.size)
-    replicated = sharding.replicated_sharding(mesh)
-    run = jax.jit(
-        per_draw,
-        in_shardings=(replicated, replicated, sharding.draw_sharding(mesh)),
-        out_shardings=sharding.draw_sharding(mesh),
-        compiler_options=compiler_options,
+    run = sharding.sharded_batch(
+        per_draw, mesh, batched=(False, False, True), compiler_options=compiler_options
     )
     several = any(d.process_index != jax.process_index() for d in mesh.devices.flat)
 
@@ -450,10 +455,10 @@ def _evaluator(spec: ProblemSpec, scenario: scenarios.Scenario, horizon: float, 
     )
     scenario = _scenario_for(scenario, horizon)
     controller = spec.make_controller(switching, horizon)
-    draw_cost = cost_lib.make_draw_cost(controller, scenario, sim_config, spec.cost, dtype)
+    batch_cost = cost_lib.make_batch_cost(controller, scenario, sim_config, spec.cost, dtype)
 
     def run(gains, keys):
-        j, terms, status = jax.vmap(draw_cost, in_axes=(None, 0))(gains, keys)
+        j, terms, status = batch_cost(gains, keys)
         effective, diverged = cost_lib.guard(spec.cost, j, status)
         return cost_lib.DrawCosts(effective, terms, status, diverged)
 

@@ -99,17 +99,14 @@ def _gradient(case) -> dict[str, np.ndarray]:
         fractional_method=method,
         fractional_options=_options(method),
     )
-    draw_cost = cost_lib.make_draw_cost(
+    batch_cost = cost_lib.make_batch_cost(
         controller, scenario, config, cost_lib.CostConfig(), jnp.float64
     )
     gains = jax.tree.map(lambda g: jnp.asarray(g, jnp.float64), controller.default_gains())
-
-    def one(g, key):
-        j, terms, _ = draw_cost(g, key)
-        return j, terms
-
-    grad = jax.jit(jax.vmap(jax.value_and_grad(one, has_aux=True), in_axes=(None, 0)))
-    (cost, terms), grads = grad(gains, scenarios.draw_keys(SEED, DRAWS))
+    # Per-draw gradients as the tuner takes them: one batch-last rollout, one copy of the
+    # gains per draw.
+    grad = jax.jit(lambda g, keys: cost_lib.per_draw_gradients(batch_cost, g, keys))
+    cost, terms, _, grads = grad(gains, scenarios.draw_keys(SEED, DRAWS))
     out = {"cost": np.asarray(cost), "terms": np.asarray(terms)}
     out.update({f"grad.{k}": np.asarray(v) for k, v in grads._asdict().items()})
     return out

@@ -105,18 +105,19 @@ _SHARDED_SCRIPT = textwrap.dedent(
     controller = AFONFTSMC(dt=1e-3, horizon=80.0, switching="sat")
     model = plant.nominal_params()
 
-    def one(gains, key):
-        draw = scenarios.sample_draw(scenario, key, config.dt)
-        return simulator.rollout(controller, gains, model, scenario, draw, config)
+    def batch(gains, keys):
+        draws = scenarios.sample_draws(scenario, keys, config.dt)
+        result = simulator.rollout(controller, gains, model, scenario, draws, config)
+        return scenarios.batch_first(result)
 
     keys, count = sharding.pad_draws(np.asarray(scenarios.draw_keys(5, range(10))), 4)
     assert count == 10 and keys.shape[0] == 12
     mesh = sharding.draw_mesh()
     placed = sharding.shard_draws(keys, mesh)
     assert len(placed.sharding.device_set) == 4
-    sharded = sharding.sharded_vmap(one, mesh, in_axes=(None, 0))(paper_gains(), placed)
+    sharded = sharding.sharded_batch(batch, mesh, batched=(False, True))(paper_gains(), placed)
     assert len(sharded.final_state.sharding.device_set) == 4
-    run = jax.jit(jax.vmap(one, in_axes=(None, 0)), device=jax.devices()[0])
+    run = sharding.sharded_batch(batch, sharding.one_device_mesh(), batched=(False, True))
     whole = run(paper_gains(), keys)
     # One device, the same program as each shard's (3 draws at a time): bit for bit.
     chunks = [run(paper_gains(), keys[i : i + 3]) for i in range(0, 12, 3)]
@@ -168,8 +169,8 @@ def test_sharding_validates_before_placing():
     mesh = sharding.draw_mesh(jax.devices()[:1])
     with pytest.raises(ValueError, match="same leading"):
         sharding.shard_draws({"a": np.zeros((3, 2)), "b": np.zeros((4,))}, mesh)
-    with pytest.raises(ValueError, match="0 .batched. or None"):
-        sharding.sharded_vmap(lambda x: x, mesh, in_axes=(1,))
+    with pytest.raises(ValueError, match="True .batched. or False"):
+        sharding.sharded_batch(lambda x: x, mesh, batched=(1,))
     with pytest.raises(ValueError, match="positive integer"):
         sharding.pad_draws(np.zeros((3,)), 0)
     padded, count = sharding.pad_draws({"a": np.arange(5.0)}, 4)

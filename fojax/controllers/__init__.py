@@ -11,9 +11,12 @@ declared gains, the registry and gains files.
 * the laws: :class:`AFONFTSMC` (the paper's), and the four it is compared with,
   :class:`ANFTSMC`, :class:`FOBSMC`, :class:`BSMC`, :class:`FL`;
 * :mod:`~fojax.controllers.registry`: controllers by name (:func:`make_controller`);
-* :mod:`~fojax.controllers.gains_io`: gains files.
+* :mod:`~fojax.controllers.gains_io`: gains files;
+* :func:`unstack`: the entries of a per-axis array, read the way the reverse pass
+  handles best.
 """
 
+from fojax._arrays import unstack
 from fojax.controllers import gains_io, registry
 from fojax.controllers.afonftsmc import AFONFTSMC, AFONFTSMCGains, paper_gains
 from fojax.controllers.anftsmc import ANFTSMC, ANFTSMCGains
@@ -77,4 +80,5 @@ __all__ = [
     "save_gains",
     "signed_power",
     "switching",
+    "unstack",
 ]

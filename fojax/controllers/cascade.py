@@ -48,7 +48,6 @@ from fojax.controllers.base import (
     Observation,
     check_positive,
 )
-from fojax.observers import per_component
 
 Array = jax.Array
 
@@ -239,7 +238,7 @@ class Cascade:
         self, params: CascadeParams, state: CascadeState, observation: Observation
     ) -> tuple[CascadeState, Array, ControlInfo]:
         model = params.model
-        x = plant.state_blocks(observation.state)  # (3,) + batch each
+        x = [v for block in plant.state_blocks(observation.state) for v in unstack(block)]
         ref, ref_vel, ref_acc = (
             observation.reference,
             observation.reference_velocity,
@@ -250,31 +249,19 @@ class Cascade:
         # Errors of both loops, eqs. (14)-(15), (40)-(41), (6,) + batch: the attitude
         # loop tracks the command filter's output, known at the start of the step.
         filt = state.command_filter  # (2, 2) + batch: rows (phi, theta), (value, rate)
-        attitude_reference = jnp.stack(jnp.broadcast_arrays(filt[0, 0], filt[1, 0], ref[3]))
-        attitude_rate_reference = jnp.stack(
-            jnp.broadcast_arrays(filt[0, 1], filt[1, 1], ref_vel[3])
-        )
-        error = jnp.concatenate(
-            [x.position - per_component(ref[:3], x.position), x.attitude - attitude_reference]
-        )
-        error_rate = jnp.concatenate(
-            [x.velocity - per_component(ref_vel[:3], x.velocity), x.rate - attitude_rate_reference]
-        )
+        reference = (ref[0], ref[1], ref[2], filt[0, 0], filt[1, 0], yaw_reference)
+        reference_rate = (ref_vel[0], ref_vel[1], ref_vel[2], filt[0, 1], filt[1, 1], ref_vel[3])
+        error = jnp.stack([x[i] - reference[i] for i in range(6)])
+        error_rate = jnp.stack([x[6 + i] - reference_rate[i] for i in range(6)])
         law_state, out = self.law.step(params.law, state.law, error, error_rate)
-        position_accel, attitude_accel = unstack(_axes(out.acceleration), (3, 3))
+        accel = _axes(out.acceleration)
 
         # Position loop, eqs. (23) and (13).
-        virtual = (
-            per_component(model.drag_position / model.mass, x.velocity) * x.velocity
-            + per_component(ref_acc[:3], x.velocity)
-            + position_accel
-        )
+        virtual = [
+            model.drag_position[i] / model.mass * x[6 + i] + ref_acc[i] + accel[i] for i in range(3)
+        ]
         thrust, phi_r, theta_r = thrust_and_attitude(
-            model,
-            *unstack(virtual),
-            jnp.cos(yaw_reference),
-            jnp.sin(yaw_reference),
-            self.thrust_floor,
+            model, *virtual, jnp.cos(yaw_reference), jnp.sin(yaw_reference), self.thrust_floor
         )
 
         # Command filter: phi_r, theta_r and their two derivatives. Row by row: a stack
@@ -283,8 +270,8 @@ class Cascade:
         w, zeta = self.filter_frequency, self.filter_damping
         transition, gain = params.filter_transition, params.filter_input
         filtered_accel, command_filter = [], []
-        for row, tilt in zip(unstack(filt), (phi_r, theta_r), strict=True):
-            value, rate = unstack(row)
+        for i, tilt in enumerate((phi_r, theta_r)):
+            value, rate = filt[i, 0], filt[i, 1]
             filtered_accel.append(w * w * (tilt - value) - 2.0 * zeta * w * rate)
             command_filter.append(
                 jnp.stack(
@@ -298,11 +285,11 @@ class Cascade:
 
         # Attitude loop, eqs. (42)-(44).
         omega_r = plant.rotor_speed_sum(model, state.last_inputs)
-        drift = attitude_drift(model, *unstack(x.rate), omega_r)
+        drift = attitude_drift(model, x[9], x[10], x[11], omega_r)
         attitude_reference_accel = (filtered_accel[0], filtered_accel[1], ref_acc[3])
         torque = [
-            model.inertia[i] * (-drift[i] + attitude_reference_accel[i] + accel)
-            for i, accel in enumerate(unstack(attitude_accel))
+            model.inertia[i] * (-drift[i] + attitude_reference_accel[i] + accel[3 + i])
+            for i in range(3)
         ]
 
         inputs = (thrust, *torque)
@@ -313,7 +300,11 @@ class Cascade:
             adaptive = jnp.broadcast_to(out.adaptive, (6, 3) + surfaces.shape[1:])
         new_state = CascadeState(law_state, command_filter, inputs)
         info = ControlInfo(
-            surfaces=surfaces, attitude_reference=attitude_reference, adaptive=adaptive
+            surfaces=surfaces,
+            attitude_reference=jnp.stack(
+                jnp.broadcast_arrays(filt[0, 0], filt[1, 0], yaw_reference)
+            ),
+            adaptive=adaptive,
         )
         return new_state, jnp.stack(inputs), info
 

@@ -191,9 +191,7 @@ def make_chunk_runner(
         return scenarios.batch_first((result.status, result.outputs, result.trajectory))
 
     batched = (False, True, False) if scenario.members else (False, True)
-    if mesh is not None and mesh.devices.size > 1:
-        return sharding.sharded_batch(batch, mesh, batched)
-    return jax.jit(batch)
+    return sharding.sharded_batch(batch, mesh or sharding.one_device_mesh(), batched)
 
 
 def compile_chunk_runner(
@@ -218,25 +216,17 @@ def compile_chunk_runner(
     is read from there.
     """
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
+    mesh = mesh or sharding.one_device_mesh()
     jitted = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
     gains = jax.tree.map(lambda g: jnp.asarray(g, dtype), gains)
-    if mesh is not None and mesh.devices.size > 1:
-        gains_spec = jax.tree.map(
-            lambda g: jax.ShapeDtypeStruct(
-                g.shape, g.dtype, sharding=sharding.replicated_sharding(mesh)
-            ),
-            gains,
-        )
-        keys_spec = jax.ShapeDtypeStruct(
-            (draws_per_call, 2), jnp.uint32, sharding=sharding.draw_sharding(mesh)
-        )
-        member_spec = jax.ShapeDtypeStruct(
-            (), jnp.int32, sharding=sharding.replicated_sharding(mesh)
-        )
-    else:
-        gains_spec = jax.tree.map(lambda g: jax.ShapeDtypeStruct(g.shape, g.dtype), gains)
-        keys_spec = jax.ShapeDtypeStruct((draws_per_call, 2), jnp.uint32)
-        member_spec = jax.ShapeDtypeStruct((), jnp.int32)
+    replicated = sharding.replicated_sharding(mesh)
+    gains_spec = jax.tree.map(
+        lambda g: jax.ShapeDtypeStruct(g.shape, g.dtype, sharding=replicated), gains
+    )
+    keys_spec = jax.ShapeDtypeStruct(
+        (draws_per_call, 2), jnp.uint32, sharding=sharding.draw_sharding(mesh)
+    )
+    member_spec = jax.ShapeDtypeStruct((), jnp.int32, sharding=replicated)
     specs = (gains_spec, keys_spec, member_spec) if scenario.members else (gains_spec, keys_spec)
     return jitted.lower(*specs).compile()
 
