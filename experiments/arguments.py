@@ -19,6 +19,7 @@ __all__ = [
     "check_input_file",
     "check_output_directory",
     "check_output_file",
+    "controller_flags",
     "input_file",
     "nonnegative_float",
     "nonnegative_int",
@@ -138,6 +139,39 @@ def scenario_ids(text: str) -> tuple[int, ...]:
             f"scenarios must be among {scenarios.SCENARIO_IDS}, got {text!r}"
         )
     return ids
+
+
+def controller_flags(controllers, flags: dict) -> dict[str, list[str]]:
+    """Which of ``controllers`` each given flag applies to; ``ValueError`` when one
+    does not apply.
+
+    flags: ``{flag: (controller option, value)}`` (e.g. ``{"--switching": ("switching",
+    "sat")}``), the value None when the flag was not given (then it is left out). With
+    one controller, a flag whose option its law does not take is an error naming the
+    law and the options it takes; with several (``--controller all`` or a list), one
+    that applies to none of them is, and the answer says which ones each applies to.
+    """
+    from fojax.controllers import registry
+
+    controllers = list(controllers)
+    applied = {}
+    for flag, (option, value) in flags.items():
+        if value is None:
+            continue
+        users = [name for name in controllers if option in registry.controller_options(name)]
+        if not users:
+            takes = ", ".join(sorted(registry.controller_options(controllers[0])))
+            if len(controllers) == 1:
+                raise ValueError(
+                    f"{flag} does not apply to {controllers[0]}, which takes no {option} (its "
+                    f"options: {takes}); leave {flag} out"
+                )
+            raise ValueError(
+                f"{flag} applies to none of {', '.join(controllers)} (none takes {option}); "
+                f"leave {flag} out"
+            )
+        applied[flag] = users
+    return applied
 
 
 # ------------------------------------------------------------------------------ paths
