@@ -152,3 +152,18 @@ def test_metadata_that_is_not_an_object_is_an_error(tmp_path, metadata):
     path.write_text(json.dumps({"controller": "afonftsmc", "gains": gains, "metadata": metadata}))
     with pytest.raises(ValueError, match="'metadata' must be a JSON object"):
         gains_io.load_gains(path)
+
+
+# ------------------------------------------------------------------------------ scripts
+
+
+def test_fair_comparison_refuses_adams_step_for_lbfgs(capsys):
+    from experiments import fair_comparison
+
+    with pytest.raises(SystemExit) as info:
+        fair_comparison.parse_args(["--learning-rate", "0.2"])
+    assert info.value.code == 2
+    assert "--learning-rate applies to --method adam only" in capsys.readouterr().err
+    args = fair_comparison.parse_args(["--method", "adam", "--learning-rate", "0.2"])
+    assert args.learning_rate == 0.2
+    assert fair_comparison.parse_args([]).learning_rate == 0.1
