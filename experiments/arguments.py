@@ -19,6 +19,7 @@ __all__ = [
     "check_input_file",
     "check_output_directory",
     "check_output_file",
+    "controller_flags",
     "input_file",
     "nonnegative_float",
     "nonnegative_int",
@@ -138,6 +139,39 @@ def scenario_ids(text: str) -> tuple[int, ...]:
             f"scenarios must be among {scenarios.SCENARIO_IDS}, got {text!r}"
         )
     return ids
+
+
+def controller_flags(controllers, flags: dict) -> dict[str, list[str]]:
+    """Which of ``controllers`` each given flag applies to; ``ValueError`` when one
+    does not apply.
+
+    flags: ``{flag: (controller option, value)}`` (e.g. ``{"--switching": ("switching",
+    "sat")}``), the value None when the flag was not given (then it is left out). With
+    one controller, a flag whose option its law does not take is an error naming the
+    law and the options it takes; with several (``--controller all`` or a list), one
+    that applies to none of them is, and the answer says which ones each applies to.
+    """
+    from fojax.controllers import registry
+
+    controllers = list(controllers)
+    applied = {}
+    for flag, (option, value) in flags.items():
+        if value is None:
+            continue
+        users = [name for name in controllers if option in registry.controller_options(name)]
+        if not users:
+            takes = ", ".join(sorted(registry.controller_options(controllers[0])))
+            if len(controllers) == 1:
+                raise ValueError(
+                    f"{flag} does not apply to {controllers[0]}, which takes no {option} (its "
+                    f"options: {takes}); leave {flag} out"
+                )
+            raise ValueError(
+                f"{flag} applies to none of {', '.join(controllers)} (none takes {option}); "
+                f"leave {flag} out"
+            )
+        applied[flag] = users
+    return applied
 
 
 # ------------------------------------------------------------------------------ paths
@@ -339,8 +373,9 @@ def add_runtime_options(parser: argparse.ArgumentParser, distributed: bool = Tru
         metavar="HOST:PORT",
         help="join a multi-process run (jax.distributed) whose process 0 listens at "
         "HOST:PORT; with --num-processes and --process-id. Without them a run joins "
-        "when JAX_COORDINATOR_ADDRESS/JAX_NUM_PROCESSES/JAX_PROCESS_ID are set or a "
-        "cluster job of several processes is detected (SLURM srun, Open MPI, ...)",
+        "when JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES and JAX_PROCESS_ID are set "
+        "(a flag overrides its variable) or a cluster job of several processes is "
+        "detected (SLURM srun, Open MPI, ...; docs/distributed.md)",
     )
     group.add_argument("--num-processes", metavar="N", help="processes of the run (>= 1)")
     group.add_argument("--process-id", metavar="I", help="this process's index, 0 to N - 1")
@@ -397,54 +432,39 @@ def enable_compile_cache(disabled: bool = False) -> str | None:
     return str(path)
 
 
+DISTRIBUTED_FLAGS = {
+    "coordinator_address": "--coordinator",
+    "num_processes": "--num-processes",
+    "process_id": "--process-id",
+}
+"""The flag of each :func:`fojax.sharding.initialize` argument (for its messages)."""
+
+
 def _coordinator(text: str) -> str:
-    host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise ValueError(
-            f"--coordinator must be HOST:PORT with a port in 1-65535 (e.g. 127.0.0.1:12355 "
-            f"or node01:12355), got {text!r}"
-        )
-    return text
+    from fojax import sharding
+
+    return sharding.check_coordinator_address(text, "--coordinator")
 
 
 def parse_distributed(values: dict) -> dict:
     """Validated ``{"coordinator_address", "num_processes", "process_id"}`` (None where
-    not given) from the options' texts; ``ValueError`` saying what to change."""
+    not given) from the options' texts; ``ValueError`` saying what to change.
+
+    Checks each flag's text (``HOST:PORT``, integers, the id below the count). Whether
+    the three settings are complete is :func:`fojax.sharding.distributed_settings`'s
+    call: a flag left out may come from its ``JAX_*`` variable or a detected cluster job.
+    """
     coordinator = values.get("coordinator")
     count = values.get("num_processes")
     index = values.get("process_id")
-    given = {
-        k: v
-        for k, v in (
-            ("--coordinator", coordinator),
-            ("--num-processes", count),
-            ("--process-id", index),
-        )
-        if v is not None
-    }
-    if not given:
-        return {"coordinator_address": None, "num_processes": None, "process_id": None}
-    env = {
-        "--coordinator": "JAX_COORDINATOR_ADDRESS",
-        "--num-processes": "JAX_NUM_PROCESSES",
-        "--process-id": "JAX_PROCESS_ID",
-    }
-    missing = [flag for flag in env if flag not in given and not os.environ.get(env[flag])]
-    if missing:
-        variables = ", ".join(env[m] for m in missing)
-        raise ValueError(
-            f"a multi-process run needs {', '.join(missing)} too (or {variables}); give "
-            "--coordinator HOST:PORT --num-processes N --process-id I together"
-        )
     try:
         count = None if count is None else _integer(count, 1, "--num-processes, an integer >= 1")
         index = None if index is None else _integer(index, 0, "--process-id, an integer >= 0")
     except argparse.ArgumentTypeError as error:
         raise ValueError(str(error)) from None
-    total = count if count is not None else int(os.environ.get("JAX_NUM_PROCESSES", "0") or 0)
-    if index is not None and total and index >= total:
+    if index is not None and count is not None and index >= count:
         raise ValueError(
-            f"--process-id must be below the number of processes ({total}), got {index}"
+            f"--process-id must be below the number of processes ({count}), got {index}"
         )
     return {
         "coordinator_address": None if coordinator is None else _coordinator(coordinator),
@@ -472,7 +492,7 @@ def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
 
     if distributed:
         try:
-            info = sharding.initialize(**options)
+            info = sharding.initialize(**options, names=DISTRIBUTED_FLAGS)
         except ValueError as error:
             parser.error(str(error))
         except RuntimeError as error:  # e.g. JAX already started in this process

@@ -140,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--small",
         action="store_true",
-        help="tiny sizes for a smoke test (seconds, not minutes; figures meaningless)",
+        help="tiny sizes for a smoke test (seconds, not minutes; figures meaningless); it "
+        "sets --draws, the horizons, --repeats and the gradient and NumPy sizes itself",
     )
     return parser
 
@@ -445,10 +446,36 @@ UNITS = {
 }
 
 
+SMALL_SETS = (
+    "draws",
+    "long_horizon",
+    "short_horizon",
+    "repeats",
+    "gradient_draws",
+    "gradient_horizons",
+    "numpy_draws",
+    "numpy_horizon",
+)
+"""The options ``--small`` sets itself (giving one of them with it is an error)."""
+
+
+def _given(argv: list[str]) -> set[str]:
+    """The destinations of the options given on the command line (not defaulted)."""
+    probe = build_parser()
+    for action in probe._actions:
+        action.default = argparse.SUPPRESS
+    return set(vars(probe.parse_known_args(argv)[0]))
+
+
 def main(argv=None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     if args.small:
+        clashing = sorted(_given(argv) & set(SMALL_SETS))
+        if clashing:
+            flags = ", ".join("--" + name.replace("_", "-") for name in clashing)
+            parser.error(f"--small sets the sizes itself; leave {flags} out or drop --small")
         args.draws = (min(args.draws[0], 4),)
         args.long_horizon = args.short_horizon = 0.02
         args.repeats = 1

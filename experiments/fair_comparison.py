@@ -61,7 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
         "draws; adam: fresh minibatches)",
     )
     parser.add_argument(
-        "--learning-rate", type=arguments.positive_float, default=0.1, help="Adam's step"
+        "--learning-rate",
+        type=arguments.positive_float,
+        help="Adam's step (0.1; --method adam only)",
     )
     parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument("--controllers", help="comma-separated names (default: all registered)")
@@ -93,6 +95,13 @@ def parse_args(argv) -> argparse.Namespace:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.learning_rate is not None and args.method != "adam":
+        parser.error(
+            f"--learning-rate applies to --method adam only, not to --method {args.method}; "
+            "leave it out or add --method adam"
+        )
+    if args.learning_rate is None:
+        args.learning_rate = 0.1
     known = registry.controller_names()
     if args.controllers is None:
         args.controllers = tuple(known)

@@ -287,7 +287,9 @@ def make_plan(
             for name in controllers:
                 options = {"dt": config.dt, "horizon": config.horizon}
                 options.update(dict(setting.controller))
-                controller = make_controller(name, **options)
+                # A setting moves an option of the laws that have it (sat: all but the
+                # FL; oustaloup: the AFONFTSMC and the FOBSMC); the others run as they are.
+                controller = make_controller(name, **registry.options_for(name, options))
                 job_key = (controller, config, setting.dtype)
                 if job_key not in jobs:
                     jobs[job_key] = Job(len(jobs), controller, config, setting.dtype)

@@ -5,6 +5,11 @@
                    [--switching sign|sat|tanh] [--device-batch N] [--dtype float32|float64]
                    --out DIR
 
+``--switching`` and ``--fractional`` set the controllers that have a switching function
+(all but the FL) or fractional operators (AFONFTSMC, FOBSMC): given for one controller
+that has none they are an error; given with several controllers they apply to those
+that have one, and the summary (``options_applied_to``) and the printed lines say which.
+
 Writes to ``DIR``, the results first and the figures after them:
 
 * ``summary.json``: per controller, each metric's mean and 95 % confidence interval
@@ -79,14 +84,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--fractional",
         choices=fractional.METHODS,
-        default="soe",
-        help="fractional operator method (default soe; oustaloup is the paper's)",
+        help="fractional operator method of the controllers with fractional operators "
+        "(afonftsmc, fobsmc; default soe; oustaloup is the paper's). With one controller "
+        "that has none, an error; with several, the summary says which it applied to",
     )
     parser.add_argument(
         "--switching",
         choices=SWITCHING_FUNCTIONS,
-        default="sign",
-        help="switching function of the sliding-mode controllers (default sign, the paper's)",
+        help="switching function of the sliding-mode controllers (all but fl; default "
+        "sign, the paper's). With one controller that has none, an error; with several, "
+        "the summary says which it applied to",
     )
     arguments.add_device_batch(parser)
     parser.add_argument(
@@ -145,6 +152,16 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
     parser = build_parser()
     args = parser.parse_args(argv)
     controllers = _controllers(parser, args.controller)
+    try:  # an option the chosen law does not take is an error, not ignored
+        args.applied = arguments.controller_flags(
+            controllers,
+            {
+                "--fractional": ("fractional_method", args.fractional),
+                "--switching": ("switching", args.switching),
+            },
+        )
+    except ValueError as error:
+        parser.error(str(error))
     scenario = scenarios.get_scenario(args.scenario)
     horizon = args.horizon if args.horizon is not None else scenario.horizon
     if args.dt > horizon:
@@ -186,8 +203,8 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
         dt=float(args.dt),
         save_every=snapshot_interval(steps, args.dt),
         gains=gains,
-        fractional=args.fractional,
-        switching=args.switching,
+        fractional=args.fractional or "soe",
+        switching=args.switching or "sign",
         device_batch=args.device_batch,
         keep=min(args.keep, args.draws),
         dtype=dtype,
@@ -195,14 +212,10 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
     )
     # Build every controller now: bad configurations fail before compiling.
     for name in controllers:
+        options = dict(dt=study.dt, horizon=study.horizon, fractional_method=study.fractional)
+        options["switching"] = study.switching
         try:
-            registry.make_controller(
-                name,
-                dt=study.dt,
-                horizon=study.horizon,
-                fractional_method=study.fractional,
-                switching=study.switching,
-            )
+            registry.make_controller(name, **registry.options_for(name, options))
         except ValueError as error:
             parser.error(f"{name}: {error}")
     return study, args
@@ -263,6 +276,11 @@ def main(argv=None) -> int:
         extra={"wall_time_s": wall},
     )
     _print_summary(summary)
+    for flag, users in args.applied.items():
+        if len(users) < len(study.controllers):
+            value = getattr(args, flag.removeprefix("--"))
+            others = [name for name in study.controllers if name not in users]
+            print(f"{flag} {value} applied to {', '.join(users)} (not {', '.join(others)})")
     written = summary["files"] + [f"{name} (+ .pdf)" for name in summary.get("figures", [])]
     print(f"wrote {out}/: {', '.join(written)}")
     if study.keep == 0:

@@ -35,6 +35,7 @@ __all__ = [
     "check_stores",
     "compile_threads",
     "gains_record",
+    "options_applied_to",
     "plan_unions",
     "provenance",
     "run_studies",
@@ -288,6 +289,21 @@ def _scenario(study: Study):
     return dataclasses.replace(scenarios.get_scenario(study.scenario_id), horizon=study.horizon)
 
 
+def _law_options(study: Study) -> dict:
+    """The study's options shared by its controllers, each given to the controllers
+    that take it (:func:`fojax.controllers.registry.options_for`)."""
+    return {"fractional_method": study.fractional, "switching": study.switching}
+
+
+def options_applied_to(study: Study) -> dict[str, list[str]]:
+    """For each of the study's shared options (``switching``, ``fractional_method``),
+    the controllers that take it: the others (the FL has no switching function, only
+    the AFONFTSMC and the FOBSMC have fractional operators) ran without it."""
+    from fojax.controllers import registry
+
+    return registry.applied_options(study.controllers, _law_options(study))
+
+
 def _prepared(study: Study, union: UnionMember | None = None):
     """``(mesh, scenario, config, dtype, {name: (controller, gains)})``; with ``union``
     (:func:`plan_unions`) the union's scenario, and its horizon for the simulation and
@@ -304,13 +320,8 @@ def _prepared(study: Study, union: UnionMember | None = None):
     dtype = jnp.dtype(study.dtype)
     runs = {}
     for name in study.controllers:
-        controller = registry.make_controller(
-            name,
-            dt=study.dt,
-            horizon=horizon,
-            fractional_method=study.fractional,
-            switching=study.switching,
-        )
+        options = dict(dt=study.dt, horizon=horizon, **_law_options(study))
+        controller = registry.make_controller(name, **registry.options_for(name, options))
         gains = study.gains.get(name)
         if gains is None:
             gains = controller.default_gains(dtype)
@@ -778,6 +789,7 @@ def write_outputs(
         "dt_s": study.dt,
         "fractional_method": study.fractional,
         "switching": study.switching,
+        "options_applied_to": options_applied_to(study),
         "dtype": study.dtype,
         "device_batch": study.device_batch or monte_carlo.default_device_batch(),
         "batch": _batch_layout(study),
@@ -848,10 +860,13 @@ def write_outputs(
         from experiments import figures as figs
         from experiments import style
 
-        context = (
-            f"scenario {study.scenario_id}, {study.switching} switching, "
-            f"{study.fractional} fractional operators, dt {study.dt * 1e3:g} ms"
-        )
+        applied = options_applied_to(study)
+        parts = [f"scenario {study.scenario_id}"]
+        if applied["switching"]:
+            parts.append(f"{study.switching} switching")
+        if applied["fractional_method"]:
+            parts.append(f"{study.fractional} fractional operators")
+        context = ", ".join(parts + [f"dt {study.dt * 1e3:g} ms"])
         drawn = style.attempt("(all)", figs.plot_all, results, out, "", context) or []
         if drawn:
             summary["figures"] = [p.name for p in drawn]

@@ -31,7 +31,13 @@ the gradient of the mean (or CVaR) cost. Writes to ``DIR``:
   ``gains.json`` carries the same in its metadata.
 
 Every input is checked before anything is compiled or written; an existing
-checkpoint is never overwritten. The results are written before the figure; a
+checkpoint is never overwritten. An option that would change nothing is an error
+naming what it applies to: ``--learning-rate``, ``--clip-norm`` and ``--anneal-start``
+with L-BFGS, ``--max-step`` with Adam, ``--cvar-fraction`` with ``--objective mean``,
+``--validate-every`` without validation draws, ``--eval-horizon`` without held-out
+draws, ``--fractional`` for a controller without fractional operators,
+``--eval-switching`` for one without a switching function (the FL), ``--anneal-*``
+for one without a boundary layer. The results are written before the figure; a
 figure that cannot be drawn is a warning.
 """
 
@@ -88,8 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--cvar-fraction",
         type=arguments.positive_float,
-        default=defaults.cvar_fraction,
-        help=f"worst fraction of draws averaged by --objective cvar ({defaults.cvar_fraction})",
+        help=f"worst fraction of draws averaged by --objective cvar ({defaults.cvar_fraction}; "
+        "an error with --objective mean)",
     )
     parser.add_argument("--error", choices=cost.ERRORS, default=defaults.error)
     for name in ("position", "attitude", "effort", "chattering"):
@@ -115,23 +121,31 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--learning-rate",
         type=arguments.positive_float,
-        default=tuner.learning_rate,
-        help="Adam step",
+        help=f"Adam's step ({tuner.learning_rate}; --method adam only)",
     )
     parser.add_argument(
         "--max-step",
         type=arguments.positive_float,
-        default=tuner.max_step,
-        help=f"L-BFGS's largest change of a parameter per step ({tuner.max_step})",
+        help=f"L-BFGS's largest change of a parameter per step ({tuner.max_step}; --method "
+        "lbfgs only)",
     )
     parser.add_argument(
         "--clip-norm",
         type=arguments.positive_float,
-        default=tuner.clip_norm,
-        help="gradient-norm clip",
+        help=f"Adam's gradient-norm clip ({tuner.clip_norm}; --method adam only)",
     )
-    parser.add_argument("--anneal-start", type=arguments.positive_float, default=tuner.anneal_start)
-    parser.add_argument("--anneal-end", type=arguments.positive_float, default=tuner.anneal_end)
+    parser.add_argument(
+        "--anneal-start",
+        type=arguments.positive_float,
+        help=f"boundary-layer scale of the first step ({tuner.anneal_start}; --method adam "
+        "only, L-BFGS keeps --anneal-end; controllers with a boundary layer only)",
+    )
+    parser.add_argument(
+        "--anneal-end",
+        type=arguments.positive_float,
+        help=f"boundary-layer scale of the last step ({tuner.anneal_end}; controllers with a "
+        "boundary layer only)",
+    )
     parser.add_argument(
         "--checkpoint-every", type=arguments.positive_int, default=tuner.checkpoint_every
     )
@@ -146,11 +160,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--validate-every",
         type=arguments.positive_int,
-        default=tuner.validate_every,
         help=f"steps between validations ({tuner.validate_every}; the last step is always "
-        "validated)",
+        "validated; an error with --validation-draws 0)",
     )
-    parser.add_argument("--fractional", choices=fractional.METHODS, default="soe")
+    parser.add_argument(
+        "--fractional",
+        choices=fractional.METHODS,
+        help="fractional operator method (soe; controllers with fractional operators only: "
+        "afonftsmc, fobsmc)",
+    )
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument(
         "--compile",
@@ -166,9 +184,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="held-out draws (32; 0: none)",
     )
     parser.add_argument(
-        "--eval-horizon", type=arguments.positive_float, help="s (default: the tuning horizon)"
+        "--eval-horizon",
+        type=arguments.positive_float,
+        help="s (default: the tuning horizon; an error with --eval-draws 0)",
     )
-    parser.add_argument("--eval-switching", choices=SWITCHING_FUNCTIONS, default="sat")
+    parser.add_argument(
+        "--eval-switching",
+        choices=SWITCHING_FUNCTIONS,
+        help="switching function of the validation and held-out runs (sat; controllers "
+        "with a switching function only: all but fl)",
+    )
     parser.add_argument("--resume", action="store_true", help="continue the run in DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress display")
     parser.add_argument(
@@ -212,6 +237,80 @@ def _initial_gains(parser, args, dtype):
     return gains, str(Path(args.init).resolve())
 
 
+def _options_that_do_not_apply(args) -> str | None:
+    """What is wrong when an option given on the command line would change nothing:
+    one of the other method, the other objective, validation or held-out draws that
+    are not run, or an option the controller's law does not take (None: all apply)."""
+    from fojax.controllers import registry
+
+    method = f"--method {args.method}"
+    given = {
+        "--learning-rate": args.learning_rate,
+        "--clip-norm": args.clip_norm,
+        "--anneal-start": args.anneal_start,
+    }
+    for flag, value in given.items():
+        if value is not None and args.method != "adam":
+            also = " (L-BFGS keeps the boundary-layer scale at --anneal-end)"
+            return (
+                f"{flag} applies to --method adam only, not to {method}"
+                f"{also if flag == '--anneal-start' else ''}; leave it out or add --method adam"
+            )
+    if args.max_step is not None and args.method != "lbfgs":
+        return (
+            f"--max-step applies to --method lbfgs only, not to {method} (Adam's step is "
+            "--learning-rate); leave it out"
+        )
+    if args.cvar_fraction is not None and args.objective != "cvar":
+        return (
+            f"--cvar-fraction applies to --objective cvar only, not to --objective "
+            f"{args.objective}; leave it out or add --objective cvar"
+        )
+    if args.validate_every is not None and args.validation_draws == 0:
+        return "--validate-every applies with validation draws only (--validation-draws is 0)"
+    if args.eval_horizon is not None and args.eval_draws == 0:
+        return "--eval-horizon applies with held-out draws only (--eval-draws is 0)"
+    try:
+        arguments.controller_flags(
+            [args.controller],
+            {
+                "--fractional": ("fractional_method", args.fractional),
+                "--eval-switching": ("switching", args.eval_switching),
+            },
+        )
+    except ValueError as error:
+        return str(error)
+    cls = registry.get_controller_class(args.controller)
+    if not cls.GAINS.with_role("smoothing"):
+        for flag in ("--anneal-start", "--anneal-end"):
+            if getattr(args, flag[2:].replace("-", "_")) is not None:
+                return (
+                    f"{flag} does not apply to {args.controller}, which has no boundary layer "
+                    "(no gain of role 'smoothing') to anneal; leave it out"
+                )
+    return None
+
+
+def _defaults(args) -> None:
+    """The defaults of the options left out (None in ``args`` until checked)."""
+    from optimize import cost, tuner
+
+    defaults, config = cost.CostConfig(), tuner.TunerConfig()
+    for name, value in (
+        ("cvar_fraction", defaults.cvar_fraction),
+        ("learning_rate", config.learning_rate),
+        ("max_step", config.max_step),
+        ("clip_norm", config.clip_norm),
+        ("anneal_start", config.anneal_start),
+        ("anneal_end", config.anneal_end),
+        ("validate_every", config.validate_every),
+        ("fractional", "soe"),
+        ("eval_switching", config.validation_switching),
+    ):
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+
+
 def parse_args(argv):
     """Parse and validate; returns ``(PreparedRun, args)``. Raises ``SystemExit`` with
     a message on bad input, before anything is compiled or written."""
@@ -224,6 +323,10 @@ def parse_args(argv):
         args.controller = registry.get_controller_class(args.controller).name
     except (TypeError, ValueError) as error:
         parser.error(str(error))
+    problem_text = _options_that_do_not_apply(args)
+    if problem_text:
+        parser.error(problem_text)
+    _defaults(args)
     if args.dtype == "float64":
         import jax
 

@@ -38,6 +38,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from fojax import plant
 
@@ -283,6 +284,50 @@ class Scenario:
     initial_attitude: tuple[float, float, float] = _INITIAL_ATTITUDE
     members: tuple = ()
 
+    def __post_init__(self) -> None:
+        """``ValueError`` for a setting that would be ignored or misread: a negative
+        standard deviation or uncertainty (the process would silently be off), a drag
+        variation outside ``[0, 1)`` (multipliers must stay positive), a hold or horizon
+        that is not a finite number > 0, an initial position or attitude that is not
+        three numbers."""
+
+        def number(name: str, value: Any) -> float:
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ValueError(f"Scenario {name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"Scenario {name} must be finite, got {value!r}")
+            return value
+
+        for name in ("horizon", "drag_hold", "noise_hold"):
+            if number(name, getattr(self, name)) <= 0:
+                raise ValueError(f"Scenario {name} must be > 0 (s), got {getattr(self, name)!r}")
+        for name in (
+            "noise_std_position",
+            "noise_std_attitude",
+            "mass_uncertainty",
+            "inertia_uncertainty",
+        ):
+            if number(name, getattr(self, name)) < 0:
+                raise ValueError(
+                    f"Scenario {name} must be >= 0 (0 turns it off), got {getattr(self, name)!r}"
+                )
+        if not 0 <= number("drag_variation", self.drag_variation) < 1:
+            raise ValueError(
+                "Scenario drag_variation must lie in [0, 1) (multipliers U[1 - a, 1 + a] stay "
+                f"positive; 0 keeps the nominal drag), got {self.drag_variation!r}"
+            )
+        for name in ("initial_position", "initial_attitude"):
+            value = getattr(self, name)
+            if not isinstance(value, tuple | list) or len(value) != 3:
+                raise ValueError(f"Scenario {name} must be three numbers, got {value!r}")
+            for item in value:
+                number(name, item)
+        for name in ("reference", "disturbance"):
+            if not callable(getattr(self, name)):
+                raise ValueError(
+                    f"Scenario {name} must be a function of time, got {getattr(self, name)!r}"
+                )
+
     @property
     def has_noise(self) -> bool:
         return self.noise_std_position > 0 or self.noise_std_attitude > 0
@@ -399,13 +444,21 @@ _SCENARIOS = {
 
 
 def get_scenario(scenario_id: int) -> Scenario:
-    """The :class:`Scenario` numbered ``scenario_id`` (1, 2 or 3)."""
-    try:
-        return _SCENARIOS[int(scenario_id)]
-    except (KeyError, TypeError, ValueError):
-        raise ValueError(
-            f"unknown scenario id {scenario_id!r}; expected one of {SCENARIO_IDS}"
-        ) from None
+    """The :class:`Scenario` numbered ``scenario_id`` (1, 2 or 3; an integer, or its
+    text). Anything else, ``2.7`` or ``True`` included, is a ``ValueError``."""
+    number = None
+    if isinstance(scenario_id, int) and not isinstance(scenario_id, bool):
+        number = scenario_id
+    elif isinstance(scenario_id, float) and scenario_id.is_integer():
+        number = int(scenario_id)
+    elif isinstance(scenario_id, str) and scenario_id.strip().isdigit():
+        number = int(scenario_id)
+    elif hasattr(scenario_id, "dtype") and getattr(scenario_id, "ndim", None) == 0:
+        if jnp.issubdtype(scenario_id.dtype, jnp.integer):  # a NumPy or JAX integer
+            number = int(scenario_id)
+    if number not in _SCENARIOS:
+        raise ValueError(f"unknown scenario id {scenario_id!r}; expected one of {SCENARIO_IDS}")
+    return _SCENARIOS[number]
 
 
 def initial_state(scenario: Scenario, dtype=None) -> Array:
@@ -446,11 +499,21 @@ def draw_keys(seed: int, indices: Iterable[int] | Array) -> Array:
     """Per-draw keys ``fold_in(PRNGKey(seed), i)`` for each ``i`` in ``indices``.
 
     Draw ``i`` depends only on ``(seed, i)``, never on how many draws are made.
+    Indices must lie in ``[0, 2**32)`` (a ``ValueError`` otherwise: they are 32-bit).
     Returns ``(len(indices), 2)`` uint32 raw keys.
     """
     base = jax.random.PRNGKey(seed)
-    indices = jnp.asarray(list(indices) if not hasattr(indices, "shape") else indices)
-    indices = indices.astype(jnp.uint32)
+    if not hasattr(indices, "shape"):
+        indices = np.asarray(list(indices))
+    if not isinstance(indices, jax.core.Tracer) and np.size(indices):
+        host = np.asarray(indices)
+        low, high = host.min(), host.max()
+        if low < 0 or high >= 2**32:
+            raise ValueError(
+                f"draw indices must lie in [0, 2**32) (they are folded in as 32-bit "
+                f"integers; others would repeat draws), got {low if low < 0 else high}"
+            )
+    indices = jnp.asarray(indices).astype(jnp.uint32)
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(indices)
 
 
@@ -482,18 +545,45 @@ def _member_values(scenario: Scenario, member: Any, dtype) -> dict[str, Any]:
     return values
 
 
+def _check_member(scenario: Scenario, member: Any) -> None:
+    """``ValueError`` for a concrete ``member`` that :func:`sample_draw` would not use
+    as asked: other than 0 for a plain scenario, outside ``[0, len(members))`` for a
+    union (JAX would clamp it to a valid index). A traced index is not checked."""
+    if isinstance(member, jax.core.Tracer):
+        return
+    try:
+        index = int(member) if jnp.ndim(member) == 0 else None
+    except (TypeError, ValueError):
+        index = None
+    if index is None or isinstance(member, bool) or index != member:
+        raise ValueError(f"member must be an integer index, got {member!r}")
+    if not scenario.members:
+        if index != 0:
+            raise ValueError(
+                f"member={index} given for {scenario.name!r}, which is not a union of "
+                "scenarios (fojax.scenarios.union): its draws have member 0"
+            )
+    elif not 0 <= index < len(scenario.members):
+        raise ValueError(
+            f"member must be 0 to {len(scenario.members) - 1} for this union of "
+            f"{len(scenario.members)} scenarios, got {index}"
+        )
+
+
 def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None, member: Any = 0) -> Draw:
     """Sample one :class:`Draw` of ``scenario`` from ``key`` for a step ``dt`` (s).
 
     ``key`` should come from :func:`draw_keys`. ``dt`` must be a Python number (it
     fixes the table shapes). Tables of disabled processes have a single row
     (multipliers 1, noise 0). For a union (:func:`union`), ``member`` (an index, may
-    be traced) picks the member whose processes are sampled. Pure and ``vmap``-able
-    over ``key`` (and ``member``).
+    be traced) picks the member whose processes are sampled; a concrete one must lie
+    in ``[0, len(members))``, and for a plain scenario be 0 (``ValueError``
+    otherwise). Pure and ``vmap``-able over ``key`` (and ``member``).
     """
     dt = float(dt)
     if not dt > 0:
         raise ValueError(f"dt must be > 0, got {dt}")
+    _check_member(scenario, member)
     float_dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     key_params, key_drag, key_noise = jax.random.split(key, 3)
     key_mass, key_inertia = jax.random.split(key_params)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -38,7 +39,9 @@ __all__ = [
     "barrier",
     "draw_mesh",
     "draw_sharding",
+    "check_coordinator_address",
     "detect_cluster",
+    "distributed_settings",
     "one_device_mesh",
     "initialize",
     "pad_draws",
@@ -52,7 +55,11 @@ DRAW_AXIS = "draws"
 
 
 JAX_VARIABLES = ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
-"""The environment variables of a :func:`jax.distributed.initialize` run."""
+"""The environment variables of a :func:`jax.distributed.initialize` run. JAX reads only
+the first itself (0.4-0.10); :func:`initialize` reads all three."""
+
+_SETTINGS = ("coordinator_address", "num_processes", "process_id")
+_VARIABLE = dict(zip(_SETTINGS, JAX_VARIABLES, strict=True))
 
 
 def detect_cluster() -> tuple[str, int] | None:
@@ -79,54 +86,136 @@ def detect_cluster() -> tuple[str, int] | None:
     return None
 
 
+def check_coordinator_address(text: str, label: str = "coordinator_address") -> str:
+    """``text`` if it is ``HOST:PORT`` with a port in 1-65535, else ``ValueError``
+    naming ``label`` (the argument, flag or variable it came from)."""
+    host, sep, port = str(text).strip().rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(
+            f"{label} must be HOST:PORT with a port in 1-65535 (e.g. 127.0.0.1:12355 or "
+            f"node01:12355), got {text!r}"
+        )
+    return str(text).strip()
+
+
+def _count(value: Any, label: str, minimum: int) -> int:
+    """An integer >= ``minimum`` from an argument or an environment variable's text."""
+    what = "an integer >= 1" if minimum == 1 else "an integer >= 0"
+    if isinstance(value, str):
+        text = value.strip()
+        if not re.fullmatch(r"[+-]?\d+", text):
+            raise ValueError(f"{label} must be {what}, got {value!r}")
+        value = int(text)
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{label} must be {what}, got {value!r}")
+    return value
+
+
+def distributed_settings(
+    coordinator_address: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+    detect: bool = True,
+    names: dict[str, str] | None = None,
+) -> dict[str, Any] | None:
+    """What :func:`initialize` passes to :func:`jax.distributed.initialize`, checked:
+    ``{"coordinator_address", "num_processes", "process_id", "joined"}``, or None for a
+    single-process run. Nothing is started, so this can be called (and tested) freely.
+
+    Each setting is the argument when given, else its variable
+    (``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID``; an empty
+    one counts as unset). When any of the three is given, the run is a multi-process
+    one (``joined``: ``"arguments"`` or ``"environment"``) and the others must be given
+    too, unless ``detect`` and a cluster job (:func:`detect_cluster`) supplies them, as
+    JAX then takes them from the cluster. When none is, a detected cluster job of more
+    than one process is joined (``joined``: the cluster's name; JAX takes everything
+    from it). ``ValueError``, one line naming the setting, for a missing setting, a
+    count or id that is not an integer (``count >= 1``, ``0 <= id < count``) and an
+    address without a port. ``names``: how to call each argument in messages (e.g.
+    ``{"num_processes": "--num-processes"}``).
+    """
+    names = {key: key for key in _SETTINGS} | dict(names or {})
+    arguments = dict(zip(_SETTINGS, (coordinator_address, num_processes, process_id), strict=True))
+    values: dict[str, Any] = {}
+    labels: dict[str, str] = {}
+    for key in _SETTINGS:
+        if arguments[key] is not None:
+            values[key], labels[key] = arguments[key], names[key]
+        elif os.environ.get(_VARIABLE[key], "").strip():
+            values[key], labels[key] = os.environ[_VARIABLE[key]], _VARIABLE[key]
+    if "coordinator_address" in values:
+        values["coordinator_address"] = check_coordinator_address(
+            values["coordinator_address"], labels["coordinator_address"]
+        )
+    if "num_processes" in values:
+        values["num_processes"] = _count(values["num_processes"], labels["num_processes"], 1)
+    if "process_id" in values:
+        values["process_id"] = _count(values["process_id"], labels["process_id"], 0)
+    if "num_processes" in values and values.get("process_id", -1) >= values["num_processes"]:
+        raise ValueError(
+            f"{labels['process_id']} ({values['process_id']}) must be below "
+            f"{labels['num_processes']} ({values['num_processes']}): the processes are "
+            f"numbered 0 to {values['num_processes'] - 1}"
+        )
+    cluster = detect_cluster() if detect else None
+    if not values:
+        if cluster is None or cluster[1] <= 1:
+            return None
+        return dict.fromkeys(_SETTINGS) | {"joined": cluster[0]}
+    missing = [key for key in _SETTINGS if key not in values]
+    if missing and cluster is None:
+        wanted = ", ".join(names[key] for key in missing)
+        variables = ", ".join(_VARIABLE[key] for key in missing)
+        given = ", ".join(labels[key] for key in _SETTINGS if key in values)
+        if all(labels[key] == _VARIABLE[key] for key in values):  # variables only
+            raise ValueError(
+                f"a multi-process run needs {variables} too ({given} is set): set "
+                f"{', '.join(JAX_VARIABLES)} together (HOST:PORT of process 0, the number "
+                "of processes, this process's id from 0), or none of them for a single process"
+            )
+        raise ValueError(
+            f"a multi-process run needs {wanted} too (or {variables}); {given} alone is "
+            "not enough: give the coordinator's HOST:PORT, the number of processes and "
+            "this process's id (0 to N - 1) together, or none of them for a single process"
+        )
+    joined = "arguments" if any(v is not None for v in arguments.values()) else "environment"
+    return dict.fromkeys(_SETTINGS) | values | {"joined": joined}
+
+
 def initialize(
     coordinator_address: str | None = None,
     num_processes: int | None = None,
     process_id: int | None = None,
     detect: bool = True,
+    names: dict[str, str] | None = None,
 ) -> dict[str, int]:
     """Join a multi-process run through :func:`jax.distributed.initialize`, if there is one.
 
     Joins when any argument is given, when any of ``JAX_COORDINATOR_ADDRESS``,
-    ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID`` is set (arguments override them), or,
-    with ``detect``, when :func:`detect_cluster` finds a cluster job of more than one
-    process (e.g. ``srun`` with several tasks); otherwise this is a single-process run
-    and nothing is done. Call it before any other JAX call that touches devices; a
-    second call after joining does nothing. On CPUs the processes exchange results
-    through JAX's CPU collectives (gloo).
+    ``JAX_NUM_PROCESSES``, ``JAX_PROCESS_ID`` is set (arguments override them; fojax
+    reads all three, JAX itself only the first), or, with ``detect``, when
+    :func:`detect_cluster` finds a cluster job of more than one process (e.g. ``srun``
+    with several tasks); otherwise this is a single-process run and nothing is done.
+    Incomplete or inconsistent settings are a ``ValueError`` naming the setting, raised
+    before anything starts (:func:`distributed_settings`, whose ``names`` this passes
+    on). Call it before any other JAX call that touches devices; a second call after
+    joining does nothing. On CPUs the processes exchange results through JAX's CPU
+    collectives (gloo).
 
     Returns ``{"process_index", "process_count", "device_count", "local_device_count",
     "joined"}`` (``joined``: how the run was joined: ``"arguments"``, ``"environment"``,
-    the cluster's name, or ``None``).
+    the cluster's name, ``"earlier"``, or ``None``).
     """
-    if num_processes is not None and (
-        isinstance(num_processes, bool) or not isinstance(num_processes, int) or num_processes < 1
-    ):
-        raise ValueError(f"num_processes must be a positive integer, got {num_processes!r}")
-    if process_id is not None and (
-        isinstance(process_id, bool)
-        or not isinstance(process_id, int)
-        or process_id < 0
-        or (num_processes is not None and process_id >= num_processes)
-    ):
-        raise ValueError(f"process_id must be an integer in [0, num_processes), got {process_id!r}")
     joined = None
     if jax.distributed.is_initialized():
         joined = "earlier"
-    elif any(v is not None for v in (coordinator_address, num_processes, process_id)):
-        joined = "arguments"
-    elif any(os.environ.get(name) for name in JAX_VARIABLES):
-        joined = "environment"
-    elif detect:
-        cluster = detect_cluster()
-        if cluster is not None and cluster[1] > 1:
-            joined = cluster[0]
-    if joined is not None and joined != "earlier":
-        jax.distributed.initialize(
-            coordinator_address=coordinator_address,
-            num_processes=num_processes,
-            process_id=process_id,
+    else:
+        settings = distributed_settings(
+            coordinator_address, num_processes, process_id, detect, names
         )
+        if settings is not None:
+            joined = settings.pop("joined")
+            jax.distributed.initialize(**settings)
     return {
         "process_index": jax.process_index(),
         "process_count": jax.process_count(),

@@ -63,7 +63,8 @@ class CostConfig:
     error: ``"ise"`` or ``"itae"``. position_weight, attitude_weight, effort_weight,
     chattering_weight: ``w_pos, w_att, w_effort, w_chattering`` (>= 0, not all 0).
     objective: ``"mean"`` or ``"cvar"``. cvar_fraction: the worst fraction of draws
-    CVaR averages, in ``(0, 1]``. divergence_cost: the cost of a diverged draw (> 0).
+    CVaR averages, in ``(0, 1]`` (with ``objective="cvar"`` only; the mean does not
+    use it). divergence_cost: the cost of a diverged draw (> 0).
     """
 
     error: str = "ise"

@@ -86,10 +86,12 @@ class ProblemSpec:
     dt: step (s). draws: draws per minibatch. seed: the draws' seed.
     cost: :class:`optimize.cost.CostConfig`. fields: tuned gain fields (``None``: the
     default, :func:`optimize.params.default_fields`). share: axis sharing
-    (:data:`optimize.params.SHARING`). fractional: fractional method of the
-    controller. dtype: ``"float32"`` or ``"float64"``. save_every: steps per
-    checkpointed block (``None``: :func:`checkpoint_interval`). compile:
-    ``"optimized"`` (XLA's default) or ``"fast"``: the tuning functions compiled
+    (:data:`optimize.params.SHARING`). fractional: fractional method of a controller
+    with fractional operators (the AFONFTSMC, the FOBSMC); a controller without them
+    takes only the default ``"soe"`` (another value is a ``ValueError``). dtype:
+    ``"float32"`` or ``"float64"``. save_every: steps per checkpointed block
+    (``None``: :func:`checkpoint_interval`). compile: ``"optimized"`` (XLA's
+    default) or ``"fast"``: the tuning functions compiled
     without LLVM's optimisation passes (:data:`COMPILE_MODES`; several times faster to
     compile, slower to run, rounding may differ); evaluations (:func:`evaluate`) are
     always compiled optimised.
@@ -144,6 +146,12 @@ class ProblemSpec:
         if self.fields is not None:
             object.__setattr__(self, "fields", tuple(self.fields))
         params_lib.make_parameter_map(self.controller, self.fields, self.share)  # validates
+        takes = registry.controller_options(self.controller)
+        if "fractional_method" not in takes and self.fractional != "soe":
+            raise ValueError(
+                f"fractional={self.fractional!r} does not apply to {self.controller}, which "
+                "has no fractional operator; leave fractional at its default 'soe'"
+            )
         self.make_controller("tanh", self.horizon)  # validates fractional method etc.
 
     @property
@@ -164,12 +172,12 @@ class ProblemSpec:
         return jnp.dtype(self.dtype)
 
     def make_controller(self, switching: str, horizon: float):
+        """The controller over ``horizon`` with ``switching`` and the spec's fractional
+        method, each where the controller has one (the FL has neither)."""
+        options = dict(dt=self.dt, horizon=horizon, fractional_method=self.fractional)
+        options["switching"] = switching
         return registry.make_controller(
-            self.controller,
-            dt=self.dt,
-            horizon=horizon,
-            fractional_method=self.fractional,
-            switching=switching,
+            self.controller, **registry.options_for(self.controller, options)
         )
 
     def as_dict(self) -> dict:
@@ -221,13 +229,19 @@ class TuningProblem:
     gradients of :meth:`value_and_grad` are computed over its devices in blocks of
     ``device_batch`` draws (default: the whole minibatch), gathered to every process
     and reduced there by one program, so that every mesh gives the same numbers for a
-    given ``device_batch`` (:func:`_over_mesh`).
+    given ``device_batch`` (:func:`_over_mesh`); ``device_batch`` without a mesh is a
+    ``ValueError`` (it would change nothing).
 
     Attributes: ``spec``, ``param_map``, ``base_gains``, ``sim_config``,
     ``controller`` (``tanh`` switching when the controller has a switching function).
     """
 
     def __init__(self, spec: ProblemSpec, base_gains: Any, mesh=None, device_batch=None):
+        if mesh is None and device_batch is not None:
+            raise ValueError(
+                f"device_batch={device_batch!r} applies to draws split over a mesh; pass "
+                "mesh= (e.g. fojax.sharding.draw_mesh()) or leave device_batch out"
+            )
         self.spec = spec
         dtype = spec.jnp_dtype
         cls = registry.get_controller_class(spec.controller)
@@ -475,8 +489,10 @@ def evaluate(
     chunk: int = 64,
 ) -> cost_lib.DrawCosts:
     """Per-draw costs (NumPy) of ``gains`` under ``spec.cost`` on ``keys``, with the
-    evaluation ``switching`` (default ``sat``), at ``horizon`` (default the spec's) on
-    ``scenario`` (default the spec's; pass a modified one for an unseen reference).
+    evaluation ``switching`` (default ``sat``; for a controller with a switching
+    function, which the FL has not: it runs as it is), at ``horizon`` (default the
+    spec's) on ``scenario`` (default the spec's; pass a modified one for an unseen
+    reference).
 
     Runs in chunks of ``chunk`` draws (one compilation per setting). Forward only.
     """

@@ -112,13 +112,17 @@ class TunerConfig:
     method: ``"adam"`` or ``"lbfgs"`` (see the module docstring).
     learning_rate: Adam's initial step (> 0), in the unconstrained parameters (about a
     relative change for log-mapped gains). final_learning_rate: fraction of it reached
-    at the last step (cosine decay, in ``[0, 1]``). clip_norm: global gradient-norm
-    clip (> 0). anneal_start, anneal_end: boundary-layer scale of the first and last
-    step (> 0; L-BFGS uses ``anneal_end`` throughout). checkpoint_every: steps between
+    at the last step (cosine decay, in ``[0, 1]``). clip_norm: Adam's global
+    gradient-norm clip (> 0). anneal_start, anneal_end: boundary-layer scale of the
+    first and last step (> 0; L-BFGS uses ``anneal_end`` throughout; a controller
+    without a smoothing gain, the FL, has none to scale). checkpoint_every: steps between
     checkpoints (>= 1). validation_draws: validation draws (>= 0; 0: no validation,
     the last iterate is returned). validate_every: steps between validations (>= 1;
     the start and the last step are always validated). validation_switching: the
-    switching function of the validation runs (``sat``, ``tanh`` or ``sign``).
+    switching function of the validation runs (``sat``, ``tanh`` or ``sign``; the FL
+    has none). ``learning_rate``, ``final_learning_rate`` and ``clip_norm`` are Adam's,
+    ``max_step`` and ``memory`` L-BFGS's: the other method does not read them (``fojax
+    tune`` refuses them there).
     max_step: L-BFGS's largest change of any parameter per step (> 0). memory:
     L-BFGS's number of stored pairs (>= 1).
     """

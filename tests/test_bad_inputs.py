@@ -161,6 +161,10 @@ def _sim_cases(p):
         (SIM + ["--controller", "afonftsmc,", "--out", str(p["folder"])], "unknown controller"),
         (SIM, "required: --out"),
         (SIM + ["--out", str(p["folder"]), "--frobnicate"], "unrecognized arguments"),
+        (
+            SIM + ["--controller", "fl", "--switching", "sat", "--out", str(p["folder"])],
+            "--switching does not apply to fl, which takes no switching",
+        ),
     ]
 
 
@@ -246,6 +250,8 @@ def test_tune_bad_inputs(capsys, places, tmp_path):
         (TUNE + ["--cvar-fraction", "0"] + out, "finite number > 0"),
         (TUNE + ["--position-weight", "-1"] + out, "finite number >= 0"),
         (TUNE + ["--checkpoint-every", "0"] + out, "positive integer"),
+        (TUNE + ["--method", "adam", "--max-step", "2"] + out, "--max-step applies to --method"),
+        (TUNE + ["--controller", "fl", "--fractional", "gl"] + out, "does not apply to fl"),
     ]
     for argv, message in cases:
         err = _exit(capsys, tune.parse_args, argv)
@@ -276,6 +282,9 @@ def test_bench_bad_inputs(capsys, places):
         (["--repeats", "0"], "positive integer"),
         (["--devices", "0"], "positive integer"),
         (["--chunk", "x"], "positive integer"),
+        # --small sets these itself: given with it they would be ignored.
+        (["--small", "--repeats", "5"], "--small sets the sizes itself; leave --repeats out"),
+        (["--small", "--draws=8", "--numpy-horizon", "1"], "leave --draws, --numpy-horizon out"),
     ]
     for argv, message in cases:
         err = _exit(capsys, bench.main, argv)

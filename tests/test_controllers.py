@@ -253,13 +253,44 @@ def test_bad_configuration_is_rejected():
         registry.make_controller("anftsmc", filter_frequency=-1.0)
     with pytest.raises(ValueError, match="unknown method"):
         FOBSMC(fractional_method="crone")
-    # Options only other controllers have are ignored (one command line for all) ...
-    assert (
-        registry.make_controller("fl", fractional_method="oustaloup", switching="sat").law == FL()
-    )
-    # ... but an option no controller has is an error that names the likely one.
+    # An option no controller has is an error that names the likely one.
     with pytest.raises(TypeError, match="did you mean 'switching'"):
         registry.make_controller("afonftsmc", swiching="sat")
+
+
+def test_an_option_the_law_does_not_take_is_an_error_naming_what_it_takes():
+    """The FL has no switching function and no fractional operator: asking it for a
+    boundary layer is an error, not an FL that ignores it; None means the default."""
+    with pytest.raises(TypeError) as info:
+        registry.make_controller("fl", switching="sat")
+    message = str(info.value)
+    assert "'fl' takes no 'switching'" in message
+    assert "fl takes dt, filter_damping, filter_frequency, horizon, thrust_floor" in message
+    with pytest.raises(TypeError, match="'bsmc' takes no 'fractional_method'"):
+        registry.make_controller("bsmc", fractional_method="oustaloup")
+    with pytest.raises(TypeError, match="'anftsmc' takes no 'fractional_options'"):
+        registry.make_controller("anftsmc", fractional_options=())
+    assert registry.make_controller("fl", switching=None, fractional_method=None).law == FL()
+    # One option set for several controllers: each takes what applies to it.
+    shared = {"switching": "sat", "fractional_method": "oustaloup", "dt": 2e-3, "horizon": None}
+    assert registry.options_for("fl", shared) == {"dt": 2e-3}
+    assert registry.options_for("bsmc", shared) == {"switching": "sat", "dt": 2e-3}
+    assert registry.make_controller("fl", **registry.options_for("fl", shared)).law == FL(dt=2e-3)
+    with pytest.raises(TypeError, match="did you mean 'switching'"):
+        registry.options_for("fl", {"swiching": "sat"})
+    assert registry.applied_options(("fl", "bsmc", "fobsmc"), shared) == {
+        "switching": ["bsmc", "fobsmc"],
+        "fractional_method": ["fobsmc"],
+        "dt": ["fl", "bsmc", "fobsmc"],
+    }
+    assert registry.controller_options("anftsmc") == {
+        "dt",
+        "horizon",
+        "switching",
+        "filter_frequency",
+        "filter_damping",
+        "thrust_floor",
+    }
 
 
 SHORT = simulator.SimulationConfig(dt=DT, horizon=0.3, save_every=50)

@@ -7,6 +7,8 @@ which the draws are split; the reference runs in one process on one device.
 
 import json
 import os
+import re
+import shlex
 import signal
 import socket
 import subprocess
@@ -131,9 +133,50 @@ def single(tmp_path_factory, cache):
     return out
 
 
-def test_two_processes_simulate_the_draws_of_one(tmp_path, cache, single):
-    out = tmp_path / "run"
-    outputs = _wait(_start(SIMULATE + ["--out", str(out)], 2, _env(cache)))
+DOC = ROOT / "docs" / "distributed.md"
+
+
+def _doc_commands(marker: str) -> list[tuple[dict, list[str]]]:
+    """The command lines of the bash block of docs/distributed.md holding ``marker``:
+    ``(variables set on the line, fojax's arguments)`` per line, comments left out."""
+    blocks = [b for b in re.findall(r"```bash\n(.*?)```", DOC.read_text(), re.S) if marker in b]
+    assert len(blocks) == 1, f"one block of docs/distributed.md should hold {marker!r}"
+    commands = []
+    for line in blocks[0].splitlines():
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        words = shlex.split(line)
+        variables = {}
+        while "=" in words[0] and not words[0].startswith("-"):
+            name, _, value = words.pop(0).partition("=")
+            variables[name] = value
+        assert words[0] == "fojax", line
+        commands.append((variables, words[1:]))
+    return commands
+
+
+def _run_doc_commands(marker: str, cwd: Path, env: dict):
+    """docs/distributed.md's lines as written (in ``cwd``), on a free port instead of
+    the document's 12355, every process started at once."""
+    port = str(_free_port())
+    started = []
+    for variables, argv in _doc_commands(marker):
+        argv = [word.replace("12355", port) for word in argv]
+        variables = {name: value.replace("12355", port) for name, value in variables.items()}
+        started.append(
+            subprocess.Popen(
+                _command(argv),
+                env=env | variables,
+                cwd=cwd,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+        )
+    return _wait(started)
+
+
+def _check_two_process_run(out: Path, outputs, single: Path):
     assert "wrote" in outputs[0][1] and "wrote" not in outputs[1][1]  # process 0 writes
     _assert_identical(_draws(out), _draws(single))
     summary = json.loads((out / "summary.json").read_text())
@@ -150,6 +193,73 @@ def test_two_processes_simulate_the_draws_of_one(tmp_path, cache, single):
             "wall_time_s": summary["controllers"]["afonftsmc"]["wall_time_s"],
         }
     }
+
+
+def test_the_documented_starts_are_the_run_of_the_tests():
+    """docs/distributed.md's commands are this file's SIMULATE run, so that the
+    one-process reference fits them (without --quiet, which changes no number)."""
+    expected = [w for w in SIMULATE if w != "--quiet"]
+    for marker, out in (
+        ("--coordinator 127", "results/two"),
+        ("JAX_COORDINATOR", "results/two_env"),
+    ):
+        commands = _doc_commands(marker)
+        assert len(commands) == 2
+        for index, (variables, argv) in enumerate(commands):
+            if variables:
+                assert variables == {
+                    "JAX_COORDINATOR_ADDRESS": "127.0.0.1:12355",
+                    "JAX_NUM_PROCESSES": "2",
+                    "JAX_PROCESS_ID": str(index),
+                }
+                assert argv == expected + ["--out", out]
+            else:
+                assert argv == expected + ["--out", out, "--coordinator", "127.0.0.1:12355"] + [
+                    "--num-processes",
+                    "2",
+                    "--process-id",
+                    str(index),
+                ]
+
+
+@pytest.mark.parametrize(
+    "marker", ["--coordinator 127", "JAX_COORDINATOR"], ids=["flags", "variables"]
+)
+def test_two_processes_started_as_documented_simulate_the_draws_of_one(
+    tmp_path, cache, single, marker
+):
+    """Started as docs/distributed.md says, with the flags and with JAX's variables
+    (JAX 0.10 reads only JAX_COORDINATOR_ADDRESS: fojax reads the other two)."""
+    outputs = _run_doc_commands(marker, tmp_path, _env(cache))
+    out = tmp_path / ("results/two_env" if marker.startswith("JAX") else "results/two")
+    _check_two_process_run(out, outputs, single)
+
+
+def test_two_processes_of_a_slurm_job_simulate_the_draws_of_one(tmp_path, cache, single):
+    """A SLURM job of two tasks, faked by its variables on this machine: nothing but
+    the job's variables (and JAX_COORDINATOR_PORT, as docs/distributed.md says, on a
+    free port) tells the processes how to join."""
+    env = _env(cache) | {
+        "SLURM_JOB_ID": "4242",
+        "SLURM_STEP_NODELIST": "127.0.0.1",
+        "SLURM_NTASKS": "2",
+        "JAX_COORDINATOR_PORT": str(_free_port()),
+    }
+    out = tmp_path / "run"
+    command = _command([w for w in SIMULATE if w != "--quiet"] + ["--out", str(out)])
+    outputs = _wait(
+        [
+            subprocess.Popen(
+                command,
+                env=env | {"SLURM_PROCID": str(rank), "SLURM_LOCALID": str(rank)},
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for rank in range(2)
+        ]
+    )
+    _check_two_process_run(out, outputs, single)
 
 
 def test_resume_is_exact_after_a_process_is_killed(tmp_path, cache, single):

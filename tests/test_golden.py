@@ -52,6 +52,17 @@ def _options(method: str) -> tuple:
     return SOE_OPTIONS if method == "soe" else ()
 
 
+def _law_options(name: str, switching: str, method: str) -> dict:
+    """The case's switching and fractional settings that law ``name`` takes (the FL
+    takes neither, the BSMC and ANFTSMC no fractional method)."""
+    from fojax.controllers import registry
+
+    shared = dict(
+        switching=switching, fractional_method=method, fractional_options=_options(method)
+    )
+    return registry.options_for(name, shared)
+
+
 def _key(kind, case) -> str:
     return f"{kind}/{case[0]}/s{case[1]}/{case[2]}/{case[3]}"
 
@@ -64,12 +75,7 @@ def _forward(case) -> dict[str, np.ndarray]:
     scenario = scenarios.get_scenario(scenario_id)
     config = simulator.SimulationConfig(dt=1e-3, horizon=FORWARD_HORIZON, save_every=SAVE_EVERY)
     controller = registry.make_controller(
-        name,
-        dt=1e-3,
-        horizon=FORWARD_HORIZON,
-        switching=switching,
-        fractional_method=method,
-        fractional_options=_options(method),
+        name, dt=1e-3, horizon=FORWARD_HORIZON, **_law_options(name, switching, method)
     )
     runner = study.make_chunk_runner(controller, scenario, config, dtype=jnp.float64)
     gains = jax.tree.map(lambda g: jnp.asarray(g, jnp.float64), controller.default_gains())
@@ -92,12 +98,7 @@ def _gradient(case) -> dict[str, np.ndarray]:
     scenario = scenarios.get_scenario(scenario_id)
     config = simulator.SimulationConfig(dt=1e-3, horizon=GRADIENT_HORIZON, save_every=SAVE_EVERY)
     controller = registry.make_controller(
-        name,
-        dt=1e-3,
-        horizon=GRADIENT_HORIZON,
-        switching=switching,
-        fractional_method=method,
-        fractional_options=_options(method),
+        name, dt=1e-3, horizon=GRADIENT_HORIZON, **_law_options(name, switching, method)
     )
     batch_cost = cost_lib.make_batch_cost(
         controller, scenario, config, cost_lib.CostConfig(), jnp.float64

@@ -263,6 +263,25 @@ def test_bad_tuner_settings_are_rejected():
         problem_lib.ProblemSpec(controller="pid")
 
 
+def test_settings_that_would_change_nothing_are_rejected():
+    """The FL has no fractional operator (only the default 'soe' is accepted), and a
+    device_batch without a mesh to split the draws over changes nothing."""
+    with pytest.raises(ValueError, match="fractional='gl' does not apply to fl"):
+        problem_lib.ProblemSpec(controller="fl", fractional="gl")
+    spec = problem_lib.ProblemSpec(controller="fl", horizon=0.01)
+    assert spec.fractional == "soe"
+    law = spec.make_controller("sat", 0.01).law  # switching and fractional: none for the FL
+    assert type(law).__name__ == "FL" and law.horizon == 0.01
+    assert (
+        spec.make_controller.__doc__
+        and "where the controller has one" in spec.make_controller.__doc__
+    )
+    bsmc = problem_lib.ProblemSpec(controller="bsmc", horizon=0.01)
+    assert bsmc.make_controller("tanh", 0.01).law.switching == "tanh"
+    with pytest.raises(ValueError, match="device_batch=4 applies to draws split over a mesh"):
+        problem_lib.TuningProblem(SPEC, NAIVE, device_batch=4)
+
+
 def test_failed_starts_never_write_or_overwrite(tmp_path):
     config = tuner_lib.TunerConfig(steps=2)
     out = tmp_path / "run"

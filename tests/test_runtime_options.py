@@ -81,6 +81,109 @@ def test_single_process_runs_join_nothing(monkeypatch):
         sharding.initialize(num_processes=0)
 
 
+def _clean(monkeypatch):
+    """No JAX_* distributed variable and no cluster job in the environment."""
+    for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"):
+        monkeypatch.delenv(name, raising=False)
+    for name in [k for k in os.environ if k.startswith(("SLURM_", "OMPI_", "KUBERNETES_"))]:
+        monkeypatch.delenv(name)
+
+
+@pytest.mark.parametrize(
+    "variables, message",
+    [
+        ({"JAX_COORDINATOR_ADDRESS": "h:1234"}, "needs JAX_NUM_PROCESSES, JAX_PROCESS_ID too"),
+        ({"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "0"}, "needs JAX_COORDINATOR_ADDRESS too"),
+        (
+            {"JAX_COORDINATOR_ADDRESS": "h", "JAX_NUM_PROCESSES": "2"},
+            "JAX_COORDINATOR_ADDRESS must",
+        ),
+        ({"JAX_NUM_PROCESSES": "two", "JAX_PROCESS_ID": "0"}, "JAX_NUM_PROCESSES must be an int"),
+        ({"JAX_NUM_PROCESSES": "0"}, "JAX_NUM_PROCESSES must be an integer >= 1"),
+        ({"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "-1"}, "JAX_PROCESS_ID must be an int"),
+        ({"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "2"}, "JAX_PROCESS_ID (2) must be below"),
+        ({"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "1.0"}, "JAX_PROCESS_ID must be an int"),
+    ],
+)
+def test_bad_distributed_variables_exit_2_with_a_message(capsys, monkeypatch, variables, message):
+    """JAX reads only JAX_COORDINATOR_ADDRESS; fojax reads the three and says what is
+    missing or wrong before anything starts."""
+    _clean(monkeypatch)
+    for name, value in variables.items():
+        monkeypatch.setenv(name, value)
+    with pytest.raises(SystemExit) as info:
+        arguments.setup_runtime([], "fojax simulate")
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert message in err[-1] and len(err) == 3  # usage (2 lines), then one line
+
+
+def test_flags_and_variables_combine(monkeypatch):
+    """A flag overrides its variable; a flag left out comes from its variable; the id is
+    checked against the count wherever each comes from."""
+    from fojax import sharding
+
+    _clean(monkeypatch)
+    monkeypatch.setenv("JAX_COORDINATOR_ADDRESS", "node01:12355")
+    monkeypatch.setenv("JAX_NUM_PROCESSES", "4")
+    monkeypatch.setenv("JAX_PROCESS_ID", "3")
+    assert sharding.distributed_settings() == {
+        "coordinator_address": "node01:12355",
+        "num_processes": 4,
+        "process_id": 3,
+        "joined": "environment",
+    }
+    settings = sharding.distributed_settings(process_id=1, names=arguments.DISTRIBUTED_FLAGS)
+    assert settings["process_id"] == 1 and settings["joined"] == "arguments"
+    with pytest.raises(ValueError, match=r"--process-id \(5\) must be below JAX_NUM_PROC"):
+        sharding.distributed_settings(process_id=5, names=arguments.DISTRIBUTED_FLAGS)
+    monkeypatch.setenv("JAX_NUM_PROCESSES", "")  # empty: unset
+    with pytest.raises(ValueError, match="needs JAX_NUM_PROCESSES too"):
+        sharding.distributed_settings()
+
+
+def _fake_slurm(monkeypatch, tasks: int, rank: int = 0):
+    for name, value in (
+        ("SLURM_JOB_ID", "4242"),
+        ("SLURM_STEP_NODELIST", "node[07-08]"),
+        ("SLURM_NTASKS", str(tasks)),
+        ("SLURM_PROCID", str(rank)),
+        ("SLURM_LOCALID", "0"),
+    ):
+        monkeypatch.setenv(name, value)
+
+
+def test_a_detected_cluster_job_supplies_what_is_not_given(monkeypatch):
+    """SLURM faked by its variables (nothing is started: distributed_settings only says
+    what initialize would pass to jax.distributed.initialize, which takes the rest from
+    the job)."""
+    from fojax import sharding
+
+    _clean(monkeypatch)
+    _fake_slurm(monkeypatch, 4, 2)
+    assert sharding.detect_cluster() == ("slurm", 4)
+    assert sharding.distributed_settings() == {
+        "coordinator_address": None,
+        "num_processes": None,
+        "process_id": None,
+        "joined": "slurm",
+    }
+    assert sharding.distributed_settings(detect=False) is None
+    # A variable or flag set inside the job overrides the job's value, the job gives the rest.
+    monkeypatch.setenv("JAX_COORDINATOR_ADDRESS", "node07:5000")
+    settings = sharding.distributed_settings()
+    assert settings["coordinator_address"] == "node07:5000" and settings["num_processes"] is None
+    with pytest.raises(ValueError, match="needs JAX_NUM_PROCESSES, JAX_PROCESS_ID too"):
+        sharding.distributed_settings(detect=False)
+    # JAX's own detection agrees on what it fills in.
+    from jax._src import clusters
+
+    filled = clusters.ClusterEnv.auto_detect_unset_distributed_params(
+        None, None, None, None, None, None
+    )
+    assert filled[:3] == ("node07:61586", 4, 2)  # port: 4242 % 4096 + 61440
+
+
 _COUNT_CACHE = """
 import sys
 import jax.monitoring

@@ -43,6 +43,51 @@ def test_bad_arguments_fail_before_compiling(capsys, tmp_path, argv, message):
     assert message in err
 
 
+@pytest.mark.parametrize(
+    "controller, extra, message",
+    [
+        ("fl", ["--switching", "sat"], "--switching does not apply to fl, which takes no switch"),
+        ("fl", ["--switching", "sign"], "--switching does not apply to fl"),
+        ("bsmc", ["--fractional", "oustaloup"], "--fractional does not apply to bsmc"),
+        ("anftsmc", ["--fractional", "soe"], "anftsmc, which takes no fractional_method"),
+        ("fl,bsmc", ["--fractional", "gl"], "--fractional applies to none of fl, bsmc"),
+    ],
+)
+def test_an_option_the_controller_does_not_take_is_an_error(
+    capsys, tmp_path, controller, extra, message
+):
+    argv = ["--scenario", "2", "--controller", controller, "--draws", "3", *extra]
+    last = _error(capsys, argv + ["--out", str(tmp_path)]).strip().splitlines()[-1]
+    assert last.startswith("fojax simulate: error: ") and message in last, last
+
+
+def test_with_several_controllers_an_option_applies_to_those_that_take_it(tmp_path):
+    """--controller all --switching sat: the four sliding-mode laws switch with sat,
+    the FL runs as it is, and the run says so."""
+    from experiments import study as study_layer
+
+    argv = ["--scenario", "2", "--controller", "all", "--draws", "3", "--switching", "sat"]
+    study, args = simulate.parse_args(argv + ["--fractional", "gl", "--out", str(tmp_path)])
+    assert args.applied == {
+        "--fractional": ["afonftsmc", "fobsmc"],
+        "--switching": ["afonftsmc", "anftsmc", "fobsmc", "bsmc"],
+    }
+    assert study_layer.options_applied_to(study) == {
+        "fractional_method": ["afonftsmc", "fobsmc"],
+        "switching": ["afonftsmc", "anftsmc", "fobsmc", "bsmc"],
+    }
+    runs = study_layer._prepared(study)[-1]
+    assert (
+        runs["bsmc"][0].law.switching == "sat" and runs["fobsmc"][0].law.fractional_method == "gl"
+    )
+    assert not hasattr(runs["fl"][0].law, "switching")
+    # Defaults (nothing given) are recorded as before: sign, soe.
+    study, args = simulate.parse_args(["--scenario", "2", "--controller", "fl", "--draws", "3",
+                                       "--out", str(tmp_path)])  # fmt: skip
+    assert (study.switching, study.fractional, args.applied) == ("sign", "soe", {})
+    assert study_layer.options_applied_to(study) == {"fractional_method": [], "switching": []}
+
+
 def _write(path, document):
     path.write_text(json.dumps(document))
     return path

@@ -40,13 +40,25 @@ def _write(path, document):
         (["--controller", "pid"], "unknown controller 'pid'"),
         (["--scenario", "4"], "invalid choice"),
         (["--horizon", "0.0005"], "whole, positive number of steps"),
-        (["--cvar-fraction", "2"], "cvar_fraction must be in (0, 1]"),
+        (["--objective", "cvar", "--cvar-fraction", "2"], "cvar_fraction must be in (0, 1]"),
         (["--fields", "surface_c1,kp"], "unknown gain fields for afonftsmc: kp"),
         (["--share", "pairs"], "invalid choice"),
         (["--position-weight", "0", "--attitude-weight", "0", "--effort-weight", "0",
           "--chattering-weight", "0"], "at least one cost weight"),
         (["--learning-rate", "-1"], "finite number > 0"),
         (["--resume"], "nothing to resume"),
+        # An option that would change nothing (the default method is L-BFGS).
+        (["--learning-rate", "0.1"], "--learning-rate applies to --method adam only"),
+        (["--clip-norm", "2"], "--clip-norm applies to --method adam only"),
+        (["--anneal-start", "2"], "L-BFGS keeps the boundary-layer scale at --anneal-end"),
+        (["--method", "adam", "--max-step", "0.5"], "--max-step applies to --method lbfgs"),
+        (["--cvar-fraction", "0.5"], "--cvar-fraction applies to --objective cvar only"),
+        (["--validation-draws", "0", "--validate-every", "2"], "--validation-draws is 0"),
+        (["--eval-draws", "0", "--eval-horizon", "1"], "--eval-draws is 0"),
+        (["--controller", "fl", "--fractional", "gl"], "--fractional does not apply to fl"),
+        (["--controller", "bsmc", "--fractional", "soe"], "bsmc, which takes no fractional"),
+        (["--controller", "fl", "--eval-switching", "sat"], "--eval-switching does not apply"),
+        (["--controller", "fl", "--anneal-end", "2"], "fl, which has no boundary layer"),
     ],
 )  # fmt: skip
 def test_bad_arguments_fail_before_anything_is_written(capsys, tmp_path, extra, message):
@@ -132,8 +144,8 @@ def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     # A fresh start over the checkpoint, or a resume with other settings, is refused.
     err = _error(capsys, argv + ["--out", str(out)])
     assert "pass --resume" in err
-    err = _error(capsys, argv + ["--resume", "--learning-rate", "0.2", "--out", str(out)])
-    assert "another configuration" in err and "tuner.learning_rate: checkpoint 0.05, now 0.2" in err
+    err = _error(capsys, argv + ["--resume", "--max-step", "0.5", "--out", str(out)])
+    assert "another configuration" in err and "tuner.max_step: checkpoint 1.0, now 0.5" in err
     err = _error(capsys, argv + ["--resume", "--objective", "cvar", "--out", str(out)])
     assert "problem.cost.objective: checkpoint 'mean', now 'cvar'" in err
     assert checkpoint.read_bytes() == before

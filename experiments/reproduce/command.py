@@ -237,14 +237,10 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
             )
         )
     for name in studies[0].controllers:
+        options = dict(dt=args.dt, horizon=studies[0].horizon, fractional_method=args.fractional)
+        options["switching"] = args.switching
         try:
-            registry.make_controller(
-                name,
-                dt=args.dt,
-                horizon=studies[0].horizon,
-                fractional_method=args.fractional,
-                switching=args.switching,
-            )
+            registry.make_controller(name, **registry.options_for(name, options))
         except ValueError as error:
             parser.error(f"{name}: {error}")
     return studies, args

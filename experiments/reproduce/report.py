@@ -116,14 +116,25 @@ def _band_text(settings: dict) -> str:
     )
 
 
+def _applied(summary: dict, option: str) -> str:
+    """`` (AFONFTSMC, ...)``: the controllers a shared option applied to, when not all
+    of them (the FL has no switching function; only two have fractional operators)."""
+    users = summary.get("options_applied_to", {}).get(option)
+    if users is None or len(users) == len(summary["controllers"]):
+        return ""
+    return f" ({', '.join(name.upper() for name in users) or 'none'})"
+
+
 def _scenario_section(summary: dict, table: dict | None) -> list[str]:
     names = list(summary["controllers"])
     lines = [
         f"### Scenario {summary['scenario']}",
         "",
         f"{summary['draws']} draws, seed {summary['seed']}, {summary['horizon_s']:g} s at "
-        f"dt = {summary['dt_s']:g} s, switching `{summary['switching']}`, fractional "
-        f"method `{summary['fractional_method']}`, {summary['dtype']}.",
+        f"dt = {summary['dt_s']:g} s, switching `{summary['switching']}`"
+        f"{_applied(summary, 'switching')}, fractional method "
+        f"`{summary['fractional_method']}`{_applied(summary, 'fractional_method')}, "
+        f"{summary['dtype']}.",
         "",
         "Mean and 95 % confidence interval over the draws that did not diverge:",
         "",

@@ -12,7 +12,8 @@ Each entry of ``"gains"`` is one field of the controller's gains (its
 :class:`fojax.controllers.GainSpec`); its value is a number (applied to every
 component) or a nested list of the field's exact shape. Every field must be present,
 no other may be, and every value must be a finite number. The declared bounds of each
-field apply on top.
+field apply on top. ``"metadata"``, when present, is a JSON object. :func:`save_gains`
+checks the same before writing.
 """
 
 from __future__ import annotations
@@ -97,7 +98,22 @@ def gains_from_dict(controller: str, data: dict, source: str = "gains", dtype: A
 
 
 def save_gains(path: str | os.PathLike, controller: str, gains, metadata: dict | None = None):
-    """Write ``gains`` of ``controller`` to ``path`` (atomically)."""
+    """Write ``gains`` of ``controller`` to ``path`` (atomically).
+
+    The gains are checked against the controller's declaration first, so that a file
+    is never written that :func:`load_gains` would refuse (another controller's gains,
+    a value out of bounds): ``ValueError`` naming the problem. ``metadata``: a dict (or
+    None), written as the file's ``"metadata"``.
+    """
+    cls = registry.get_controller_class(controller)
+    try:
+        cls.check_gains(gains)
+    except ValueError as error:
+        raise ValueError(f"cannot save these gains as {controller!r} gains: {error}") from None
+    if metadata is not None and not isinstance(metadata, dict):
+        raise ValueError(
+            f"metadata must be a dict (or None), got {type(metadata).__name__}: {metadata!r}"
+        )
     path = Path(path)
     document = {"controller": controller, "gains": gains_to_dict(gains)}
     if metadata:
@@ -158,5 +174,11 @@ def load_gains(path: str | os.PathLike, dtype: Any = None) -> tuple[str, Any, di
         registry.get_controller_class(controller)
     except ValueError as error:
         raise ValueError(f"{source}: {error}") from None
+    metadata = document.get("metadata", {})
+    if not isinstance(metadata, dict):
+        raise ValueError(
+            f"{source}: 'metadata' must be a JSON object (or left out), got "
+            f"{type(metadata).__name__} {metadata!r}"
+        )
     gains = gains_from_dict(controller, document["gains"], source, dtype)
-    return controller, gains, document.get("metadata") or {}
+    return controller, gains, metadata

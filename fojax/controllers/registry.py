@@ -11,15 +11,18 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import importlib
+from collections.abc import Mapping, Sequence
 from importlib import metadata
 from typing import Any
 
 __all__ = [
     "PAPER_CONTROLLERS",
+    "applied_options",
     "controller_names",
     "controller_options",
     "get_controller_class",
     "make_controller",
+    "options_for",
     "register",
 ]
 
@@ -100,30 +103,28 @@ def _fields(cls: type) -> set[str]:
     return {f.name for f in dataclasses.fields(cls) if f.init}
 
 
+def _cascade_options() -> set[str]:
+    from fojax.controllers.cascade import Cascade
+
+    return _fields(Cascade) - {"law"}
+
+
 def controller_options(name: str) -> set[str]:
-    """The configuration options ``name`` accepts (its law's and the cascade's)."""
-    from fojax.controllers.cascade import Cascade
+    """The configuration options controller ``name`` takes: its law's fields (``dt``,
+    ``horizon``, and e.g. ``switching``, ``fractional_method``) and the cascade's
+    (``filter_frequency``, ``filter_damping``, ``thrust_floor``)."""
+    return _fields(get_controller_class(name)) | _cascade_options()
 
-    return _fields(get_controller_class(name)) | (_fields(Cascade) - {"law"})
+
+def _known_options() -> set[str]:
+    """Every option some registered controller takes."""
+    _builtin()
+    return _cascade_options().union(*(_fields(c) for c in _LAWS.values()))
 
 
-def make_controller(name: str, **options: Any):
-    """Controller ``name`` (a :class:`fojax.controllers.Cascade` around its law) with
-    the configuration ``options``.
-
-    Options are the law's fields (``dt``, ``horizon``, ``switching``,
-    ``fractional_method``, ...) and the cascade's (``filter_frequency``,
-    ``filter_damping``, ``thrust_floor``); ``None`` leaves the default. An option that
-    no registered controller has raises ``TypeError``; one that only other controllers
-    have (``switching`` for FL, which has no switching function) is ignored, so one set
-    of options configures every controller.
-    """
-    from fojax.controllers.cascade import Cascade
-
-    cls = get_controller_class(name)
-    own = _fields(cls)
-    cascade = _fields(Cascade) - {"law"}
-    known = set(cascade).union(*(_fields(c) for c in _LAWS.values()))
+def _unknown(name: str, options) -> None:
+    """``TypeError`` for options no registered controller takes (a typo, most likely)."""
+    known = _known_options()
     unknown = sorted(set(options) - known)
     if unknown:
         hints = [difflib.get_close_matches(u, known, n=1) for u in unknown]
@@ -132,8 +133,56 @@ def make_controller(name: str, **options: Any):
             for u, h in zip(unknown, hints, strict=True)
         )
         raise TypeError(
-            f"unknown controller option(s) {text}; {name} accepts "
-            f"{', '.join(sorted(own | cascade))}"
+            f"unknown controller option(s) {text}; {name} takes "
+            f"{', '.join(sorted(controller_options(name)))}"
+        )
+
+
+def options_for(name: str, options: Mapping[str, Any]) -> dict[str, Any]:
+    """The entries of ``options`` that controller ``name`` takes, without the ``None``
+    ones: for one set of options shared by several controllers (``fojax simulate
+    --controller all --switching sat`` gives ``switching`` to the four sliding-mode
+    laws and nothing to the FL). An option that no registered controller takes is
+    still a ``TypeError``."""
+    _unknown(name, options)
+    own = controller_options(name)
+    return {k: v for k, v in options.items() if k in own and v is not None}
+
+
+def applied_options(names: Sequence[str], options: Mapping[str, Any]) -> dict[str, list[str]]:
+    """For each option of ``options`` that is not ``None``: the controllers of ``names``
+    that take it (possibly none), in the order of ``names``. What a study that shares
+    one option set among several controllers records."""
+    return {
+        option: [name for name in names if option in controller_options(name)]
+        for option, value in options.items()
+        if value is not None
+    }
+
+
+def make_controller(name: str, **options: Any):
+    """Controller ``name`` (a :class:`fojax.controllers.Cascade` around its law) with
+    the configuration ``options``.
+
+    Options are the law's fields (``dt``, ``horizon``, and e.g. ``switching``,
+    ``fractional_method``) and the cascade's (``filter_frequency``,
+    ``filter_damping``, ``thrust_floor``): :func:`controller_options`. ``None`` leaves
+    the default. An option the controller does not take is a ``TypeError`` naming the
+    controller and the options it takes (``switching`` for the FL, which has no
+    switching function; a misspelt option, with the likely one); to configure several
+    controllers from one set of options, pass each :func:`options_for` of it.
+    """
+    from fojax.controllers.cascade import Cascade
+
+    cls = get_controller_class(name)
+    _unknown(name, options)
+    own, cascade = _fields(cls), _cascade_options()
+    foreign = sorted(k for k, v in options.items() if v is not None and k not in own | cascade)
+    if foreign:
+        users = [n for n, c in _LAWS.items() if set(foreign) & _fields(c)]
+        raise TypeError(
+            f"controller {cls.name!r} takes no {', '.join(map(repr, foreign))} (taken by "
+            f"{', '.join(users)}); {cls.name} takes {', '.join(sorted(own | cascade))}"
         )
     law = cls(**{k: v for k, v in options.items() if k in own and v is not None})
     return Cascade(law, **{k: v for k, v in options.items() if k in cascade and v is not None})

@@ -34,6 +34,7 @@ import dataclasses
 import functools
 import hashlib
 import io
+import math
 import os
 import sys
 import time
@@ -158,6 +159,44 @@ def check_run_arguments(draws, seed, device_batch=None) -> None:
         raise ValueError(f"device_batch must be a positive integer, got {device_batch!r}")
 
 
+def check_settings(controller, scenario, config, metrics_config=None) -> None:
+    """``ValueError`` saying what to change when the settings of a run disagree, which
+    the rollout would otherwise follow silently: a controller made for another step
+    than ``config.dt`` (its filter and fractional weights are discretised for its own
+    ``dt``), a ``config.horizon`` that is not a whole number of steps (the rollout
+    takes ``round(horizon / dt)`` of them), a scenario shorter than the simulation (its
+    random tables end at its own horizon; past it the last row would be held), and
+    ``metrics_config`` made for another step or step count."""
+    dt = getattr(controller, "dt", None)
+    if isinstance(dt, int | float) and not math.isclose(dt, config.dt, rel_tol=1e-9):
+        raise ValueError(
+            f"the controller is made for dt={dt} but the simulation steps at "
+            f"dt={config.dt}; make it with fojax.make_controller(..., dt={config.dt})"
+        )
+    steps = config.horizon / config.dt
+    if abs(steps - round(steps)) > 1e-6 * steps:
+        raise ValueError(
+            f"the simulation's horizon ({config.horizon} s) is not a whole number of steps "
+            f"of {config.dt} s (it would run {config.steps} steps, "
+            f"{config.steps * config.dt:g} s); e.g. horizon={config.steps * config.dt:g}"
+        )
+    if config.steps > math.ceil(scenario.horizon / config.dt - 1e-9):
+        raise ValueError(
+            f"the scenario's horizon ({scenario.horizon} s) is shorter than the simulation's "
+            f"({config.horizon} s): its random tables end there; use "
+            f"dataclasses.replace(scenario, horizon={config.horizon})"
+        )
+    if metrics_config is not None and (
+        not math.isclose(metrics_config.dt, config.dt, rel_tol=1e-9)
+        or metrics_config.steps != config.steps
+    ):
+        raise ValueError(
+            f"metrics_config is made for dt={metrics_config.dt}, {metrics_config.steps} steps, "
+            f"the simulation runs dt={config.dt}, {config.steps} steps; make it with "
+            "fojax.metrics.MetricsConfig(dt=config.dt, steps=config.steps, ...)"
+        )
+
+
 def make_chunk_runner(
     controller,
     scenario: scenarios.Scenario,
@@ -183,6 +222,7 @@ def make_chunk_runner(
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
     model = plant.nominal_params(dtype)
     controller = as_controller(controller)
+    check_settings(controller, scenario, config, metrics_config)
     observer = metrics.Metrics(metrics_config)
 
     def batch(gains, keys, member=0):
@@ -419,15 +459,17 @@ def run(
     Args:
         controller, gains: the controller (:func:`fojax.make_controller`) and its gains
             (checked against the controller's declared gains before anything runs).
-        scenario: the scenario; its ``horizon`` should cover ``config.horizon`` (the
+        scenario: the scenario; its ``horizon`` must cover ``config.horizon`` (the
             random tables are laid out for it).
-        config: simulation settings.
+        config: simulation settings: ``dt`` the controller's, ``horizon`` a whole
+            number of steps (:func:`check_settings`).
         draws: number of draws, 1 to 2**32. seed: the run's seed, 0 to 2**63 - 1.
         device_batch: draws per block, the draws each device computes in one call
             (default :func:`default_device_batch`: 50 on a CPU). Memory grows with it;
             draw ``i``'s numbers depend on it (rounding), and on nothing else of the
             layout.
-        keep: decimated trajectories are kept for the first ``keep`` draws.
+        keep: decimated trajectories are kept for the first ``keep`` draws (an
+            integer >= 0; more than ``draws`` keeps them all).
         progress: print a progress line per call to stderr (process 0 only).
         dtype: floating dtype (default float32, float64 with x64 enabled).
         metrics_config: settling bands etc.; default :class:`fojax.metrics.MetricsConfig`.
@@ -455,11 +497,14 @@ def run(
     if hasattr(controller, "check_gains"):
         controller.check_gains(gains)
     check_run_arguments(draws, seed, device_batch)
+    if isinstance(keep, bool) or not isinstance(keep, int | np.integer) or keep < 0:
+        raise ValueError(f"keep must be an integer >= 0 (0: no trajectories), got {keep!r}")
     member = check_member(scenario, member)
     draws, seed = int(draws), int(seed)
     batch = int(device_batch or default_device_batch())
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
+    check_settings(controller, scenario, config, metrics_config)
     layout = batch_layout(draws, batch, mesh)
     devices = layout["devices"]
     keep = int(min(max(keep, 0), draws))
