@@ -1,4 +1,8 @@
-"""Test configuration: float64 available, persistent compilation cache."""
+"""Test configuration: float64 available, persistent compilation cache, two tiers.
+
+The default tier runs in minutes; ``--slow`` adds the slow tier (tests marked
+``@pytest.mark.slow``: end-to-end studies, multi-process runs, full horizons and the
+optimised-compile layout check)."""
 
 import os
 import pathlib
@@ -19,6 +23,23 @@ _cache = os.environ.get(
 jax.config.update("jax_compilation_cache_dir", _cache)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--slow",
+        action="store_true",
+        help="also run the slow tier (end-to-end studies, multi-process runs)",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--slow"):
+        return
+    slow = [item for item in items if "slow" in item.keywords]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [item for item in items if "slow" not in item.keywords]
 
 
 def close_normwise(got, want, err_msg=""):

@@ -222,6 +222,7 @@ def test_the_documented_starts_are_the_run_of_the_tests():
                 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "marker", ["--coordinator 127", "JAX_COORDINATOR"], ids=["flags", "variables"]
 )
@@ -235,6 +236,7 @@ def test_two_processes_started_as_documented_simulate_the_draws_of_one(
     _check_two_process_run(out, outputs, single)
 
 
+@pytest.mark.slow
 def test_two_processes_of_a_slurm_job_simulate_the_draws_of_one(tmp_path, cache, single):
     """A SLURM job of two tasks, faked by its variables on this machine: nothing but
     the job's variables (and JAX_COORDINATOR_PORT, as docs/distributed.md says, on a
@@ -262,6 +264,7 @@ def test_two_processes_of_a_slurm_job_simulate_the_draws_of_one(tmp_path, cache,
     _check_two_process_run(out, outputs, single)
 
 
+@pytest.mark.slow
 def test_resume_is_exact_after_a_process_is_killed(tmp_path, cache, single):
     """Blocks of 20 draws, one per device and call, over 2 processes; process 1 is
     killed once the first call's draws are stored, process 0 then fails (or is
@@ -316,6 +319,7 @@ TUNE = [
 ]
 
 
+@pytest.mark.slow
 def test_two_processes_take_the_tuning_steps_of_one(tmp_path, cache):
     """Adam steps (fresh draws each step), compiled as the suite compiles (unoptimised):
     bit for bit. The default L-BFGS was checked by hand compiled optimised, as a user's

@@ -33,6 +33,7 @@ def test_default_study_tunes_every_controller_from_its_defaults():
     assert args.eval_scenarios == (1, 2, 3)
 
 
+@pytest.mark.slow
 def test_tiny_study_end_to_end_and_resume(tmp_path):
     out = tmp_path / "fair"
     argv = ["--tiny", "--quiet", "--controllers", "fl,afonftsmc", "--out", str(out)]

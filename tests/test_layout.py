@@ -8,6 +8,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 _SCRIPT = textwrap.dedent(
     """
     import dataclasses, sys
@@ -42,6 +44,7 @@ _SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_draws_are_bit_identical_across_draw_counts_and_devices():
     env = dict(os.environ)
     flags = env.get("XLA_FLAGS", "").replace("--xla_backend_optimization_level=0", "")

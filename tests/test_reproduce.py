@@ -155,6 +155,7 @@ def test_degenerate_comparisons_are_inconclusive_or_exact():
 VERDICTS = set(reproduce.claims.VERDICTS)
 
 
+@pytest.mark.slow
 def test_reproduce_end_to_end_tiny(tmp_path):
     out = tmp_path / "run"
     argv = ["reproduce", "--out", str(out), "--draws", "3", "--device-batch", "2", "--keep", "2"]

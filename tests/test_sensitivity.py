@@ -309,6 +309,7 @@ def test_a_setting_brings_its_reference():
 # ------------------------------------------------------------------------ end to end
 
 
+@pytest.mark.slow
 def test_tiny_study_end_to_end_and_resumed(tmp_path):
     from fojax.controllers import gains_io, registry
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 
+@pytest.mark.slow
 def test_tuning_study_tiny(tmp_path):
     import jax.numpy as jnp
 
@@ -54,6 +55,7 @@ def test_tuning_study_tiny(tmp_path):
     assert (tmp_path / "tuning_wall.png").exists()
 
 
+@pytest.mark.slow
 def test_remark3_tiny(tmp_path):
     from experiments import remark3
 
