@@ -1,6 +1,6 @@
 """``fojax tune``: gradient-based gain tuning through the batched simulator.
 
-    fojax tune --scenario {1,2,3} --controller NAME --draws N --steps K
+    fojax tune --scenario {1,2,3} --controller NAME [--draws N] [--steps K]
                [--horizon T] [--init paper|naive|FILE] [--objective mean|cvar]
                [--resume] --out DIR      (fojax tune --help lists every option)
 
@@ -74,10 +74,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--controller", required=True, help=f"one of {', '.join(registry.controller_names())}"
     )
     parser.add_argument(
-        "--draws", type=arguments.positive_int, required=True, help="draws per step"
+        "--draws",
+        type=arguments.positive_int,
+        default=16,
+        help="draws per step (16: with --method lbfgs one fixed sample)",
     )
     parser.add_argument(
-        "--steps", type=arguments.positive_int, required=True, help="optimisation steps"
+        "--steps", type=arguments.positive_int, default=6, help="optimisation steps (6)"
     )
     parser.add_argument(
         "--horizon", type=arguments.positive_float, default=10.0, help="tuning horizon, s (10)"
