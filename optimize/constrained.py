@@ -55,7 +55,6 @@ import optax
 
 from fojax import observers, plant, scenarios, simulator
 from fojax import requirements as rq
-from fojax.controllers import registry
 from optimize import cost as cost_lib
 from optimize import problem as problem_lib
 
@@ -531,7 +530,6 @@ def cma_es_requirements(
     params0 = problem.initial_params() if init_params is None else init_params
     x0, unravel = problem.param_map.ravel(params0)
     n = problem.spec.draws if draws is None else int(draws)
-    requirements = problem.requirements
 
     def penalised(vectors, keys):
         objective, violations, status = problem._batch_value(vectors, keys, unravel)

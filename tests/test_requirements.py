@@ -221,3 +221,66 @@ def test_clopper_pearson_closed_forms(n):
     assert high == 1.0 and low == pytest.approx(0.025 ** (1 / n), rel=1e-10)
     with pytest.raises(ValueError):
         rq.clopper_pearson(n + 1, n)
+
+
+# ------------------------------------------------------------------ the observer
+
+
+@pytest.fixture(scope="module")
+def short_rollout():
+    """FL, scenario 2, 0.3 s, four draws, ideal actuators: the requirement metrics and
+    fojax.metrics folded over the same rollout."""
+    import jax.numpy as jnp
+
+    import fojax
+    from fojax import metrics, observers, plant, scenarios, simulator
+
+    config = simulator.SimulationConfig(dt=1e-3, horizon=0.3, save_every=100)
+    scenario = scenarios.get_scenario(2)
+    controller = fojax.make_controller("fl", dt=1e-3, horizon=0.3)
+    gains = controller.law.default_gains() if hasattr(controller, "law") else None
+    from fojax.controllers import registry
+
+    gains = registry.get_controller_class("fl").default_gains(jnp.float64)
+    observer = observers.Chain(
+        reference=metrics.Metrics(metrics.MetricsConfig(dt=config.dt, steps=config.steps)),
+        requirements=rq.RequirementMetrics(config.dt, config.steps),
+    )
+    keys = scenarios.draw_keys(0, np.arange(4))
+    draws = scenarios.sample_draws(scenario, keys, config.dt, jnp.float64)
+    model = plant.nominal_params(jnp.float64)
+    result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
+    return result.outputs
+
+
+def test_requirement_metrics_agree_with_fojax_metrics(short_rollout):
+    ref = {k: np.asarray(v) for k, v in short_rollout["reference"].items()}
+    got = rq.draw_metrics(short_rollout["requirements"])
+    assert set(got) == set(rq.METRICS)
+    assert all(v.shape == (4,) for v in got.values())
+    np.testing.assert_allclose(got["position_rmse"], ref["position_rmse"], rtol=1e-10)
+    np.testing.assert_allclose(got["attitude_rmse"], ref["attitude_rmse"], rtol=1e-10)
+    np.testing.assert_allclose(got["position_overshoot"], ref["overshoot"][:3].max(0), rtol=1e-10)
+    np.testing.assert_allclose(got["settling_time"], ref["settling_time"][:3].max(0), rtol=1e-10)
+    np.testing.assert_allclose(got["rotor_saturation"], ref["actuator_saturation"], atol=1e-12)
+    torque = np.sqrt(np.sum(ref["control_effort"][1:] ** 2, 0))
+    np.testing.assert_allclose(got["torque_effort"], torque, rtol=1e-8)
+    assert np.all(got["max_position_error"] >= got["steady_state_error"])
+    assert np.all((got["max_tilt"] >= 0) & (got["max_tilt"] < np.pi / 2))
+
+
+def test_violations_sign_matches_the_pass_matrix():
+    metrics = {
+        "position_rmse": np.array([0.05, 0.2]),
+        "max_tilt": np.array([0.6, 0.1]),
+        "peak_rotor_speed": np.array([5.0, 12.0]),
+    }
+    v = np.asarray(rq.violations(YIELD_SET, metrics))
+    np.testing.assert_array_equal(v <= 0, rq.pass_matrix(YIELD_SET, metrics))
+    assert v[0, 1] == pytest.approx((0.2 - 0.1) / 0.1)
+
+
+def test_docs_list_every_metric():
+    page = (ROOT / "docs" / "requirements.md").read_text()
+    for name in rq.METRICS:
+        assert f"`{name}`" in page, name

@@ -64,3 +64,48 @@ def test_config_is_checked():
         co.ConstrainedConfig(allowed_share=1.0)
     with pytest.raises(ValueError, match="inner_steps"):
         co.ConstrainedConfig(inner_steps=0)
+
+
+@pytest.fixture(scope="module")
+def simulator_run():
+    """FL on scenario 2 (0.4 s, rotor-limited actuators at thrust-to-weight 2), tuned for
+    tracking under a torque-effort and a tilt requirement its default gains miss."""
+    from fojax.controllers import registry
+    from optimize.problem import ProblemSpec
+
+    reqs = rq.parse(
+        {
+            "settings": {"thrust_to_weight": 2.0},
+            "requirements": [
+                {"name": "tilt", "metric": "max_tilt", "max": 3, "unit": "deg"},
+                {"name": "torque", "metric": "torque_effort", "max": 0.7, "unit": "N m"},
+            ],
+        }
+    )
+    spec = ProblemSpec(controller="fl", scenario=2, horizon=0.4, draws=8, dtype="float32")
+    base = registry.get_controller_class("fl").default_gains()
+    problem = co.RequirementProblem(spec, base, reqs, objective="tracking")
+    config = co.ConstrainedConfig(
+        formulation="mean", outer_steps=3, inner_steps=4, validation_draws=32, learning_rate=0.1
+    )
+    result = co.tune_to_requirements(problem, config)
+    heldout = problem.evaluate(result.params, problem.heldout_keys(64))
+    return problem, result, heldout
+
+
+def test_simulator_run_is_rotor_limited_and_validated(simulator_run):
+    problem, result, _ = simulator_run
+    assert problem.sim_config.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(2.0))
+    assert len(result.history) == 3
+    start = result.history[0]["validation"]
+    assert result.selected["passed"] >= 0 and "interval" in result.selected
+    for row in result.history:  # the selected iterate is the best validated one
+        key = (row["validation"]["passed"], -row["validation"]["objective"])
+        assert key <= (result.selected["passed"], -result.selected["objective"])
+    assert start["draws"] == 32
+
+
+def test_heldout_yield_within_the_stated_interval(simulator_run):
+    _, result, heldout = simulator_run
+    low, high = result.selected["interval"]
+    assert low <= heldout["yield"].yield_ <= high, (result.selected, heldout["yield"].describe())
