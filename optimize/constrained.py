@@ -205,7 +205,8 @@ def make_alm_step(per_draw: Callable, config: ConstrainedConfig):
 class ConstrainedResult(NamedTuple):
     """params: the selected parameters. history: one dict per outer iteration.
     selected: the selected iterate's outer step (0: the start) and its validation
-    (``yield``, ``interval``, ``objective``, ...). multipliers, penalty: the final
+    (``yield``, ``interval``, ``objective``, ...). initial: the start's validation
+    (``None`` without validation). multipliers, penalty: the final
     ``lam`` and ``rho``. wall_time_s: the run's time, validation included."""
 
     params: Any
@@ -215,6 +216,7 @@ class ConstrainedResult(NamedTuple):
     penalty: float
     wall_time_s: float
     final_params: Any
+    initial: dict | None = None
 
 
 def minimize(
@@ -235,11 +237,12 @@ def minimize(
     lam = jnp.zeros(requirements)
     rho = float(config.penalty)
     optimizer = config.optimizer()
-    _, _, f0, _, _ = step(params, data, n, 1.0, lam, rho)
+    # Every number passed as an array of the default float: one compilation of ``step``.
+    _, _, f0, _, _ = step(params, data, n, jnp.asarray(1.0), lam, jnp.asarray(rho))
     scale = float(f0) if float(f0) > 1e-12 else 1.0
 
     def inner_value(p, lam, rho):
-        return step(p, data, n, scale, lam, rho)
+        return step(p, data, n, jnp.asarray(scale), lam, rho)
 
     @jax.jit
     def lbfgs_update(p, state, lam, rho):
@@ -260,6 +263,7 @@ def minimize(
     best_params, best = params, score(params)
     if best is not None:
         best = {**best, "outer_step": 0}
+    initial = best
     history = []
     previous = math.inf
     for outer in range(1, config.outer_steps + 1):
@@ -274,7 +278,7 @@ def minimize(
                 params = optax.apply_updates(params, updates)
         loss, _, f, c, valid = inner_value(params, *lam_rho)
         c = np.asarray(c, np.float64)
-        lam = jnp.maximum(0.0, lam + rho * jnp.asarray(c))
+        lam = jnp.maximum(0.0, lam + rho * jnp.asarray(c, lam.dtype))
         worst = float(np.max(np.maximum(c, 0.0)))
         if worst > 0.25 * previous:
             rho = min(rho * config.penalty_growth, config.penalty_max)
@@ -311,6 +315,7 @@ def minimize(
         rho,
         time.perf_counter() - start,
         params,
+        initial,
     )
 
 

@@ -97,9 +97,9 @@ def test_simulator_run_is_rotor_limited_and_validated(simulator_run):
     problem, result, _ = simulator_run
     assert problem.sim_config.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(2.0))
     assert len(result.history) == 3
-    start = result.history[0]["validation"]
-    assert result.selected["passed"] >= 0 and "interval" in result.selected
-    for row in result.history:  # the selected iterate is the best validated one
+    start = result.initial
+    assert "interval" in result.selected
+    for row in [{"validation": start}, *result.history]:  # the best validated one
         key = (row["validation"]["passed"], -row["validation"]["objective"])
         assert key <= (result.selected["passed"], -result.selected["objective"])
     assert start["draws"] == 32
@@ -109,3 +109,19 @@ def test_heldout_yield_within_the_stated_interval(simulator_run):
     _, result, heldout = simulator_run
     low, high = result.selected["interval"]
     assert low <= heldout["yield"].yield_ <= high, (result.selected, heldout["yield"].describe())
+
+
+def test_cma_es_baseline_on_the_same_constraints(simulator_run):
+    problem, result, _ = simulator_run
+    out = co.cma_es_requirements(
+        problem, budget_draw_steps=2 * 4 * 4 * 400, popsize=4, draws=4, validation_draws=32
+    )
+    assert len(out["history"]) == 2 and out["draw_steps"] == 2 * 4 * 4 * 400
+    start = result.initial  # the start's validation, on the same validation draws
+    # The selection never hands back worse than the start (by yield, then objective).
+    assert (out["selected"]["passed"], -out["selected"]["objective"]) >= (
+        start["passed"],
+        -start["objective"],
+    )
+    assert out["selected"]["draws"] == start["draws"]
+    problem.gains(out["params"])  # maps onto feasible gains
