@@ -238,7 +238,6 @@ def short_rollout():
     config = simulator.SimulationConfig(dt=1e-3, horizon=0.3, save_every=100)
     scenario = scenarios.get_scenario(2)
     controller = fojax.make_controller("fl", dt=1e-3, horizon=0.3)
-    gains = controller.law.default_gains() if hasattr(controller, "law") else None
     from fojax.controllers import registry
 
     gains = registry.get_controller_class("fl").default_gains(jnp.float64)
@@ -284,3 +283,29 @@ def test_docs_list_every_metric():
     page = (ROOT / "docs" / "requirements.md").read_text()
     for name in rq.METRICS:
         assert f"`{name}`" in page, name
+
+
+def test_measure_in_chunks_matches_the_rollout(short_rollout):
+    import jax.numpy as jnp
+
+    import fojax
+    from fojax import scenarios, simulator
+    from fojax.controllers import registry
+
+    reqs = rq.parse(
+        {"requirements": [{"name": "tilt", "metric": "max_tilt", "max": 1, "unit": "deg"}]}
+    )
+    config = simulator.SimulationConfig(dt=1e-3, horizon=0.3, save_every=100)
+    assert rq.simulation_config(reqs, 0.3) == config  # no limit: ideal actuators
+    controller = fojax.make_controller("fl", dt=1e-3, horizon=0.3)
+    gains = registry.get_controller_class("fl").default_gains(jnp.float64)
+    keys = scenarios.draw_keys(0, np.arange(4))
+    metrics, status = rq.measure(
+        controller, gains, scenarios.get_scenario(2), reqs, keys, config, chunk=3
+    )
+    want = rq.draw_metrics(short_rollout["requirements"])
+    assert status.shape == (4,) and np.all(status & rq.DIVERGED == 0)
+    for name in rq.METRICS:
+        np.testing.assert_allclose(metrics[name], want[name], rtol=1e-9, atol=1e-12)
+    result = rq.evaluate(reqs, metrics)
+    assert result.draws == 4 and result.passed == int(np.sum(metrics["max_tilt"] <= np.pi / 180))
