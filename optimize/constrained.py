@@ -38,8 +38,16 @@ yield, then by the total of failed (draw, requirement) pairs (so that among iter
 draw of which passes, the one nearer to passing wins), then objective (the start wins
 ties), with the validation yield's Clopper-Pearson interval.
 
-Measured (tests/test_requirements_tuner.py's toy, and docs/requirements.md): see
-:data:`MEASURED`.
+Measured (docs/requirements.md has the tables): on a toy with a known constrained
+optimum (minimise ``|x|^2`` under per-draw linear bounds) the mean hinge ends within
+0.012 of ``x*`` (objective 1.896 vs 1.921) where the chance surrogate (``alpha`` 0.05,
+``T`` 0.1) stays feasible but pays 31 % in objective, and a sharp sigmoid (``T`` 0.02)
+has no gradient far from feasibility and did not move; on the FL (scenario 2, 0.4 s,
+rotor-limited) the mean hinge reached 35.5 % held-out yield from 0 %, the chance
+surrogate 15.2 %, CMA-ES on the penalty 27.0 % with 6.5x the forward draw-steps; the
+AFONFTSMC from the paper's gains (scenario 2, 10 s, rotor-limited, the example
+requirement set, objective effort) went from 0/64 to 63/64 held-out draws. Hence
+``formulation="mean"`` is the default.
 """
 
 from __future__ import annotations
@@ -65,7 +73,6 @@ Array = jax.Array
 
 __all__ = [
     "FORMULATIONS",
-    "MEASURED",
     "OBJECTIVES",
     "ConstrainedConfig",
     "ConstrainedResult",
@@ -82,8 +89,6 @@ OBJECTIVES = ("effort", "tracking", "cost")
 """``effort``: the cost's ``E`` (commanded accelerations squared, :mod:`optimize.cost`);
 ``tracking``: ``P + A``; ``cost``: the weighted sum ``J`` of ``ProblemSpec.cost``."""
 
-MEASURED = "see docs/requirements.md"
-
 
 @dataclasses.dataclass(frozen=True)
 class ConstrainedConfig:
@@ -99,7 +104,7 @@ class ConstrainedConfig:
     scoring the start and each outer iterate (0: no validation, the last iterate).
     """
 
-    formulation: str = "chance"
+    formulation: str = "mean"
     outer_steps: int = 6
     inner_steps: int = 10
     method: str = "adam"
@@ -132,6 +137,12 @@ class ConstrainedConfig:
             raise ValueError(f"margin must be a finite number >= 0, got {self.margin!r}")
         if not 0 <= self.allowed_share < 1:
             raise ValueError(f"allowed_share must be in [0, 1), got {self.allowed_share!r}")
+        if self.formulation == "chance" and self.allowed_share == 0:
+            raise ValueError(
+                "the chance surrogate needs allowed_share > 0 (its sigmoid is > 0 on every "
+                "draw, so a zero share can never be met); e.g. allowed_share=0.05, or use "
+                "formulation='mean' to require every draw"
+            )
         if not isinstance(self.validation_draws, int) or self.validation_draws < 0:
             raise ValueError(
                 f"validation_draws must be an integer >= 0, got {self.validation_draws!r}"

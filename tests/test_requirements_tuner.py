@@ -68,6 +68,8 @@ def test_config_is_checked():
         co.ConstrainedConfig(formulation="barrier")
     with pytest.raises(ValueError, match="allowed_share"):
         co.ConstrainedConfig(allowed_share=1.0)
+    with pytest.raises(ValueError, match="allowed_share > 0"):
+        co.ConstrainedConfig(formulation="chance")
     with pytest.raises(ValueError, match="inner_steps"):
         co.ConstrainedConfig(inner_steps=0)
 
