@@ -4,7 +4,8 @@ Read top to bottom, each layer uses only those below it:
 
 * :mod:`fojax.study`: Monte Carlo studies (chunked, vmapped rollouts, a resumable
   store, summaries); :mod:`fojax.statistics` their intervals; :mod:`fojax.sharding`
-  draws over devices;
+  draws over devices; :mod:`fojax.requirements` bounds per draw on metrics, their
+  yield and its interval;
 * :mod:`fojax.simulator`: one closed-loop rollout (plant + controller + scenario,
   ``lax.scan``), whose records are folded by :mod:`fojax.observers` (status flags,
   :mod:`fojax.metrics`, tuning costs);
@@ -21,6 +22,7 @@ from fojax import (
     metrics,
     observers,
     plant,
+    requirements,
     scenarios,
     sharding,
     simulator,
@@ -69,6 +71,7 @@ __all__ = [
     "paper_gains",
     "plant",
     "register",
+    "requirements",
     "rollout",
     "run_monte_carlo",
     "save_gains",
