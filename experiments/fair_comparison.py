@@ -9,7 +9,7 @@ The paper compares its AFONFTSMC, tuned with MATLAB's optimisation toolbox, agai
 baselines whose gains are not published. Here every registered controller starts from
 its documented default gains (``docs/model.md``) and gets the same gradient tuning:
 the same problem (scenario ``--scenario``, ``--horizon`` s, the cost of
-:mod:`optimize.cost` with the ``fojax tune`` defaults, the same minibatch draws: common
+:mod:`fojax.optimize.cost` with the ``fojax tune`` defaults, the same minibatch draws: common
 random numbers), the same budget (``--steps`` steps of ``--draws`` draws) and the same
 tuner settings. Then default and tuned gains of every controller are evaluated with
 ``sat`` switching (the gains' boundary layers) on the same ``--eval-draws`` held-out
@@ -34,13 +34,13 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import arguments
+from fojax.cli import arguments
 
 __all__ = ["main", "table"]
 
 BASELINE = "afonftsmc"
 TERMS = ("position", "attitude", "effort", "chattering")
-"""The cost's terms, in the order of :class:`optimize.cost.DrawCosts` ``terms``."""
+"""The cost's terms, in the order of :class:`fojax.optimize.cost.DrawCosts` ``terms``."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -141,9 +141,9 @@ def main(argv=None) -> int:
 
     from fojax import scenarios, statistics
     from fojax.controllers import registry
-    from optimize import params as params_lib
-    from optimize import problem as problem_lib
-    from optimize import tuner as tuner_lib
+    from fojax.optimize import params as params_lib
+    from fojax.optimize import problem as problem_lib
+    from fojax.optimize import tuner as tuner_lib
 
     start_all = time.perf_counter()
     dtype = jnp.dtype(args.dtype)

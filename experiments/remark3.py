@@ -6,14 +6,14 @@ authors would have set, and where does gradient tuning from a naive start land?
 
 The paper (Remark 3) chose its AFONFTSMC gains "using MATLAB optimization toolbox"
 without giving the objective. The one such a user would have set: the integral of the
-squared position and attitude errors (ISE, ``J = P + A`` of :mod:`optimize.cost` with
+squared position and attitude errors (ISE, ``J = P + A`` of :mod:`fojax.optimize.cost` with
 ``w_effort = w_chattering = 0``) on the nominal run of scenario 1: the reference
 (54)-(55) and the deterministic disturbances (53) with the nominal drag (no random
 variation: one deterministic run), over the scenario's 80 s, float64. Switching: the
 boundary layer ``sat`` of the evaluation (the paper's ``sgn`` has no useful gradient;
 its cost is reported beside). Parameters: the tuner's 33 (``share="paper"``: x = y,
 z, phi = theta = psi; ``p/q``, ``phi``, the orders and the adaptation rates
-included), unconstrained as in :mod:`optimize.params` (log or logit of each gain).
+included), unconstrained as in :mod:`fojax.optimize.params` (log or logit of each gain).
 
 1. At the paper's gains: ``J``, the gradient with respect to the unconstrained
    parameters (per field; a unit step in a log-mapped parameter is a relative change
@@ -21,9 +21,9 @@ included), unconstrained as in :mod:`optimize.params` (log or logit of each gain
    reverse pass), and ``J`` along the negative gradient at several step lengths.
 2. L-BFGS (SciPy ``L-BFGS-B`` with the reverse-mode gradient, ``u`` in
    ``[-U_MAX, U_MAX]``) for ``--iterations`` iterations from the naive start
-   (:func:`optimize.params.naive_gains`) and from the paper's gains.
+   (:func:`fojax.optimize.params.naive_gains`) and from the paper's gains.
 3. Field by field: naive, paper, tuned-from-naive, tuned-from-paper gains, with
-   ``J``, ``P``, ``A`` and the effort and chattering terms of :mod:`optimize.cost`.
+   ``J``, ``P``, ``A`` and the effort and chattering terms of :mod:`fojax.optimize.cost`.
 
 Writes ``results.json`` and ``table.md`` to ``--out``; ``--update-doc FILE`` replaces
 the block between ``<!-- remark3:begin -->`` and ``<!-- remark3:end -->`` in FILE.
@@ -48,7 +48,7 @@ STEPS_ALONG = (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from experiments import arguments
+    from fojax.cli import arguments
 
     parser = argparse.ArgumentParser(prog="python -m experiments.remark3")
     parser.add_argument("--horizon", type=arguments.positive_float, default=80.0)
@@ -95,9 +95,9 @@ def main(argv=None) -> int:
     from fojax import plant, scenarios, simulator
     from fojax.controllers import registry
     from fojax.controllers.afonftsmc import paper_gains
-    from optimize import cost as cost_lib
-    from optimize import params as params_lib
-    from optimize import problem as problem_lib
+    from fojax.optimize import cost as cost_lib
+    from fojax.optimize import params as params_lib
+    from fojax.optimize import problem as problem_lib
 
     start_all = time.perf_counter()
     dtype = jnp.float64

@@ -9,16 +9,16 @@ Protocol (every number in ``docs/tuning.md`` comes from this script):
 
 1. Tuning problem: scenario ``--scenario`` (2: drag uncertainty, disturbances (53),
    Gaussian disturbances), reference (54)-(55), ``--horizon`` seconds, the cost of
-   :mod:`optimize.cost` with the CLI defaults, draws from the tuning stream of seed
-   ``--seed``; start: :func:`optimize.params.naive_gains`.
+   :mod:`fojax.optimize.cost` with the CLI defaults, draws from the tuning stream of seed
+   ``--seed``; start: :func:`fojax.optimize.params.naive_gains`.
 2. Tuners, same problem, same starting point:
-   * gradient (:mod:`optimize.tuner`): ``--steps`` steps of ``--draws`` draws,
+   * gradient (:mod:`fojax.optimize.tuner`): ``--steps`` steps of ``--draws`` draws,
      ``--gradient-method`` (``lbfgs``: quasi-Newton on one fixed sample; ``adam``: a
      fresh minibatch every step), returning its best validated iterate (its own
      ``--tuner-validation-draws`` validation draws, every ``--validate-every``
      steps);
    * CMA-ES (each generation in one batched call) and Nelder-Mead
-     (:mod:`optimize.derivative_free`) with
+     (:mod:`fojax.optimize.derivative_free`) with
      ``--df-budget-factor`` times the gradient tuner's simulated draw-steps (a
      gradient step simulates its draws once forward; its reverse pass costs a few
      forward passes more in wall time, which the wall-time axis shows).
@@ -147,11 +147,11 @@ def main(argv=None) -> int:
     from experiments.tuning_study import run_context
     from fojax import scenarios
     from fojax.controllers.afonftsmc import paper_gains
-    from optimize import cost as cost_lib
-    from optimize import derivative_free
-    from optimize import params as params_lib
-    from optimize import problem as problem_lib
-    from optimize import tuner as tuner_lib
+    from fojax.optimize import cost as cost_lib
+    from fojax.optimize import derivative_free
+    from fojax.optimize import params as params_lib
+    from fojax.optimize import problem as problem_lib
+    from fojax.optimize import tuner as tuner_lib
 
     start_all = time.perf_counter()
     provenance = run_context(["python", "-m", "experiments.tune_paper_gains", *(argv or [])])

@@ -4,16 +4,16 @@
                                        [--update-doc docs/tuning.md] [--tiny]
 
 Held-out cost against wall time (compilation included) and against simulated
-draw-steps, for the gradient tuner (:mod:`optimize.tuner`), CMA-ES with every
-generation evaluated in one batched, compiled call (:func:`optimize.derivative_free.cma_es`)
-and Nelder-Mead (:func:`optimize.derivative_free.nelder_mead`), from the paper's gains
-and from the naive start (:func:`optimize.params.naive_gains`), with 33 parameters
+draw-steps, for the gradient tuner (:mod:`fojax.optimize.tuner`), CMA-ES with every
+generation evaluated in one batched, compiled call (:func:`fojax.optimize.derivative_free.cma_es`)
+and Nelder-Mead (:func:`fojax.optimize.derivative_free.nelder_mead`), from the paper's gains
+and from the naive start (:func:`fojax.optimize.params.naive_gains`), with 33 parameters
 (``--share paper``) and 66 (``--share none``), over ``--seeds`` (the tuning draws'
 seed, and CMA-ES's sampling seed).
 
 Protocol (the defaults; every number of the study's section of ``docs/tuning.md``):
 
-* Problem: scenario 2, 10 s, the default cost (:class:`optimize.cost.CostConfig`),
+* Problem: scenario 2, 10 s, the default cost (:class:`fojax.optimize.cost.CostConfig`),
   mean objective, float32, seed ``s``.
 * Gradient tuner: ``--gradient-method`` (``lbfgs``: quasi-Newton on one fixed sample
   of ``--gradient-draws`` draws at the final switching width; ``adam``: fresh
@@ -58,7 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import arguments
+from fojax.cli import arguments
 
 __all__ = ["main", "summarize", "table"]
 
@@ -180,9 +180,9 @@ def commit_label(provenance: dict) -> str:
 
 
 def run_context(command: list[str]) -> dict:
-    """Provenance of a study run (:func:`experiments.study.provenance`), the CPU model
+    """Provenance of a study run (:func:`fojax.cli.study.provenance`), the CPU model
     and the load average."""
-    from experiments import study as study_layer
+    from fojax.cli import study as study_layer
 
     record = study_layer.provenance(command)
     record["cpu_model"] = cpu_model()
@@ -214,9 +214,9 @@ class _Setup:
         import jax.numpy as jnp
 
         from fojax import scenarios
-        from optimize import cost as cost_lib
-        from optimize import params as params_lib
-        from optimize import problem as problem_lib
+        from fojax.optimize import cost as cost_lib
+        from fojax.optimize import params as params_lib
+        from fojax.optimize import problem as problem_lib
 
         self.args = args
         if args.tiny:
@@ -290,7 +290,7 @@ class _Setup:
         return 4 + int(3 * np.log(self.problem.param_map.size))
 
     def heldout(self, gains) -> float:
-        from optimize import problem as problem_lib
+        from fojax.optimize import problem as problem_lib
 
         costs = problem_lib.evaluate(self.spec, gains, self.heldout_keys)
         return float(np.mean(np.asarray(costs.cost, np.float64)))
@@ -380,7 +380,7 @@ def user_view(args, out: Path) -> list[dict]:
             load = _load()
             t0 = time.perf_counter()
             subprocess.run(
-                [sys.executable, "-m", "experiments.cli", *command[1:], "--quiet"],
+                [sys.executable, "-m", "fojax.cli", *command[1:], "--quiet"],
                 check=True,
                 env=env,
                 stdout=subprocess.DEVNULL,
@@ -459,8 +459,8 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     import copy
     import dataclasses
 
-    from optimize import derivative_free
-    from optimize import tuner as tuner_lib
+    from fojax.optimize import derivative_free
+    from fojax.optimize import tuner as tuner_lib
 
     args = setup.args
     problem = copy.copy(setup.problem)  # the same compiled functions, another seed
@@ -828,7 +828,7 @@ def plot(records: list[dict], path: Path, axis: str) -> Path:
     per (parameter count, start), one colour per method, one line per seed."""
     from matplotlib.lines import Line2D
 
-    from experiments import style
+    from fojax.cli import style
 
     plt = style.pyplot()
     panels = sorted({(r["parameters"], r["share"], r["start"]) for r in records})

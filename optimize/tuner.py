@@ -6,19 +6,19 @@ Each step ``k = 0 ... steps - 1``:
    fresh draws every step, disjoint from the held-out ones);
 2. switching: ``tanh(S / (scale_k w))`` with ``scale_k`` geometric from
    ``anneal_start`` to ``anneal_end`` (the evaluation width of ``sat`` at 1);
-3. the objective (mean or CVaR, :mod:`optimize.cost`) and its gradient by reverse
+3. the objective (mean or CVaR, :mod:`fojax.optimize.cost`) and its gradient by reverse
    mode through the whole horizon (the rollout rematerialises each block of
    ``save_every`` steps);
 4. ``method="adam"``: ``clip_by_global_norm(clip_norm)`` then Adam with a
    cosine-decayed learning rate (from ``learning_rate`` to ``final_learning_rate``
-   times it), on the unconstrained parameters of :mod:`optimize.params` (so every
+   times it), on the unconstrained parameters of :mod:`fojax.optimize.params` (so every
    iterate is feasible).
 
 ``method="lbfgs"``: a quasi-Newton method on one fixed sample of ``draws`` draws
 (minibatch 0 of the tuning stream: a deterministic sample-average objective, as the
 derivative-free Nelder-Mead gets) at the final switching width (``anneal_end``):
 every step evaluates the objective and its gradient at one trial point of
-:class:`optimize.lbfgs.LBFGS` (accepted on sufficient decrease, else the step is
+:class:`fojax.optimize.lbfgs.LBFGS` (accepted on sufficient decrease, else the step is
 halved), steps capped at ``max_step`` per coordinate. The current iterate is the last
 accepted point.
 
@@ -63,8 +63,8 @@ import numpy as np
 import optax
 
 from fojax.controllers import gains_io
-from optimize import lbfgs as lbfgs_lib
-from optimize.problem import VALIDATION_OFFSET, ProblemSpec, TuningProblem
+from fojax.optimize import lbfgs as lbfgs_lib
+from fojax.optimize.problem import VALIDATION_OFFSET, ProblemSpec, TuningProblem
 
 __all__ = [
     "CHECKPOINT",
@@ -354,7 +354,7 @@ def prepare(
     checkpoint belongs to another configuration (the message lists what differs).
     """
     from fojax.controllers import registry
-    from optimize import params as params_lib
+    from fojax.optimize import params as params_lib
 
     cls = registry.get_controller_class(spec.controller)
     cls.check_gains(init_gains)
@@ -456,7 +456,7 @@ def tune(
     last_validated: dict = {}
 
     def validate(params) -> float:
-        from optimize.problem import evaluate
+        from fojax.optimize.problem import evaluate
 
         vector = problem.vector(params)
         if "vector" in last_validated and np.array_equal(vector, last_validated["vector"]):

@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from experiments import cli, simulate, tune
+from fojax import cli
+from fojax.cli import simulate, tune
 from fojax.controllers import gains_io
 from fojax.controllers.afonftsmc import paper_gains
 

@@ -249,7 +249,7 @@ def compile_chunk_runner(
     shaped like ``gains``.
 
     Lowering holds Python's lock, XLA's compilation does not: called in a worker thread
-    it compiles while other runs go on (``experiments.study`` does so). Pass the result
+    it compiles while other runs go on (``fojax.cli.study`` does so). Pass the result
     to :func:`run` as ``runner``. For a union scenario it takes the member index as a
     third argument (:func:`make_chunk_runner`): one program for every member. With the
     persistent compilation cache on (``jax_compilation_cache_dir``) a compiled program

@@ -1,12 +1,12 @@
 """Figures of Monte Carlo runs: tracking, errors, inputs, paths, adaptive estimates.
 
 Each function takes ``{controller name: MonteCarloResult}`` (results with kept
-trajectories) and writes one PNG and a PDF beside it (:func:`experiments.style.save`).
+trajectories) and writes one PNG and a PDF beside it (:func:`fojax.cli.style.save`).
 Lines are the median over the kept draws that did not diverge, the shaded band their
 5-95 % range; the reference is dashed black, on top. Inputs are drawn as the range the
 command covers at full rate within each saved block (``inputs_low``/``inputs_high``),
 not as samples: a command that chatters at every step fills its band. Each controller
-has one colour in every figure (:data:`experiments.style.CONTROLLER_COLORS`).
+has one colour in every figure (:data:`fojax.cli.style.CONTROLLER_COLORS`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import style
+from fojax.cli import style
 
 __all__ = [
     "plot_adaptive",

@@ -296,6 +296,18 @@ def _usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+def _jax_started() -> bool:
+    """Whether JAX has made its backends (True when it cannot tell)."""
+    if "jax" not in sys.modules:
+        return False
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):
+        return True
+
+
 def use_host_devices(requested: int | None = None) -> int | None:
     """Ask XLA for one CPU device per core (or ``requested``) unless JAX has started.
 
@@ -304,9 +316,11 @@ def use_host_devices(requested: int | None = None) -> int | None:
     throughput of one device on 2 cores, ``docs/performance.md``). Only the CPU
     platform is affected: on a GPU machine the GPUs stay the default devices. Returns
     the count asked for, or None when JAX had already started (then nothing changes)
-    or ``XLA_FLAGS`` already sets it.
+    or ``XLA_FLAGS`` already sets it. JAX has started once it has made a backend (the
+    first device, array or compilation): XLA reads ``XLA_FLAGS`` then, not when
+    ``jax`` is imported (importing :mod:`fojax`, as ``fojax.cli`` does, imports it).
     """
-    if "jax" in sys.modules:
+    if _jax_started():
         return None
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_force_host_platform_device_count" in flags:

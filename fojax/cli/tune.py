@@ -27,7 +27,7 @@ the gradient of the mean (or CVaR) cost. Writes to ``DIR``:
   gradient norm against step and against wall time, drawn from ``history.csv``;
 * ``run.json``: what the run needs to be redone exactly: the initial gains' values and
   their source, and per session (a first run, then each ``--resume``) the command
-  line, versions, backend and device counts (:func:`experiments.study.provenance`);
+  line, versions, backend and device counts (:func:`fojax.cli.study.provenance`);
   ``gains.json`` carries the same in its metadata.
 
 Every input is checked before anything is compiled or written; an existing
@@ -51,8 +51,8 @@ import sys
 import time
 from pathlib import Path
 
-from experiments import arguments, style
-from experiments import study as study_layer
+from fojax.cli import arguments, style
+from fojax.cli import study as study_layer
 
 __all__ = ["build_parser", "main", "parse_args"]
 
@@ -60,8 +60,8 @@ __all__ = ["build_parser", "main", "parse_args"]
 def build_parser() -> argparse.ArgumentParser:
     from fojax import fractional, scenarios
     from fojax.controllers import SWITCHING_FUNCTIONS, registry
-    from optimize import cost, params
-    from optimize.tuner import TunerConfig
+    from fojax.optimize import cost, params
+    from fojax.optimize.tuner import TunerConfig
 
     defaults = cost.CostConfig()
     tuner = TunerConfig()
@@ -217,7 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _initial_gains(parser, args, dtype):
     from fojax.controllers import gains_io, registry
-    from optimize import params
+    from fojax.optimize import params
 
     if args.init == "paper":
         return registry.get_controller_class(args.controller).default_gains(dtype), "paper"
@@ -293,7 +293,7 @@ def _options_that_do_not_apply(args) -> str | None:
 
 def _defaults(args) -> None:
     """The defaults of the options left out (None in ``args`` until checked)."""
-    from optimize import cost, tuner
+    from fojax.optimize import cost, tuner
 
     defaults, config = cost.CostConfig(), tuner.TunerConfig()
     for name, value in (
@@ -315,7 +315,7 @@ def parse_args(argv):
     """Parse and validate; returns ``(PreparedRun, args)``. Raises ``SystemExit`` with
     a message on bad input, before anything is compiled or written."""
     from fojax.controllers import registry
-    from optimize import cost, params, problem, tuner
+    from fojax.optimize import cost, params, problem, tuner
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -398,7 +398,7 @@ def parse_args(argv):
 def _evaluate(run, result, args) -> dict:
     import numpy as np
 
-    from optimize import problem as problem_lib
+    from fojax.optimize import problem as problem_lib
 
     horizon = args.eval_horizon or run.spec.horizon
     keys = result.problem.heldout_keys(args.eval_draws)
@@ -612,12 +612,12 @@ def _save_tuned_gains(run, record: dict, earlier: str | None) -> None:
 def _tuning_problem(run, device_batch=None):
     """The problem with its draws over every device of every process: per-draw
     gradients computed where the draws are, gathered, reduced the same way on each
-    process (:class:`optimize.problem.TuningProblem`'s ``mesh``), so that a run over
+    process (:class:`fojax.optimize.problem.TuningProblem`'s ``mesh``), so that a run over
     several processes takes the steps a one-process run takes."""
     import jax
 
     from fojax import sharding
-    from optimize import problem
+    from fojax.optimize import problem
 
     mesh = sharding.draw_mesh(jax.devices())
     return problem.TuningProblem(run.spec, run.init_gains, mesh=mesh, device_batch=device_batch)
@@ -629,7 +629,7 @@ def _private_copy(run):
     import shutil
     import tempfile
 
-    from optimize import tuner
+    from fojax.optimize import tuner
 
     folder = Path(tempfile.mkdtemp(prefix="fojax-tune-"))
     checkpoint = run.out / tuner.CHECKPOINT
@@ -641,7 +641,7 @@ def _private_copy(run):
 
 
 def main(argv=None) -> int:
-    from optimize import tuner
+    from fojax.optimize import tuner
 
     argv = list(sys.argv[1:] if argv is None else argv)
     runtime = arguments.setup_runtime(argv, "fojax tune")

@@ -1,9 +1,9 @@
 """``fojax reproduce``: the command line (argparse, validation, the run, the outputs).
 
-See :mod:`experiments.reproduce` for what it writes, :mod:`.claims` for the claims and
+See :mod:`fojax.cli.reproduce` for what it writes, :mod:`.claims` for the claims and
 the verdict rule, :mod:`.report` for the report.
 
-The studies (one :class:`experiments.simulate.Study` per scenario) are made, run and
+The studies (one :class:`fojax.cli.simulate.Study` per scenario) are made, run and
 summarised through :func:`_make_study`, :func:`_run_studies` and :func:`_write_outputs`
 only, the one place that knows where that layer lives.
 """
@@ -16,10 +16,10 @@ import sys
 import time
 from pathlib import Path
 
-from experiments import arguments, simulate
-from experiments.reproduce import claims as claims_module
-from experiments.reproduce.claims import BASELINE
-from experiments.reproduce.report import TABLE_METRICS, write_report
+from fojax.cli import arguments, simulate
+from fojax.cli.reproduce import claims as claims_module
+from fojax.cli.reproduce.claims import BASELINE
+from fojax.cli.reproduce.report import TABLE_METRICS, write_report
 
 __all__ = ["DEFAULT_DRAWS", "build_parser", "main", "parse_args"]
 
@@ -41,10 +41,10 @@ def _make_study(**fields) -> simulate.Study:
 
 
 def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce):
-    """Yields ``(study, results)`` scenario by scenario (:func:`experiments.study.run_studies`:
+    """Yields ``(study, results)`` scenario by scenario (:func:`fojax.cli.study.run_studies`:
     the next runs' programs compile while one runs; the scenarios run as members of one
     union, so each controller's program serves every scenario)."""
-    from experiments import study as study_layer
+    from fojax.cli import study as study_layer
 
     pairs = [(study, out / f"s{study.scenario_id}") for study in studies]
     yield from study_layer.run_studies(pairs, progress, overwrite, announce=announce)
@@ -62,7 +62,7 @@ def _write_outputs(study, results: dict, directory: Path) -> dict:
 
 def _draw_scenario(scenario_id: int, results: dict, directory: str) -> list[str]:
     """Figs. of one scenario (run in the figure process)."""
-    from experiments import paper_figures
+    from fojax.cli.reproduce import figures as paper_figures
 
     return [str(p) for p in paper_figures.plot_all({scenario_id: results}, Path(directory))]
 
@@ -97,7 +97,7 @@ class _FigureDrawer:
         )
 
     def finish(self) -> list[Path]:
-        from experiments import paper_figures
+        from fojax.cli.reproduce import figures as paper_figures
 
         if self.progress:
             print("figures ...", file=sys.stderr, flush=True)
@@ -196,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def parse_args(argv) -> tuple[list, argparse.Namespace]:
-    """One validated :class:`experiments.simulate.Study` per scenario; exits on bad input."""
+    """One validated :class:`fojax.cli.simulate.Study` per scenario; exits on bad input."""
     from fojax import scenarios
     from fojax.controllers import registry
 

@@ -274,7 +274,7 @@ def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None
 
 def _mesh():
     """Every device of every process (GPUs, or one CPU device per core: see
-    :func:`experiments.arguments.use_host_devices`), or None for one device."""
+    :func:`fojax.cli.arguments.use_host_devices`), or None for one device."""
     import jax
 
     from fojax import sharding
@@ -857,8 +857,8 @@ def write_outputs(
     if trajectories:
         _savez(out / "trajectories.npz", trajectories)
     if figures and trajectories:
-        from experiments import figures as figs
-        from experiments import style
+        from fojax.cli import figures as figs
+        from fojax.cli import style
 
         applied = options_applied_to(study)
         parts = [f"scenario {study.scenario_id}"]
