@@ -62,6 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fojax.cli import output
 from fojax.cli.reproduce import claims as claims_module
 
 __all__ = [
@@ -844,7 +845,7 @@ def main(argv=None) -> int:
             "command": "python -m experiments.sensitivity " + " ".join(argv),
         }
     )
-    history_path.write_text(json.dumps(history, indent=1) + "\n")
+    output.write_json(history_path, history)
     from experiments import sensitivity_report
 
     meta = {

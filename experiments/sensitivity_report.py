@@ -8,12 +8,12 @@ written by hand and kept; a new document gets a stub above it).
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
+from fojax.cli import output
 from fojax.cli.reproduce import claims as claims_module
 from fojax.cli.reproduce.report import format_number as _fmt
 
@@ -581,7 +581,7 @@ def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, result
         "precision": precision,
         "evaluated": _json_ready(evaluated),
     }
-    (out / "report.json").write_text(json.dumps(data, indent=1, default=str) + "\n")
+    output.write_json(out / "report.json", data)
     if doc is not None:
         doc.parent.mkdir(parents=True, exist_ok=True)
     figure = (doc.parent / doc.stem if doc is not None else out / "sensitivity").with_suffix(".png")
@@ -592,13 +592,10 @@ def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, result
     if doc is None:
         return out / "report.md"
     body = text.split("\n", 1)[1].lstrip("\n")  # the document keeps its own title
-    if doc.exists() and MARKER in doc.read_text():
-        head = doc.read_text()
-        head = head[: head.index(MARKER) + len(MARKER)]
-    else:
-        head = (
+    if not (doc.exists() and MARKER in doc.read_text()):
+        doc.write_text(
             "# Sensitivity of the Section V verdicts to the modelling choices\n\n"
             "(Reading of the run: to be written by hand above the marker.)\n\n" + MARKER
         )
-    doc.write_text(head + "\n\n" + body)
+    output.splice(doc, body, marker=MARKER)
     return doc

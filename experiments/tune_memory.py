@@ -23,6 +23,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from fojax.cli import output
+
 CHILD = r"""
 import json, resource, sys, time
 import jax, jax.numpy as jnp
@@ -96,7 +98,7 @@ def main(argv=None) -> int:
     previous = json.loads(path.read_text()) if path.exists() else []
     keep = {(r["horizon_s"], r["draws"], r["save_every"]) for r in rows}
     merged = [r for r in previous if (r["horizon_s"], r["draws"], r["save_every"]) not in keep]
-    path.write_text(json.dumps(merged + rows, indent=1) + "\n")
+    output.write_json(path, merged + rows)
     return 0
 
 

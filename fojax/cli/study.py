@@ -4,29 +4,25 @@ writing its outputs, and what every output records to be rerun exactly.
 * :class:`Study`, :func:`run_study`, :func:`write_outputs`: one scenario under one or
   several controllers on the same draws (``fojax simulate``; ``fojax reproduce`` runs
   one per scenario).
-* :func:`provenance`: the command line, versions (fojax and its git commit, Python,
-  JAX, jaxlib, NumPy), backend and device and process counts; :func:`gains_record`:
-  the gains' values and where they came from. ``fojax simulate``, ``tune`` and
-  ``bench`` store both with their results.
+* :func:`provenance` (:mod:`fojax.cli.output`): the command line, versions (fojax and
+  its git commit, Python, JAX, jaxlib, NumPy), backend and device and process counts;
+  :func:`gains_record`: the gains' values and where they came from. ``fojax
+  simulate``, ``tune`` and ``bench`` store both with their results.
 * :func:`store_differences`: the settings in which a run differs from the one whose
   chunks are already in the output folder, field by field, before anything runs.
-* :func:`write_json`: atomic JSON files (a run stopped while writing leaves the old
-  file or the new one, never half of one).
+* :func:`write_json` (:mod:`fojax.cli.output`): atomic JSON files.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import json
 import os
-import platform
-import shlex
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any, NamedTuple
+
+from fojax.cli.output import provenance, write_json
 
 __all__ = [
     "Study",
@@ -91,101 +87,15 @@ def snapshot_interval(steps: int, dt: float, target: float = 0.1) -> int:
 # ------------------------------------------------------------------------- provenance
 
 
-def _git_commit(root: Path) -> dict:
-    """``{"commit", "dirty"}`` of the checkout holding fojax, or ``{}`` (not one)."""
-    if not (root / ".git").exists():
-        return {}
-    try:
-        commit = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-        if commit.returncode != 0:
-            return {}
-        status = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-        dirty = bool(status.stdout.strip()) if status.returncode == 0 else None
-        return {"commit": commit.stdout.strip(), "dirty": dirty}
-    except (OSError, subprocess.SubprocessError):
-        return {}
-
-
-def _version(package: str) -> str | None:
-    from importlib import metadata
-
-    try:
-        return metadata.version(package)
-    except metadata.PackageNotFoundError:
-        return None
-
-
-def provenance(command: list[str] | None = None, gains: dict | None = None) -> dict:
-    """What a result needs to be rerun exactly.
-
-    command: the command line as a list (``["fojax", "simulate", ...]``; default
-    ``sys.argv``). gains: optional, recorded as given (see :func:`gains_record`).
-    Returns the command (quoted for a shell) and the folder it ran in, the fojax
-    version and git commit (``dirty``: uncommitted changes to tracked files), the
-    Python, JAX, jaxlib and NumPy versions, the backend, the device and process counts
-    and devices (the draws are split over the devices, and a draw's float32 rounding
-    depends on the batch it runs in), ``jax_enable_x64``, ``XLA_FLAGS``, the platform
-    and the time (UTC).
-    """
-    import jax
-    import numpy as np
-
-    import fojax
-
-    command = list(sys.argv if command is None else command)
-    record: dict[str, Any] = {
-        "command": shlex.join(command),
-        "working_directory": os.getcwd(),
-        "fojax_version": _version("fojax") or getattr(fojax, "__version__", None),
-        "fojax_git": _git_commit(Path(fojax.__file__).resolve().parent.parent) or None,
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "jaxlib": _version("jaxlib"),
-        "numpy": np.__version__,
-        "backend": jax.default_backend(),
-        "device_count": jax.device_count(),
-        "local_device_count": jax.local_device_count(),
-        "process_count": jax.process_count(),
-        "devices": [str(d) for d in jax.local_devices()],
-        "jax_enable_x64": bool(jax.config.jax_enable_x64),
-        "xla_flags": os.environ.get("XLA_FLAGS") or None,
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-    }
-    if gains is not None:
-        record["gains"] = gains
-    return record
-
-
 def gains_record(gains, source: str | os.PathLike | None) -> dict:
     """``{"source": absolute file path or "defaults", "values": {field: value}}``: the
     values as the run used them (after the cast to its dtype)."""
-    import numpy as np
+    from fojax.controllers import gains_io
 
     return {
         "source": str(Path(source).resolve()) if source is not None else "defaults",
-        "values": {name: np.asarray(value).tolist() for name, value in gains._asdict().items()},
+        "values": gains_io.gains_to_dict(gains),
     }
-
-
-def write_json(path: Path, document: dict) -> Path:
-    """``path`` holding ``document`` (indented JSON), written atomically."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(document, indent=1, default=str) + "\n")
-    os.replace(tmp, path)
-    return path
 
 
 # ---------------------------------------------------------------------- the chunk store
@@ -382,12 +292,9 @@ def union_enabled() -> bool:
 def _union_key(study: Study):
     """What studies must share (all but the scenario, horizon, draws, seed and keep)
     to run as members of one union with one program per controller."""
-    import numpy as np
+    from fojax.controllers import gains_io
 
-    gains = {
-        name: {field: np.asarray(v).tolist() for field, v in g._asdict().items()}
-        for name, g in study.gains.items()
-    }
+    gains = {name: gains_io.gains_to_dict(g) for name, g in study.gains.items()}
     band = study.reaching_band
     return (
         tuple(study.controllers),

@@ -11,12 +11,11 @@ only, the one place that knows where that layer lives.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
-from fojax.cli import arguments, simulate
+from fojax.cli import arguments, output, simulate
 from fojax.cli.reproduce import claims as claims_module
 from fojax.cli.reproduce.claims import BASELINE
 from fojax.cli.reproduce.report import TABLE_METRICS, write_report
@@ -53,7 +52,7 @@ def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce):
 def _write_outputs(study, results: dict, directory: Path) -> dict:
     summary = simulate.write_outputs(study, results, directory, figures=False)
     summary["reaching_band"] = list(study.reaching_band)
-    (directory / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    output.write_json(directory / "summary.json", summary)
     return summary
 
 

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
+from fojax.cli import output
 from fojax.cli.reproduce import claims as claims_module
 from fojax.cli.reproduce.claims import BASELINE, CHATTER_THRESHOLD
 
@@ -362,7 +362,7 @@ def write_report(
         "figures": [p.name for p in figures],
     }
     report_json = out / "report.json"
-    report_json.write_text(json.dumps(document, indent=1, default=_json_default) + "\n")
+    output.write_json(report_json, document, default=_json_default)
     return report_md, report_json
 
 
