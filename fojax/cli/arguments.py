@@ -32,6 +32,7 @@ __all__ = [
     "seed",
     "add_device_batch",
     "add_runtime_options",
+    "add_study_options",
     "compile_cache_dir",
     "default_cache_dir",
     "enable_compile_cache",
@@ -367,6 +368,20 @@ def add_device_batch(parser: argparse.ArgumentParser) -> None:
         replacement="draws are computed in blocks of --device-batch draws per device "
         "(default 50 on a CPU); give --device-batch N",
     )
+
+
+def add_study_options(parser: argparse.ArgumentParser, keep: int, keep_help: str) -> None:
+    """The options of a command that runs Monte Carlo studies into a folder
+    (``simulate``, ``reproduce``): ``--device-batch``, ``--keep`` (default ``keep``),
+    ``--dtype``, ``--no-figures``, ``--overwrite`` and ``--quiet``."""
+    add_device_batch(parser)
+    parser.add_argument("--keep", type=nonnegative_int, default=keep, help=keep_help)
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument("--no-figures", action="store_true", help="skip the figures")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="discard chunks of an earlier run in DIR/chunks"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress display")
 
 
 def add_runtime_options(parser: argparse.ArgumentParser, distributed: bool = True) -> None:

@@ -95,19 +95,11 @@ def build_parser() -> argparse.ArgumentParser:
         "sign, the paper's). With one controller that has none, an error; with several, "
         "the summary says which it applied to",
     )
-    arguments.add_device_batch(parser)
-    parser.add_argument(
-        "--keep",
-        type=arguments.nonnegative_int,
-        default=64,
-        help="draws whose trajectories are kept for figures (64; 0: no trajectories, no figures)",
+    arguments.add_study_options(
+        parser,
+        64,
+        "draws whose trajectories are kept for figures (64; 0: no trajectories, no figures)",
     )
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--no-figures", action="store_true", help="skip the figures")
-    parser.add_argument(
-        "--overwrite", action="store_true", help="discard chunks of an earlier run in DIR/chunks"
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress display")
     parser.add_argument(
         "--out",
         required=True,

@@ -177,19 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulated time (s) for every scenario (default: each scenario's, 80/80/50 s)",
     )
     parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s")
-    arguments.add_device_batch(parser)
-    parser.add_argument(
-        "--keep",
-        type=arguments.nonnegative_int,
-        default=32,
-        help="draws whose trajectories are kept for the figures (32)",
+    arguments.add_study_options(
+        parser, 32, "draws whose trajectories are kept for the figures (32)"
     )
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--no-figures", action="store_true", help="skip the figures")
-    parser.add_argument(
-        "--overwrite", action="store_true", help="discard finished chunks of an earlier run"
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress display")
     arguments.add_runtime_options(parser)
     return parser
 
