@@ -47,7 +47,8 @@ import time
 from pathlib import Path
 
 from fojax.cli import arguments
-from fojax.cli.study import Study, run_study, snapshot_interval, write_outputs
+from fojax.cli.study import Study, run_study, snapshot_interval
+from fojax.cli.study_files import write_outputs
 
 __all__ = ["Study", "main", "parse_args", "run_study", "snapshot_interval", "write_outputs"]
 
