@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from fojax.cli.output import provenance, write_json
+from fojax.study import StoreMismatch
 
 __all__ = [
     "Study",
@@ -100,18 +101,6 @@ def gains_record(gains, source: str | os.PathLike | None) -> dict:
 # ---------------------------------------------------------------------- the chunk store
 
 
-class StoreMismatch(ValueError):
-    """The output folder holds draws of a run with other settings.
-
-    stores: ``[(folder, [(field, earlier, now), ...]), ...]``, the settings that differ
-    per store (:func:`fojax.study.fingerprint_differences`).
-    """
-
-    def __init__(self, message: str, stores: list | None = None):
-        super().__init__(message)
-        self.stores = list(stores or [])
-
-
 _FLAGS = {
     "seed": "--seed",
     "dtype": "--dtype",
@@ -158,10 +147,9 @@ def _fingerprint(controller, gains, scenario, config, study: Study, dtype, membe
     )
 
 
-def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None:
-    """How ``fingerprint`` differs from the one of the draws in ``store``: one line per
-    field, naming the option that sets it (``[]``: the same settings; None: nothing
-    stored there to compare)."""
+def _differences(store: Path, fingerprint: dict | None) -> list[tuple] | None:
+    """``[(field, earlier, now), ...]`` where ``fingerprint`` differs from the one of the
+    draws in ``store`` (``[]``: the same settings; None: nothing stored there)."""
     from fojax import study as monte_carlo
     from fojax.study import _store
 
@@ -171,14 +159,23 @@ def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None
     try:
         stored = json.loads(manifest.read_text())
     except (OSError, ValueError):
-        return [f"{manifest} cannot be read"]
+        return [("manifest.json", "cannot be read", "readable")]
     if not isinstance(stored, dict) or not isinstance(stored.get("fingerprint"), dict):
-        return [f"{manifest} holds no settings"]
+        return [("manifest.json", "no settings", "settings")]
     earlier = dict(stored["fingerprint"])
     earlier.setdefault("store_format", 1)
     current = {"store_format": _store.STORE_FORMAT, **fingerprint}
-    differences = monte_carlo.fingerprint_differences(earlier, current)
-    return _store.describe_differences(differences, _flag)
+    return monte_carlo.fingerprint_differences(earlier, current)
+
+
+def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None:
+    """How ``fingerprint`` differs from the one of the draws in ``store``: one line per
+    field, naming the option that sets it (``[]``: the same settings; None: nothing
+    stored there to compare)."""
+    from fojax.study import _store
+
+    differences = _differences(store, fingerprint)
+    return None if differences is None else _store.describe_differences(differences, _flag)
 
 
 def _mesh():
@@ -250,18 +247,16 @@ def check_stores(study: Study, out: Path, union: UnionMember | None = None) -> N
     for name, (controller, gains) in runs.items():
         store = Path(out) / "chunks" / name
         fingerprint = _fingerprint(controller, gains, scenario, config, study, dtype, member)
-        lines = store_differences(store, fingerprint)
-        if lines:
-            problems.append((store, lines))
+        differences = _differences(store, fingerprint)
+        if differences:
+            problems.append((store, differences))
     if problems:
-        text = "\n".join(
-            f"{store} holds draws of an earlier run that differs in:\n  " + "\n  ".join(lines)
-            for store, lines in problems
-        )
         raise StoreMismatch(
-            f"{text}\nto start afresh, add --overwrite (discards those draws), or choose "
+            *problems[0],
+            stores=problems,
+            hint=_flag,
+            advice="to start afresh, add --overwrite (discards those draws), or choose "
             "another --out",
-            problems,
         )
 
 
