@@ -57,35 +57,6 @@ def fingerprint(spec, config, init_label: str, init_gains) -> dict:
     }
 
 
-def _differences(stored: Any, current: Any, path: str = "") -> list[str]:
-    if isinstance(stored, dict) and isinstance(current, dict):
-        out = []
-        for key in sorted(set(stored) | set(current)):
-            where = f"{path}.{key}" if path else str(key)
-            if key not in stored:
-                out.append(f"{where}: not in the checkpoint, now {current[key]!r}")
-            elif key not in current:
-                out.append(f"{where}: {stored[key]!r} in the checkpoint, now absent")
-            else:
-                out.extend(_differences(stored[key], current[key], where))
-        return out
-    if isinstance(stored, list | tuple) and isinstance(current, list | tuple):
-        if list(stored) == list(current):
-            return []
-        if len(stored) == len(current) and all(not isinstance(s, dict) for s in stored):
-            if all(not isinstance(s, list) for s in stored):
-                return [f"{path}: checkpoint {list(stored)!r}, now {list(current)!r}"]
-        return [f"{path}: checkpoint {_short(stored)}, now {_short(current)}"]
-    if stored != current:
-        return [f"{path}: checkpoint {stored!r}, now {current!r}"]
-    return []
-
-
-def _short(value: Any) -> str:
-    text = json.dumps(value)
-    return text if len(text) <= 120 else text[:117] + "..."
-
-
 def _canonical(document: Any) -> Any:
     """JSON round trip, so that tuples and lists compare equal."""
     return json.loads(json.dumps(document))

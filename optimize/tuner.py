@@ -63,7 +63,6 @@ from fojax.optimize import lbfgs as lbfgs_lib
 from fojax.optimize.checkpoint import (
     HISTORY_COLUMNS,
     _canonical,
-    _differences,
     _load_state,
     _read_meta,
     _save_checkpoint,
@@ -71,6 +70,7 @@ from fojax.optimize.checkpoint import (
     write_history,
 )
 from fojax.optimize.problem import VALIDATION_OFFSET, ProblemSpec, TuningProblem
+from fojax.study import describe_differences, fingerprint_differences
 
 __all__ = [
     "CHECKPOINT",
@@ -241,7 +241,10 @@ def prepare(
             if not checkpoint.exists():
                 raise ValueError(f"nothing to resume: {checkpoint} does not exist")
             meta = _read_meta(checkpoint)
-            differences = _differences(meta.get("fingerprint"), current)
+            differences = describe_differences(
+                fingerprint_differences(meta.get("fingerprint") or {}, current),
+                earlier="checkpoint",
+            )
             if differences:
                 raise ValueError(
                     f"{checkpoint} was written by another configuration; it differs in:\n  "

@@ -319,7 +319,7 @@ def test_failed_starts_never_write_or_overwrite(tmp_path):
             out,
             resume=True,
         )
-    with pytest.raises(ValueError, match=r"init: checkpoint 'naive', now 'paper'"):
+    with pytest.raises(ValueError, match=r'init: checkpoint "naive", now "paper"'):
         tuner_lib.prepare(SPEC, config, paper_gains(jnp.float64), "paper", out, resume=True)
     assert checkpoint.read_bytes() == before and os.stat(checkpoint).st_mtime_ns == stamp
     assert sorted(p.name for p in out.iterdir()) == [tuner_lib.CHECKPOINT]

@@ -92,14 +92,15 @@ def _short(value: Any, width: int = 60) -> str:
 
 
 def describe_differences(
-    differences: list[tuple[str, Any, Any]], hint=lambda field: ""
+    differences: list[tuple[str, Any, Any]], hint=lambda field: "", earlier: str = "earlier"
 ) -> list[str]:
-    """One line per difference: ``field (hint): earlier X, now Y``."""
+    """One line per difference: ``field (hint): earlier X, now Y`` (``earlier``: what
+    the stored side is called)."""
     lines = []
     for field, old, new in differences:
         extra = hint(field)
         lines.append(
-            f"{field}{f' ({extra})' if extra else ''}: earlier {_short(old)}, now {_short(new)}"
+            f"{field}{f' ({extra})' if extra else ''}: {earlier} {_short(old)}, now {_short(new)}"
         )
     return lines
 
