@@ -1,1 +1,2 @@
-"""Studies, figures and benchmarks built on fojax and optimize."""
+"""Studies, figures and benchmarks built on fojax, run from a clone:
+``python -m experiments.NAME`` (not installed)."""

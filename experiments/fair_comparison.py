@@ -9,7 +9,7 @@ The paper compares its AFONFTSMC, tuned with MATLAB's optimisation toolbox, agai
 baselines whose gains are not published. Here every registered controller starts from
 its documented default gains (``docs/model.md``) and gets the same gradient tuning:
 the same problem (scenario ``--scenario``, ``--horizon`` s, the cost of
-:mod:`optimize.cost` with the ``fojax tune`` defaults, the same minibatch draws: common
+:mod:`fojax.optimize.cost` with the ``fojax tune`` defaults, the same minibatch draws: common
 random numbers), the same budget (``--steps`` steps of ``--draws`` draws) and the same
 tuner settings. Then default and tuned gains of every controller are evaluated with
 ``sat`` switching (the gains' boundary layers) on the same ``--eval-draws`` held-out
@@ -27,20 +27,19 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from experiments import arguments
+from fojax.cli import arguments, output
 
 __all__ = ["main", "table"]
 
 BASELINE = "afonftsmc"
 TERMS = ("position", "attitude", "effort", "chattering")
-"""The cost's terms, in the order of :class:`optimize.cost.DrawCosts` ``terms``."""
+"""The cost's terms, in the order of :class:`fojax.optimize.cost.DrawCosts` ``terms``."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -126,11 +125,6 @@ def parse_args(argv) -> argparse.Namespace:
     return args
 
 
-def _log(args, text: str) -> None:
-    if not args.quiet:
-        print(text, file=sys.stderr, flush=True)
-
-
 def main(argv=None) -> int:
     args = parse_args(argv)
     if args.dtype == "float64":
@@ -140,10 +134,10 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
 
     from fojax import scenarios, statistics
-    from fojax.controllers import registry
-    from optimize import params as params_lib
-    from optimize import problem as problem_lib
-    from optimize import tuner as tuner_lib
+    from fojax.controllers import gains_io, registry
+    from fojax.optimize import params as params_lib
+    from fojax.optimize import problem as problem_lib
+    from fojax.optimize import tuner as tuner_lib
 
     start_all = time.perf_counter()
     dtype = jnp.dtype(args.dtype)
@@ -169,8 +163,8 @@ def main(argv=None) -> int:
         run_dir = out / "tuning" / name
         resume = (run_dir / tuner_lib.CHECKPOINT).exists()
         run = tuner_lib.prepare(spec, config, defaults, "default", run_dir, resume=resume)
-        _log(
-            args,
+        output.log(
+            args.quiet,
             f"[{index}/{len(args.controllers)}] tuning {name}: {config.steps} steps x "
             f"{spec.draws} draws x {spec.horizon:g} s" + (" (resumed)" if resume else ""),
         )
@@ -230,7 +224,7 @@ def main(argv=None) -> int:
                 )
             entry["controllers"][name] = record
         evaluation[label] = entry
-        _log(args, f"evaluated {label} ({time.perf_counter() - t0:.0f} s)")
+        output.log(args.quiet, f"evaluated {label} ({time.perf_counter() - t0:.0f} s)")
 
     results = {
         "problem": {
@@ -247,29 +241,23 @@ def main(argv=None) -> int:
         "tuning": tuning,
         "evaluation": evaluation,
         "gains": {
-            name: {
-                which: {k: np.asarray(v).tolist() for k, v in g._asdict().items()}
-                for which, g in sets.items()
-            }
+            name: {which: gains_io.gains_to_dict(g) for which, g in sets.items()}
             for name, sets in gain_sets.items()
         },
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
     }
-    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    output.write_json(out / "results.json", results)
     text = table(results)
     (out / "table.md").write_text(text + "\n")
     if args.update_doc is not None:
-        from experiments.remark3 import replace_block
-        from experiments.tuning_study import commit_label, run_context
-
-        context = run_context(["python", "-m", "experiments.fair_comparison", *(argv or [])])
+        context = output.run_context(["python", "-m", "experiments.fair_comparison", *(argv or [])])
         head = (
-            f"Run: `{context['command']}`; commit {commit_label(context)}, "
+            f"Run: `{context['command']}`; commit {output.commit_label(context)}, "
             f"{context.get('cpu_model')}, load average {context['load_average'][0]} at the end; "
             f"{results['total_wall_time_s']:.0f} s in all (tuning resumed from checkpoints "
             "counts only the steps this invocation ran)."
         )
-        replace_block(args.update_doc, "fair-comparison", head + "\n\n" + text)
+        output.splice(args.update_doc, head + "\n\n" + text, name="fair-comparison")
     print(text)
     print(f"wrote {out}/results.json, table.md ({results['total_wall_time_s']:.0f} s in all)")
     return 0

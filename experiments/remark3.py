@@ -6,14 +6,14 @@ authors would have set, and where does gradient tuning from a naive start land?
 
 The paper (Remark 3) chose its AFONFTSMC gains "using MATLAB optimization toolbox"
 without giving the objective. The one such a user would have set: the integral of the
-squared position and attitude errors (ISE, ``J = P + A`` of :mod:`optimize.cost` with
+squared position and attitude errors (ISE, ``J = P + A`` of :mod:`fojax.optimize.cost` with
 ``w_effort = w_chattering = 0``) on the nominal run of scenario 1: the reference
 (54)-(55) and the deterministic disturbances (53) with the nominal drag (no random
 variation: one deterministic run), over the scenario's 80 s, float64. Switching: the
 boundary layer ``sat`` of the evaluation (the paper's ``sgn`` has no useful gradient;
 its cost is reported beside). Parameters: the tuner's 33 (``share="paper"``: x = y,
 z, phi = theta = psi; ``p/q``, ``phi``, the orders and the adaptation rates
-included), unconstrained as in :mod:`optimize.params` (log or logit of each gain).
+included), unconstrained as in :mod:`fojax.optimize.params` (log or logit of each gain).
 
 1. At the paper's gains: ``J``, the gradient with respect to the unconstrained
    parameters (per field; a unit step in a log-mapped parameter is a relative change
@@ -21,9 +21,9 @@ included), unconstrained as in :mod:`optimize.params` (log or logit of each gain
    reverse pass), and ``J`` along the negative gradient at several step lengths.
 2. L-BFGS (SciPy ``L-BFGS-B`` with the reverse-mode gradient, ``u`` in
    ``[-U_MAX, U_MAX]``) for ``--iterations`` iterations from the naive start
-   (:func:`optimize.params.naive_gains`) and from the paper's gains.
+   (:func:`fojax.optimize.params.naive_gains`) and from the paper's gains.
 3. Field by field: naive, paper, tuned-from-naive, tuned-from-paper gains, with
-   ``J``, ``P``, ``A`` and the effort and chattering terms of :mod:`optimize.cost`.
+   ``J``, ``P``, ``A`` and the effort and chattering terms of :mod:`fojax.optimize.cost`.
 
 Writes ``results.json`` and ``table.md`` to ``--out``; ``--update-doc FILE`` replaces
 the block between ``<!-- remark3:begin -->`` and ``<!-- remark3:end -->`` in FILE.
@@ -33,13 +33,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from fojax.cli import output
 
 __all__ = ["main"]
 
@@ -48,7 +48,7 @@ STEPS_ALONG = (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from experiments import arguments
+    from fojax.cli import arguments
 
     parser = argparse.ArgumentParser(prog="python -m experiments.remark3")
     parser.add_argument("--horizon", type=arguments.positive_float, default=80.0)
@@ -61,25 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _log(args, text: str) -> None:
-    if not args.quiet:
-        print(text, file=sys.stderr, flush=True)
-
-
 def nominal_scenario_1():
     """Scenario 1 without its random drag variation: one deterministic run."""
     from fojax import scenarios
 
     return dataclasses.replace(scenarios.get_scenario(1), drag_variation=0.0)
-
-
-def _git_commit() -> str | None:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
 
 
 def main(argv=None) -> int:
@@ -93,11 +79,11 @@ def main(argv=None) -> int:
     from scipy import optimize as scipy_optimize
 
     from fojax import plant, scenarios, simulator
-    from fojax.controllers import registry
+    from fojax.controllers import gains_io, registry
     from fojax.controllers.afonftsmc import paper_gains
-    from optimize import cost as cost_lib
-    from optimize import params as params_lib
-    from optimize import problem as problem_lib
+    from fojax.optimize import cost as cost_lib
+    from fojax.optimize import params as params_lib
+    from fojax.optimize import problem as problem_lib
 
     start_all = time.perf_counter()
     dtype = jnp.float64
@@ -169,7 +155,9 @@ def main(argv=None) -> int:
     gradient_s = time.perf_counter() - t0
     norm = float(np.linalg.norm(grad))
     direction = -grad / norm
-    _log(args, f"paper: J = {float(j_paper):.6g}, |grad| = {norm:.4g} ({gradient_s:.1f} s)")
+    output.log(
+        args.quiet, f"paper: J = {float(j_paper):.6g}, |grad| = {norm:.4g} ({gradient_s:.1f} s)"
+    )
     h = 1e-5
     plus = float(value(jnp.asarray(x_paper + h * direction))[0])
     minus = float(value(jnp.asarray(x_paper - h * direction))[0])
@@ -206,7 +194,7 @@ def main(argv=None) -> int:
                     "wall_time_s": round(time.perf_counter() - t_start, 1),
                 }
             )
-            _log(args, f"  {label}: iteration {len(trace)}, J = {j:.6g}")
+            output.log(args.quiet, f"  {label}: iteration {len(trace)}, J = {j:.6g}")
 
         bound = params_lib.U_MAX
         result = scipy_optimize.minimize(
@@ -220,9 +208,9 @@ def main(argv=None) -> int:
         )
         return np.asarray(result.x), trace, str(result.message)
 
-    _log(args, f"L-BFGS from the naive start ({args.iterations} iterations)")
+    output.log(args.quiet, f"L-BFGS from the naive start ({args.iterations} iterations)")
     x_from_naive, trace_naive, message_naive = lbfgs(vector_of(naive), "naive")
-    _log(args, f"L-BFGS from the paper's gains ({args.iterations} iterations)")
+    output.log(args.quiet, f"L-BFGS from the paper's gains ({args.iterations} iterations)")
     x_from_paper, trace_paper, message_paper = lbfgs(x_paper, "paper")
 
     gain_sets = {
@@ -253,22 +241,19 @@ def main(argv=None) -> int:
             "from paper": {"trace": trace_paper, "message": message_paper},
         },
         "costs": {name: describe(g) for name, g in gain_sets.items()},
-        "gains": {
-            name: {k: np.asarray(v).tolist() for k, v in g._asdict().items()}
-            for name, g in gain_sets.items()
-        },
+        "gains": {name: gains_io.gains_to_dict(g) for name, g in gain_sets.items()},
         "compile_time_s": round(compile_s, 1),
         "gradient_time_s": round(gradient_s, 2),
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
-        "git_commit": _git_commit(),
+        "git_commit": output.git_commit().get("commit"),
     }
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    output.write_json(out / "results.json", results)
     text = table(results)
     (out / "table.md").write_text(text + "\n")
     if args.update_doc is not None:
-        replace_block(args.update_doc, "remark3", text)
+        output.splice(args.update_doc, text, name="remark3")
     print(text)
     print(f"wrote {out}/results.json, table.md ({results['total_wall_time_s']:.0f} s in all)")
     return 0
@@ -359,18 +344,6 @@ def table(results: dict) -> str:
         f"{results['compile_time_s']:.0f} s).",
     ]
     return "\n".join(lines)
-
-
-def replace_block(path: Path, name: str, text: str) -> None:
-    """Replace the text between ``<!-- name:begin -->`` and ``<!-- name:end -->``."""
-    path = Path(path)
-    document = path.read_text()
-    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
-    if begin not in document or end not in document:
-        raise ValueError(f"{path} has no {begin} ... {end} block")
-    head, rest = document.split(begin, 1)
-    _, tail = rest.split(end, 1)
-    path.write_text(f"{head}{begin}\n{text}\n{end}{tail}")
 
 
 if __name__ == "__main__":

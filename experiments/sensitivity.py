@@ -6,7 +6,7 @@
                                       [--tuned-gains FILE] [--tune-steps 20] [--tune-draws 8]
                                       [--tune-horizon 5] [--quiet]
 
-The claims of ``fojax reproduce`` (:mod:`experiments.reproduce.claims`: the same
+The claims of ``fojax reproduce`` (:mod:`fojax.cli.reproduce.claims`: the same
 claim map, margins, Holm correction and four outcomes) are decided again while each
 open modelling choice is moved away from the default, one at a time (:data:`SETTINGS`):
 the step, the thrust guard of eq. (13), the command filter's bandwidth, the fractional
@@ -62,7 +62,8 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.reproduce import claims as claims_module
+from fojax.cli import output
+from fojax.cli.reproduce import claims as claims_module
 
 __all__ = [
     "SETTINGS",
@@ -372,7 +373,7 @@ def load_tuned(path: Path) -> dict:
 
 
 def reaching_band(dt: float) -> tuple:
-    """:func:`experiments.reproduce.claims.reaching_band` from the AFONFTSMC's default
+    """:func:`fojax.cli.reproduce.claims.reaching_band` from the AFONFTSMC's default
     gains in float64 (NumPy), the same band in every process, float32 or float64."""
     from fojax.controllers import registry
 
@@ -640,7 +641,7 @@ def evaluate(plan: Plan, results: dict) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from experiments import arguments
+    from fojax.cli import arguments
 
     parser = argparse.ArgumentParser(
         prog="python -m experiments.sensitivity",
@@ -844,7 +845,7 @@ def main(argv=None) -> int:
             "command": "python -m experiments.sensitivity " + " ".join(argv),
         }
     )
-    history_path.write_text(json.dumps(history, indent=1) + "\n")
+    output.write_json(history_path, history)
     from experiments import sensitivity_report
 
     meta = {

@@ -8,14 +8,14 @@ written by hand and kept; a new document gets a stub above it).
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from experiments.reproduce import claims as claims_module
-from experiments.reproduce.report import format_number as _fmt
+from fojax.cli import output
+from fojax.cli.reproduce import claims as claims_module
+from fojax.cli.reproduce.report import format_number as _fmt
 
 __all__ = ["MARKER", "PRECISION_METRICS", "TRUST_FRACTION", "precision_table", "write"]
 
@@ -196,7 +196,7 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     verdict differs from its reference setting's."""
     from matplotlib.patches import Patch, Rectangle
 
-    from experiments import style
+    from fojax.cli import style
 
     plt = style.pyplot()
     settings = list(plan.settings)
@@ -508,7 +508,7 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
         f"common random numbers) over {meta['horizon_s']:g} s in every scenario, against "
         "100 draws over 80/80/50 s in `fojax reproduce`; the 0.1 ms step runs the first "
         f"{meta['dt_draws']} draws and is compared with the default on those draws. Verdicts "
-        "come from the rule of `fojax reproduce` (`experiments/reproduce/claims.py`: margins, "
+        "come from the rule of `fojax reproduce` (`fojax/cli/reproduce/claims.py`: margins, "
         "Holm, four outcomes), with its margins and reaching band (2 (h1 + mu) dt per axis) "
         "for this horizon and step. Every setting changes one choice of the default (paper "
         "gains for the AFONFTSMC, ours for the others, `sgn`, sum-of-exponentials "
@@ -565,7 +565,7 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
 def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, results: dict) -> Path:
     """``OUT/report.json``, ``OUT/report.md`` and the figure; ``doc`` updated below its
     marker (created with a stub above it if new). Returns the Markdown written last."""
-    from experiments import style
+    from fojax.cli import style
 
     out = Path(out)
     precision = precision_table(plan, results)
@@ -581,7 +581,7 @@ def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, result
         "precision": precision,
         "evaluated": _json_ready(evaluated),
     }
-    (out / "report.json").write_text(json.dumps(data, indent=1, default=str) + "\n")
+    output.write_json(out / "report.json", data)
     if doc is not None:
         doc.parent.mkdir(parents=True, exist_ok=True)
     figure = (doc.parent / doc.stem if doc is not None else out / "sensitivity").with_suffix(".png")
@@ -592,13 +592,10 @@ def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, result
     if doc is None:
         return out / "report.md"
     body = text.split("\n", 1)[1].lstrip("\n")  # the document keeps its own title
-    if doc.exists() and MARKER in doc.read_text():
-        head = doc.read_text()
-        head = head[: head.index(MARKER) + len(MARKER)]
-    else:
-        head = (
+    if not (doc.exists() and MARKER in doc.read_text()):
+        doc.write_text(
             "# Sensitivity of the Section V verdicts to the modelling choices\n\n"
             "(Reading of the run: to be written by hand above the marker.)\n\n" + MARKER
         )
-    doc.write_text(head + "\n\n" + body)
+    output.splice(doc, body, marker=MARKER)
     return doc

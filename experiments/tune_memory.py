@@ -4,12 +4,12 @@
                                       [--execute-up-to 10] [--out results/tune_memory]
 
 For each horizon, in a fresh subprocess: compile the gradient of the mean tuning cost
-(:meth:`optimize.problem.TuningProblem.value_and_grad`, float32, AFONFTSMC, the
+(:meth:`fojax.optimize.problem.TuningProblem.value_and_grad`, float32, AFONFTSMC, the
 paper's gains) and read XLA's ``memory_analysis()`` (temporary buffers = the peak
 working set the compiled program allocates besides its arguments and outputs); for
 horizons up to ``--execute-up-to`` s also run it once and record the process's peak
 resident memory (``ru_maxrss``, which includes JAX itself and the compiler). Blocks of
-the rollout (``save_every``) follow :func:`optimize.problem.checkpoint_interval`
+the rollout (``save_every``) follow :func:`fojax.optimize.problem.checkpoint_interval`
 (about ``0.75 sqrt(steps)`` steps) and, for comparison, a fixed 100 steps or one
 block over the whole horizon (``--blocks auto 100 full``). Writes
 ``memory.json`` and prints a table.
@@ -23,10 +23,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+from fojax.cli import output
+
 CHILD = r"""
 import json, resource, sys, time
 import jax, jax.numpy as jnp
-from optimize import problem as P
+from fojax.optimize import problem as P
 from fojax.controllers.afonftsmc import paper_gains
 horizon, draws = float(sys.argv[1]), int(sys.argv[2])
 block, execute = sys.argv[3], sys.argv[4] == "1"
@@ -96,7 +98,7 @@ def main(argv=None) -> int:
     previous = json.loads(path.read_text()) if path.exists() else []
     keep = {(r["horizon_s"], r["draws"], r["save_every"]) for r in rows}
     merged = [r for r in previous if (r["horizon_s"], r["draws"], r["save_every"]) not in keep]
-    path.write_text(json.dumps(merged + rows, indent=1) + "\n")
+    output.write_json(path, merged + rows)
     return 0
 
 

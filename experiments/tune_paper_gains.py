@@ -9,16 +9,16 @@ Protocol (every number in ``docs/tuning.md`` comes from this script):
 
 1. Tuning problem: scenario ``--scenario`` (2: drag uncertainty, disturbances (53),
    Gaussian disturbances), reference (54)-(55), ``--horizon`` seconds, the cost of
-   :mod:`optimize.cost` with the CLI defaults, draws from the tuning stream of seed
-   ``--seed``; start: :func:`optimize.params.naive_gains`.
+   :mod:`fojax.optimize.cost` with the CLI defaults, draws from the tuning stream of seed
+   ``--seed``; start: :func:`fojax.optimize.params.naive_gains`.
 2. Tuners, same problem, same starting point:
-   * gradient (:mod:`optimize.tuner`): ``--steps`` steps of ``--draws`` draws,
+   * gradient (:mod:`fojax.optimize.tuner`): ``--steps`` steps of ``--draws`` draws,
      ``--gradient-method`` (``lbfgs``: quasi-Newton on one fixed sample; ``adam``: a
      fresh minibatch every step), returning its best validated iterate (its own
      ``--tuner-validation-draws`` validation draws, every ``--validate-every``
      steps);
    * CMA-ES (each generation in one batched call) and Nelder-Mead
-     (:mod:`optimize.derivative_free`) with
+     (:mod:`fojax.optimize.derivative_free`) with
      ``--df-budget-factor`` times the gradient tuner's simulated draw-steps (a
      gradient step simulates its draws once forward; its reverse pass costs a few
      forward passes more in wall time, which the wall-time axis shows).
@@ -51,12 +51,13 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from fojax.cli import output
 
 __all__ = ["main", "unseen_reference"]
 
@@ -112,11 +113,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _log(args, text):
-    if not args.quiet:
-        print(text, file=sys.stderr, flush=True)
-
-
 def _summary(values, baseline=None) -> dict:
     from fojax import statistics
 
@@ -144,17 +140,17 @@ def main(argv=None) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from experiments.tuning_study import run_context
     from fojax import scenarios
+    from fojax.controllers import gains_io
     from fojax.controllers.afonftsmc import paper_gains
-    from optimize import cost as cost_lib
-    from optimize import derivative_free
-    from optimize import params as params_lib
-    from optimize import problem as problem_lib
-    from optimize import tuner as tuner_lib
+    from fojax.optimize import cost as cost_lib
+    from fojax.optimize import derivative_free
+    from fojax.optimize import params as params_lib
+    from fojax.optimize import problem as problem_lib
+    from fojax.optimize import tuner as tuner_lib
 
     start_all = time.perf_counter()
-    provenance = run_context(["python", "-m", "experiments.tune_paper_gains", *(argv or [])])
+    provenance = output.run_context(["python", "-m", "experiments.tune_paper_gains", *(argv or [])])
     dtype = jnp.dtype(args.dtype)
     overrides = {
         k: v
@@ -202,11 +198,14 @@ def main(argv=None) -> int:
     problem.value_and_grad(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
     problem.value(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
     compile_s = time.perf_counter() - t0
-    _log(args, f"compiled the tuning cost and its gradient ({compile_s:.0f} s)")
+    output.log(args.quiet, f"compiled the tuning cost and its gradient ({compile_s:.0f} s)")
 
     curves = []  # (method, draw_steps, wall_time_s, validation cost)
     references = {"paper": validate(paper), "naive": validate(naive)}
-    _log(args, f"validation cost: paper {references['paper']:.4g}, naive {references['naive']:.4g}")
+    output.log(
+        args.quiet,
+        f"validation cost: paper {references['paper']:.4g}, naive {references['naive']:.4g}",
+    )
     for method in ("gradient", "cma-es", "nelder-mead"):
         curves.append((method, 0, 0.0, references["naive"]))
 
@@ -222,7 +221,10 @@ def main(argv=None) -> int:
             value = [v for m, _, _, v in curves if m == "gradient"][-1]
         curves.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
 
-    _log(args, f"gradient tuner: {config.steps} steps x {spec.draws} draws x {spec.horizon:g} s")
+    output.log(
+        args.quiet,
+        f"gradient tuner: {config.steps} steps x {spec.draws} draws x {spec.horizon:g} s",
+    )
     run = tuner_lib.prepare(spec, config, naive, "naive", None)
     gradient = tuner_lib.tune(run, progress=not args.quiet, callback=on_step, problem=problem)
     gradient_steps = gradient.history[-1]["draw_steps"]
@@ -233,11 +235,13 @@ def main(argv=None) -> int:
     def recorder(method):
         def callback(draw_steps, params, row):
             curves.append((method, draw_steps, row["wall_time_s"], validate(problem.gains(params))))
-            _log(args, f"  {method}: {draw_steps} draw-steps, best {row['best_objective']:.4g}")
+            output.log(
+                args.quiet, f"  {method}: {draw_steps} draw-steps, best {row['best_objective']:.4g}"
+            )
 
         return callback
 
-    _log(args, f"CMA-ES: budget {budget} draw-steps")
+    output.log(args.quiet, f"CMA-ES: budget {budget} draw-steps")
     es = derivative_free.cma_es(
         problem,
         budget,
@@ -247,7 +251,7 @@ def main(argv=None) -> int:
         callback=recorder("cma-es"),
     )
     popsize = es.evaluations // max(len(es.history), 1)
-    _log(args, f"Nelder-Mead: budget {budget} draw-steps")
+    output.log(args.quiet, f"Nelder-Mead: budget {budget} draw-steps")
     nm = derivative_free.nelder_mead(
         problem,
         budget,
@@ -295,7 +299,7 @@ def main(argv=None) -> int:
                 for name, c in costs.items()
             },
         }
-        _log(args, f"evaluated {label} ({time.perf_counter() - t0:.0f} s)")
+        output.log(args.quiet, f"evaluated {label} ({time.perf_counter() - t0:.0f} s)")
 
     # -- where the gradient tuner reaches the derivative-free tuners' best --------------
     reach = {}
@@ -346,10 +350,7 @@ def main(argv=None) -> int:
         },
         "gradient_reaches": reach,
         "evaluation": evaluation,
-        "gains": {
-            name: {k: np.asarray(v).tolist() for k, v in g._asdict().items()}
-            for name, g in gain_sets.items()
-        },
+        "gains": {name: gains_io.gains_to_dict(g) for name, g in gain_sets.items()},
         "compile_time_s": round(compile_s, 1),
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
         "provenance": provenance,
@@ -357,22 +358,20 @@ def main(argv=None) -> int:
     }
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    output.write_json(out / "results.json", results)
     with open(out / "curves.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["method", "draw_steps", "wall_time_s", "validation_cost"])
         writer.writerows(curves)
-    results["provenance"]["load_average_end"] = run_context([])["load_average"]
-    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    results["provenance"]["load_average_end"] = output.load_average()
+    output.write_json(out / "results.json", results)
     (out / "table.md").write_text(table(results) + "\n")
     plot(curves, references, out / "tuning.png")
     if args.update_doc is not None:
         import shutil
 
-        from experiments.remark3 import replace_block
-
         shutil.copyfile(out / "tuning.png", args.update_doc.parent / "tuning.png")
-        replace_block(args.update_doc, "tune-paper-gains", report(results))
+        output.splice(args.update_doc, report(results), name="tune-paper-gains")
     print(table(results))
     print(
         f"wrote {out}/results.json, table.md, curves.csv, tuning.png "
@@ -447,14 +446,13 @@ def _curve_at(points, limit, key):
 def report(results: dict) -> str:
     """The generated part of docs/tuning.md's section: the run, the tables, the
     convergence and the cost terms."""
-    from experiments.tuning_study import commit_label
 
     p = results["provenance"]
     tuners = results["tuners"]
     g = tuners["gradient"]
     validation = results["validation"]
     lines = [
-        f"Run: `{p['command']}`; commit {commit_label(p)}, JAX {p['jax']} / jaxlib "
+        f"Run: `{p['command']}`; commit {output.commit_label(p)}, JAX {p['jax']} / jaxlib "
         f"{p['jaxlib']}, {p.get('cpu_model')}, {p['cpu_count']} cores, load average "
         f"{p['load_average'][0] if p.get('load_average') else 'n/a'} at the start and "
         f"{p['load_average_end'][0] if p.get('load_average_end') else 'n/a'} at the end; "

@@ -4,16 +4,16 @@
                                        [--update-doc docs/tuning.md] [--tiny]
 
 Held-out cost against wall time (compilation included) and against simulated
-draw-steps, for the gradient tuner (:mod:`optimize.tuner`), CMA-ES with every
-generation evaluated in one batched, compiled call (:func:`optimize.derivative_free.cma_es`)
-and Nelder-Mead (:func:`optimize.derivative_free.nelder_mead`), from the paper's gains
-and from the naive start (:func:`optimize.params.naive_gains`), with 33 parameters
+draw-steps, for the gradient tuner (:mod:`fojax.optimize.tuner`), CMA-ES with every
+generation evaluated in one batched, compiled call (:func:`fojax.optimize.derivative_free.cma_es`)
+and Nelder-Mead (:func:`fojax.optimize.derivative_free.nelder_mead`), from the paper's gains
+and from the naive start (:func:`fojax.optimize.params.naive_gains`), with 33 parameters
 (``--share paper``) and 66 (``--share none``), over ``--seeds`` (the tuning draws'
 seed, and CMA-ES's sampling seed).
 
 Protocol (the defaults; every number of the study's section of ``docs/tuning.md``):
 
-* Problem: scenario 2, 10 s, the default cost (:class:`optimize.cost.CostConfig`),
+* Problem: scenario 2, 10 s, the default cost (:class:`fojax.optimize.cost.CostConfig`),
   mean objective, float32, seed ``s``.
 * Gradient tuner: ``--gradient-method`` (``lbfgs``: quasi-Newton on one fixed sample
   of ``--gradient-draws`` draws at the final switching width; ``adam``: fresh
@@ -58,7 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import arguments
+from fojax.cli import arguments, output
 
 __all__ = ["main", "summarize", "table"]
 
@@ -142,70 +142,6 @@ def parse_args(argv) -> argparse.Namespace:
     return args
 
 
-def _log(args, text: str) -> None:
-    if not args.quiet:
-        print(text, file=sys.stderr, flush=True)
-
-
-def _load() -> list[float]:
-    try:
-        return [round(x, 2) for x in os.getloadavg()]
-    except OSError:
-        return []
-
-
-def cpu_model() -> str | None:
-    """The CPU's model name, family and model numbers (XLA compiles for the host CPU,
-    and float32 rounding can depend on the instructions it picks)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return None
-    fields = {}
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        fields.setdefault(key.strip(), value.strip())
-    return (
-        f"{fields.get('model name', '?')} (family {fields.get('cpu family', '?')}, "
-        f"model {fields.get('model', '?')})"
-    )
-
-
-def commit_label(provenance: dict) -> str:
-    """``abc1234`` (``, with uncommitted changes``) from a provenance record."""
-    git = provenance.get("fojax_git")
-    if not isinstance(git, dict) or not git.get("commit"):
-        return "unknown"
-    return git["commit"][:7] + (" (with uncommitted changes)" if git.get("dirty") else "")
-
-
-def run_context(command: list[str]) -> dict:
-    """Provenance of a study run (:func:`experiments.study.provenance`), the CPU model
-    and the load average."""
-    from experiments import study as study_layer
-
-    record = study_layer.provenance(command)
-    record["cpu_model"] = cpu_model()
-    record["load_average"] = _load()
-    return record
-
-
-def git_commit() -> str | None:
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-        return commit + (" (with uncommitted changes)" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
 class _Setup:
     """One parameter count: the problem, compiled once, and each method's compile time."""
 
@@ -214,9 +150,9 @@ class _Setup:
         import jax.numpy as jnp
 
         from fojax import scenarios
-        from optimize import cost as cost_lib
-        from optimize import params as params_lib
-        from optimize import problem as problem_lib
+        from fojax.optimize import cost as cost_lib
+        from fojax.optimize import params as params_lib
+        from fojax.optimize import problem as problem_lib
 
         self.args = args
         if args.tiny:
@@ -290,7 +226,7 @@ class _Setup:
         return 4 + int(3 * np.log(self.problem.param_map.size))
 
     def heldout(self, gains) -> float:
-        from optimize import problem as problem_lib
+        from fojax.optimize import problem as problem_lib
 
         costs = problem_lib.evaluate(self.spec, gains, self.heldout_keys)
         return float(np.mean(np.asarray(costs.cost, np.float64)))
@@ -338,7 +274,7 @@ def bench_batched(setup: _Setup, repeats: int) -> dict:
         "median_batched_s": float(np.median(batched)),
         "median_one_at_a_time_s": float(np.median(alone)),
         "largest_relative_difference": float(np.max(np.abs(together - separate) / separate)),
-        "load": _load(),
+        "load": output.load_average(),
     }
 
 
@@ -377,10 +313,10 @@ def user_view(args, out: Path) -> list[dict]:
                 shutil.rmtree(run_dir)
             command = user_command(args, mode, run_dir)
             env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-            load = _load()
+            load = output.load_average()
             t0 = time.perf_counter()
             subprocess.run(
-                [sys.executable, "-m", "experiments.cli", *command[1:], "--quiet"],
+                [sys.executable, "-m", "fojax.cli", *command[1:], "--quiet"],
                 check=True,
                 env=env,
                 stdout=subprocess.DEVNULL,
@@ -413,12 +349,12 @@ def user_view(args, out: Path) -> list[dict]:
                 "selected_step": gains["selected_step"],
                 "validation": gains["validation"],
                 "load_before": load,
-                "load_after": _load(),
+                "load_after": output.load_average(),
             }
-            path.write_text(json.dumps(record, indent=1) + "\n")
+            output.write_json(path, record)
             records.append(record)
-            _log(
-                args,
+            output.log(
+                args.quiet,
                 f"  user view ({mode}, run {index}): {total:.0f} s in all, held-out "
                 f"{initial:.4g} -> {record['heldout_tuned']:.4g}",
             )
@@ -459,8 +395,8 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     import copy
     import dataclasses
 
-    from optimize import derivative_free
-    from optimize import tuner as tuner_lib
+    from fojax.optimize import derivative_free
+    from fojax.optimize import tuner as tuner_lib
 
     args = setup.args
     problem = copy.copy(setup.problem)  # the same compiled functions, another seed
@@ -468,7 +404,7 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     init = setup.start(start)
     x0 = problem.params_of(init)
     curve = [(0, 0.0, setup.heldout(init))]
-    load_before = _load()
+    load_before = output.load_average()
     t0 = time.perf_counter()
     if method == "gradient":
         config = tuner_lib.TunerConfig(
@@ -551,9 +487,9 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
         "final_heldout": final,
         "initial_heldout": curve[0][2],
         "load_before": load_before,
-        "load_after": _load(),
+        "load_after": output.load_average(),
         "elapsed_s": round(time.perf_counter() - t0, 1),
-        "git_commit": git_commit(),
+        "git_commit": output.commit_label(full=True),
         **totals,
     }
 
@@ -584,25 +520,26 @@ def main(argv=None) -> int:
                 continue
             t0 = time.perf_counter()
             setup = _Setup(args, share)
-            _log(
-                args,
+            output.log(
+                args.quiet,
                 f"share={share}: {setup.problem.param_map.size} parameters, compiled in "
                 f"{time.perf_counter() - t0:.0f} s ({setup.compile_s})",
             )
             if args.bench and not bench_path.exists():
                 bench = bench_batched(setup, args.bench)
-                bench_path.write_text(json.dumps(bench, indent=1) + "\n")
-                _log(args, f"  batched generation {bench['median_batched_s']:.2f} s, one at a "
-                     f"time {bench['median_one_at_a_time_s']:.2f} s (medians)")  # fmt: skip
+                output.write_json(bench_path, bench)
+                output.log(
+                    args.quiet,
+                    f"  batched generation {bench['median_batched_s']:.2f} s, one at a "
+                    f"time {bench['median_one_at_a_time_s']:.2f} s (medians)",
+                )
             for start, seed, method in pending:
                 record = run_one(setup, start, seed, method)
                 record["settings"] = settings
                 path = runs_dir / f"{share}_{start}_{seed}_{method}.json"
-                tmp = path.with_suffix(".tmp")
-                tmp.write_text(json.dumps(record, indent=1) + "\n")
-                tmp.replace(path)
-                _log(
-                    args,
+                output.write_json(path, record)
+                output.log(
+                    args.quiet,
                     f"  {share} {start} seed {seed} {method}: held-out "
                     f"{record['initial_heldout']:.4g} -> {record['final_heldout']:.4g}, "
                     f"{record['wall_time_s']:.0f} s + {record['compile_s']:.0f} s compile, "
@@ -632,11 +569,11 @@ def main(argv=None) -> int:
         "settings": settings,
         "summary": summary,
         "runs": records,
-        "git_commit": git_commit(),
+        "git_commit": output.commit_label(full=True),
         "this_invocation_s": round(time.perf_counter() - start_all, 1),
         "runs_elapsed_s": round(sum(r["elapsed_s"] for r in records), 1),
     }
-    (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    output.write_json(out / "results.json", results)
     figures = [
         plot(records, out / "tuning_wall.png", "wall"),
         plot(records, out / "tuning_draw_steps.png", "draw_steps"),
@@ -644,11 +581,9 @@ def main(argv=None) -> int:
     text = table(results)
     (out / "table.md").write_text(text + "\n")
     if args.update_doc is not None:
-        from experiments.remark3 import replace_block
-
         for figure in figures:
             shutil.copyfile(figure, args.update_doc.parent / figure.name)
-        replace_block(args.update_doc, "tuning-study", text)
+        output.splice(args.update_doc, text, name="tuning-study")
     print(text)
     print(f"wrote {out}/results.json, table.md, tuning_wall.png, tuning_draw_steps.png")
     return 0
@@ -828,7 +763,7 @@ def plot(records: list[dict], path: Path, axis: str) -> Path:
     per (parameter count, start), one colour per method, one line per seed."""
     from matplotlib.lines import Line2D
 
-    from experiments import style
+    from fojax.cli import style
 
     plt = style.pyplot()
     panels = sorted({(r["parameters"], r["share"], r["start"]) for r in records})

@@ -2,7 +2,7 @@
 
 Stand-ins for the MATLAB optimisation toolbox of the paper's Remark 3, on exactly the
 gradient tuner's problem: the same unconstrained parameters (so every candidate is
-feasible), the same cost and objective (:class:`optimize.problem.TuningProblem`) with
+feasible), the same cost and objective (:class:`fojax.optimize.problem.TuningProblem`) with
 the switching at a fixed width (``width_scale``, by default the gradient tuner's final
 one), draws from the same tuning stream (never the held-out ones).
 
@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from optimize.problem import TuningProblem
+from fojax.optimize.problem import TuningProblem
 
 __all__ = ["Budget", "DFResult", "cma_es", "nelder_mead"]
 

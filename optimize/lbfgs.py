@@ -1,6 +1,6 @@
 """Limited-memory BFGS driven one function-and-gradient evaluation at a time.
 
-The gradient tuner's quasi-Newton method (:mod:`optimize.tuner`, ``method="lbfgs"``)
+The gradient tuner's quasi-Newton method (:mod:`fojax.optimize.tuner`, ``method="lbfgs"``)
 on a fixed sample of draws (a deterministic sample-average objective, as Nelder-Mead
 gets): every tuner step evaluates the objective and its gradient at one trial point
 and hands them to :func:`tell`, which either accepts the trial (Armijo's sufficient

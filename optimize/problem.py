@@ -3,8 +3,8 @@
 :class:`ProblemSpec` is the static description (a frozen dataclass, validated in
 Python before anything is traced); :class:`TuningProblem` binds it to compiled
 functions of the unconstrained parameters that the gradient tuner
-(:mod:`optimize.tuner`) and the derivative-free tuners
-(:mod:`optimize.derivative_free`) share, so every tuner sees the same cost and the
+(:mod:`fojax.optimize.tuner`) and the derivative-free tuners
+(:mod:`fojax.optimize.derivative_free`) share, so every tuner sees the same cost and the
 same draws.
 
 Draws (``scenarios.draw_keys(seed, i)``): minibatch ``b`` of the tuning stream holds
@@ -34,8 +34,8 @@ import numpy as np
 
 from fojax import scenarios, sharding, simulator
 from fojax.controllers import registry
-from optimize import cost as cost_lib
-from optimize import params as params_lib
+from fojax.optimize import cost as cost_lib
+from fojax.optimize import params as params_lib
 
 Array = jax.Array
 
@@ -84,9 +84,9 @@ class ProblemSpec:
 
     controller: registry name. scenario: 1, 2 or 3. horizon: tuning horizon (s).
     dt: step (s). draws: draws per minibatch. seed: the draws' seed.
-    cost: :class:`optimize.cost.CostConfig`. fields: tuned gain fields (``None``: the
-    default, :func:`optimize.params.default_fields`). share: axis sharing
-    (:data:`optimize.params.SHARING`). fractional: fractional method of a controller
+    cost: :class:`fojax.optimize.cost.CostConfig`. fields: tuned gain fields (``None``: the
+    default, :func:`fojax.optimize.params.default_fields`). share: axis sharing
+    (:data:`fojax.optimize.params.SHARING`). fractional: fractional method of a controller
     with fractional operators (the AFONFTSMC, the FOBSMC); a controller without them
     takes only the default ``"soe"`` (another value is a ``ValueError``). dtype:
     ``"float32"`` or ``"float64"``. save_every: steps per checkpointed block
@@ -193,7 +193,7 @@ class ProblemSpec:
 class Step(NamedTuple):
     """One evaluation of the objective on a minibatch.
 
-    objective: ``()``. costs: :class:`optimize.cost.DrawCosts`.
+    objective: ``()``. costs: :class:`fojax.optimize.cost.DrawCosts`.
     gradient: parameters dict (``None`` for value-only evaluations).
     bad_gradients: ``()`` int, draws whose gradient was not finite (left out).
     """
@@ -275,7 +275,7 @@ class TuningProblem:
         def per_draw_grads(params, width_scale, keys):
             # One copy of the parameters per draw (the draws last), mapped onto gains per
             # draw, one batch-last rollout: the gradient with respect to the copies is
-            # the stack of the per-draw gradients (optimize.cost.per_draw_gradients).
+            # the stack of the per-draw gradients (fojax.optimize.cost.per_draw_gradients).
             n = keys.shape[0]
 
             def per_draw_gains(copies):
@@ -400,7 +400,7 @@ class TuningProblem:
         return self._value_and_grad(params, jnp.asarray(width_scale, self.spec.jnp_dtype), keys)
 
     def batch_value(self, vectors, width_scale: float, keys: Array):
-        """Objectives ``(P,)`` and :class:`optimize.cost.DrawCosts` with ``(P, n, ...)``
+        """Objectives ``(P,)`` and :class:`fojax.optimize.cost.DrawCosts` with ``(P, n, ...)``
         leaves of ``P`` candidates (rows of ``vectors``, :meth:`vector` order), each on
         the same ``n`` draws ``keys`` (common random numbers): one compiled, batched call
         (a ``vmap`` over candidates of :meth:`value`), compiled once per ``(P, n)``."""

@@ -6,19 +6,19 @@ Each step ``k = 0 ... steps - 1``:
    fresh draws every step, disjoint from the held-out ones);
 2. switching: ``tanh(S / (scale_k w))`` with ``scale_k`` geometric from
    ``anneal_start`` to ``anneal_end`` (the evaluation width of ``sat`` at 1);
-3. the objective (mean or CVaR, :mod:`optimize.cost`) and its gradient by reverse
+3. the objective (mean or CVaR, :mod:`fojax.optimize.cost`) and its gradient by reverse
    mode through the whole horizon (the rollout rematerialises each block of
    ``save_every`` steps);
 4. ``method="adam"``: ``clip_by_global_norm(clip_norm)`` then Adam with a
    cosine-decayed learning rate (from ``learning_rate`` to ``final_learning_rate``
-   times it), on the unconstrained parameters of :mod:`optimize.params` (so every
+   times it), on the unconstrained parameters of :mod:`fojax.optimize.params` (so every
    iterate is feasible).
 
 ``method="lbfgs"``: a quasi-Newton method on one fixed sample of ``draws`` draws
 (minibatch 0 of the tuning stream: a deterministic sample-average objective, as the
 derivative-free Nelder-Mead gets) at the final switching width (``anneal_end``):
 every step evaluates the objective and its gradient at one trial point of
-:class:`optimize.lbfgs.LBFGS` (accepted on sufficient decrease, else the step is
+:class:`fojax.optimize.lbfgs.LBFGS` (accepted on sufficient decrease, else the step is
 halved), steps capped at ``max_step`` per coordinate. The current iterate is the last
 accepted point.
 
@@ -44,10 +44,7 @@ written before every input has been checked.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
-import json
 import math
 import os
 import sys
@@ -58,13 +55,22 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import optax
 
 from fojax.controllers import gains_io
-from optimize import lbfgs as lbfgs_lib
-from optimize.problem import VALIDATION_OFFSET, ProblemSpec, TuningProblem
+from fojax.optimize import lbfgs as lbfgs_lib
+from fojax.optimize.checkpoint import (
+    HISTORY_COLUMNS,
+    _canonical,
+    _load_state,
+    _read_meta,
+    _save_checkpoint,
+    fingerprint,
+    write_history,
+)
+from fojax.optimize.problem import VALIDATION_OFFSET, ProblemSpec, TuningProblem
+from fojax.study import describe_differences, fingerprint_differences
 
 __all__ = [
     "CHECKPOINT",
@@ -78,30 +84,7 @@ __all__ = [
 ]
 
 CHECKPOINT = "checkpoint.npz"
-FORMAT = 2
 METHODS = ("adam", "lbfgs")
-HISTORY_COLUMNS = (
-    "step",
-    "objective",
-    "mean_cost",
-    "max_cost",
-    "grad_norm",
-    "learning_rate",
-    "width_scale",
-    "diverged",
-    "bad_gradients",
-    "draw_steps",
-    "wall_time_s",
-    "validation_cost",
-    "best_step",
-    "accepted",
-)
-"""Columns of ``history.csv``, one row per step. ``validation_cost``: the mean cost on
-the validation draws after this step (empty where the step was not validated);
-``best_step``: the step whose gains are the best validated so far (0: the start);
-``accepted``: 1 when the step moved the iterate (always for Adam; L-BFGS rejects a
-trial without sufficient decrease). For L-BFGS, ``objective`` is the trial point's and
-``learning_rate`` the trial's step length along its direction."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,118 +192,6 @@ class TuneResult(NamedTuple):
     final_params: dict | None = None
 
 
-def fingerprint(spec: ProblemSpec, config: TunerConfig, init_label: str, init_gains) -> dict:
-    """Everything a checkpoint must agree on to be resumed."""
-    return {
-        "format": FORMAT,
-        "problem": spec.as_dict(),
-        "tuner": dataclasses.asdict(config),
-        "init": init_label,
-        "init_gains": gains_io.gains_to_dict(
-            type(init_gains)(*(np.asarray(g, np.float64) for g in init_gains))
-        ),
-    }
-
-
-def _differences(stored: Any, current: Any, path: str = "") -> list[str]:
-    if isinstance(stored, dict) and isinstance(current, dict):
-        out = []
-        for key in sorted(set(stored) | set(current)):
-            where = f"{path}.{key}" if path else str(key)
-            if key not in stored:
-                out.append(f"{where}: not in the checkpoint, now {current[key]!r}")
-            elif key not in current:
-                out.append(f"{where}: {stored[key]!r} in the checkpoint, now absent")
-            else:
-                out.extend(_differences(stored[key], current[key], where))
-        return out
-    if isinstance(stored, list | tuple) and isinstance(current, list | tuple):
-        if list(stored) == list(current):
-            return []
-        if len(stored) == len(current) and all(not isinstance(s, dict) for s in stored):
-            if all(not isinstance(s, list) for s in stored):
-                return [f"{path}: checkpoint {list(stored)!r}, now {list(current)!r}"]
-        return [f"{path}: checkpoint {_short(stored)}, now {_short(current)}"]
-    if stored != current:
-        return [f"{path}: checkpoint {stored!r}, now {current!r}"]
-    return []
-
-
-def _short(value: Any) -> str:
-    text = json.dumps(value)
-    return text if len(text) <= 120 else text[:117] + "..."
-
-
-def _canonical(document: Any) -> Any:
-    """JSON round trip, so that tuples and lists compare equal."""
-    return json.loads(json.dumps(document))
-
-
-# ---------------------------------------------------------------------- checkpoint io
-
-
-def _write_atomic_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
-
-
-def _save_checkpoint(path: Path, state: tuple, meta: dict) -> None:
-    leaves = jax.tree.leaves(state)
-    arrays = {f"leaf_{i:05d}": np.asarray(leaf) for i, leaf in enumerate(leaves)}
-    arrays["meta"] = np.asarray(json.dumps(meta))
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    _write_atomic_bytes(path, buffer.getvalue())
-
-
-def _read_meta(path: Path) -> dict:
-    try:
-        with np.load(path) as data:
-            return json.loads(str(data["meta"]))
-    except (OSError, KeyError, ValueError) as error:
-        raise ValueError(f"{path} is not a fojax tune checkpoint ({error})") from None
-
-
-def _load_state(path: Path, template: tuple) -> tuple:
-    leaves, treedef = jax.tree.flatten(template)
-    with np.load(path) as data:
-        names = sorted(k for k in data.files if k.startswith("leaf_"))
-        if len(names) != len(leaves):
-            raise ValueError(
-                f"{path} holds {len(names)} arrays, this run needs {len(leaves)}: it was "
-                "written by another configuration"
-            )
-        loaded = []
-        for name, leaf in zip(names, leaves, strict=True):
-            value = data[name]
-            if value.shape != np.shape(leaf) or value.dtype != np.asarray(leaf).dtype:
-                raise ValueError(
-                    f"{path}: array {name} has shape {value.shape} {value.dtype}, this run "
-                    f"needs {np.shape(leaf)} {np.asarray(leaf).dtype}"
-                )
-            loaded.append(jnp.asarray(value))
-    return jax.tree.unflatten(treedef, loaded)
-
-
-def write_history(path: Path, history: list[dict]) -> None:
-    """``history.csv`` (atomically): one row per step, :data:`HISTORY_COLUMNS`."""
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=HISTORY_COLUMNS, lineterminator="\n")
-    writer.writeheader()
-    for row in history:
-        writer.writerow(
-            {
-                k: ("" if v is None else repr(v) if isinstance(v, float) else v)
-                for k, v in row.items()
-            }
-        )
-    _write_atomic_bytes(path, buffer.getvalue().encode())
-
-
 # ------------------------------------------------------------------------------- run
 
 
@@ -354,7 +225,7 @@ def prepare(
     checkpoint belongs to another configuration (the message lists what differs).
     """
     from fojax.controllers import registry
-    from optimize import params as params_lib
+    from fojax.optimize import params as params_lib
 
     cls = registry.get_controller_class(spec.controller)
     cls.check_gains(init_gains)
@@ -370,7 +241,10 @@ def prepare(
             if not checkpoint.exists():
                 raise ValueError(f"nothing to resume: {checkpoint} does not exist")
             meta = _read_meta(checkpoint)
-            differences = _differences(meta.get("fingerprint"), current)
+            differences = describe_differences(
+                fingerprint_differences(meta.get("fingerprint") or {}, current),
+                earlier="checkpoint",
+            )
             if differences:
                 raise ValueError(
                     f"{checkpoint} was written by another configuration; it differs in:\n  "
@@ -422,206 +296,264 @@ def tune(
     With ``run.out``, writes ``checkpoint.npz``, ``history.csv`` and, when all steps
     are done, ``gains.json`` (:func:`fojax.controllers.gains_io.save_gains`).
     """
-    spec, config = run.spec, run.config
     if problem is None:
-        problem = TuningProblem(spec, run.init_gains)
-    optimizer = config.optimizer()
-    params = problem.params_of(run.init_gains)
-    quasi_newton = config.method == "lbfgs"
-    lbfgs = lbfgs_lib.LBFGS(memory=config.memory, max_step=config.max_step)
-    lbfgs_state = lbfgs.start(problem.vector(params)) if quasi_newton else None
-    opt_state = () if quasi_newton else optimizer.init(params)
-    state = (params, opt_state, params)  # current iterate, optimiser, best validated
-    history: list[dict] = []
-    wall_before = 0.0
-    start_step = 0
-    checkpoint = run.out / CHECKPOINT if run.out is not None else None
-    validating = config.validation_draws > 0
-    best = {"step": 0, "cost": None, "initial": None, "final": None}
-    if run.resume:
-        state = _load_state(checkpoint, state)
-        meta = run.checkpoint_meta
-        start_step = int(meta["step"])
-        history = list(meta["history"])
-        wall_before = float(meta["wall_time_s"])
-        best.update(meta.get("validation", {}))
-        if quasi_newton:
-            lbfgs_state = lbfgs_lib.state_from_json(meta["lbfgs"])
-        if progress:
-            print(f"resuming {checkpoint} at step {start_step}/{config.steps}", file=sys.stderr)
-    if run.out is not None:
-        run.out.mkdir(parents=True, exist_ok=True)
-    validation_keys = problem.validation_keys(config.validation_draws) if validating else None
-
-    last_validated: dict = {}
-
-    def validate(params) -> float:
-        from optimize.problem import evaluate
-
-        vector = problem.vector(params)
-        if "vector" in last_validated and np.array_equal(vector, last_validated["vector"]):
-            return last_validated["cost"]  # the iterate has not moved (a rejected trial)
-        costs = evaluate(
-            spec,
-            problem.gains(params),
-            validation_keys,
-            switching=config.validation_switching,
-        )
-        cost = float(np.mean(np.asarray(costs.cost, np.float64)))
-        last_validated.update(vector=vector, cost=cost)
-        return cost
-
-    @jax.jit
-    def update(state, gradient):
-        params, opt_state, best_params = state
-        updates, opt_state = optimizer.update(gradient, opt_state, params)
-        return optax.apply_updates(params, updates), opt_state, best_params
-
-    def save(step: int) -> None:
-        if checkpoint is None:
-            return
-        wall = history[-1]["wall_time_s"] if history else wall_before
-        meta = {
-            "fingerprint": run.fingerprint,
-            "step": step,
-            "history": history,
-            "wall_time_s": wall,
-            "validation": best,
-        }
-        if quasi_newton:
-            meta["lbfgs"] = lbfgs_lib.state_to_json(lbfgs_state)
-        _save_checkpoint(checkpoint, state, meta)
-        write_history(run.out / "history.csv", history)
-
-    last = config.steps if stop_after is None else min(config.steps, stop_after)
-    step = start_step
-    session_start = time.perf_counter()
-    excluded = 0.0
-    draw_steps = history[-1]["draw_steps"] if history else 0
-    # The start's validation (which compiles the validation run) goes in a thread
-    # beside the first step (which compiles the gradient): XLA compiles each on one
-    # core, so on two cores the validation's compilation costs no wall time.
-    start_validation: dict = {}
-    thread = None
-    if validating and best["initial"] is None:
-
-        def validate_start(params=state[0]):
-            try:
-                start_validation["cost"] = validate(params)
-            except BaseException as error:  # re-raised in the main thread
-                start_validation["error"] = error
-
-        thread = threading.Thread(target=validate_start, daemon=True)
-        thread.start()
-
-    def join_start() -> None:
-        nonlocal thread
-        if thread is None:
-            return
-        thread.join()
-        thread = None
-        if "error" in start_validation:
-            raise start_validation["error"]
-        best["initial"] = best["cost"] = start_validation["cost"]
-        best["step"] = 0
+        problem = TuningProblem(run.spec, run.init_gains)
+    loop = _Loop(run, problem, progress)
+    last = run.config.steps if stop_after is None else min(run.config.steps, stop_after)
+    try:
+        while loop.step < last:
+            row = loop.advance()
+            if callback is not None:
+                t0 = time.perf_counter()
+                callback(loop.step, loop.state[0], row)
+                loop.excluded += time.perf_counter() - t0
+            if loop.step % run.config.checkpoint_every == 0 or loop.step == last:
+                loop.save()
+    except KeyboardInterrupt:
+        loop.save()
         if progress:
             print(
+                f"\ninterrupted after step {loop.step}/{run.config.steps}; checkpoint written "
+                f"to {loop.checkpoint}; run again with --resume to continue",
+                file=sys.stderr,
+            )
+        raise
+    loop.join_start()
+    if loop.step == loop.start_step:
+        loop.save()  # nothing to do (a finished run resumed): rewrite the outputs
+    return loop.finish()
+
+
+class _Loop:
+    """The state of one tuning run between steps: the iterate, the optimiser's state,
+    the best validated iterate, the history and the counters (what a checkpoint holds),
+    restored from ``run``'s checkpoint when it resumes."""
+
+    def __init__(self, run: PreparedRun, problem: TuningProblem, progress: bool):
+        self.run, self.spec, self.config = run, run.spec, run.config
+        self.problem, self.progress = problem, progress
+        config = self.config
+        self.optimizer = config.optimizer()
+        params = problem.params_of(run.init_gains)
+        self.quasi_newton = config.method == "lbfgs"
+        self.lbfgs = lbfgs_lib.LBFGS(memory=config.memory, max_step=config.max_step)
+        self.lbfgs_state = self.lbfgs.start(problem.vector(params)) if self.quasi_newton else None
+        opt_state = () if self.quasi_newton else self.optimizer.init(params)
+        self.state = (params, opt_state, params)  # current iterate, optimiser, best validated
+        self.history: list[dict] = []
+        self.wall_before = 0.0
+        self.start_step = 0
+        self.checkpoint = run.out / CHECKPOINT if run.out is not None else None
+        self.validating = config.validation_draws > 0
+        self.best = {"step": 0, "cost": None, "initial": None, "final": None}
+        if run.resume:
+            self._restore()
+        if run.out is not None:
+            run.out.mkdir(parents=True, exist_ok=True)
+        self.validation_keys = (
+            problem.validation_keys(config.validation_draws) if self.validating else None
+        )
+        self._last_validated: dict = {}
+        self._update = jax.jit(self._optax_update)
+        self.step = self.start_step
+        self.session_start = time.perf_counter()
+        self.excluded = 0.0
+        self.draw_steps = self.history[-1]["draw_steps"] if self.history else 0
+        self._start_validation()
+
+    def _restore(self) -> None:
+        self.state = _load_state(self.checkpoint, self.state)
+        meta = self.run.checkpoint_meta
+        self.start_step = int(meta["step"])
+        self.history = list(meta["history"])
+        self.wall_before = float(meta["wall_time_s"])
+        self.best.update(meta.get("validation", {}))
+        if self.quasi_newton:
+            self.lbfgs_state = lbfgs_lib.state_from_json(meta["lbfgs"])
+        if self.progress:
+            print(
+                f"resuming {self.checkpoint} at step {self.start_step}/{self.config.steps}",
+                file=sys.stderr,
+            )
+
+    def _optax_update(self, state, gradient):
+        params, opt_state, best_params = state
+        updates, opt_state = self.optimizer.update(gradient, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, best_params
+
+    def validate(self, params) -> float:
+        """Mean cost of ``params``' gains on the validation draws."""
+        from fojax.optimize.problem import evaluate
+
+        problem, last = self.problem, self._last_validated
+        vector = problem.vector(params)
+        if "vector" in last and np.array_equal(vector, last["vector"]):
+            return last["cost"]  # the iterate has not moved (a rejected trial)
+        costs = evaluate(
+            self.spec,
+            problem.gains(params),
+            self.validation_keys,
+            switching=self.config.validation_switching,
+        )
+        cost = float(np.mean(np.asarray(costs.cost, np.float64)))
+        last.update(vector=vector, cost=cost)
+        return cost
+
+    def _start_validation(self) -> None:
+        """The start's validation (which compiles the validation run) in a thread beside
+        the first step (which compiles the gradient): XLA compiles each on one core, so
+        on two cores the validation's compilation costs no wall time."""
+        self._start_result: dict = {}
+        self._thread = None
+        if not self.validating or self.best["initial"] is not None:
+            return
+
+        def validate_start(params=self.state[0]):
+            try:
+                self._start_result["cost"] = self.validate(params)
+            except BaseException as error:  # re-raised in the main thread
+                self._start_result["error"] = error
+
+        self._thread = threading.Thread(target=validate_start, daemon=True)
+        self._thread.start()
+
+    def join_start(self) -> None:
+        """Wait for the start's validation, once; it is the best so far."""
+        if self._thread is None:
+            return
+        self._thread.join()
+        self._thread = None
+        if "error" in self._start_result:
+            raise self._start_result["error"]
+        best = self.best
+        best["initial"] = best["cost"] = self._start_result["cost"]
+        best["step"] = 0
+        if self.progress:
+            print(
                 f"  start: validation cost {best['initial']:.4e} "
-                f"({config.validation_draws} draws, {config.validation_switching})",
+                f"({self.config.validation_draws} draws, {self.config.validation_switching})",
                 file=sys.stderr,
                 flush=True,
             )
 
-    try:
-        while step < last:
-            scale = width_scale(config, step)
-            if quasi_newton:
-                result = problem.value_and_grad(
-                    problem.unravel(lbfgs_state["trial"]), scale, problem.minibatch_keys(0)
-                )
-                grad_norm = optax.tree.norm(result.gradient)
-                step_length = lbfgs_state["alpha"]
-                lbfgs_state, accepted = lbfgs.tell(
-                    lbfgs_state, float(result.objective), problem.vector(result.gradient)
-                )
-                new_state = (problem.unravel(lbfgs_state["x"]), (), state[2])
-            else:
-                keys = problem.minibatch_keys(step)
-                result = problem.value_and_grad(state[0], scale, keys)
-                grad_norm = optax.tree.norm(result.gradient)
-                new_state = update(state, result.gradient)
-                step_length, accepted = config.learning_rate_at(step), True
-            jax.block_until_ready(new_state)
-            draw_steps += spec.draw_steps_per_minibatch
-            state, step = new_state, step + 1
-            join_start()
-            validation = None
-            if validating and (step % config.validate_every == 0 or step == config.steps):
-                validation = validate(state[0])
-                if validation < best["cost"]:  # ties keep the earlier (the start's) gains
-                    best["cost"], best["step"] = validation, step
-                    state = (state[0], state[1], state[0])
-                if step == config.steps:
-                    best["final"] = validation
-            wall = wall_before + time.perf_counter() - session_start - excluded
-            row = _row(step - 1, result, grad_norm, config, scale, draw_steps, wall)
-            row["learning_rate"] = float(step_length)
-            row["validation_cost"] = validation
-            row["best_step"] = best["step"] if validating else None
-            row["accepted"] = int(accepted)
-            history.append(row)
-            if progress:
-                _print_progress(row, config.steps, wall_before, wall, start_step, best)
-            if callback is not None:
-                t0 = time.perf_counter()
-                callback(step, state[0], row)
-                excluded += time.perf_counter() - t0
-            if step % config.checkpoint_every == 0 or step == last:
-                save(step)
-    except KeyboardInterrupt:
-        save(step)
-        if progress:
-            print(
-                f"\ninterrupted after step {step}/{config.steps}; checkpoint written to "
-                f"{checkpoint}; run again with --resume to continue",
-                file=sys.stderr,
+    def _gradient_step(self, scale: float):
+        """One optimiser step from the current iterate: ``(result, grad_norm, new state,
+        step length, accepted)``."""
+        problem, state = self.problem, self.state
+        if self.quasi_newton:
+            result = problem.value_and_grad(
+                problem.unravel(self.lbfgs_state["trial"]), scale, problem.minibatch_keys(0)
             )
-        raise
-    join_start()
-    if step == start_step:
-        save(step)  # nothing to do (a finished run resumed): rewrite the outputs
-    final_params = state[0]
-    params = state[2] if validating else final_params
-    best_step = best["step"] if validating else step
-    gains = problem.gains(params)
-    summary = None
-    if validating:
-        summary = {
-            "draws": config.validation_draws,
-            "switching": config.validation_switching,
-            "horizon_s": spec.horizon,
-            "draw_indices": f"{VALIDATION_OFFSET} + [0, {config.validation_draws})",
-            "initial": best["initial"],
-            "best": best["cost"],
-            "best_step": best["step"],
-            "final": best["final"],
+            grad_norm = optax.tree.norm(result.gradient)
+            step_length = self.lbfgs_state["alpha"]
+            self.lbfgs_state, accepted = self.lbfgs.tell(
+                self.lbfgs_state, float(result.objective), problem.vector(result.gradient)
+            )
+            new_state = (problem.unravel(self.lbfgs_state["x"]), (), state[2])
+        else:
+            result = problem.value_and_grad(state[0], scale, problem.minibatch_keys(self.step))
+            grad_norm = optax.tree.norm(result.gradient)
+            new_state = self._update(state, result.gradient)
+            step_length, accepted = self.config.learning_rate_at(self.step), True
+        return result, grad_norm, new_state, step_length, accepted
+
+    def _validate_step(self) -> float | None:
+        """Validate the new iterate when it is due; keep it when it is the best."""
+        config, best = self.config, self.best
+        if not (
+            self.validating
+            and (self.step % config.validate_every == 0 or self.step == config.steps)
+        ):
+            return None
+        validation = self.validate(self.state[0])
+        if validation < best["cost"]:  # ties keep the earlier (the start's) gains
+            best["cost"], best["step"] = validation, self.step
+            self.state = (self.state[0], self.state[1], self.state[0])
+        if self.step == config.steps:
+            best["final"] = validation
+        return validation
+
+    def advance(self) -> dict:
+        """One step: gradient, update, validation when due; returns its history row."""
+        scale = width_scale(self.config, self.step)
+        result, grad_norm, new_state, step_length, accepted = self._gradient_step(scale)
+        jax.block_until_ready(new_state)
+        self.draw_steps += self.spec.draw_steps_per_minibatch
+        self.state, self.step = new_state, self.step + 1
+        self.join_start()
+        validation = self._validate_step()
+        wall = self.wall_before + time.perf_counter() - self.session_start - self.excluded
+        row = _row(self.step - 1, result, grad_norm, self.config, scale, self.draw_steps, wall)
+        row["learning_rate"] = float(step_length)
+        row["validation_cost"] = validation
+        row["best_step"] = self.best["step"] if self.validating else None
+        row["accepted"] = int(accepted)
+        self.history.append(row)
+        if self.progress:
+            _print_progress(
+                row, self.config.steps, self.wall_before, wall, self.start_step, self.best
+            )
+        return row
+
+    def save(self) -> None:
+        """Checkpoint and ``history.csv`` (nothing without an output folder)."""
+        if self.checkpoint is None:
+            return
+        history = self.history
+        meta = {
+            "fingerprint": self.run.fingerprint,
+            "step": self.step,
+            "history": history,
+            "wall_time_s": history[-1]["wall_time_s"] if history else self.wall_before,
+            "validation": self.best,
         }
-    if run.out is not None and step == config.steps:
+        if self.quasi_newton:
+            meta["lbfgs"] = lbfgs_lib.state_to_json(self.lbfgs_state)
+        _save_checkpoint(self.checkpoint, self.state, meta)
+        write_history(self.run.out / "history.csv", history)
+
+    def finish(self) -> TuneResult:
+        """The result: the best validated (or the last) gains; ``gains.json`` when every
+        step is done."""
+        run, config, best, step = self.run, self.config, self.best, self.step
+        final_params = self.state[0]
+        params = self.state[2] if self.validating else final_params
+        best_step = best["step"] if self.validating else step
+        gains = self.problem.gains(params)
+        summary = None
+        if self.validating:
+            summary = {
+                "draws": config.validation_draws,
+                "switching": config.validation_switching,
+                "horizon_s": self.spec.horizon,
+                "draw_indices": f"{VALIDATION_OFFSET} + [0, {config.validation_draws})",
+                "initial": best["initial"],
+                "best": best["cost"],
+                "best_step": best["step"],
+                "final": best["final"],
+            }
+        if run.out is not None and step == config.steps:
+            self._save_gains(gains, best_step, summary)
+        return TuneResult(
+            params, gains, self.history, step, self.problem, best_step, summary, final_params
+        )
+
+    def _save_gains(self, gains, best_step: int, summary: dict | None) -> None:
+        run, history = self.run, self.history
         metadata = {
             "tuned_by": "fojax tune",
             "problem": run.fingerprint["problem"],
             "tuner": run.fingerprint["tuner"],
             "init": run.init_label,
-            "steps_done": step,
+            "steps_done": self.step,
             "selected_step": best_step,
-            "selected_by": "validation" if validating else "last step",
+            "selected_by": "validation" if self.validating else "last step",
             "validation": summary,
             "final_objective": history[-1]["objective"] if history else None,
             "draw_steps": history[-1]["draw_steps"] if history else 0,
             "wall_time_s": history[-1]["wall_time_s"] if history else 0.0,
         }
-        gains_io.save_gains(run.out / "gains.json", spec.controller, gains, metadata)
-    return TuneResult(params, gains, history, step, problem, best_step, summary, final_params)
+        gains_io.save_gains(run.out / "gains.json", self.spec.controller, gains, metadata)
 
 
 def _print_progress(

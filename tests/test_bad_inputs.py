@@ -10,7 +10,9 @@ import sys
 
 import pytest
 
-from experiments import arguments, bench, cli, fractional_accuracy, simulate, study, tune
+from fojax import cli
+from fojax.cli import accuracy as fractional_accuracy
+from fojax.cli import arguments, bench, simulate, study, tune
 
 IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
 
@@ -364,7 +366,7 @@ def test_cli_version_unknown_command_and_os_errors(capsys, monkeypatch):
 def test_commands_exit_2_without_traceback(places, argv, message):
     argv = [a.format(**{k: str(v) for k, v in places.items()}) for a in argv]
     done = subprocess.run(
-        [sys.executable, "-m", "experiments.cli", *argv],
+        [sys.executable, "-m", "fojax.cli", *argv],
         capture_output=True,
         text=True,
         timeout=180,

@@ -66,7 +66,7 @@ def slow(self, *args, **kwargs):
     time.sleep(3)
     return path
 _store.ChunkStore.save = slow
-from experiments import cli
+from fojax import cli
 sys.exit(cli.main(sys.argv[1:]))
 """
 
@@ -74,7 +74,7 @@ sys.exit(cli.main(sys.argv[1:]))
 def _command(argv, slow=False):
     if slow:
         return [sys.executable, "-c", _SLOW_STORE, *argv]
-    return [sys.executable, "-m", "experiments.cli", *argv]
+    return [sys.executable, "-m", "fojax.cli", *argv]
 
 
 def _start(argv, processes: int, env: dict, slow: bool = False):

@@ -14,8 +14,8 @@ import scipy.signal
 from jax import lax
 from scipy.special import digamma, gamma
 
-from experiments import references as ref
 from fojax import fractional
+from fojax.cli import references as ref
 from fojax.fractional import GrunwaldLetnikov, Oustaloup, SumOfExponentials, differintegrate
 
 DT = 1e-3

@@ -92,7 +92,7 @@ def _forward(case) -> dict[str, np.ndarray]:
 def _gradient(case) -> dict[str, np.ndarray]:
     from fojax import scenarios, simulator
     from fojax.controllers import registry
-    from optimize import cost as cost_lib
+    from fojax.optimize import cost as cost_lib
 
     name, scenario_id, switching, method = case
     scenario = scenarios.get_scenario(scenario_id)

@@ -11,10 +11,10 @@ import pytest
 
 from fojax.controllers import registry
 from fojax.controllers.afonftsmc import AFONFTSMC, GAINS, paper_gains
-from optimize import cost as cost_lib
-from optimize import params as params_lib
-from optimize import problem as problem_lib
-from optimize import tuner as tuner_lib
+from fojax.optimize import cost as cost_lib
+from fojax.optimize import params as params_lib
+from fojax.optimize import problem as problem_lib
+from fojax.optimize import tuner as tuner_lib
 
 # ------------------------------------------------------------------ parameter maps
 
@@ -319,7 +319,7 @@ def test_failed_starts_never_write_or_overwrite(tmp_path):
             out,
             resume=True,
         )
-    with pytest.raises(ValueError, match=r"init: checkpoint 'naive', now 'paper'"):
+    with pytest.raises(ValueError, match=r'init: checkpoint "naive", now "paper"'):
         tuner_lib.prepare(SPEC, config, paper_gains(jnp.float64), "paper", out, resume=True)
     assert checkpoint.read_bytes() == before and os.stat(checkpoint).st_mtime_ns == stamp
     assert sorted(p.name for p in out.iterdir()) == [tuner_lib.CHECKPOINT]
@@ -329,7 +329,7 @@ def test_failed_starts_never_write_or_overwrite(tmp_path):
 
 
 def test_derivative_free_tuners_respect_the_budget():
-    from optimize import derivative_free
+    from fojax.optimize import derivative_free
 
     problem = small_problem()
     per_eval = SPEC.draws * SPEC.steps
@@ -378,7 +378,7 @@ def test_batched_costs_equal_one_at_a_time_costs():
 
 
 def test_batched_cma_es_equals_one_at_a_time_cma_es():
-    from optimize import derivative_free
+    from fojax.optimize import derivative_free
 
     problem = small_problem()
     budget = 3 * 4 * SPEC.draws * SPEC.steps
@@ -456,7 +456,7 @@ def test_tuner_returns_the_best_validated_gains(learning_rate):
 def test_lbfgs_minimises_rosenbrock_like_scipy():
     from scipy import optimize as scipy_optimize
 
-    from optimize import lbfgs as lbfgs_lib
+    from fojax.optimize import lbfgs as lbfgs_lib
 
     def rosenbrock(x):
         return scipy_optimize.rosen(x), scipy_optimize.rosen_der(x)

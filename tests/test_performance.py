@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from jax import lax
 
-from experiments import bench, numpy_reference
 from fojax import fractional, observers, plant, scenarios, sharding, simulator
+from fojax.cli import bench, numpy_reference
 from fojax.controllers.afonftsmc import AFONFTSMC, paper_gains
 
 SCENARIO_2 = scenarios.get_scenario(2)

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from experiments import cli, paper_figures, reproduce
+from fojax import cli
+from fojax.cli import reproduce
+from fojax.cli.reproduce import figures as paper_figures
 
 
 def _error(capsys, argv):
@@ -216,7 +218,7 @@ def test_reproduce_end_to_end_tiny(tmp_path):
 
 
 def test_regeneration_replaces_only_what_follows_the_marker(tmp_path):
-    from experiments.reproduce import regenerate
+    from experiments import regenerate_reproduction as regenerate
 
     document = tmp_path / "reproduction.md"
     document.write_text(f"# Title\n\nReading, by hand.\n\n{regenerate.MARKER}\n\nold report\n")

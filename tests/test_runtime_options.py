@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from experiments import arguments, cli, reproduce, simulate, tune
+from fojax import cli
+from fojax.cli import arguments, reproduce, simulate, tune
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -194,7 +195,7 @@ def listen(name, **kwargs):
     elif name.endswith("cache_misses"):
         events["misses"] += 1
 jax.monitoring.register_event_listener(listen)
-from experiments import cli
+from fojax import cli
 status = cli.main(sys.argv[1:])
 print("CACHE", events["hits"], events["misses"])
 sys.exit(status)

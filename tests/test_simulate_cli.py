@@ -8,7 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from experiments import arguments, cli, simulate
+from fojax import cli
+from fojax.cli import arguments, simulate
 from fojax.controllers import gains_io
 from fojax.controllers.afonftsmc import paper_gains
 
@@ -64,7 +65,7 @@ def test_an_option_the_controller_does_not_take_is_an_error(
 def test_with_several_controllers_an_option_applies_to_those_that_take_it(tmp_path):
     """--controller all --switching sat: the four sliding-mode laws switch with sat,
     the FL runs as it is, and the run says so."""
-    from experiments import study as study_layer
+    from fojax.cli import study as study_layer
 
     argv = ["--scenario", "2", "--controller", "all", "--draws", "3", "--switching", "sat"]
     study, args = simulate.parse_args(argv + ["--fractional", "gl", "--out", str(tmp_path)])
@@ -204,7 +205,7 @@ def test_simulate_end_to_end_tiny(tmp_path, capsys, monkeypatch):
     assert again["controllers"]["afonftsmc"]["metrics"] == entry["metrics"]
     # A figure that cannot be drawn (here: no plotting library) is a warning naming it;
     # the results are written and the command succeeds.
-    from experiments import style
+    from fojax.cli import style
 
     def no_matplotlib():
         raise ModuleNotFoundError("No module named 'matplotlib'")
@@ -256,7 +257,7 @@ def _check_recorded_metadata(summary, gains_path, argv):
 
 
 def test_default_gains_are_recorded_as_defaults():
-    from experiments import study
+    from fojax.cli import study
 
     record = study.gains_record(paper_gains(), None)
     assert record["source"] == "defaults"
@@ -265,7 +266,7 @@ def test_default_gains_are_recorded_as_defaults():
 
 _HOST_DEVICES_SCRIPT = """
 import os, sys
-from experiments import arguments
+from fojax.cli import arguments
 assert arguments.use_host_devices(3) == 3
 import jax
 assert arguments.use_host_devices(5) is None  # JAX has started: nothing changes
@@ -286,6 +287,9 @@ def test_host_devices_are_set_before_jax_starts_and_never_after():
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split()[0] == "3"
     # In this process JAX has started: the flag is left as it is.
+    import jax
+
+    jax.devices()
     before = os.environ.get("XLA_FLAGS")
     assert arguments.use_host_devices() is None
     assert os.environ.get("XLA_FLAGS") == before

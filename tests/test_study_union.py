@@ -1,4 +1,4 @@
-"""``experiments.study.run_studies``: studies of several scenarios share one compiled
+"""``fojax.cli.study.run_studies``: studies of several scenarios share one compiled
 program per controller (a union of their scenarios) and give the results of each
 scenario run alone."""
 
@@ -10,8 +10,8 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from conftest import close_normwise  # noqa: E402
 
-from experiments import study as study_layer  # noqa: E402
 from fojax import study as monte_carlo  # noqa: E402
+from fojax.cli import study as study_layer  # noqa: E402
 
 CONTROLLERS = ("afonftsmc", "fl")
 

@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from experiments import cli, simulate, tune
+from fojax import cli
+from fojax.cli import simulate, tune
 from fojax.controllers import gains_io
 from fojax.controllers.afonftsmc import paper_gains
 
@@ -147,7 +148,7 @@ def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     err = _error(capsys, argv + ["--resume", "--max-step", "0.5", "--out", str(out)])
     assert "another configuration" in err and "tuner.max_step: checkpoint 1.0, now 0.5" in err
     err = _error(capsys, argv + ["--resume", "--objective", "cvar", "--out", str(out)])
-    assert "problem.cost.objective: checkpoint 'mean', now 'cvar'" in err
+    assert 'problem.cost.objective: checkpoint "mean", now "cvar"' in err
     assert checkpoint.read_bytes() == before
     # Resuming a finished run changes nothing (its sessions are logged in run.json).
     text = (out / "gains.json").read_text()

@@ -14,8 +14,8 @@ def test_tuning_study_tiny(tmp_path):
 
     from experiments import tuning_study
     from fojax.controllers.afonftsmc import paper_gains
-    from optimize import cost as cost_lib
-    from optimize import problem as problem_lib
+    from fojax.optimize import cost as cost_lib
+    from fojax.optimize import problem as problem_lib
 
     out = tmp_path / "study"
     argv = ["--tiny", "--quiet", "--shares", "paper", "--out", str(out)]

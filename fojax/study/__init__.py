@@ -32,7 +32,12 @@ from fojax.study._run import (
     numeric_xla_flags,
     run,
 )
-from fojax.study._store import ChunkStore, StoreMismatch, fingerprint_differences
+from fojax.study._store import (
+    ChunkStore,
+    StoreMismatch,
+    describe_differences,
+    fingerprint_differences,
+)
 from fojax.study._summary import metric_table, status_counts, summarize
 
 __all__ = [
@@ -50,6 +55,7 @@ __all__ = [
     "check_settings",
     "compile_chunk_runner",
     "default_device_batch",
+    "describe_differences",
     "fingerprint",
     "fingerprint_differences",
     "make_chunk_runner",

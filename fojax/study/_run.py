@@ -33,7 +33,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
-import io
 import math
 import os
 import sys
@@ -46,14 +45,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import metrics, observers, plant, scenarios, sharding, simulator
+from fojax import metrics, plant, scenarios, sharding, simulator
 from fojax.controllers.cascade import as_controller
-from fojax.study._store import ChunkStore, flatten_snapshot, plan, unflatten_snapshot
+from fojax.study._dispatch import (
+    DIVERGED,
+    MAX_DRAWS,
+    _Dispatch,
+    _plan_calls,
+    _result,
+    _save_blocks,
+    _to_compute,
+)
+from fojax.study._store import ChunkStore, unflatten_snapshot
 
 Array = jax.Array
-
-DIVERGED = observers.NONFINITE | observers.TILT_LIMIT
-"""Status bits that make a draw count as diverged (excluded from the metrics)."""
 
 DEVICE_BATCH = {"cpu": 50}
 """Default draws per block (per device and call), by platform. On a CPU, 50: the
@@ -74,10 +79,6 @@ def default_device_batch(platform: str | None = None) -> int:
 
 MAX_SEED = 2**63 - 1
 """Largest seed :func:`jax.random.PRNGKey` takes."""
-
-MAX_DRAWS = 2**32
-"""Most draws of one run: draw indices are folded into the key as 32-bit integers, so
-index ``2**32`` would repeat draw 0."""
 
 
 class MonteCarloResult(NamedTuple):
@@ -249,7 +250,7 @@ def compile_chunk_runner(
     shaped like ``gains``.
 
     Lowering holds Python's lock, XLA's compilation does not: called in a worker thread
-    it compiles while other runs go on (``experiments.study`` does so). Pass the result
+    it compiles while other runs go on (``fojax.cli.study`` does so). Pass the result
     to :func:`run` as ``runner``. For a union scenario it takes the member index as a
     third argument (:func:`make_chunk_runner`): one program for every member. With the
     persistent compilation cache on (``jax_compilation_cache_dir``) a compiled program
@@ -355,57 +356,6 @@ def fingerprint(
 # ------------------------------------------------------------------------ processes
 
 
-def _multiprocess(mesh) -> bool:
-    return mesh is not None and any(
-        d.process_index != jax.process_index() for d in mesh.devices.flat
-    )
-
-
-def _gathered(tree, mesh):
-    """Device outputs as host arrays, every draw on every process."""
-    if _multiprocess(mesh):
-        from jax.experimental import multihost_utils
-
-        sharding.barrier("gather")  # processes may finish compiling far apart
-        return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
-    return jax.tree.map(np.asarray, tree)
-
-
-def _broadcast_bytes(payload: bytes | None) -> bytes:
-    """``payload`` of process 0, on every process."""
-    from jax.experimental import multihost_utils
-
-    lead = jax.process_index() == 0
-    sharding.barrier("broadcast")
-    size = np.array([len(payload) if lead else 0], np.int64)
-    size = int(np.asarray(multihost_utils.broadcast_one_to_all(size))[0])
-    data = np.frombuffer(payload, np.uint8) if lead else np.zeros(size, np.uint8)
-    return np.asarray(multihost_utils.broadcast_one_to_all(data)).tobytes()
-
-
-def _broadcast_arrays(arrays: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
-    buffer = io.BytesIO()
-    if jax.process_index() == 0:
-        np.savez(buffer, **arrays)
-    data = _broadcast_bytes(buffer.getvalue() if jax.process_index() == 0 else None)
-    with np.load(io.BytesIO(data)) as loaded:
-        return {k: loaded[k] for k in loaded.files}
-
-
-def _place(runner_inputs, mesh):
-    gains, keys = runner_inputs
-    if mesh is not None and mesh.devices.size > 1:
-        return sharding.replicate(gains, mesh), sharding.shard_draws(keys, mesh)
-    return gains, keys
-
-
-def _place_member(member: int, mesh):
-    value = np.asarray(member, np.int32)
-    if mesh is not None and mesh.devices.size > 1:
-        return sharding.replicate(value, mesh)
-    return value
-
-
 # ------------------------------------------------------------------------------ run
 
 
@@ -506,9 +456,7 @@ def run(
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
     check_settings(controller, scenario, config, metrics_config)
     layout = batch_layout(draws, batch, mesh)
-    devices = layout["devices"]
     keep = int(min(max(keep, 0), draws))
-    multi = _multiprocess(mesh)
     lead = jax.process_index() == 0
     chunk_store = None
     if store is not None and lead:
@@ -516,94 +464,27 @@ def run(
             controller, gains, scenario, config, seed, dtype, metrics_config, batch, member=member
         )
         chunk_store = ChunkStore(Path(store), settings)
-    if chunk_store is not None:
-        segments = plan(chunk_store.ranges(), draws, keep)
-    else:
-        segments = [("compute", 0, draws, None)]
-    blocks = sorted(
-        {
-            k
-            for kind, start, stop, _ in segments
-            if kind == "compute"
-            for k in range(start // batch, (stop - 1) // batch + 1)
-        }
-    )
-    if multi:  # process 0's plan (it alone reads the store)
-        message = {"blocks": np.asarray(blocks, np.int64)} if lead else None
-        blocks = [int(k) for k in _broadcast_arrays(message)["blocks"]]
-    calls = [blocks[i : i + devices] for i in range(0, len(blocks), devices)]
+    segments, calls = _plan_calls(chunk_store, draws, keep, batch, layout["devices"], mesh)
     if runner is None and calls:
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
-    member_blocks = None  # a union member's snapshots stop at its own horizon
-    if scenario.members:
-        own_steps = int(round(scenario.members[member].horizon / config.dt))
-        member_blocks = own_steps // config.save_every
-
-    computed: dict[int, tuple] = {}  # block -> (status, per_draw, snapshots or None)
+    dispatch = _Dispatch(runner, gains, scenario, config, seed, batch, keep, mesh, member)
     start_time = time.perf_counter()
     call_times: list[float] = []
-    done = draws - sum(b - a for kind, a, b, _ in segments if kind == "compute")
+    done = draws - _to_compute(segments)
     for call in calls:
         t0 = time.perf_counter()
-        filled = call + [call[-1]] * (devices - len(call))  # a short last call: repeat
-        indices = np.concatenate([np.arange(k * batch, (k + 1) * batch) for k in filled])
-        keys = np.asarray(scenarios.draw_keys(seed, np.minimum(indices, MAX_DRAWS - 1)))
-        inputs = _place((gains, keys), mesh)
-        if scenario.members:
-            inputs = (*inputs, _place_member(member, mesh))
-        outputs = runner(*inputs)
-        status, values, snapshots = _gathered(outputs, mesh)
-        flat = flatten_snapshot(snapshots)
-        if member_blocks is not None:
-            flat = {name: v[:, :member_blocks] for name, v in flat.items()}
-        for j, k in enumerate(call):
-            part = slice(j * batch, (j + 1) * batch)
-            first = k * batch
-            kept = min(batch, max(keep - first, 0))
-            snaps = {name: v[part][:kept] for name, v in flat.items()} if kept else None
-            computed[k] = (
-                np.asarray(status)[part],
-                {name: np.asarray(v)[part] for name, v in values.items()},
-                snaps,
-            )
+        dispatch(call, layout["devices"])
         if chunk_store is not None:
-            _save_blocks(chunk_store, call, computed, batch)
+            _save_blocks(chunk_store, call, dispatch.computed, batch)
         call_times.append(time.perf_counter() - t0)
         done += sum(max(0, min(batch, draws - k * batch)) for k in call)
         if progress and lead:
-            diverged = sum(
-                int(np.sum((c[0][: max(0, draws - k * batch)] & DIVERGED) > 0))
-                for k, c in computed.items()
-            )
-            _print_progress(
-                controller.name,
-                min(done, draws),
-                draws,
-                diverged,
-                len(computed) * batch,
-                config.steps,
-                call_times,
-                start_time,
-                batch * devices,
-            )
+            dispatch.report(controller.name, min(done, draws), draws, config.steps, call_times)
     if progress and lead and calls:
         print(file=sys.stderr)
     wall = time.perf_counter() - start_time
-
-    flat = None
-    if lead or not multi:
-        flat = _assemble(segments, chunk_store, computed, batch, keep)
-        missing = sum(b - a for kind, a, b, _ in segments if kind == "compute")
-        flat["computed"] = np.asarray([missing], np.int64)
-    if multi:  # the others hold only the computed blocks: process 0 sends the result
-        flat = _broadcast_arrays(flat)
-    computed_draws = int(flat.pop("computed")[0])
-    status, per_draw, kept = _split(flat)
-    compile_time = 0.0
-    if len(call_times) > 1:
-        compile_time = max(0.0, call_times[0] - float(np.median(call_times[1:])))
-    elif call_times:
-        compile_time = float("nan")  # one call: cannot separate compile from run
+    result = _result(segments, chunk_store, dispatch.computed, batch, keep, mesh, call_times)
+    status, per_draw, kept, computed_draws, compile_time = result
     return MonteCarloResult(
         controller=controller.name,
         status=status.astype(np.int32),
@@ -617,78 +498,4 @@ def run(
             "computed": computed_draws,
             "loaded": draws - computed_draws,
         },
-    )
-
-
-def _save_blocks(chunk_store: ChunkStore, call: list[int], computed: dict, batch: int) -> None:
-    """Store the call's blocks, consecutive ones in one file (indices below 2**32)."""
-    runs: list[list[int]] = []
-    for k in sorted(set(call)):
-        if runs and runs[-1][-1] == k - 1:
-            runs[-1].append(k)
-        else:
-            runs.append([k])
-    for run_blocks in runs:
-        first = run_blocks[0] * batch
-        n = min(len(run_blocks) * batch, MAX_DRAWS - first)
-        if n <= 0:
-            continue
-        status = np.concatenate([computed[k][0] for k in run_blocks])[:n]
-        values = {
-            name: np.concatenate([computed[k][1][name] for k in run_blocks])[:n]
-            for name in computed[run_blocks[0]][1]
-        }
-        snaps = None
-        if computed[run_blocks[0]][2] is not None:
-            parts = [computed[k][2] for k in run_blocks if computed[k][2] is not None]
-            snaps = {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
-        chunk_store.save(first, status, values, snaps)
-
-
-def _assemble(segments, chunk_store, computed: dict, batch: int, keep: int) -> dict:
-    """Draws ``[0, draws)`` from the store and the computed blocks, as flat arrays:
-    ``status``, ``m.<metric>``, ``s.<snapshot leaf>`` (the first ``keep`` draws)."""
-    pieces = []  # (first, status, per_draw, snapshots or None)
-    for kind, start, stop, item in segments:
-        if kind == "load":
-            pieces.append((start, *chunk_store.load(item, start, stop)))
-            continue
-        for k in range(start // batch, (stop - 1) // batch + 1):
-            a, b = max(start, k * batch), min(stop, (k + 1) * batch)
-            lo, hi = a - k * batch, b - k * batch
-            status, values, snaps = computed[k]
-            snaps = {n: v[lo:hi] for n, v in snaps.items()} if snaps and a < keep else None
-            pieces.append((a, status[lo:hi], {n: v[lo:hi] for n, v in values.items()}, snaps))
-    out = {"status": np.concatenate([p[1] for p in pieces])}
-    for name in pieces[0][2]:
-        out[f"m.{name}"] = np.concatenate([p[2][name] for p in pieces])
-    kept = []
-    for first, status, _, snaps in pieces:
-        if first >= keep:
-            break
-        n = min(len(status), keep - first)
-        kept.append({k: v[:n] for k, v in snaps.items()})
-    if kept:
-        for name in kept[0]:
-            out[f"s.{name}"] = np.concatenate([k[name] for k in kept])
-    return out
-
-
-def _split(flat: dict[str, np.ndarray]):
-    per_draw = {k[2:]: v for k, v in flat.items() if k.startswith("m.")}
-    kept = {k[2:]: v for k, v in flat.items() if k.startswith("s.")}
-    return flat["status"], per_draw, kept
-
-
-def _print_progress(name, done, draws, diverged, computed, steps, call_times, start, per_call):
-    elapsed = time.perf_counter() - start
-    steady = np.median(call_times[1:]) if len(call_times) > 1 else None
-    eta = f", about {(draws - done) / per_call * steady:.0f} s left" if steady else ""
-    rate = computed * steps / max(sum(call_times), 1e-9)
-    print(
-        f"\r  {name}: {done}/{draws} draws, {elapsed:.0f} s{eta}, {rate:.3g} draw-steps/s, "
-        f"diverged {diverged}   ",
-        end="",
-        file=sys.stderr,
-        flush=True,
     )

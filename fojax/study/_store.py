@@ -31,21 +31,35 @@ _FILE = re.compile(r"^draws_(\d{10})-(\d{10})\.npz$")
 
 
 class StoreMismatch(ValueError):
-    """The store holds draws of a run with other settings.
+    """The store holds draws of a run with other settings (the one error for it, of
+    :func:`fojax.study.run` and of the commands' checks before they compile).
 
     directory: the store. differences: ``[(field, earlier, now), ...]``, the fingerprint
-    fields (dotted paths) that differ, with the stored and the current value.
+    fields (dotted paths) that differ, with the stored and the current value. stores:
+    ``[(directory, differences), ...]``, every store that differs (default: the one);
+    ``directory`` and ``differences`` are the first's. hint: ``hint(field)``, the option
+    that sets a field, shown beside it; advice: the message's last line.
     """
 
-    def __init__(self, directory: str | os.PathLike, differences: list[tuple[str, Any, Any]]):
-        self.directory = Path(directory)
-        self.differences = list(differences)
-        lines = "\n  ".join(describe_differences(self.differences))
-        super().__init__(
-            f"{self.directory} holds draws of a run with other settings; it differs in:\n  "
-            f"{lines}\nremove that folder (or the run's chunks) to start afresh, or store "
-            "this run elsewhere"
+    ADVICE = "remove that folder (or the run's chunks) to start afresh, or store this run elsewhere"
+
+    def __init__(
+        self,
+        directory: str | os.PathLike,
+        differences: list[tuple[str, Any, Any]],
+        *,
+        stores: list | None = None,
+        hint=lambda field: "",
+        advice: str | None = None,
+    ):
+        self.stores = [(Path(d), list(x)) for d, x in (stores or [(directory, differences)])]
+        self.directory, self.differences = self.stores[0]
+        text = "\n".join(
+            f"{store} holds draws of a run with other settings; it differs in:\n  "
+            + "\n  ".join(describe_differences(found, hint))
+            for store, found in self.stores
         )
+        super().__init__(f"{text}\n{advice or self.ADVICE}")
 
 
 def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
@@ -78,14 +92,15 @@ def _short(value: Any, width: int = 60) -> str:
 
 
 def describe_differences(
-    differences: list[tuple[str, Any, Any]], hint=lambda field: ""
+    differences: list[tuple[str, Any, Any]], hint=lambda field: "", earlier: str = "earlier"
 ) -> list[str]:
-    """One line per difference: ``field (hint): earlier X, now Y``."""
+    """One line per difference: ``field (hint): earlier X, now Y`` (``earlier``: what
+    the stored side is called)."""
     lines = []
     for field, old, new in differences:
         extra = hint(field)
         lines.append(
-            f"{field}{f' ({extra})' if extra else ''}: earlier {_short(old)}, now {_short(new)}"
+            f"{field}{f' ({extra})' if extra else ''}: {earlier} {_short(old)}, now {_short(new)}"
         )
     return lines
 

@@ -6,10 +6,10 @@ Mittag-Leffler relaxation), the cost per step (modes, flops, state) and the meas
 wall time per channel-step. Writes ``accuracy.json``, ``accuracy.md`` (the table of
 ``docs/fractional.md``) and ``accuracy.png`` (and ``accuracy.pdf``) to ``--out``;
 ``accuracy.json`` also records the command line, versions and devices
-(:func:`experiments.study.provenance`).
+(:func:`fojax.cli.study.provenance`).
 
     fojax accuracy --out results/fractional
-    (or python -m experiments.fractional_accuracy --out results/fractional)
+    (or python -m fojax.cli.accuracy --out results/fractional)
 """
 
 from __future__ import annotations
@@ -23,10 +23,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import arguments, style
-from experiments import references as ref
-from experiments import study as study_layer
 from fojax import fractional
+from fojax.cli import arguments, require_extra, style
+from fojax.cli import study as study_layer
+
+EXTRA_MODULES = ("mpmath", "pymittagleffler")
+"""What the exact references (:mod:`fojax.cli.references`) need: the ``[experiments]``
+extra, imported only when the command runs."""
 
 ORDERS = (0.01, 0.1, 0.3, 0.5, 0.7, 0.9, 0.99)
 
@@ -51,6 +54,8 @@ def _signals(t: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def _exact(t: np.ndarray, alpha: float) -> dict[str, np.ndarray]:
+    from fojax.cli import references as ref
+
     return {
         "sin(1.7t)": ref.sine(t, 1.7, alpha),
         "cos(0.4t)": ref.cosine(t, 0.4, alpha),
@@ -85,6 +90,8 @@ def _time_per_step(method: str, options: dict, dt: float, steps: int, channels: 
 
 
 def evaluate(horizon: float = 80.0, dt: float = 1e-3, orders=ORDERS, methods=None) -> dict:
+    from fojax.cli import references
+
     methods = methods or METHODS
     steps = int(round(horizon / dt)) + 1
     t = np.arange(steps) * dt
@@ -109,7 +116,7 @@ def evaluate(horizon: float = 80.0, dt: float = 1e-3, orders=ORDERS, methods=Non
             # Relaxation E_a(-t^a): I^a E = 1 - E (integral orders only).
             order = abs(alpha)
             if alpha < 0:
-                relax = ref.mittag_leffler(-(t**order), order)
+                relax = references.mittag_leffler(-(t**order), order)
                 y_relax = np.asarray(
                     fractional.differintegrate(relax, alpha, dt, method, **options)
                 )
@@ -239,6 +246,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)
+    require_extra("accuracy", "experiments", EXTRA_MODULES)
     if args.dt >= args.horizon:
         parser.error(f"--dt ({args.dt:g} s) must be smaller than --horizon ({args.horizon:g} s)")
     steps = round(args.horizon / args.dt)

@@ -12,7 +12,7 @@ mass/inertia sample for all of them). Writes to ``DIR``:
 * ``report.md``: per scenario and controller each metric's mean and 95 % confidence
   interval, paired differences against the AFONFTSMC with their margins, and claim by
   claim whether the paper's Section V conclusions hold under this Monte Carlo (the
-  verdict rule: :mod:`experiments.reproduce.claims`);
+  verdict rule: :mod:`fojax.cli.reproduce.claims`);
 * ``report.json``: the same numbers, with every comparison's p-values;
 * ``figures/``: the paper's Figs. 5-16 redrawn from the data, Monte Carlo spread shaded;
 * ``s1/``, ``s2/``, ``s3/``: each scenario's ``summary.json`` (every metric),
@@ -26,7 +26,7 @@ Modules: :mod:`.claims` (the claim map and the verdict rule), :mod:`.report` (Ma
 and JSON), :mod:`.command` (argparse and ``main``).
 """
 
-from experiments.reproduce.claims import (
+from fojax.cli.reproduce.claims import (
     ALPHA,
     BASELINE,
     CHATTER_THRESHOLD,
@@ -42,8 +42,8 @@ from experiments.reproduce.claims import (
     paired_tables,
     reaching_band,
 )
-from experiments.reproduce.command import DEFAULT_DRAWS, build_parser, main, parse_args
-from experiments.reproduce.report import TABLE_METRICS, write_report
+from fojax.cli.reproduce.command import DEFAULT_DRAWS, build_parser, main, parse_args
+from fojax.cli.reproduce.report import TABLE_METRICS, write_report
 
 __all__ = [
     "ALPHA",

@@ -32,6 +32,7 @@ __all__ = [
     "seed",
     "add_device_batch",
     "add_runtime_options",
+    "add_study_options",
     "compile_cache_dir",
     "default_cache_dir",
     "enable_compile_cache",
@@ -296,6 +297,18 @@ def _usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+def _jax_started() -> bool:
+    """Whether JAX has made its backends (True when it cannot tell)."""
+    if "jax" not in sys.modules:
+        return False
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):
+        return True
+
+
 def use_host_devices(requested: int | None = None) -> int | None:
     """Ask XLA for one CPU device per core (or ``requested``) unless JAX has started.
 
@@ -304,9 +317,11 @@ def use_host_devices(requested: int | None = None) -> int | None:
     throughput of one device on 2 cores, ``docs/performance.md``). Only the CPU
     platform is affected: on a GPU machine the GPUs stay the default devices. Returns
     the count asked for, or None when JAX had already started (then nothing changes)
-    or ``XLA_FLAGS`` already sets it.
+    or ``XLA_FLAGS`` already sets it. JAX has started once it has made a backend (the
+    first device, array or compilation): XLA reads ``XLA_FLAGS`` then, not when
+    ``jax`` is imported (importing :mod:`fojax`, as ``fojax.cli`` does, imports it).
     """
-    if "jax" in sys.modules:
+    if _jax_started():
         return None
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_force_host_platform_device_count" in flags:
@@ -353,6 +368,20 @@ def add_device_batch(parser: argparse.ArgumentParser) -> None:
         replacement="draws are computed in blocks of --device-batch draws per device "
         "(default 50 on a CPU); give --device-batch N",
     )
+
+
+def add_study_options(parser: argparse.ArgumentParser, keep: int, keep_help: str) -> None:
+    """The options of a command that runs Monte Carlo studies into a folder
+    (``simulate``, ``reproduce``): ``--device-batch``, ``--keep`` (default ``keep``),
+    ``--dtype``, ``--no-figures``, ``--overwrite`` and ``--quiet``."""
+    add_device_batch(parser)
+    parser.add_argument("--keep", type=nonnegative_int, default=keep, help=keep_help)
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument("--no-figures", action="store_true", help="skip the figures")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="discard chunks of an earlier run in DIR/chunks"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress display")
 
 
 def add_runtime_options(parser: argparse.ArgumentParser, distributed: bool = True) -> None:

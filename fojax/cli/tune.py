@@ -27,7 +27,7 @@ the gradient of the mean (or CVaR) cost. Writes to ``DIR``:
   gradient norm against step and against wall time, drawn from ``history.csv``;
 * ``run.json``: what the run needs to be redone exactly: the initial gains' values and
   their source, and per session (a first run, then each ``--resume``) the command
-  line, versions, backend and device counts (:func:`experiments.study.provenance`);
+  line, versions, backend and device counts (:func:`fojax.cli.study.provenance`);
   ``gains.json`` carries the same in its metadata.
 
 Every input is checked before anything is compiled or written; an existing
@@ -44,15 +44,13 @@ figure that cannot be drawn is a warning.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import math
 import sys
 import time
 from pathlib import Path
 
-from experiments import arguments, style
-from experiments import study as study_layer
+from fojax.cli import arguments, figures, style
+from fojax.cli import study as study_layer
 
 __all__ = ["build_parser", "main", "parse_args"]
 
@@ -60,8 +58,8 @@ __all__ = ["build_parser", "main", "parse_args"]
 def build_parser() -> argparse.ArgumentParser:
     from fojax import fractional, scenarios
     from fojax.controllers import SWITCHING_FUNCTIONS, registry
-    from optimize import cost, params
-    from optimize.tuner import TunerConfig
+    from fojax.optimize import cost, params
+    from fojax.optimize.tuner import TunerConfig
 
     defaults = cost.CostConfig()
     tuner = TunerConfig()
@@ -220,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _initial_gains(parser, args, dtype):
     from fojax.controllers import gains_io, registry
-    from optimize import params
+    from fojax.optimize import params
 
     if args.init == "paper":
         return registry.get_controller_class(args.controller).default_gains(dtype), "paper"
@@ -296,7 +294,7 @@ def _options_that_do_not_apply(args) -> str | None:
 
 def _defaults(args) -> None:
     """The defaults of the options left out (None in ``args`` until checked)."""
-    from optimize import cost, tuner
+    from fojax.optimize import cost, tuner
 
     defaults, config = cost.CostConfig(), tuner.TunerConfig()
     for name, value in (
@@ -318,7 +316,7 @@ def parse_args(argv):
     """Parse and validate; returns ``(PreparedRun, args)``. Raises ``SystemExit`` with
     a message on bad input, before anything is compiled or written."""
     from fojax.controllers import registry
-    from optimize import cost, params, problem, tuner
+    from fojax.optimize import cost, params, problem, tuner
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -401,7 +399,7 @@ def parse_args(argv):
 def _evaluate(run, result, args) -> dict:
     import numpy as np
 
-    from optimize import problem as problem_lib
+    from fojax.optimize import problem as problem_lib
 
     horizon = args.eval_horizon or run.spec.horizon
     keys = result.problem.heldout_keys(args.eval_draws)
@@ -466,127 +464,6 @@ def _record_session(run, command: list[str], device_batch: int | None = None) ->
     return record
 
 
-def _read_history(path: Path) -> dict[str, list[float]]:
-    with open(path, newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    columns = {key: [] for key in (rows[0] if rows else {})}
-    for row in rows:
-        for key, value in row.items():
-            try:
-                columns[key].append(float(value))
-            except (TypeError, ValueError):
-                columns[key].append(math.nan)
-    return columns
-
-
-def plot_convergence(
-    history_csv: Path,
-    path: Path,
-    evaluation: dict | None = None,
-    clip_norm: float | None = None,
-    title: str = "fojax tune: convergence",
-    validation_start: float | None = None,
-) -> Path:
-    """The run's progress from ``history.csv``: the objective (and, when it is not the
-    mean, the minibatch mean) with the worst draw's cost, and the gradient norm, against
-    step (left) and wall time (right); the held-out cost of the initial and the tuned
-    gains where ``evaluation`` has it. Steps with diverged draws are marked."""
-    import numpy as np
-    from matplotlib.lines import Line2D
-
-    history = _read_history(history_csv)
-    if not history.get("step"):
-        raise ValueError(f"{history_csv} holds no step")
-    plt = style.pyplot()
-    fig = plt.figure(figsize=(11, 7), layout="constrained")
-    axes = fig.subplots(2, 2, sharey="row")
-    step = np.asarray(history["step"])
-    wall = np.asarray(history["wall_time_s"])
-    objective = np.asarray(history["objective"])
-    mean_cost = np.asarray(history["mean_cost"])
-    worst = np.asarray(history["max_cost"])
-    diverged = np.asarray(history.get("diverged", [0] * len(step))) > 0
-    validation = np.asarray(history.get("validation_cost", [math.nan] * len(step)))
-    validated = np.isfinite(validation)
-    orange = "#E69F00"
-    if validation_start is not None and validated.any():  # the start, validated at step 0
-        step, wall = np.concatenate([[0.0], step]), np.concatenate([[0.0], wall])
-        pad = np.asarray([math.nan])
-        objective, mean_cost, worst = (
-            np.concatenate([pad, a]) for a in (objective, mean_cost, worst)
-        )
-        diverged = np.concatenate([[False], diverged])
-        validation = np.concatenate([[validation_start], validation])
-        validated = np.isfinite(validation)
-        history = {**history, "grad_norm": np.concatenate([pad, history["grad_norm"]])}
-    show_mean = not np.allclose(objective, mean_cost, rtol=1e-6, equal_nan=True)
-    dark, blue, green, red = "#333333", "#0072B2", "#009E73", "#D55E00"
-    held_out = dict(ls="none", marker="D", ms=7, mfc="white", mec=green, mew=2, zorder=6)
-    handles = [Line2D([], [], color=dark, lw=1.4, marker="o", ms=2.5, label="objective")]
-    if show_mean:
-        handles.append(Line2D([], [], color=blue, lw=0.9, label="minibatch mean cost"))
-    handles.append(Line2D([], [], color=blue, lw=0.8, ls=":", label="minibatch worst cost"))
-    for col, x in enumerate((step, wall)):
-        ax = axes[0, col]
-        ax.plot(x, objective, color=dark, lw=1.4, marker="o", ms=2.5, zorder=4)
-        if show_mean:
-            ax.plot(x, mean_cost, color=blue, lw=0.9, zorder=3)
-        ax.plot(x, worst, color=blue, lw=0.8, ls=":", zorder=3)
-        if np.any(diverged):
-            ax.scatter(x[diverged], objective[diverged], marker="x", color=red, zorder=5)
-        axes[1, col].plot(x, history["grad_norm"], color=dark, lw=1.2, marker="o", ms=2.5)
-        if validated.any():
-            # Against wall time as steps: the start's gains stand until the next
-            # validation (the start is validated while the gradient compiles).
-            ax.plot(x[validated], validation[validated], color=orange, lw=1.2, marker="s", ms=4,
-                    zorder=5, drawstyle="steps-post" if col else "default")  # fmt: skip
-        if clip_norm is not None:
-            axes[1, col].axhline(clip_norm, color="0.5", ls="--", lw=0.9)
-    if np.any(diverged):
-        handles.append(
-            Line2D([], [], ls="none", marker="x", color=red, label="step with diverged draws")
-        )
-    if validated.any():
-        best = history.get("best_step", [math.nan])[-1]
-        handles.append(
-            Line2D([], [], color=orange, lw=1.2, marker="s", ms=4,
-                   label=f"validation cost (returned: step {best:.0f})")
-        )  # fmt: skip
-    if evaluation and "initial" in evaluation and "tuned" in evaluation:
-        initial = evaluation["initial"]["mean_cost"]
-        tuned = evaluation["tuned"]["mean_cost"]
-        axes[0, 0].plot([0, step[-1]], [initial, tuned], **held_out)
-        axes[0, 1].plot([wall[-1]], [tuned], **held_out)
-        handles.append(
-            Line2D(
-                [],
-                [],
-                **held_out,
-                label=f"held-out mean cost of the initial (step 0) and tuned gains "
-                f"({evaluation['draws']} draws, {evaluation['switching']}, "
-                f"{evaluation['horizon_s']:g} s)",
-            )  # fmt: skip
-        )
-    if clip_norm is not None:
-        handles.append(Line2D([], [], color="0.5", ls="--", lw=0.9, label="gradient clip norm"))
-    costs = np.concatenate([objective, worst, validation[validated]])
-    for row, values in enumerate((costs, history["grad_norm"])):
-        values = np.asarray(values, dtype=float)
-        values = values[np.isfinite(values)]
-        if values.size and np.all(values > 0) and values.max() > 10 * values.min():
-            axes[row, 0].set_yscale("log")
-    for ax in axes.flat:
-        ax.grid(alpha=0.3, which="both")
-    axes[0, 0].set_ylabel("cost")
-    axes[1, 0].set_ylabel("gradient norm (before clipping)")
-    axes[1, 0].set_xlabel("step")
-    first = wall[1] if validation_start is not None and validated.any() else wall[0]
-    axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {first:.1f} s, compilation included")
-    fig.suptitle(title, fontsize=10)
-    style.legend_below(fig, handles, ncol=2 if len(handles) > 4 else len(handles))
-    return style.save(fig, path)
-
-
 def _finished_before(run) -> bool:
     """Whether this is a ``--resume`` of a run whose steps were all done."""
     meta = run.checkpoint_meta or {}
@@ -615,12 +492,12 @@ def _save_tuned_gains(run, record: dict, earlier: str | None) -> None:
 def _tuning_problem(run, device_batch=None):
     """The problem with its draws over every device of every process: per-draw
     gradients computed where the draws are, gathered, reduced the same way on each
-    process (:class:`optimize.problem.TuningProblem`'s ``mesh``), so that a run over
+    process (:class:`fojax.optimize.problem.TuningProblem`'s ``mesh``), so that a run over
     several processes takes the steps a one-process run takes."""
     import jax
 
     from fojax import sharding
-    from optimize import problem
+    from fojax.optimize import problem
 
     mesh = sharding.draw_mesh(jax.devices())
     return problem.TuningProblem(run.spec, run.init_gains, mesh=mesh, device_batch=device_batch)
@@ -632,7 +509,7 @@ def _private_copy(run):
     import shutil
     import tempfile
 
-    from optimize import tuner
+    from fojax.optimize import tuner
 
     folder = Path(tempfile.mkdtemp(prefix="fojax-tune-"))
     checkpoint = run.out / tuner.CHECKPOINT
@@ -644,7 +521,7 @@ def _private_copy(run):
 
 
 def main(argv=None) -> int:
-    from optimize import tuner
+    from fojax.optimize import tuner
 
     argv = list(sys.argv[1:] if argv is None else argv)
     runtime = arguments.setup_runtime(argv, "fojax tune")
@@ -701,7 +578,7 @@ def main(argv=None) -> int:
         )
     figure = style.attempt(
         "convergence.png",
-        plot_convergence,
+        figures.plot_convergence,
         args.out / "history.csv",
         args.out / "convergence.png",
         evaluation,

@@ -17,7 +17,7 @@ Writes to ``DIR``, the results first and the figures after them:
   ``diverged`` (non-finite, or roll/pitch beyond pi/2); with several controllers,
   paired differences against the first (common random numbers); the gains' values
   and their source (a file or the defaults), and ``provenance``: the command line,
-  versions, backend and device counts (:func:`experiments.study.provenance`).
+  versions, backend and device counts (:func:`fojax.cli.study.provenance`).
 * ``draws.npz``: per-draw metrics, ``<controller>.<metric>``, and
   ``<controller>.status``.
 * ``trajectories.npz``: decimated trajectories of the first draws.
@@ -36,7 +36,7 @@ over every process's devices and process 0 writes the outputs (``docs/distribute
 
 Every input is checked before anything is compiled. The study itself
 (:class:`Study`, :func:`run_study`, :func:`write_outputs`) lives in
-:mod:`experiments.study`.
+:mod:`fojax.cli.study`.
 """
 
 from __future__ import annotations
@@ -46,8 +46,9 @@ import sys
 import time
 from pathlib import Path
 
-from experiments import arguments
-from experiments.study import Study, run_study, snapshot_interval, write_outputs
+from fojax.cli import arguments
+from fojax.cli.study import Study, run_study, snapshot_interval
+from fojax.cli.study_files import write_outputs
 
 __all__ = ["Study", "main", "parse_args", "run_study", "snapshot_interval", "write_outputs"]
 
@@ -95,19 +96,11 @@ def build_parser() -> argparse.ArgumentParser:
         "sign, the paper's). With one controller that has none, an error; with several, "
         "the summary says which it applied to",
     )
-    arguments.add_device_batch(parser)
-    parser.add_argument(
-        "--keep",
-        type=arguments.nonnegative_int,
-        default=64,
-        help="draws whose trajectories are kept for figures (64; 0: no trajectories, no figures)",
+    arguments.add_study_options(
+        parser,
+        64,
+        "draws whose trajectories are kept for figures (64; 0: no trajectories, no figures)",
     )
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--no-figures", action="store_true", help="skip the figures")
-    parser.add_argument(
-        "--overwrite", action="store_true", help="discard chunks of an earlier run in DIR/chunks"
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress display")
     parser.add_argument(
         "--out",
         required=True,

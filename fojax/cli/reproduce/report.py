@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from experiments.reproduce import claims as claims_module
-from experiments.reproduce.claims import BASELINE, CHATTER_THRESHOLD
+from fojax.cli import output
+from fojax.cli.reproduce import claims as claims_module
+from fojax.cli.reproduce.claims import BASELINE, CHATTER_THRESHOLD
 
 __all__ = ["TABLE_METRICS", "write_report"]
 
@@ -268,7 +268,7 @@ def write_report(
 ) -> tuple[Path, Path]:
     """``report.md`` and ``report.json`` in ``out``; returns their paths.
 
-    ``tables``: :func:`experiments.reproduce.claims.paired_tables` (scenario id ->
+    ``tables``: :func:`fojax.cli.reproduce.claims.paired_tables` (scenario id ->
     controller -> metric -> comparison) for the per-scenario difference tables.
     """
     tables = tables or {}
@@ -362,7 +362,7 @@ def write_report(
         "figures": [p.name for p in figures],
     }
     report_json = out / "report.json"
-    report_json.write_text(json.dumps(document, indent=1, default=_json_default) + "\n")
+    output.write_json(report_json, document, default=_json_default)
     return report_md, report_json
 
 

@@ -333,7 +333,7 @@ def evaluate_claims(summaries: dict, results_by_scenario: dict) -> list[dict]:
     """Each claim of :data:`CLAIMS`, then Remark 2 and the finite-time claim, with its
     comparisons and verdict.
 
-    ``summaries``: scenario id -> the summary of :func:`experiments.simulate.write_outputs`.
+    ``summaries``: scenario id -> the summary of :func:`fojax.cli.simulate.write_outputs`.
     ``results_by_scenario``: scenario id -> {controller: MonteCarloResult} (per draw).
     """
     evaluated = []

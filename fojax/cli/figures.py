@@ -1,25 +1,29 @@
-"""Figures of Monte Carlo runs: tracking, errors, inputs, paths, adaptive estimates.
+"""Figures of Monte Carlo runs: tracking, errors, inputs, paths, adaptive estimates;
+and a tuning run's convergence (:func:`plot_convergence`, ``fojax tune``).
 
 Each function takes ``{controller name: MonteCarloResult}`` (results with kept
-trajectories) and writes one PNG and a PDF beside it (:func:`experiments.style.save`).
+trajectories) and writes one PNG and a PDF beside it (:func:`fojax.cli.style.save`).
 Lines are the median over the kept draws that did not diverge, the shaded band their
 5-95 % range; the reference is dashed black, on top. Inputs are drawn as the range the
 command covers at full rate within each saved block (``inputs_low``/``inputs_high``),
 not as samples: a command that chatters at every step fills its band. Each controller
-has one colour in every figure (:data:`experiments.style.CONTROLLER_COLORS`).
+has one colour in every figure (:data:`fojax.cli.style.CONTROLLER_COLORS`).
 """
 
 from __future__ import annotations
 
+import csv
+import math
 from pathlib import Path
 
 import numpy as np
 
-from experiments import style
+from fojax.cli import style
 
 __all__ = [
     "plot_adaptive",
     "plot_all",
+    "plot_convergence",
     "plot_errors",
     "plot_inputs",
     "plot_path",
@@ -259,3 +263,123 @@ def plot_all(results: dict, directory: Path, prefix: str = "", context: str = ""
         if style.attempt(path.name, maker, results, path, title) is not None:
             paths.append(path)
     return paths
+
+
+def _read_history(path: Path) -> dict[str, list[float]]:
+    with open(path, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    columns = {key: [] for key in (rows[0] if rows else {})}
+    for row in rows:
+        for key, value in row.items():
+            try:
+                columns[key].append(float(value))
+            except (TypeError, ValueError):
+                columns[key].append(math.nan)
+    return columns
+
+
+def plot_convergence(
+    history_csv: Path,
+    path: Path,
+    evaluation: dict | None = None,
+    clip_norm: float | None = None,
+    title: str = "fojax tune: convergence",
+    validation_start: float | None = None,
+) -> Path:
+    """The run's progress from ``history.csv``: the objective (and, when it is not the
+    mean, the minibatch mean) with the worst draw's cost, and the gradient norm, against
+    step (left) and wall time (right); the held-out cost of the initial and the tuned
+    gains where ``evaluation`` has it. Steps with diverged draws are marked."""
+    from matplotlib.lines import Line2D
+
+    history = _read_history(history_csv)
+    if not history.get("step"):
+        raise ValueError(f"{history_csv} holds no step")
+    plt = style.pyplot()
+    fig = plt.figure(figsize=(11, 7), layout="constrained")
+    axes = fig.subplots(2, 2, sharey="row")
+    step = np.asarray(history["step"])
+    wall = np.asarray(history["wall_time_s"])
+    objective = np.asarray(history["objective"])
+    mean_cost = np.asarray(history["mean_cost"])
+    worst = np.asarray(history["max_cost"])
+    diverged = np.asarray(history.get("diverged", [0] * len(step))) > 0
+    validation = np.asarray(history.get("validation_cost", [math.nan] * len(step)))
+    validated = np.isfinite(validation)
+    orange = "#E69F00"
+    if validation_start is not None and validated.any():  # the start, validated at step 0
+        step, wall = np.concatenate([[0.0], step]), np.concatenate([[0.0], wall])
+        pad = np.asarray([math.nan])
+        objective, mean_cost, worst = (
+            np.concatenate([pad, a]) for a in (objective, mean_cost, worst)
+        )
+        diverged = np.concatenate([[False], diverged])
+        validation = np.concatenate([[validation_start], validation])
+        validated = np.isfinite(validation)
+        history = {**history, "grad_norm": np.concatenate([pad, history["grad_norm"]])}
+    show_mean = not np.allclose(objective, mean_cost, rtol=1e-6, equal_nan=True)
+    dark, blue, green, red = "#333333", "#0072B2", "#009E73", "#D55E00"
+    held_out = dict(ls="none", marker="D", ms=7, mfc="white", mec=green, mew=2, zorder=6)
+    handles = [Line2D([], [], color=dark, lw=1.4, marker="o", ms=2.5, label="objective")]
+    if show_mean:
+        handles.append(Line2D([], [], color=blue, lw=0.9, label="minibatch mean cost"))
+    handles.append(Line2D([], [], color=blue, lw=0.8, ls=":", label="minibatch worst cost"))
+    for col, x in enumerate((step, wall)):
+        ax = axes[0, col]
+        ax.plot(x, objective, color=dark, lw=1.4, marker="o", ms=2.5, zorder=4)
+        if show_mean:
+            ax.plot(x, mean_cost, color=blue, lw=0.9, zorder=3)
+        ax.plot(x, worst, color=blue, lw=0.8, ls=":", zorder=3)
+        if np.any(diverged):
+            ax.scatter(x[diverged], objective[diverged], marker="x", color=red, zorder=5)
+        axes[1, col].plot(x, history["grad_norm"], color=dark, lw=1.2, marker="o", ms=2.5)
+        if validated.any():
+            # Against wall time as steps: the start's gains stand until the next
+            # validation (the start is validated while the gradient compiles).
+            ax.plot(x[validated], validation[validated], color=orange, lw=1.2, marker="s", ms=4,
+                    zorder=5, drawstyle="steps-post" if col else "default")  # fmt: skip
+        if clip_norm is not None:
+            axes[1, col].axhline(clip_norm, color="0.5", ls="--", lw=0.9)
+    if np.any(diverged):
+        handles.append(
+            Line2D([], [], ls="none", marker="x", color=red, label="step with diverged draws")
+        )
+    if validated.any():
+        best = history.get("best_step", [math.nan])[-1]
+        handles.append(
+            Line2D([], [], color=orange, lw=1.2, marker="s", ms=4,
+                   label=f"validation cost (returned: step {best:.0f})")
+        )  # fmt: skip
+    if evaluation and "initial" in evaluation and "tuned" in evaluation:
+        initial = evaluation["initial"]["mean_cost"]
+        tuned = evaluation["tuned"]["mean_cost"]
+        axes[0, 0].plot([0, step[-1]], [initial, tuned], **held_out)
+        axes[0, 1].plot([wall[-1]], [tuned], **held_out)
+        handles.append(
+            Line2D(
+                [],
+                [],
+                **held_out,
+                label=f"held-out mean cost of the initial (step 0) and tuned gains "
+                f"({evaluation['draws']} draws, {evaluation['switching']}, "
+                f"{evaluation['horizon_s']:g} s)",
+            )  # fmt: skip
+        )
+    if clip_norm is not None:
+        handles.append(Line2D([], [], color="0.5", ls="--", lw=0.9, label="gradient clip norm"))
+    costs = np.concatenate([objective, worst, validation[validated]])
+    for row, values in enumerate((costs, history["grad_norm"])):
+        values = np.asarray(values, dtype=float)
+        values = values[np.isfinite(values)]
+        if values.size and np.all(values > 0) and values.max() > 10 * values.min():
+            axes[row, 0].set_yscale("log")
+    for ax in axes.flat:
+        ax.grid(alpha=0.3, which="both")
+    axes[0, 0].set_ylabel("cost")
+    axes[1, 0].set_ylabel("gradient norm (before clipping)")
+    axes[1, 0].set_xlabel("step")
+    first = wall[1] if validation_start is not None and validated.any() else wall[0]
+    axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {first:.1f} s, compilation included")
+    fig.suptitle(title, fontsize=10)
+    style.legend_below(fig, handles, ncol=2 if len(handles) > 4 else len(handles))
+    return style.save(fig, path)

@@ -1,9 +1,9 @@
 """``fojax reproduce``: the command line (argparse, validation, the run, the outputs).
 
-See :mod:`experiments.reproduce` for what it writes, :mod:`.claims` for the claims and
+See :mod:`fojax.cli.reproduce` for what it writes, :mod:`.claims` for the claims and
 the verdict rule, :mod:`.report` for the report.
 
-The studies (one :class:`experiments.simulate.Study` per scenario) are made, run and
+The studies (one :class:`fojax.cli.simulate.Study` per scenario) are made, run and
 summarised through :func:`_make_study`, :func:`_run_studies` and :func:`_write_outputs`
 only, the one place that knows where that layer lives.
 """
@@ -11,15 +11,14 @@ only, the one place that knows where that layer lives.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
-from experiments import arguments, simulate
-from experiments.reproduce import claims as claims_module
-from experiments.reproduce.claims import BASELINE
-from experiments.reproduce.report import TABLE_METRICS, write_report
+from fojax.cli import arguments, output, simulate
+from fojax.cli.reproduce import claims as claims_module
+from fojax.cli.reproduce.claims import BASELINE
+from fojax.cli.reproduce.report import TABLE_METRICS, write_report
 
 __all__ = ["DEFAULT_DRAWS", "build_parser", "main", "parse_args"]
 
@@ -41,10 +40,10 @@ def _make_study(**fields) -> simulate.Study:
 
 
 def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce):
-    """Yields ``(study, results)`` scenario by scenario (:func:`experiments.study.run_studies`:
+    """Yields ``(study, results)`` scenario by scenario (:func:`fojax.cli.study.run_studies`:
     the next runs' programs compile while one runs; the scenarios run as members of one
     union, so each controller's program serves every scenario)."""
-    from experiments import study as study_layer
+    from fojax.cli import study as study_layer
 
     pairs = [(study, out / f"s{study.scenario_id}") for study in studies]
     yield from study_layer.run_studies(pairs, progress, overwrite, announce=announce)
@@ -53,7 +52,7 @@ def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce):
 def _write_outputs(study, results: dict, directory: Path) -> dict:
     summary = simulate.write_outputs(study, results, directory, figures=False)
     summary["reaching_band"] = list(study.reaching_band)
-    (directory / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    output.write_json(directory / "summary.json", summary)
     return summary
 
 
@@ -62,7 +61,7 @@ def _write_outputs(study, results: dict, directory: Path) -> dict:
 
 def _draw_scenario(scenario_id: int, results: dict, directory: str) -> list[str]:
     """Figs. of one scenario (run in the figure process)."""
-    from experiments import paper_figures
+    from fojax.cli.reproduce import figures as paper_figures
 
     return [str(p) for p in paper_figures.plot_all({scenario_id: results}, Path(directory))]
 
@@ -97,7 +96,7 @@ class _FigureDrawer:
         )
 
     def finish(self) -> list[Path]:
-        from experiments import paper_figures
+        from fojax.cli.reproduce import figures as paper_figures
 
         if self.progress:
             print("figures ...", file=sys.stderr, flush=True)
@@ -178,25 +177,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulated time (s) for every scenario (default: each scenario's, 80/80/50 s)",
     )
     parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s")
-    arguments.add_device_batch(parser)
-    parser.add_argument(
-        "--keep",
-        type=arguments.nonnegative_int,
-        default=32,
-        help="draws whose trajectories are kept for the figures (32)",
+    arguments.add_study_options(
+        parser, 32, "draws whose trajectories are kept for the figures (32)"
     )
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--no-figures", action="store_true", help="skip the figures")
-    parser.add_argument(
-        "--overwrite", action="store_true", help="discard finished chunks of an earlier run"
-    )
-    parser.add_argument("--quiet", action="store_true", help="no progress display")
     arguments.add_runtime_options(parser)
     return parser
 
 
 def parse_args(argv) -> tuple[list, argparse.Namespace]:
-    """One validated :class:`experiments.simulate.Study` per scenario; exits on bad input."""
+    """One validated :class:`fojax.cli.simulate.Study` per scenario; exits on bad input."""
     from fojax import scenarios
     from fojax.controllers import registry
 

@@ -17,7 +17,7 @@ exponentials), RK4, 1 ms, float32. Measured in one run, on every device JAX sees
   gradients happens once, after the time loop (with shared gains it happened at every
   step, an all-reduce across devices each step on a mesh: 20-100x slower);
 * the same closed loop in plain NumPy vectorised over draws
-  (:mod:`experiments.numpy_reference`) and the ratio JAX / NumPy;
+  (:mod:`fojax.cli.numpy_reference`) and the ratio JAX / NumPy;
 * crazyflow's simulator at the same world counts, where it is installed.
 
 Big batches run a shorter horizon (``--long-horizon`` for at most ``--long-max-draws``
@@ -39,8 +39,8 @@ import resource
 import sys
 import time
 
-from experiments import arguments
-from experiments import study as study_layer
+from fojax.cli import arguments
+from fojax.cli import study as study_layer
 
 DEFAULT_DRAWS = (1, 64, 1024, 4096)
 DEFAULT_CHUNK = 1024  # draws per call: 512 per core keeps each core's modes in its L2
@@ -380,7 +380,7 @@ def measure_numpy(count: int, horizon: float) -> dict:
     """The NumPy reference (float32, like the JAX workload), one timed run."""
     import numpy as np
 
-    from experiments import numpy_reference
+    from fojax.cli import numpy_reference
 
     work = _Workload(horizon)
     prepared = numpy_reference.prepare(
@@ -567,7 +567,6 @@ def main(argv=None) -> dict:
             entry = measure_gradient(count, horizon, args.repeats, mesh)
             result["gradient"].append(entry)
             _log_gradient(entry)
-
 
     if args.scaling:
         base_draws = 8 if args.small else 256

@@ -19,8 +19,8 @@ sampled at the snapshot interval (0.1 s by default); the control inputs are draw
 the range each command covers at full rate within every snapshot block
 (``inputs_low``/``inputs_high``), so a command switching at every 1 ms step fills a
 band instead of aliasing into spikes. Each controller has one colour in every figure
-(:data:`experiments.style.CONTROLLER_COLORS`); the reference is dashed black, on top.
-Each figure is a PNG (:data:`experiments.style.DPI`) with a PDF beside it. Input:
+(:data:`fojax.cli.style.CONTROLLER_COLORS`); the reference is dashed black, on top.
+Each figure is a PNG (:data:`fojax.cli.style.DPI`) with a PDF beside it. Input:
 ``{scenario id: {controller: MonteCarloResult}}`` with kept trajectories.
 """
 
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import style
+from fojax.cli import style
 
 __all__ = ["FIGURE_NUMBERS", "plot_all"]
 

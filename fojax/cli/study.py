@@ -1,32 +1,29 @@
 """The study layer shared by the commands: a validated Monte Carlo study, running it,
 writing its outputs, and what every output records to be rerun exactly.
 
-* :class:`Study`, :func:`run_study`, :func:`write_outputs`: one scenario under one or
-  several controllers on the same draws (``fojax simulate``; ``fojax reproduce`` runs
-  one per scenario).
-* :func:`provenance`: the command line, versions (fojax and its git commit, Python,
-  JAX, jaxlib, NumPy), backend and device and process counts; :func:`gains_record`:
-  the gains' values and where they came from. ``fojax simulate``, ``tune`` and
-  ``bench`` store both with their results.
+* :class:`Study`, :func:`run_study`: one scenario under one or several controllers on
+  the same draws (``fojax simulate``; ``fojax reproduce`` runs one per scenario); its
+  files: :func:`fojax.cli.study_files.write_outputs`.
+* :func:`provenance` (:mod:`fojax.cli.output`): the command line, versions (fojax and
+  its git commit, Python, JAX, jaxlib, NumPy), backend and device and process counts;
+  :func:`gains_record`: the gains' values and where they came from. ``fojax
+  simulate``, ``tune`` and ``bench`` store both with their results.
 * :func:`store_differences`: the settings in which a run differs from the one whose
   chunks are already in the output folder, field by field, before anything runs.
-* :func:`write_json`: atomic JSON files (a run stopped while writing leaves the old
-  file or the new one, never half of one).
+* :func:`write_json` (:mod:`fojax.cli.output`): atomic JSON files.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import json
 import os
-import platform
-import shlex
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any, NamedTuple
+
+from fojax.cli.output import provenance, write_json
+from fojax.study import StoreMismatch
 
 __all__ = [
     "Study",
@@ -44,7 +41,6 @@ __all__ = [
     "store_differences",
     "union_enabled",
     "write_json",
-    "write_outputs",
 ]
 
 
@@ -91,116 +87,18 @@ def snapshot_interval(steps: int, dt: float, target: float = 0.1) -> int:
 # ------------------------------------------------------------------------- provenance
 
 
-def _git_commit(root: Path) -> dict:
-    """``{"commit", "dirty"}`` of the checkout holding fojax, or ``{}`` (not one)."""
-    if not (root / ".git").exists():
-        return {}
-    try:
-        commit = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-        if commit.returncode != 0:
-            return {}
-        status = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-        dirty = bool(status.stdout.strip()) if status.returncode == 0 else None
-        return {"commit": commit.stdout.strip(), "dirty": dirty}
-    except (OSError, subprocess.SubprocessError):
-        return {}
-
-
-def _version(package: str) -> str | None:
-    from importlib import metadata
-
-    try:
-        return metadata.version(package)
-    except metadata.PackageNotFoundError:
-        return None
-
-
-def provenance(command: list[str] | None = None, gains: dict | None = None) -> dict:
-    """What a result needs to be rerun exactly.
-
-    command: the command line as a list (``["fojax", "simulate", ...]``; default
-    ``sys.argv``). gains: optional, recorded as given (see :func:`gains_record`).
-    Returns the command (quoted for a shell) and the folder it ran in, the fojax
-    version and git commit (``dirty``: uncommitted changes to tracked files), the
-    Python, JAX, jaxlib and NumPy versions, the backend, the device and process counts
-    and devices (the draws are split over the devices, and a draw's float32 rounding
-    depends on the batch it runs in), ``jax_enable_x64``, ``XLA_FLAGS``, the platform
-    and the time (UTC).
-    """
-    import jax
-    import numpy as np
-
-    import fojax
-
-    command = list(sys.argv if command is None else command)
-    record: dict[str, Any] = {
-        "command": shlex.join(command),
-        "working_directory": os.getcwd(),
-        "fojax_version": _version("fojax") or getattr(fojax, "__version__", None),
-        "fojax_git": _git_commit(Path(fojax.__file__).resolve().parent.parent) or None,
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "jaxlib": _version("jaxlib"),
-        "numpy": np.__version__,
-        "backend": jax.default_backend(),
-        "device_count": jax.device_count(),
-        "local_device_count": jax.local_device_count(),
-        "process_count": jax.process_count(),
-        "devices": [str(d) for d in jax.local_devices()],
-        "jax_enable_x64": bool(jax.config.jax_enable_x64),
-        "xla_flags": os.environ.get("XLA_FLAGS") or None,
-        "platform": platform.platform(),
-        "cpu_count": os.cpu_count(),
-        "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-    }
-    if gains is not None:
-        record["gains"] = gains
-    return record
-
-
 def gains_record(gains, source: str | os.PathLike | None) -> dict:
     """``{"source": absolute file path or "defaults", "values": {field: value}}``: the
     values as the run used them (after the cast to its dtype)."""
-    import numpy as np
+    from fojax.controllers import gains_io
 
     return {
         "source": str(Path(source).resolve()) if source is not None else "defaults",
-        "values": {name: np.asarray(value).tolist() for name, value in gains._asdict().items()},
+        "values": gains_io.gains_to_dict(gains),
     }
 
 
-def write_json(path: Path, document: dict) -> Path:
-    """``path`` holding ``document`` (indented JSON), written atomically."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(document, indent=1, default=str) + "\n")
-    os.replace(tmp, path)
-    return path
-
-
 # ---------------------------------------------------------------------- the chunk store
-
-
-class StoreMismatch(ValueError):
-    """The output folder holds draws of a run with other settings.
-
-    stores: ``[(folder, [(field, earlier, now), ...]), ...]``, the settings that differ
-    per store (:func:`fojax.study.fingerprint_differences`).
-    """
-
-    def __init__(self, message: str, stores: list | None = None):
-        super().__init__(message)
-        self.stores = list(stores or [])
 
 
 _FLAGS = {
@@ -249,10 +147,9 @@ def _fingerprint(controller, gains, scenario, config, study: Study, dtype, membe
     )
 
 
-def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None:
-    """How ``fingerprint`` differs from the one of the draws in ``store``: one line per
-    field, naming the option that sets it (``[]``: the same settings; None: nothing
-    stored there to compare)."""
+def _differences(store: Path, fingerprint: dict | None) -> list[tuple] | None:
+    """``[(field, earlier, now), ...]`` where ``fingerprint`` differs from the one of the
+    draws in ``store`` (``[]``: the same settings; None: nothing stored there)."""
     from fojax import study as monte_carlo
     from fojax.study import _store
 
@@ -262,19 +159,28 @@ def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None
     try:
         stored = json.loads(manifest.read_text())
     except (OSError, ValueError):
-        return [f"{manifest} cannot be read"]
+        return [("manifest.json", "cannot be read", "readable")]
     if not isinstance(stored, dict) or not isinstance(stored.get("fingerprint"), dict):
-        return [f"{manifest} holds no settings"]
+        return [("manifest.json", "no settings", "settings")]
     earlier = dict(stored["fingerprint"])
     earlier.setdefault("store_format", 1)
     current = {"store_format": _store.STORE_FORMAT, **fingerprint}
-    differences = monte_carlo.fingerprint_differences(earlier, current)
-    return _store.describe_differences(differences, _flag)
+    return monte_carlo.fingerprint_differences(earlier, current)
+
+
+def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None:
+    """How ``fingerprint`` differs from the one of the draws in ``store``: one line per
+    field, naming the option that sets it (``[]``: the same settings; None: nothing
+    stored there to compare)."""
+    from fojax.study import _store
+
+    differences = _differences(store, fingerprint)
+    return None if differences is None else _store.describe_differences(differences, _flag)
 
 
 def _mesh():
     """Every device of every process (GPUs, or one CPU device per core: see
-    :func:`experiments.arguments.use_host_devices`), or None for one device."""
+    :func:`fojax.cli.arguments.use_host_devices`), or None for one device."""
     import jax
 
     from fojax import sharding
@@ -341,18 +247,16 @@ def check_stores(study: Study, out: Path, union: UnionMember | None = None) -> N
     for name, (controller, gains) in runs.items():
         store = Path(out) / "chunks" / name
         fingerprint = _fingerprint(controller, gains, scenario, config, study, dtype, member)
-        lines = store_differences(store, fingerprint)
-        if lines:
-            problems.append((store, lines))
+        differences = _differences(store, fingerprint)
+        if differences:
+            problems.append((store, differences))
     if problems:
-        text = "\n".join(
-            f"{store} holds draws of an earlier run that differs in:\n  " + "\n  ".join(lines)
-            for store, lines in problems
-        )
         raise StoreMismatch(
-            f"{text}\nto start afresh, add --overwrite (discards those draws), or choose "
+            *problems[0],
+            stores=problems,
+            hint=_flag,
+            advice="to start afresh, add --overwrite (discards those draws), or choose "
             "another --out",
-            problems,
         )
 
 
@@ -382,12 +286,9 @@ def union_enabled() -> bool:
 def _union_key(study: Study):
     """What studies must share (all but the scenario, horizon, draws, seed and keep)
     to run as members of one union with one program per controller."""
-    import numpy as np
+    from fojax.controllers import gains_io
 
-    gains = {
-        name: {field: np.asarray(v).tolist() for field, v in g._asdict().items()}
-        for name, g in study.gains.items()
-    }
+    gains = {name: gains_io.gains_to_dict(g) for name, g in study.gains.items()}
     band = study.reaching_band
     return (
         tuple(study.controllers),
@@ -705,170 +606,3 @@ def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = 
         return next(runs)[1]
     finally:
         runs.close()
-
-
-# ---------------------------------------------------------------------------- outputs
-
-
-def _reaching_bounds(name: str, study: Study, result) -> dict:
-    """Eq. (34) bound per draw, for controllers that define one."""
-    import jax.numpy as jnp
-    import numpy as np
-
-    from fojax import metrics
-    from fojax.controllers import registry
-
-    law = registry.make_controller(name, dt=study.dt, horizon=study.horizon).law
-    if not hasattr(law, "reaching_time_bound"):
-        return {}
-    gains = study.gains.get(name) or law.default_gains(jnp.dtype(study.dtype))
-    bound = np.asarray(
-        law.reaching_time_bound(gains, jnp.asarray(result.per_draw["initial_surface"]))
-    )
-    names = metrics.component_names("reaching_time_bound", bound.shape[1:])
-    return {component: bound[:, j] for j, component in enumerate(names)}
-
-
-def _used_gains(study: Study, name: str):
-    import jax.numpy as jnp
-
-    from fojax.controllers import registry
-
-    gains = study.gains.get(name)
-    if gains is None:
-        gains = registry.get_controller_class(name).default_gains(jnp.dtype(study.dtype))
-    return type(gains)(*(jnp.asarray(g, jnp.dtype(study.dtype)) for g in gains))
-
-
-def _batch_layout(study: Study) -> dict:
-    """How the draws were laid out over processes and devices (a draw's numbers do not
-    depend on it, only on the block size ``device_batch``)."""
-    from fojax import study as monte_carlo
-
-    layout = monte_carlo.batch_layout(study.draws, study.device_batch, _mesh())
-    layout["note"] = (
-        "each call computes one block of device_batch consecutive draws per device of "
-        "every process; a draw's numbers depend on device_batch, not on the draw count, "
-        "the devices or the processes"
-    )
-    return layout
-
-
-def _savez(path: Path, arrays: dict) -> None:
-    import numpy as np
-
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
-
-
-def write_outputs(
-    study: Study,
-    results: dict,
-    out: Path,
-    figures: bool = True,
-    command: list[str] | None = None,
-    extra: dict | None = None,
-) -> dict:
-    """``summary.json``, ``draws.npz``, ``trajectories.npz``, then the figures.
-
-    The results are on disk before any figure is drawn, and a figure that fails is a
-    warning naming it (the others are still drawn). ``command``: the command line
-    recorded in the summary's provenance (default ``sys.argv``); ``extra``: further
-    summary entries. Returns the summary, with ``"files"``: the files written.
-    """
-
-    from fojax import statistics
-    from fojax import study as monte_carlo
-
-    summary = {
-        "scenario": study.scenario_id,
-        "draws": study.draws,
-        "seed": study.seed,
-        "horizon_s": study.horizon,
-        "dt_s": study.dt,
-        "fractional_method": study.fractional,
-        "switching": study.switching,
-        "options_applied_to": options_applied_to(study),
-        "dtype": study.dtype,
-        "device_batch": study.device_batch or monte_carlo.default_device_batch(),
-        "batch": _batch_layout(study),
-        "keep": study.keep,
-        "gains": {
-            name: gains_record(_used_gains(study, name), study.gains_sources.get(name))
-            for name in results
-        },
-        "excluded_from_metrics": "draws flagged nonfinite or tilt_limit (counted in 'diverged')",
-        "controllers": {},
-    }
-    arrays = {}
-    for name, result in results.items():
-        bounds = _reaching_bounds(name, study, result)
-        entry = monte_carlo.summarize(result, extra=bounds)
-        entry["wall_time_s"] = round(result.wall_time, 2)
-        if getattr(result, "layout", None):
-            entry["draws_computed"] = result.layout["computed"]
-            entry["draws_from_store"] = result.layout["loaded"]
-        summary["controllers"][name] = entry
-        arrays[f"{name}.status"] = result.status
-        for metric, values in result.per_draw.items():
-            arrays[f"{name}.{metric}"] = values
-        for metric, values in bounds.items():
-            arrays[f"{name}.{metric}"] = values
-    names = list(results)
-    if len(names) > 1:
-        baseline = names[0]
-        base_table = monte_carlo.metric_table(results[baseline])
-        paired = {}
-        for name in names[1:]:
-            table = monte_carlo.metric_table(results[name])
-            paired[name] = {
-                metric: statistics.paired_difference(table[metric][0], base_table[metric][0])
-                for metric in table
-                if metric in base_table
-            }
-        summary["paired_differences"] = {"baseline": baseline, "minus_baseline": paired}
-    summary.update(extra or {})
-    summary["provenance"] = provenance(command)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    files = ["summary.json", "draws.npz"]
-    trajectories = {}
-    for name, result in results.items():
-        tr = result.trajectories
-        if tr is None:
-            continue
-        few = slice(0, min(8, tr.time.shape[0]))
-        trajectories[f"{name}.time"] = tr.time[few]
-        trajectories[f"{name}.state"] = tr.state[few]
-        trajectories[f"{name}.reference"] = tr.reference[few]
-        trajectories[f"{name}.inputs"] = tr.inputs[few]
-        for field in ("inputs_low", "inputs_high"):
-            if getattr(tr, field, None) is not None:
-                trajectories[f"{name}.{field}"] = getattr(tr, field)[few]
-        trajectories[f"{name}.attitude_reference"] = tr.info.attitude_reference[few]
-        trajectories[f"{name}.surfaces"] = tr.info.surfaces[few]
-        trajectories[f"{name}.adaptive"] = tr.info.adaptive[few]
-    if trajectories:
-        files.append("trajectories.npz")
-    summary["files"] = files
-    write_json(out / "summary.json", summary)
-    _savez(out / "draws.npz", arrays)
-    if trajectories:
-        _savez(out / "trajectories.npz", trajectories)
-    if figures and trajectories:
-        from experiments import figures as figs
-        from experiments import style
-
-        applied = options_applied_to(study)
-        parts = [f"scenario {study.scenario_id}"]
-        if applied["switching"]:
-            parts.append(f"{study.switching} switching")
-        if applied["fractional_method"]:
-            parts.append(f"{study.fractional} fractional operators")
-        context = ", ".join(parts + [f"dt {study.dt * 1e3:g} ms"])
-        drawn = style.attempt("(all)", figs.plot_all, results, out, "", context) or []
-        if drawn:
-            summary["figures"] = [p.name for p in drawn]
-            write_json(out / "summary.json", summary)
-    return summary

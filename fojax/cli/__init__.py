@@ -26,20 +26,20 @@ import sys
 
 COMMANDS = {
     "accuracy": (
-        "experiments.fractional_accuracy",
+        "fojax.cli.accuracy",
         "accuracy and cost of the fractional operators",
     ),
     "reproduce": (
-        "experiments.reproduce",
+        "fojax.cli.reproduce",
         "the paper's Section V with Monte Carlo: all scenarios and controllers, report",
     ),
     "simulate": (
-        "experiments.simulate",
+        "fojax.cli.simulate",
         "Monte Carlo study of a scenario under one or all controllers",
     ),
-    "bench": ("experiments.bench", "throughput, compile time and gradient cost of the closed loop"),
+    "bench": ("fojax.cli.bench", "throughput, compile time and gradient cost of the closed loop"),
     "tune": (
-        "experiments.tune",
+        "fojax.cli.tune",
         "gradient-based gain tuning over Monte Carlo draws",
     ),
 }
@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv[:1])
     module_name, _ = COMMANDS[args.command]
     if args.command in HOST_DEVICE_COMMANDS:
-        from experiments import arguments
+        from fojax.cli import arguments
 
         arguments.use_host_devices()
     import importlib
@@ -90,6 +90,19 @@ def main(argv=None) -> int:
         print(f"fojax {args.command}: error: {_describe(error)}", file=sys.stderr)
         return 1
     return status if isinstance(status, int) else 0
+
+
+def require_extra(command: str, extra: str, modules: tuple[str, ...]) -> None:
+    """Exit (status 1) with one line naming the extra that ``fojax command`` needs when
+    one of ``modules`` is not installed; call it before doing anything else."""
+    import importlib.util
+
+    missing = [name for name in modules if importlib.util.find_spec(name) is None]
+    if missing:
+        raise SystemExit(
+            f"fojax {command}: needs {', '.join(missing)}, in the [{extra}] extra: "
+            f"pip install 'fojax[{extra}]'"
+        )
 
 
 def _describe(error: OSError) -> str:
@@ -110,7 +123,3 @@ def _versions() -> str:
             return "not installed"
 
     return " ".join(f"{name} {version(name)}" for name in ("fojax", "jax", "jaxlib"))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

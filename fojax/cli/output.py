@@ -1,0 +1,215 @@
+"""What every command and study writes besides its numbers: progress lines, atomic JSON
+files, the provenance of a run (command, versions, git commit, machine) and the
+generated blocks of the docs.
+
+* :func:`log`: one progress line on stderr (nothing with ``quiet``).
+* :func:`write_json`: atomic JSON files (a run stopped while writing leaves the old
+  file or the new one, never half of one).
+* :func:`git_commit`, :func:`commit_label`: the checkout's commit and whether it has
+  uncommitted changes; :func:`provenance`: what a result needs to be rerun exactly;
+  :func:`run_context`: that, with the CPU model and the load average (the studies').
+* :func:`splice`: replace a generated block of a Markdown document, either between
+  ``<!-- name:begin -->`` and ``<!-- name:end -->`` or everything below a marker line.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "commit_label",
+    "cpu_model",
+    "git_commit",
+    "load_average",
+    "log",
+    "provenance",
+    "run_context",
+    "splice",
+    "write_json",
+]
+
+
+def log(quiet: bool, text: str) -> None:
+    """``text`` on stderr, flushed, unless ``quiet`` (a command's ``--quiet``)."""
+    if not quiet:
+        print(text, file=sys.stderr, flush=True)
+
+
+def write_json(path: Path, document: Any, default=str) -> Path:
+    """``path`` holding ``document`` (indented JSON), written atomically; ``default``:
+    what stands for a value JSON has no type for (``str(value)``)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(document, indent=1, default=default) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+# ------------------------------------------------------------------------- provenance
+
+
+def _checkout() -> Path:
+    import fojax
+
+    return Path(fojax.__file__).resolve().parent.parent
+
+
+def git_commit(root: Path | None = None) -> dict:
+    """``{"commit", "dirty"}`` of the git checkout ``root`` (default: the one holding
+    fojax), or ``{}`` (not one). ``dirty``: uncommitted changes to tracked files."""
+    root = _checkout() if root is None else Path(root)
+    if not (root / ".git").exists():
+        return {}
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+        if commit.returncode != 0:
+            return {}
+        status = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+        dirty = bool(status.stdout.strip()) if status.returncode == 0 else None
+        return {"commit": commit.stdout.strip(), "dirty": dirty}
+    except (OSError, subprocess.SubprocessError):
+        return {}
+
+
+def commit_label(provenance: dict | None = None, full: bool = False) -> str:
+    """``abc1234`` (`` (with uncommitted changes)``) from a provenance record (default:
+    the checkout now); ``full``: the whole hash."""
+    git = provenance.get("fojax_git") if provenance is not None else git_commit()
+    if not isinstance(git, dict) or not git.get("commit"):
+        return "unknown"
+    commit = git["commit"] if full else git["commit"][:7]
+    return commit + (" (with uncommitted changes)" if git.get("dirty") else "")
+
+
+def _version(package: str) -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def provenance(command: list[str] | None = None, gains: dict | None = None) -> dict:
+    """What a result needs to be rerun exactly.
+
+    command: the command line as a list (``["fojax", "simulate", ...]``; default
+    ``sys.argv``). gains: optional, recorded as given
+    (:func:`fojax.cli.study.gains_record`). Returns the command (quoted for a shell)
+    and the folder it ran in, the fojax version and git commit (:func:`git_commit`),
+    the Python, JAX, jaxlib and NumPy versions, the backend, the device and process
+    counts and devices (the draws are split over the devices, and a draw's float32
+    rounding depends on the batch it runs in), ``jax_enable_x64``, ``XLA_FLAGS``, the
+    platform and the time (UTC).
+    """
+    import jax
+    import numpy as np
+
+    import fojax
+
+    command = list(sys.argv if command is None else command)
+    record: dict[str, Any] = {
+        "command": shlex.join(command),
+        "working_directory": os.getcwd(),
+        "fojax_version": _version("fojax") or getattr(fojax, "__version__", None),
+        "fojax_git": git_commit() or None,
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "jaxlib": _version("jaxlib"),
+        "numpy": np.__version__,
+        "backend": jax.default_backend(),
+        "device_count": jax.device_count(),
+        "local_device_count": jax.local_device_count(),
+        "process_count": jax.process_count(),
+        "devices": [str(d) for d in jax.local_devices()],
+        "jax_enable_x64": bool(jax.config.jax_enable_x64),
+        "xla_flags": os.environ.get("XLA_FLAGS") or None,
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+    if gains is not None:
+        record["gains"] = gains
+    return record
+
+
+def load_average() -> list[float]:
+    """The 1, 5 and 15-minute load averages (``[]`` where the platform has none)."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return []
+
+
+def cpu_model() -> str | None:
+    """The CPU's model name, family and model numbers (XLA compiles for the host CPU,
+    and float32 rounding can depend on the instructions it picks)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    fields = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    return (
+        f"{fields.get('model name', '?')} (family {fields.get('cpu family', '?')}, "
+        f"model {fields.get('model', '?')})"
+    )
+
+
+def run_context(command: list[str]) -> dict:
+    """Provenance of a study run (:func:`provenance`), the CPU model and the load
+    average."""
+    record = provenance(command)
+    record["cpu_model"] = cpu_model()
+    record["load_average"] = load_average()
+    return record
+
+
+# ------------------------------------------------------------------------------- docs
+
+
+def splice(
+    document: Path, text: str, *, name: str | None = None, marker: str | None = None
+) -> None:
+    """Replace a generated block of the Markdown file ``document`` with ``text``.
+
+    name: the block between ``<!-- name:begin -->`` and ``<!-- name:end -->`` (each on
+    its own line, kept). marker: everything below the line ``marker`` (kept, followed
+    by a blank line and ``text``). Exactly one of the two; a document without the
+    block raises ValueError.
+    """
+    document = Path(document)
+    if (name is None) == (marker is None):
+        raise ValueError("splice: give exactly one of name and marker")
+    content = document.read_text()
+    if marker is not None:
+        if marker not in content:
+            raise ValueError(f"{document}: no line {marker!r} to regenerate below")
+        document.write_text(content[: content.index(marker) + len(marker)] + "\n\n" + text)
+        return
+    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    if begin not in content or end not in content:
+        raise ValueError(f"{document} has no {begin} ... {end} block")
+    head, rest = content.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    document.write_text(f"{head}{begin}\n{text}\n{end}{tail}")

@@ -1,0 +1,178 @@
+"""A study's files (:mod:`fojax.cli.study`): ``summary.json`` (the settings, the
+provenance, every metric's summary), ``draws.npz`` (per-draw metrics, status and the
+Eq. (34) reaching-time bounds), ``trajectories.npz`` (the kept draws), then the
+figures (:mod:`fojax.cli.figures`)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from fojax.cli.output import provenance, write_json
+from fojax.cli.study import Study, _mesh, gains_record, options_applied_to
+
+__all__ = ["write_outputs"]
+
+
+def _reaching_bounds(name: str, study: Study, result) -> dict:
+    """Eq. (34) bound per draw, for controllers that define one."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from fojax import metrics
+    from fojax.controllers import registry
+
+    law = registry.make_controller(name, dt=study.dt, horizon=study.horizon).law
+    if not hasattr(law, "reaching_time_bound"):
+        return {}
+    gains = study.gains.get(name) or law.default_gains(jnp.dtype(study.dtype))
+    bound = np.asarray(
+        law.reaching_time_bound(gains, jnp.asarray(result.per_draw["initial_surface"]))
+    )
+    names = metrics.component_names("reaching_time_bound", bound.shape[1:])
+    return {component: bound[:, j] for j, component in enumerate(names)}
+
+
+def _used_gains(study: Study, name: str):
+    import jax.numpy as jnp
+
+    from fojax.controllers import registry
+
+    gains = study.gains.get(name)
+    if gains is None:
+        gains = registry.get_controller_class(name).default_gains(jnp.dtype(study.dtype))
+    return type(gains)(*(jnp.asarray(g, jnp.dtype(study.dtype)) for g in gains))
+
+
+def _batch_layout(study: Study) -> dict:
+    """How the draws were laid out over processes and devices (a draw's numbers do not
+    depend on it, only on the block size ``device_batch``)."""
+    from fojax import study as monte_carlo
+
+    layout = monte_carlo.batch_layout(study.draws, study.device_batch, _mesh())
+    layout["note"] = (
+        "each call computes one block of device_batch consecutive draws per device of "
+        "every process; a draw's numbers depend on device_batch, not on the draw count, "
+        "the devices or the processes"
+    )
+    return layout
+
+
+def _savez(path: Path, arrays: dict) -> None:
+    import numpy as np
+
+    tmp = path.with_name(f".{path.stem}.tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def write_outputs(
+    study: Study,
+    results: dict,
+    out: Path,
+    figures: bool = True,
+    command: list[str] | None = None,
+    extra: dict | None = None,
+) -> dict:
+    """``summary.json``, ``draws.npz``, ``trajectories.npz``, then the figures.
+
+    The results are on disk before any figure is drawn, and a figure that fails is a
+    warning naming it (the others are still drawn). ``command``: the command line
+    recorded in the summary's provenance (default ``sys.argv``); ``extra``: further
+    summary entries. Returns the summary, with ``"files"``: the files written.
+    """
+
+    from fojax import statistics
+    from fojax import study as monte_carlo
+
+    summary = {
+        "scenario": study.scenario_id,
+        "draws": study.draws,
+        "seed": study.seed,
+        "horizon_s": study.horizon,
+        "dt_s": study.dt,
+        "fractional_method": study.fractional,
+        "switching": study.switching,
+        "options_applied_to": options_applied_to(study),
+        "dtype": study.dtype,
+        "device_batch": study.device_batch or monte_carlo.default_device_batch(),
+        "batch": _batch_layout(study),
+        "keep": study.keep,
+        "gains": {
+            name: gains_record(_used_gains(study, name), study.gains_sources.get(name))
+            for name in results
+        },
+        "excluded_from_metrics": "draws flagged nonfinite or tilt_limit (counted in 'diverged')",
+        "controllers": {},
+    }
+    arrays = {}
+    for name, result in results.items():
+        bounds = _reaching_bounds(name, study, result)
+        entry = monte_carlo.summarize(result, extra=bounds)
+        entry["wall_time_s"] = round(result.wall_time, 2)
+        if getattr(result, "layout", None):
+            entry["draws_computed"] = result.layout["computed"]
+            entry["draws_from_store"] = result.layout["loaded"]
+        summary["controllers"][name] = entry
+        arrays[f"{name}.status"] = result.status
+        for metric, values in result.per_draw.items():
+            arrays[f"{name}.{metric}"] = values
+        for metric, values in bounds.items():
+            arrays[f"{name}.{metric}"] = values
+    names = list(results)
+    if len(names) > 1:
+        baseline = names[0]
+        base_table = monte_carlo.metric_table(results[baseline])
+        paired = {}
+        for name in names[1:]:
+            table = monte_carlo.metric_table(results[name])
+            paired[name] = {
+                metric: statistics.paired_difference(table[metric][0], base_table[metric][0])
+                for metric in table
+                if metric in base_table
+            }
+        summary["paired_differences"] = {"baseline": baseline, "minus_baseline": paired}
+    summary.update(extra or {})
+    summary["provenance"] = provenance(command)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = ["summary.json", "draws.npz"]
+    trajectories = {}
+    for name, result in results.items():
+        tr = result.trajectories
+        if tr is None:
+            continue
+        few = slice(0, min(8, tr.time.shape[0]))
+        trajectories[f"{name}.time"] = tr.time[few]
+        trajectories[f"{name}.state"] = tr.state[few]
+        trajectories[f"{name}.reference"] = tr.reference[few]
+        trajectories[f"{name}.inputs"] = tr.inputs[few]
+        for field in ("inputs_low", "inputs_high"):
+            if getattr(tr, field, None) is not None:
+                trajectories[f"{name}.{field}"] = getattr(tr, field)[few]
+        trajectories[f"{name}.attitude_reference"] = tr.info.attitude_reference[few]
+        trajectories[f"{name}.surfaces"] = tr.info.surfaces[few]
+        trajectories[f"{name}.adaptive"] = tr.info.adaptive[few]
+    if trajectories:
+        files.append("trajectories.npz")
+    summary["files"] = files
+    write_json(out / "summary.json", summary)
+    _savez(out / "draws.npz", arrays)
+    if trajectories:
+        _savez(out / "trajectories.npz", trajectories)
+    if figures and trajectories:
+        from fojax.cli import figures as figs
+        from fojax.cli import style
+
+        applied = options_applied_to(study)
+        parts = [f"scenario {study.scenario_id}"]
+        if applied["switching"]:
+            parts.append(f"{study.switching} switching")
+        if applied["fractional_method"]:
+            parts.append(f"{study.fractional} fractional operators")
+        context = ", ".join(parts + [f"dt {study.dt * 1e3:g} ms"])
+        drawn = style.attempt("(all)", figs.plot_all, results, out, "", context) or []
+        if drawn:
+            summary["figures"] = [p.name for p in drawn]
+            write_json(out / "summary.json", summary)
+    return summary

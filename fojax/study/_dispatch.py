@@ -1,0 +1,245 @@
+"""How :func:`fojax.study.run` runs its plan: the blocks to compute, ``devices`` per
+call of the compiled runner (:class:`_Dispatch`), each call's blocks saved to the
+store, the draws assembled in order from the store and the calls, and, in a
+multi-process run, process 0's plan and result sent to the others."""
+
+from __future__ import annotations
+
+import io
+import sys
+import time
+
+import jax
+import numpy as np
+
+from fojax import observers, scenarios, sharding
+from fojax.study._store import ChunkStore, flatten_snapshot, plan
+
+DIVERGED = observers.NONFINITE | observers.TILT_LIMIT
+"""Status bits that make a draw count as diverged (excluded from the metrics)."""
+
+MAX_DRAWS = 2**32
+"""Most draws of one run: draw indices are folded into the key as 32-bit integers, so
+index ``2**32`` would repeat draw 0."""
+
+
+def _multiprocess(mesh) -> bool:
+    return mesh is not None and any(
+        d.process_index != jax.process_index() for d in mesh.devices.flat
+    )
+
+
+def _gathered(tree, mesh):
+    """Device outputs as host arrays, every draw on every process."""
+    if _multiprocess(mesh):
+        from jax.experimental import multihost_utils
+
+        sharding.barrier("gather")  # processes may finish compiling far apart
+        return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
+    return jax.tree.map(np.asarray, tree)
+
+
+def _broadcast_bytes(payload: bytes | None) -> bytes:
+    """``payload`` of process 0, on every process."""
+    from jax.experimental import multihost_utils
+
+    lead = jax.process_index() == 0
+    sharding.barrier("broadcast")
+    size = np.array([len(payload) if lead else 0], np.int64)
+    size = int(np.asarray(multihost_utils.broadcast_one_to_all(size))[0])
+    data = np.frombuffer(payload, np.uint8) if lead else np.zeros(size, np.uint8)
+    return np.asarray(multihost_utils.broadcast_one_to_all(data)).tobytes()
+
+
+def _broadcast_arrays(arrays: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
+    buffer = io.BytesIO()
+    if jax.process_index() == 0:
+        np.savez(buffer, **arrays)
+    data = _broadcast_bytes(buffer.getvalue() if jax.process_index() == 0 else None)
+    with np.load(io.BytesIO(data)) as loaded:
+        return {k: loaded[k] for k in loaded.files}
+
+
+def _place(runner_inputs, mesh):
+    gains, keys = runner_inputs
+    if mesh is not None and mesh.devices.size > 1:
+        return sharding.replicate(gains, mesh), sharding.shard_draws(keys, mesh)
+    return gains, keys
+
+
+def _place_member(member: int, mesh):
+    value = np.asarray(member, np.int32)
+    if mesh is not None and mesh.devices.size > 1:
+        return sharding.replicate(value, mesh)
+    return value
+
+
+def _to_compute(segments) -> int:
+    """How many draws of the plan are computed (not read from the store)."""
+    return sum(b - a for kind, a, b, _ in segments if kind == "compute")
+
+
+def _plan_calls(chunk_store, draws: int, keep: int, batch: int, devices: int, mesh):
+    """The plan: ``segments`` (:func:`fojax.study._store.plan`: what is read from the
+    store, what is computed) and ``calls``, the blocks to compute, ``devices`` per call
+    (process 0's plan in a multi-process run: it alone reads the store)."""
+    if chunk_store is not None:
+        segments = plan(chunk_store.ranges(), draws, keep)
+    else:
+        segments = [("compute", 0, draws, None)]
+    blocks = sorted(
+        {
+            k
+            for kind, start, stop, _ in segments
+            if kind == "compute"
+            for k in range(start // batch, (stop - 1) // batch + 1)
+        }
+    )
+    if _multiprocess(mesh):
+        lead = jax.process_index() == 0
+        message = {"blocks": np.asarray(blocks, np.int64)} if lead else None
+        blocks = [int(k) for k in _broadcast_arrays(message)["blocks"]]
+    return segments, [blocks[i : i + devices] for i in range(0, len(blocks), devices)]
+
+
+class _Dispatch:
+    """Runs calls of the compiled runner, one block per device, and keeps each block's
+    ``(status, per_draw, snapshots or None)`` in ``computed``."""
+
+    def __init__(self, runner, gains, scenario, config, seed, batch, keep, mesh, member):
+        self.runner, self.gains, self.scenario = runner, gains, scenario
+        self.seed, self.batch, self.keep, self.mesh, self.member = seed, batch, keep, mesh, member
+        self.member_blocks = None  # a union member's snapshots stop at its own horizon
+        if scenario.members:
+            own_steps = int(round(scenario.members[member].horizon / config.dt))
+            self.member_blocks = own_steps // config.save_every
+        self.computed: dict[int, tuple] = {}
+        self.start_time = time.perf_counter()
+        self.per_call = batch
+
+    def __call__(self, call: list[int], devices: int) -> None:
+        batch, mesh = self.batch, self.mesh
+        self.per_call = batch * devices
+        filled = call + [call[-1]] * (devices - len(call))  # a short last call: repeat
+        indices = np.concatenate([np.arange(k * batch, (k + 1) * batch) for k in filled])
+        keys = np.asarray(scenarios.draw_keys(self.seed, np.minimum(indices, MAX_DRAWS - 1)))
+        inputs = _place((self.gains, keys), mesh)
+        if self.scenario.members:
+            inputs = (*inputs, _place_member(self.member, mesh))
+        status, values, snapshots = _gathered(self.runner(*inputs), mesh)
+        flat = flatten_snapshot(snapshots)
+        if self.member_blocks is not None:
+            flat = {name: v[:, : self.member_blocks] for name, v in flat.items()}
+        for j, k in enumerate(call):
+            part = slice(j * batch, (j + 1) * batch)
+            kept = min(batch, max(self.keep - k * batch, 0))
+            snaps = {name: v[part][:kept] for name, v in flat.items()} if kept else None
+            self.computed[k] = (
+                np.asarray(status)[part],
+                {name: np.asarray(v)[part] for name, v in values.items()},
+                snaps,
+            )
+
+    def report(self, name: str, done: int, draws: int, steps: int, call_times) -> None:
+        batch = self.batch
+        diverged = sum(
+            int(np.sum((c[0][: max(0, draws - k * batch)] & DIVERGED) > 0))
+            for k, c in self.computed.items()
+        )
+        _print_progress(
+            name, done, draws, diverged, len(self.computed) * batch, steps, call_times,
+            self.start_time, self.per_call,
+        )  # fmt: skip
+
+
+def _result(segments, chunk_store, computed, batch, keep, mesh, call_times):
+    """The run's draws in order, read and computed (the same on every process):
+    ``(status, per_draw, kept snapshots, computed draws, compile time)``."""
+    multi, flat = _multiprocess(mesh), None
+    if jax.process_index() == 0 or not multi:
+        flat = _assemble(segments, chunk_store, computed, batch, keep)
+        flat["computed"] = np.asarray([_to_compute(segments)], np.int64)
+    if multi:  # the others hold only the computed blocks: process 0 sends the result
+        flat = _broadcast_arrays(flat)
+    computed_draws = int(flat.pop("computed")[0])
+    status, per_draw, kept = _split(flat)
+    compile_time = 0.0
+    if len(call_times) > 1:
+        compile_time = max(0.0, call_times[0] - float(np.median(call_times[1:])))
+    elif call_times:
+        compile_time = float("nan")  # one call: cannot separate compile from run
+    return status, per_draw, kept, computed_draws, compile_time
+
+
+def _save_blocks(chunk_store: ChunkStore, call: list[int], computed: dict, batch: int) -> None:
+    """Store the call's blocks, consecutive ones in one file (indices below 2**32)."""
+    runs: list[list[int]] = []
+    for k in sorted(set(call)):
+        if runs and runs[-1][-1] == k - 1:
+            runs[-1].append(k)
+        else:
+            runs.append([k])
+    for run_blocks in runs:
+        first = run_blocks[0] * batch
+        n = min(len(run_blocks) * batch, MAX_DRAWS - first)
+        if n <= 0:
+            continue
+        status = np.concatenate([computed[k][0] for k in run_blocks])[:n]
+        values = {
+            name: np.concatenate([computed[k][1][name] for k in run_blocks])[:n]
+            for name in computed[run_blocks[0]][1]
+        }
+        snaps = None
+        if computed[run_blocks[0]][2] is not None:
+            parts = [computed[k][2] for k in run_blocks if computed[k][2] is not None]
+            snaps = {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+        chunk_store.save(first, status, values, snaps)
+
+
+def _assemble(segments, chunk_store, computed: dict, batch: int, keep: int) -> dict:
+    """Draws ``[0, draws)`` from the store and the computed blocks, as flat arrays:
+    ``status``, ``m.<metric>``, ``s.<snapshot leaf>`` (the first ``keep`` draws)."""
+    pieces = []  # (first, status, per_draw, snapshots or None)
+    for kind, start, stop, item in segments:
+        if kind == "load":
+            pieces.append((start, *chunk_store.load(item, start, stop)))
+            continue
+        for k in range(start // batch, (stop - 1) // batch + 1):
+            a, b = max(start, k * batch), min(stop, (k + 1) * batch)
+            lo, hi = a - k * batch, b - k * batch
+            status, values, snaps = computed[k]
+            snaps = {n: v[lo:hi] for n, v in snaps.items()} if snaps and a < keep else None
+            pieces.append((a, status[lo:hi], {n: v[lo:hi] for n, v in values.items()}, snaps))
+    out = {"status": np.concatenate([p[1] for p in pieces])}
+    for name in pieces[0][2]:
+        out[f"m.{name}"] = np.concatenate([p[2][name] for p in pieces])
+    kept = []
+    for first, status, _, snaps in pieces:
+        if first >= keep:
+            break
+        n = min(len(status), keep - first)
+        kept.append({k: v[:n] for k, v in snaps.items()})
+    if kept:
+        for name in kept[0]:
+            out[f"s.{name}"] = np.concatenate([k[name] for k in kept])
+    return out
+
+
+def _split(flat: dict[str, np.ndarray]):
+    per_draw = {k[2:]: v for k, v in flat.items() if k.startswith("m.")}
+    kept = {k[2:]: v for k, v in flat.items() if k.startswith("s.")}
+    return flat["status"], per_draw, kept
+
+
+def _print_progress(name, done, draws, diverged, computed, steps, call_times, start, per_call):
+    elapsed = time.perf_counter() - start
+    steady = np.median(call_times[1:]) if len(call_times) > 1 else None
+    eta = f", about {(draws - done) / per_call * steady:.0f} s left" if steady else ""
+    rate = computed * steps / max(sum(call_times), 1e-9)
+    print(
+        f"\r  {name}: {done}/{draws} draws, {elapsed:.0f} s{eta}, {rate:.3g} draw-steps/s, "
+        f"diverged {diverged}   ",
+        end="",
+        file=sys.stderr,
+        flush=True,
+    )
