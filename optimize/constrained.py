@@ -66,8 +66,8 @@ import optax
 
 from fojax import observers, plant, scenarios, simulator
 from fojax import requirements as rq
-from optimize import cost as cost_lib
-from optimize import problem as problem_lib
+from fojax.optimize import cost as cost_lib
+from fojax.optimize import problem as problem_lib
 
 Array = jax.Array
 
@@ -549,7 +549,7 @@ def cma_es_requirements(
     is returned: ``{"params", "selected", "history", "wall_time_s", "draw_steps"}``."""
     import cma
 
-    from optimize.derivative_free import Budget
+    from fojax.optimize.derivative_free import Budget
 
     start = time.perf_counter()
     budget = Budget(budget_draw_steps)

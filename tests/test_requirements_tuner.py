@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fojax import requirements as rq
-from optimize import constrained as co
+from fojax.optimize import constrained as co
 
 
 def _toy(x, data):
@@ -79,7 +79,7 @@ def simulator_run():
     """FL on scenario 2 (0.4 s, rotor-limited actuators at thrust-to-weight 2), tuned for
     tracking under a torque-effort and a tilt requirement its default gains miss."""
     from fojax.controllers import registry
-    from optimize.problem import ProblemSpec
+    from fojax.optimize.problem import ProblemSpec
 
     reqs = rq.parse(
         {

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import fojax
 from fojax import requirements as rq
-from optimize import constrained as co
-from optimize.problem import ProblemSpec
+from fojax.optimize import constrained as co
+from fojax.optimize.problem import ProblemSpec
 
 HERE = Path(__file__).resolve().parent
 
