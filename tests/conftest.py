@@ -33,13 +33,59 @@ def pytest_addoption(parser):
     )
 
 
+# Cases of the slow tier besides the tests marked in their files: each checks again,
+# on another controller, scenario, method or precision, what a case of the default
+# tier checks (the default keeps one golden forward per controller, the AFONFTSMC's
+# golden gradient, the tuner's finite-difference gradient and a float32 union), or
+# compiles a program of its own for one property (cache reuse, device split, batch
+# independence, chunked benches).
+SLOW_CASES = (
+    "test_golden.py::test_forward_matches_saved[f/afonftsmc/s1",
+    "test_golden.py::test_forward_matches_saved[f/afonftsmc/s3",
+    "test_golden.py::test_forward_matches_saved[f/afonftsmc/s2/sat/gl]",
+    "test_golden.py::test_forward_matches_saved[f/afonftsmc/s2/sat/oustaloup]",
+    "test_golden.py::test_forward_matches_saved[f/anftsmc/s1",
+    "test_golden.py::test_forward_matches_saved[f/anftsmc/s3",
+    "test_golden.py::test_forward_matches_saved[f/bsmc/s1",
+    "test_golden.py::test_forward_matches_saved[f/bsmc/s3",
+    "test_golden.py::test_forward_matches_saved[f/fl/s1",
+    "test_golden.py::test_forward_matches_saved[f/fl/s3",
+    "test_golden.py::test_forward_matches_saved[f/fobsmc/s1",
+    "test_golden.py::test_forward_matches_saved[f/fobsmc/s3",
+    "test_golden.py::test_forward_matches_saved[f/fobsmc/s2/sat/oustaloup]",
+    "test_golden.py::test_gradient_matches_saved[g/anftsmc",
+    "test_golden.py::test_gradient_matches_saved[g/bsmc",
+    "test_golden.py::test_gradient_matches_saved[g/fl",
+    "test_golden.py::test_gradient_matches_saved[g/fobsmc",
+    "test_golden.py::test_gradient_matches_saved[g/afonftsmc/s3",
+    "test_controllers.py::test_gradient_with_respect_to_gains_matches_finite_differences",
+    "test_simulator.py::test_gradient_with_respect_to_gains_matches_finite_differences",
+    "test_simulator.py::test_vmap_equals_loop_and_draws_do_not_depend_on_batch",
+    "test_scenarios.py::test_a_union_runs_each_member_as_it_runs_alone[float64]",
+    "test_montecarlo.py::test_a_union_member_runs_as_its_scenario_alone",
+    "test_study_union.py::test_studies_of_three_scenarios_compile_one_program_per_controller",
+    "test_study_union.py::test_float32_and_a_horizon_dependent_operator_stay_within_rounding",
+    "test_sensitivity.py::test_union_runner_equals_study_run_float64",
+    "test_runtime_options.py::test_a_second_run_reads_its_programs_from_the_cache",
+    "test_tune_cli.py::test_tuning_study_smoke",
+    "test_performance.py::test_sharded_run_is_identical_to_single_device_run",
+    "test_performance.py::test_bench_forward_runs_big_batches_in_chunks",
+    "test_performance.py::test_bench_smoke",
+    "test_performance.py::test_numpy_reference_agrees_with_jax_rollout[tanh]",
+)
+
+
+def _is_slow(item) -> bool:
+    return "slow" in item.keywords or item.nodeid.removeprefix("tests/").startswith(SLOW_CASES)
+
+
 def pytest_collection_modifyitems(config, items):
     if config.getoption("--slow"):
         return
-    slow = [item for item in items if "slow" in item.keywords]
+    slow = [item for item in items if _is_slow(item)]
     if slow:
         config.hook.pytest_deselected(items=slow)
-        items[:] = [item for item in items if "slow" not in item.keywords]
+        items[:] = [item for item in items if not _is_slow(item)]
 
 
 def close_normwise(got, want, err_msg=""):
