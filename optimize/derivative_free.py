@@ -162,17 +162,7 @@ def cma_es(
         }
         history.append(row)
         objective.report(callback, es.result.xfavorite, row)
-    x = np.asarray(es.result.xfavorite)
-    params = objective.params(x)
-    return DFResult(
-        "cma-es",
-        params,
-        problem.gains(params),
-        history,
-        objective.evaluations,
-        budget.used,
-        objective.wall,
-    )
+    return _result("cma-es", objective, np.asarray(es.result.xfavorite), history, budget)
 
 
 def nelder_mead(
@@ -235,15 +225,15 @@ def nelder_mead(
             "fatol": 0.0,
         },
     )
-    params = objective.params(state["x"])
+    return _result("nelder-mead", objective, state["x"], history, budget)
+
+
+def _result(method: str, objective: _Objective, x, history: list, budget: Budget) -> DFResult:
+    """The :class:`DFResult` of ``method``'s answer ``x`` (unconstrained vector)."""
+    params = objective.params(x)
+    gains = objective.problem.gains(params)
     return DFResult(
-        "nelder-mead",
-        params,
-        problem.gains(params),
-        history,
-        objective.evaluations,
-        budget.used,
-        objective.wall,
+        method, params, gains, history, objective.evaluations, budget.used, objective.wall
     )
 
 
