@@ -70,9 +70,7 @@ PRECISION_METRICS = (
 
 
 def _verdicts(entry: dict) -> dict:
-    if "claims" not in entry:
-        return {}
-    return {c["id"]: c["verdict"] for c in entry["claims"]}
+    return {c["id"]: c["verdict"] for c in entry.get("claims", [])}
 
 
 def _outcomes(entry: dict) -> dict:
@@ -84,35 +82,35 @@ def _outcomes(entry: dict) -> dict:
     return table
 
 
+def _against_reference(plan, evaluated: dict, read):
+    """(setting key, read(setting), read(its reference setting)) for each setting with a
+    reference setting that was evaluated."""
+    for setting in plan.settings:
+        if setting.reference and setting.reference in evaluated:
+            yield setting.key, read(evaluated[setting.key]), read(evaluated[setting.reference])
+
+
 def flips(plan, evaluated: dict) -> dict:
     """Claim id -> [(setting key, reference verdict, verdict)] where the setting's verdict
     differs from its reference setting's."""
     found = {}
-    for setting in plan.settings:
-        if not setting.reference or setting.reference not in evaluated:
-            continue
-        mine = _verdicts(evaluated[setting.key])
-        theirs = _verdicts(evaluated[setting.reference])
+    for key, mine, theirs in _against_reference(plan, evaluated, _verdicts):
         for claim_id, verdict in mine.items():
-            if claim_id in theirs and theirs[claim_id] != verdict:
-                found.setdefault(claim_id, []).append((setting.key, theirs[claim_id], verdict))
+            if theirs.get(claim_id, verdict) != verdict:
+                found.setdefault(claim_id, []).append((key, theirs[claim_id], verdict))
     return found
 
 
 def outcome_changes(plan, evaluated: dict) -> dict:
     """Setting key -> list of (claim, controller, metric, reference outcome, outcome)."""
-    changes = {}
-    for setting in plan.settings:
-        if not setting.reference or setting.reference not in evaluated:
-            continue
-        mine = _outcomes(evaluated[setting.key])
-        theirs = _outcomes(evaluated[setting.reference])
-        changes[setting.key] = [
-            (*key, theirs[key], outcome)
-            for key, outcome in mine.items()
-            if key in theirs and theirs[key] != outcome
+    return {
+        key: [
+            (*k, theirs[k], outcome)
+            for k, outcome in mine.items()
+            if theirs.get(k, outcome) != outcome
         ]
-    return changes
+        for key, mine, theirs in _against_reference(plan, evaluated, _outcomes)
+    }
 
 
 # ---------------------------------------------------------------------- precision

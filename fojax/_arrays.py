@@ -11,6 +11,7 @@ additions of the whole array per read value). :func:`unstack` reads them with on
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 from jax import lax
 
 Array = jax.Array
@@ -23,3 +24,11 @@ def unstack(x: Array, sizes: tuple[int, ...] | None = None, axis: int = 0) -> tu
         parts = lax.split(x, (1,) * x.shape[axis], axis=axis)
         return tuple(part.squeeze(axis) for part in parts)
     return tuple(lax.split(x, tuple(sizes), axis=axis))
+
+
+def as_time(t) -> Array:
+    """``t`` as an array of a floating dtype (integers become the default float)."""
+    t = jnp.asarray(t)
+    if not jnp.issubdtype(t.dtype, jnp.floating):
+        t = t.astype(jnp.result_type(float))
+    return t

@@ -68,6 +68,7 @@ from fojax import observers, plant, scenarios, simulator
 from fojax import requirements as rq
 from fojax.optimize import cost as cost_lib
 from fojax.optimize import problem as problem_lib
+from fojax.optimize.derivative_free import cma_es_requirements
 
 Array = jax.Array
 
@@ -526,100 +527,3 @@ def tune_to_requirements(
         validate if validation is not None else None,
         progress,
     )
-
-
-def cma_es_requirements(
-    problem: RequirementProblem,
-    budget_draw_steps: int,
-    penalty: float = 100.0,
-    margin: float = 0.05,
-    sigma0: float = 0.5,
-    popsize: int | None = None,
-    draws: int | None = None,
-    seed: int = 0,
-    validation_draws: int = 32,
-    init_params: Any = None,
-) -> dict:
-    """Batched CMA-ES (the ``cma`` package) on the penalty ``f / f_0 + penalty sum_j
-    mean_i max(v_ij + margin, 0)^2`` (a diverged draw costs ``penalty`` per requirement),
-    the derivative-free baseline with the same constraints: every generation's
-    candidates on one fresh minibatch of ``draws`` draws (default ``spec.draws``), one
-    vmapped call, until ``budget_draw_steps`` simulated draw-steps are spent. The start
-    and the final distribution mean are validated; the better by yield, then objective,
-    is returned: ``{"params", "selected", "history", "wall_time_s", "draw_steps"}``."""
-    import cma
-
-    from fojax.optimize.derivative_free import Budget
-
-    start = time.perf_counter()
-    budget = Budget(budget_draw_steps)
-    params0 = problem.initial_params() if init_params is None else init_params
-    x0, unravel = problem.param_map.ravel(params0)
-    n = problem.spec.draws if draws is None else int(draws)
-
-    def penalised(vectors, keys):
-        objective, violations, status = problem._batch_value(vectors, keys, unravel)
-        valid = (
-            jnp.isfinite(objective)
-            & jnp.all(jnp.isfinite(violations), 1)
-            & ((status & rq.DIVERGED) == 0)
-        )
-        count = jnp.maximum(jnp.sum(valid, -1), 1)
-        f = jnp.sum(jnp.where(valid, objective, 0.0), -1) / count
-        hinge = jnp.where(valid[:, None, :], rq.squared_hinge(violations, margin), 1.0)
-        return f, jnp.sum(jnp.mean(hinge, -1), -1)
-
-    penalised = jax.jit(penalised)
-    f0, _ = penalised(jnp.asarray(x0)[None], problem.base.minibatch_keys(0, n))
-    scale = max(float(f0[0]), 1e-12)
-    options = {
-        "seed": int(seed) + 1,
-        "verbose": -9,
-        "tolx": 0,
-        "tolfun": 0,
-        "tolflatfitness": 10**9,
-    }
-    if popsize is not None:
-        options["popsize"] = int(popsize)
-    es = cma.CMAEvolutionStrategy(np.asarray(x0, np.float64).tolist(), float(sigma0), options)
-    per_generation = es.popsize * n * problem.spec.steps
-    if not budget.affords(per_generation):
-        raise ValueError(
-            f"the budget ({budget.limit} draw-steps) does not cover one CMA-ES generation "
-            f"({per_generation} draw-steps)"
-        )
-    history = []
-    generation = 0
-    while budget.affords(per_generation):
-        candidates = es.ask()
-        keys = problem.base.minibatch_keys(generation, draws=n)
-        budget.charge(per_generation)
-        f, h = penalised(jnp.asarray(np.asarray(candidates), problem.dtype), keys)
-        values = (np.asarray(f, np.float64) / scale + penalty * np.asarray(h, np.float64)).tolist()
-        es.tell(candidates, values)
-        generation += 1
-        history.append(
-            {
-                "generation": generation,
-                "draw_steps": budget.used,
-                "best_penalised": float(min(values)),
-                "wall_time_s": round(time.perf_counter() - start, 3),
-            }
-        )
-    final = unravel(jnp.asarray(es.result.xfavorite, problem.dtype))
-    chosen, selected = params0, None
-    if validation_draws:
-        keys = problem.validation_keys(validation_draws)
-        selected = {**_validation_summary(problem.evaluate(params0, keys)), "candidate": "start"}
-        scored = _validation_summary(problem.evaluate(final, keys))
-        if _rank(scored) > _rank(selected):
-            chosen, selected = final, {**scored, "candidate": "cma-es mean"}
-    else:
-        chosen = final
-    return {
-        "params": chosen,
-        "selected": selected,
-        "history": history,
-        "wall_time_s": time.perf_counter() - start,
-        "draw_steps": budget.used,
-    }

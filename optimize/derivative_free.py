@@ -33,7 +33,7 @@ import numpy as np
 
 from fojax.optimize.problem import TuningProblem
 
-__all__ = ["Budget", "DFResult", "cma_es", "nelder_mead"]
+__all__ = ["Budget", "DFResult", "cma_es", "cma_es_requirements", "nelder_mead"]
 
 
 class Budget:
@@ -131,29 +131,15 @@ def cma_es(
     generation (default the ``cma`` package's ``4 + 3 ln n``), each on
     ``draws_per_candidate`` draws (default the problem's minibatch size), the whole
     generation in one batched call (``batched=False``: one call per candidate)."""
-    import cma
 
     budget = Budget(budget_draw_steps)
     objective = _Objective(problem, width_scale, budget, x0)
     n = problem.spec.draws if draws_per_candidate is None else int(draws_per_candidate)
     if n < 1:
         raise ValueError(f"draws_per_candidate must be >= 1, got {draws_per_candidate!r}")
-    options = {
-        "seed": int(seed) + 1,
-        "verbose": -9,
-        "tolx": 0,
-        "tolfun": 0,
-        "tolflatfitness": 10**9,
-    }
-    if popsize is not None:
-        options["popsize"] = int(popsize)
-    es = cma.CMAEvolutionStrategy(objective.x0.tolist(), float(sigma0), options)
-    per_generation = es.popsize * n * problem.spec.steps
-    if not budget.affords(per_generation):
-        raise ValueError(
-            f"the budget ({budget.limit} draw-steps) does not cover one CMA-ES generation "
-            f"({per_generation} draw-steps)"
-        )
+    es, per_generation = cma_strategy(
+        objective.x0, sigma0, seed, popsize, n * problem.spec.steps, budget
+    )
     history = []
     best = np.inf
     generation = 0
@@ -176,17 +162,7 @@ def cma_es(
         }
         history.append(row)
         objective.report(callback, es.result.xfavorite, row)
-    x = np.asarray(es.result.xfavorite)
-    params = objective.params(x)
-    return DFResult(
-        "cma-es",
-        params,
-        problem.gains(params),
-        history,
-        objective.evaluations,
-        budget.used,
-        objective.wall,
-    )
+    return _result("cma-es", objective, np.asarray(es.result.xfavorite), history, budget)
 
 
 def nelder_mead(
@@ -249,13 +225,117 @@ def nelder_mead(
             "fatol": 0.0,
         },
     )
-    params = objective.params(state["x"])
+    return _result("nelder-mead", objective, state["x"], history, budget)
+
+
+def _result(method: str, objective: _Objective, x, history: list, budget: Budget) -> DFResult:
+    """The :class:`DFResult` of ``method``'s answer ``x`` (unconstrained vector)."""
+    params = objective.params(x)
+    gains = objective.problem.gains(params)
     return DFResult(
-        "nelder-mead",
-        params,
-        problem.gains(params),
-        history,
-        objective.evaluations,
-        budget.used,
-        objective.wall,
+        method, params, gains, history, objective.evaluations, budget.used, objective.wall
     )
+
+
+def cma_strategy(x0, sigma0: float, seed: int, popsize, candidate_steps: int, budget):
+    """A CMA-ES strategy at ``x0`` (seed ``seed + 1``, no stopping rule but the budget)
+    and the draw-steps of one generation (``popsize * candidate_steps``); raises when
+    ``budget`` does not cover one generation."""
+    import cma
+
+    options = {"seed": int(seed) + 1, "verbose": -9, "tolx": 0, "tolfun": 0}
+    options["tolflatfitness"] = 10**9
+    if popsize is not None:
+        options["popsize"] = int(popsize)
+    es = cma.CMAEvolutionStrategy(np.asarray(x0, np.float64).tolist(), float(sigma0), options)
+    per_generation = es.popsize * candidate_steps
+    if not budget.affords(per_generation):
+        raise ValueError(
+            f"the budget ({budget.limit} draw-steps) does not cover one CMA-ES generation "
+            f"({per_generation} draw-steps)"
+        )
+    return es, per_generation
+
+
+def cma_es_requirements(
+    problem,
+    budget_draw_steps: int,
+    penalty: float = 100.0,
+    margin: float = 0.05,
+    sigma0: float = 0.5,
+    popsize: int | None = None,
+    draws: int | None = None,
+    seed: int = 0,
+    validation_draws: int = 32,
+    init_params: Any = None,
+) -> dict:
+    """Batched CMA-ES (the ``cma`` package) on the penalty ``f / f_0 + penalty sum_j
+    mean_i max(v_ij + margin, 0)^2`` (a diverged draw costs ``penalty`` per requirement),
+    the derivative-free baseline with the same constraints: every generation's
+    candidates on one fresh minibatch of ``draws`` draws (default ``spec.draws``), one
+    vmapped call, until ``budget_draw_steps`` simulated draw-steps are spent. The start
+    and the final distribution mean are validated; the better by yield, then objective,
+    is returned: ``{"params", "selected", "history", "wall_time_s", "draw_steps"}``."""
+    import cma  # noqa: F401  (without the extra, fail before compiling)
+    import jax
+
+    from fojax import requirements as rq
+    from fojax.optimize.constrained import _rank, _validation_summary
+
+    start = time.perf_counter()
+    budget = Budget(budget_draw_steps)
+    params0 = problem.initial_params() if init_params is None else init_params
+    x0, unravel = problem.param_map.ravel(params0)
+    n = problem.spec.draws if draws is None else int(draws)
+
+    def penalised(vectors, keys):
+        objective, violations, status = problem._batch_value(vectors, keys, unravel)
+        valid = (
+            jnp.isfinite(objective)
+            & jnp.all(jnp.isfinite(violations), 1)
+            & ((status & rq.DIVERGED) == 0)
+        )
+        count = jnp.maximum(jnp.sum(valid, -1), 1)
+        f = jnp.sum(jnp.where(valid, objective, 0.0), -1) / count
+        hinge = jnp.where(valid[:, None, :], rq.squared_hinge(violations, margin), 1.0)
+        return f, jnp.sum(jnp.mean(hinge, -1), -1)
+
+    penalised = jax.jit(penalised)
+    f0, _ = penalised(jnp.asarray(x0)[None], problem.base.minibatch_keys(0, n))
+    scale = max(float(f0[0]), 1e-12)
+    es, per_generation = cma_strategy(x0, sigma0, seed, popsize, n * problem.spec.steps, budget)
+    history = []
+    generation = 0
+    while budget.affords(per_generation):
+        candidates = es.ask()
+        keys = problem.base.minibatch_keys(generation, draws=n)
+        budget.charge(per_generation)
+        f, h = penalised(jnp.asarray(np.asarray(candidates), problem.dtype), keys)
+        values = (np.asarray(f, np.float64) / scale + penalty * np.asarray(h, np.float64)).tolist()
+        es.tell(candidates, values)
+        generation += 1
+        history.append(
+            {
+                "generation": generation,
+                "draw_steps": budget.used,
+                "best_penalised": float(min(values)),
+                "wall_time_s": round(time.perf_counter() - start, 3),
+            }
+        )
+    final = unravel(jnp.asarray(es.result.xfavorite, problem.dtype))
+    chosen, selected = params0, None
+    if validation_draws:
+        keys = problem.validation_keys(validation_draws)
+        selected = {**_validation_summary(problem.evaluate(params0, keys)), "candidate": "start"}
+        scored = _validation_summary(problem.evaluate(final, keys))
+        if _rank(scored) > _rank(selected):
+            chosen, selected = final, {**scored, "candidate": "cma-es mean"}
+    else:
+        chosen = final
+    return {
+        "params": chosen,
+        "selected": selected,
+        "history": history,
+        "wall_time_s": time.perf_counter() - start,
+        "draw_steps": budget.used,
+    }

@@ -220,6 +220,58 @@ def _scale_width(gains, base, widths, width_scale):
     return gains._replace(**{name: getattr(base, name) * width_scale for name in widths})
 
 
+def _per_draw_gradients(batch_cost, gains_of):
+    """``(params, width_scale, keys) -> ((j, (terms, status)), per-draw gradients)``."""
+
+    def per_draw_grads(params, width_scale, keys):
+        # One copy of the parameters per draw (the draws last), mapped onto gains per
+        # draw, one batch-last rollout: the gradient with respect to the copies is
+        # the stack of the per-draw gradients (fojax.optimize.cost.per_draw_gradients).
+        n = keys.shape[0]
+
+        def per_draw_gains(copies):
+            to_gains = jax.vmap(gains_of, in_axes=(-1, None), out_axes=-1)
+            return to_gains(copies, width_scale)
+
+        def total(copies):
+            j, terms, status = batch_cost(per_draw_gains(copies), keys)
+            return jnp.sum(j), (j, (terms, status))
+
+        copies = jax.tree.map(lambda p: jnp.broadcast_to(p[..., None], p.shape + (n,)), params)
+        grads, out = jax.grad(total, has_aux=True)(copies)
+        return out, jax.tree.map(lambda g: jnp.moveaxis(g, -1, 0), grads)
+
+    return per_draw_grads
+
+
+def _reduce_draws(cost_config, per_draw):
+    """The :class:`Step` of per-draw costs and gradients: objective, gradient weighted
+    over the usable draws (finite gradient, not diverged), count of the unusable."""
+    (j, (terms, status)), grads = per_draw
+    effective, diverged = cost_lib.guard(cost_config, j, status)
+    objective, weights = cost_lib.combine(cost_config, effective)
+    finite = jnp.all(
+        jnp.stack(
+            [
+                jnp.all(jnp.isfinite(g.reshape(g.shape[0], -1)), axis=1)
+                for g in jax.tree.leaves(grads)
+            ]
+        ),
+        axis=0,
+    )
+    usable = finite & ~diverged
+    weights = jnp.where(usable, weights, 0.0)
+    gradient = jax.tree.map(
+        lambda g: jnp.tensordot(
+            weights, jnp.where(usable.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0.0), axes=1
+        ),
+        grads,
+    )
+    bad = jnp.sum(~finite & ~diverged).astype(jnp.int32)
+    costs = cost_lib.DrawCosts(effective, terms, status, diverged)
+    return Step(objective, costs, gradient, bad)
+
+
 class TuningProblem:
     """:class:`ProblemSpec` + base gains, compiled (one compilation per shape).
 
@@ -272,48 +324,8 @@ class TuningProblem:
             costs = cost_lib.DrawCosts(effective, terms, status, diverged)
             return Step(objective, costs, None, jnp.zeros((), jnp.int32))
 
-        def per_draw_grads(params, width_scale, keys):
-            # One copy of the parameters per draw (the draws last), mapped onto gains per
-            # draw, one batch-last rollout: the gradient with respect to the copies is
-            # the stack of the per-draw gradients (fojax.optimize.cost.per_draw_gradients).
-            n = keys.shape[0]
-
-            def per_draw_gains(copies):
-                to_gains = jax.vmap(gains_of, in_axes=(-1, None), out_axes=-1)
-                return to_gains(copies, width_scale)
-
-            def total(copies):
-                j, terms, status = batch_cost(per_draw_gains(copies), keys)
-                return jnp.sum(j), (j, (terms, status))
-
-            copies = jax.tree.map(lambda p: jnp.broadcast_to(p[..., None], p.shape + (n,)), params)
-            grads, out = jax.grad(total, has_aux=True)(copies)
-            return out, jax.tree.map(lambda g: jnp.moveaxis(g, -1, 0), grads)
-
-        def reduce_draws(per_draw):
-            (j, (terms, status)), grads = per_draw
-            effective, diverged = cost_lib.guard(cost_config, j, status)
-            objective, weights = cost_lib.combine(cost_config, effective)
-            finite = jnp.all(
-                jnp.stack(
-                    [
-                        jnp.all(jnp.isfinite(g.reshape(g.shape[0], -1)), axis=1)
-                        for g in jax.tree.leaves(grads)
-                    ]
-                ),
-                axis=0,
-            )
-            usable = finite & ~diverged
-            weights = jnp.where(usable, weights, 0.0)
-            gradient = jax.tree.map(
-                lambda g: jnp.tensordot(
-                    weights, jnp.where(usable.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0.0), axes=1
-                ),
-                grads,
-            )
-            bad = jnp.sum(~finite & ~diverged).astype(jnp.int32)
-            costs = cost_lib.DrawCosts(effective, terms, status, diverged)
-            return Step(objective, costs, gradient, bad)
+        per_draw_grads = _per_draw_gradients(batch_cost, gains_of)
+        reduce_draws = functools.partial(_reduce_draws, cost_config)
 
         options = COMPILE_MODES[spec.compile]
         self._value = jax.jit(value, compiler_options=options)

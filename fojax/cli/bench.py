@@ -32,15 +32,19 @@ units.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import platform
 import resource
 import sys
-import time
 
 from fojax.cli import arguments
 from fojax.cli import study as study_layer
+from fojax.cli.bench_measure import (
+    measure_crazyflow,
+    measure_forward,
+    measure_gradient,
+    measure_numpy,
+)
 
 DEFAULT_DRAWS = (1, 64, 1024, 4096)
 DEFAULT_CHUNK = 1024  # draws per call: 512 per core keeps each core's modes in its L2
@@ -146,288 +150,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-# ----------------------------------------------------------------------------- pieces
-
-
-class _Workload:
-    """The standard workload, built for a given horizon."""
-
-    def __init__(self, horizon: float, switching: str = "sat", save_every: int | None = None):
-        from fojax import plant, scenarios, simulator
-        from fojax.controllers import make_controller, paper_gains
-
-        self.dt = 1e-3
-        steps = int(round(horizon / self.dt))
-        if save_every is None:
-            save_every = _block_size(steps)
-        self.scenario = scenarios.get_scenario(2)
-        self.config = simulator.SimulationConfig(dt=self.dt, horizon=horizon, save_every=save_every)
-        # The fractional memory is sized for the scenario's 80 s, whatever the horizon.
-        self.controller = make_controller(
-            "afonftsmc", dt=self.dt, horizon=80.0, switching=switching
-        )
-        self.gains = paper_gains("float32")
-        self.model = plant.nominal_params("float32")
-
-    def draws(self, count: int):
-        import jax
-
-        from fojax import scenarios
-
-        keys = scenarios.draw_keys(0, range(count))
-        return jax.vmap(lambda k: scenarios.sample_draw(self.scenario, k, self.dt, "float32"))(keys)
-
-    def run_draws(self, gains, draws, observer=None, per_draw_gains=False):
-        """The rollout of a batch of draws (``draws`` batch first, as :meth:`draws` makes
-        them), run with the batch last; results batch first. ``per_draw_gains``: one
-        copy of the gains per draw, so that under ``grad`` their cotangents stay per
-        draw inside the time loop and are summed once, after it."""
-        import jax
-        import jax.numpy as jnp
-
-        from fojax import scenarios, simulator
-
-        draws = scenarios.batch_last(draws)
-        if per_draw_gains:
-            n = draws.params.mass.shape[-1]
-            gains = jax.tree.map(lambda g: jnp.broadcast_to(g[..., None], g.shape + (n,)), gains)
-        result = simulator.rollout(
-            self.controller, gains, self.model, self.scenario, draws, self.config, observer
-        )
-        return scenarios.batch_first(result)
-
-
-def _block_size(steps: int) -> int:
-    """The divisor of ``steps`` nearest ``sqrt(steps)``: checkpointed blocks of that many
-    steps keep reverse-mode memory ``O(sqrt(steps))``."""
-    from fojax import simulator
-
-    return simulator.divisor_near(steps, math.sqrt(steps))
-
-
-def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
-    import jax
-
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    times.sort()
-    return times[len(times) // 2], times
-
-
-def _padded_count(count: int, devices: int) -> int:
-    return count if count % devices == 0 else count + (-count % devices)
-
-
-def _compile(fn, *args):
-    start = time.perf_counter()
-    compiled = fn.lower(*args).compile()
-    return compiled, time.perf_counter() - start
-
-
-def _memory(compiled) -> dict:
-    try:
-        stats = compiled.memory_analysis()
-    except Exception:  # not every backend reports it
-        return {}
-    if stats is None:
-        return {}
-    fields = (
-        "temp_size_in_bytes",
-        "argument_size_in_bytes",
-        "output_size_in_bytes",
-        "generated_code_size_in_bytes",
-    )
-    out = {name.replace("_in_bytes", "_bytes"): int(getattr(stats, name, 0)) for name in fields}
-    out["peak_bytes"] = (
-        out["temp_size_bytes"] + out["argument_size_bytes"] + out["output_size_bytes"]
-    )
-    return out
-
-
-def measure_forward(
-    count: int, horizon: float, repeats: int, mesh, chunk: int | None = None
-) -> dict:
-    """Forward rollouts of ``count`` draws over ``horizon`` seconds.
-
-    With ``chunk`` smaller than ``count``, the draws run as consecutive calls of
-    ``chunk`` draws each (one compiled function), the way :mod:`fojax.study` runs
-    them; the batch is also timed as one call (``one_call_*``).
-    """
-    import jax
-
-    from fojax import sharding
-
-    work = _Workload(horizon)
-    devices = mesh.devices.size
-    chunk = count if chunk is None or chunk >= count else chunk
-    padded_chunk = _padded_count(chunk, devices)
-    n_chunks = math.ceil(count / chunk)
-    all_draws = work.draws(n_chunks * padded_chunk)
-    gains = sharding.replicate(work.gains, mesh)
-    run = sharding.sharded_batch(work.run_draws, mesh, batched=(False, True))
-
-    def place(first, size):
-        return sharding.shard_draws(
-            jax.tree.map(lambda x: x[first : first + size], all_draws), mesh
-        )
-
-    chunks = [place(i * padded_chunk, padded_chunk) for i in range(n_chunks)]
-    compiled, compile_s = _compile(run, gains, chunks[0])
-    jax.block_until_ready(compiled(gains, chunks[0]))  # warm
-
-    def run_all():
-        return [compiled(gains, c) for c in chunks]
-
-    run_s, times = _median_time(run_all, repeats)
-    steps = work.config.steps
-    entry = {
-        "draws": count,
-        "draws_computed": n_chunks * padded_chunk,
-        "chunk": chunk,
-        "calls": n_chunks,
-        "horizon_s": horizon,
-        "steps": steps,
-        "compile_s": compile_s,
-        "run_s": run_s,
-        "run_s_all": times,
-        "draw_steps_per_s": count * steps / run_s,
-    }
-    if n_chunks > 1:
-        padded = _padded_count(count, devices)
-        whole = place(0, padded)
-        one_call, one_compile_s = _compile(run, gains, whole)
-        jax.block_until_ready(one_call(gains, whole))
-        one_s, _ = _median_time(lambda: one_call(gains, whole), repeats)
-        entry.update(
-            one_call_compile_s=one_compile_s,
-            one_call_run_s=one_s,
-            one_call_draw_steps_per_s=count * steps / one_s,
-        )
-    return entry
-
-
-def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
-    """Reverse-mode gradient of the mean rollout cost w.r.t. the gains (tanh switching)."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from fojax import observers, sharding
-
-    work = _Workload(horizon, switching="tanh")
-    devices = mesh.devices.size
-    padded = _padded_count(count, devices)
-    draws = sharding.shard_draws(work.draws(padded), mesh)
-    gains = sharding.replicate(work.gains, mesh)
-
-    cost = observers.TrackingISE(work.dt)
-
-    def costs(gains, draws):
-        # One copy of the gains per draw: their cotangents stay per draw inside the time
-        # loop and are summed once, after it (see the module docstring).
-        return work.run_draws(gains, draws, cost, per_draw_gains=True).outputs
-
-    per_device = sharding.sharded_batch(costs, mesh, batched=(False, True))
-
-    def forward(gains, draws):
-        return jnp.mean(per_device(gains, draws))
-
-    forward_jit = jax.jit(forward)
-    gradient_jit = jax.jit(jax.grad(forward))
-    forward_c, forward_compile_s = _compile(forward_jit, gains, draws)
-    gradient_c, gradient_compile_s = _compile(gradient_jit, gains, draws)
-    jax.block_until_ready(forward_c(gains, draws))
-    jax.block_until_ready(gradient_c(gains, draws))
-    # Interleaved, so that a load that comes and goes falls on both alike; the ratio is
-    # the median of the per-round ratios.
-    forward_all, gradient_all, cpu_forward, cpu_gradient = [], [], [], []
-    for _ in range(repeats):
-        for fn, wall, cpu in (
-            (forward_c, forward_all, cpu_forward),
-            (gradient_c, gradient_all, cpu_gradient),
-        ):
-            start, start_cpu = time.perf_counter(), time.process_time()
-            jax.block_until_ready(fn(gains, draws))
-            wall.append(time.perf_counter() - start)
-            cpu.append(time.process_time() - start_cpu)
-    forward_s, gradient_s = float(np.median(forward_all)), float(np.median(gradient_all))
-    ratios = [g / f for f, g in zip(forward_all, gradient_all, strict=True)]
-    cpu_ratios = [g / f for f, g in zip(cpu_forward, cpu_gradient, strict=True)]
-    steps = work.config.steps
-    return {
-        "draws": count,
-        "draws_computed": padded,
-        "horizon_s": horizon,
-        "steps": steps,
-        "save_every": work.config.save_every,
-        "forward_s": forward_s,
-        "gradient_s": gradient_s,
-        "gradient_over_forward": float(np.median(ratios)),
-        "gradient_over_forward_all": ratios,
-        "gradient_over_forward_cpu_time": float(np.median(cpu_ratios)),
-        "gradient_draw_steps_per_s": count * steps / gradient_s,
-        "forward_compile_s": forward_compile_s,
-        "gradient_compile_s": gradient_compile_s,
-        "gradient_memory": _memory(gradient_c),
-        "forward_memory": _memory(forward_c),
-    }
-
-
-def measure_numpy(count: int, horizon: float) -> dict:
-    """The NumPy reference (float32, like the JAX workload), one timed run."""
-    import numpy as np
-
-    from fojax.cli import numpy_reference
-
-    work = _Workload(horizon)
-    prepared = numpy_reference.prepare(
-        work.controller, work.gains, work.model, work.draws(count), np.float32
-    )
-    start = time.perf_counter()
-    numpy_reference.simulate(prepared, work.scenario, work.config)
-    run_s = time.perf_counter() - start
-    steps = work.config.steps
-    return {
-        "draws": count,
-        "horizon_s": horizon,
-        "steps": steps,
-        "run_s": run_s,
-        "draw_steps_per_s": count * steps / run_s,
-    }
-
-
-def measure_crazyflow(count: int, steps: int) -> dict:
-    """crazyflow's simulator (attitude control, analytical physics) at ``count`` worlds."""
-    import numpy as np
-    from crazyflow.control import Control
-    from crazyflow.sim import Physics, Sim
-
-    sim = Sim(
-        n_worlds=count,
-        n_drones=1,
-        physics=Physics.analytical,
-        control=Control.attitude,
-        device="cpu",
-    )
-    sim.reset()
-    cmd = np.zeros((count, 1, 4))
-    cmd[..., 0] = 0.3
-    sim.attitude_control(cmd)
-    sim.step(10)  # compile
-    start = time.perf_counter()
-    sim.step(steps)
-    run_s = time.perf_counter() - start
-    return {
-        "worlds": count,
-        "steps": steps,
-        "run_s": run_s,
-        "drone_steps_per_s": count * steps / run_s,
-    }
-
-
 # ------------------------------------------------------------------------------ main
 
 
@@ -467,8 +189,8 @@ def _given(argv: list[str]) -> set[str]:
     return set(vars(probe.parse_known_args(argv)[0]))
 
 
-def main(argv=None) -> dict:
-    argv = list(sys.argv[1:] if argv is None else argv)
+def _parse(argv: list[str]) -> argparse.Namespace:
+    """The options, with ``--small``'s sizes applied (an error when one is also given)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.small:
@@ -483,6 +205,12 @@ def main(argv=None) -> dict:
         args.gradient_horizons = (0.02,)
         args.numpy_draws = args.draws
         args.numpy_horizon = 0.02
+    return args
+
+
+def main(argv=None) -> dict:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = _parse(argv)
     requested_devices = arguments.use_host_devices(args.devices)
     if args.devices is not None and requested_devices is None:
         _log(
@@ -531,7 +259,18 @@ def main(argv=None) -> dict:
         "scaling": {},
         "crazyflow": None,
     }
+    _measure(args, result, mesh)
+    result["process_max_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    _print_summary(result)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        study_layer.write_json(args.json, result)
+        _log(f"wrote {args.json}")
+    return result
 
+
+def _measure(args, result: dict, mesh) -> None:
+    """Every measurement the options ask for, into ``result``, logged as it finishes."""
     for count in args.draws:
         horizon = args.long_horizon if count <= args.long_max_draws else args.short_horizon
         _log(f"forward: {count} draws x {horizon} s ...")
@@ -593,14 +332,6 @@ def main(argv=None) -> dict:
             result["crazyflow"] = {"error": f"{type(error).__name__}: {error}"}
     else:
         result["crazyflow"] = {"skipped": "crazyflow is not installed"}
-
-    result["process_max_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    _print_summary(result)
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        study_layer.write_json(args.json, result)
-        _log(f"wrote {args.json}")
-    return result
 
 
 def _log_gradient(entry: dict) -> None:

@@ -237,34 +237,15 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
     dt = config.dt
     g = prepared["gains"]
     nominal = prepared["nominal"]
-    mode_weights, taps = prepared["mode_weights"], prepared["taps"]
-    readout = prepared["readout"]
-    local = prepared["local"]
-    decay_m1 = prepared["decay_m1"]
     filter_transition = prepared["filter_transition"]
     filter_input = prepared["filter_input"]
     w, zeta = prepared["filter_frequency"], prepared["filter_damping"]
-    switching = prepared["switching"]
     plant_params = prepared["plant"]
     n = plant_params["mass"].shape[0]
-    drag_table = prepared["drag_table"]
-    noise_table = prepared["noise_table"]
-    drag_hold = max(1, round(scenario.drag_hold / dt))
-    noise_hold = max(1, round(scenario.noise_hold / dt))
 
-    state = np.tile(
-        np.concatenate([scenario.initial_position, scenario.initial_attitude, np.zeros(6)]),
-        (n, 1),
-    ).astype(dtype)
-    n_modes = decay_m1.shape[0]
-    modes = np.zeros((n, 12, n_modes), dtype)
-    u_prev = np.zeros((n, 12), dtype)
-    u_prev2 = np.zeros((n, 12), dtype)
-    adaptive = np.zeros((n, 6, 3), dtype)
-    command_filter = np.zeros((n, 2, 2), dtype)
-    command_filter[:, :, 0] = state[:, 3:5]
-    last_inputs = np.zeros((n, 4), dtype)
-    last_inputs[:, 0] = nominal["mass"] * nominal["gravity"]
+    state, modes, u_prev, u_prev2, adaptive, command_filter, last_inputs = _initial(
+        prepared, scenario, n
+    )
     status = np.zeros(n, np.int32)
     cost = np.zeros(n, dtype)
 
@@ -273,18 +254,7 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
         ref, ref_vel, ref_acc = (as_np(a) for a in reference_54_55(t))
 
         # ---- controller: errors of the six axes
-        attitude_reference = np.concatenate(
-            [command_filter[:, :, 0], np.full((n, 1), ref[3], dtype)], axis=1
-        )
-        attitude_reference_rate = np.concatenate(
-            [command_filter[:, :, 1], np.full((n, 1), ref_vel[3], dtype)], axis=1
-        )
-        error = state[:, :6] - np.concatenate(
-            [np.broadcast_to(ref[:3], (n, 3)), attitude_reference], axis=1
-        )
-        error_rate = state[:, 6:12] - np.concatenate(
-            [np.broadcast_to(ref_vel[:3], (n, 3)), attitude_reference_rate], axis=1
-        )
+        attitude_reference, error, error_rate = _errors(state, command_filter, ref, ref_vel, dtype)
 
         # ---- fractional memory: 12 channels, integral and its rate
         u = np.concatenate(
@@ -297,43 +267,16 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
         if k == 0:
             integral = rate = np.zeros((n, 12), dtype)
         else:
-            u_before = u_prev2 if k > 1 else 2.0 * u_prev - u
-            history = modes @ readout.T  # (n, 12, 2)
-            samples = (u, u_prev, u_before)  # each (n, 12)
-            outputs = history + sum(local[:, :, i] * samples[i][:, :, None] for i in range(3))
-            integral, rate = outputs[..., 0], outputs[..., 1]
-            increment = mode_weights * sum(taps[i] * samples[i][:, :, None] for i in range(3))
-            modes = modes + (decay_m1 * modes + increment)
+            integral, rate, modes = _memory_step(prepared, modes, (u, u_prev, u_prev2), k)
         u_prev2, u_prev = u_prev, u
         surface = error_rate + integral[:, :6] + integral[:, 6:]
         dsurface = rate[:, :6] + rate[:, 6:]
 
         # ---- reaching law and adaptive bound
-        sw = _switching(switching, surface, g["boundary_layer"])
-        bound = (
-            adaptive[:, :, 0]
-            + adaptive[:, :, 1] * np.abs(error)
-            + adaptive[:, :, 2] * np.abs(error_rate)
-        )
-        reaching = -g["reaching_h1"] * sw - g["reaching_h2"] * surface - (bound + g["mu"]) * sw
-        regressor = np.stack([np.ones_like(error), np.abs(error), np.abs(error_rate)], axis=2)
-        adaptive = adaptive + dt * g["adaptation"] * regressor * np.abs(surface)[:, :, None]
+        reaching, adaptive = _reaching_law(prepared, surface, error, error_rate, adaptive, dt)
 
         # ---- position loop, eq. (13)
-        virtual = (
-            nominal["drag_position"] / nominal["mass"] * state[:, 6:9]
-            + ref_acc[:3]
-            - dsurface[:, :3]
-            + reaching[:, :3]
-        )
-        gravity = nominal["gravity"]
-        lift = np.maximum(virtual[:, 2] + gravity, 0.1 * gravity)
-        c_psi, s_psi = math.cos(ref[3]), math.sin(ref[3])
-        vx, vy = virtual[:, 0], virtual[:, 1]
-        theta_r = np.arctan((c_psi * vx + s_psi * vy) / lift)
-        phi_r = np.arctan(np.cos(theta_r) * (s_psi * vx - c_psi * vy) / lift)
-        thrust = nominal["mass"] * np.sqrt(vx * vx + vy * vy + lift * lift)
-        tilt_reference = np.stack([phi_r, theta_r], axis=1)
+        thrust, tilt_reference = _position_loop(nominal, state, ref, ref_acc, dsurface, reaching)
 
         # ---- command filter and attitude loop
         filtered_accel = (
@@ -346,62 +289,169 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
         command_filter = (
             command_filter @ filter_transition.T + tilt_reference[:, :, None] * filter_input
         )
-        omega_r_model = _rotor_speed_sum(
-            nominal["thrust_factor"], nominal["drag_factor"], nominal["arm_length"], last_inputs
-        )
-        rates = state[:, 9:12]
+        drift = _attitude_drift(nominal, state, last_inputs)
         i_nom = nominal["inertia"]
-        p_, q_, r_ = rates[:, 0], rates[:, 1], rates[:, 2]
-        drift = np.stack(
-            [
-                (i_nom[1] - i_nom[2]) / i_nom[0] * q_ * r_
-                - nominal["rotor_inertia"] / i_nom[0] * q_ * omega_r_model,
-                (i_nom[2] - i_nom[0]) / i_nom[1] * p_ * r_
-                + nominal["rotor_inertia"] / i_nom[1] * p_ * omega_r_model,
-                (i_nom[0] - i_nom[1]) / i_nom[2] * p_ * q_,
-            ],
-            axis=1,
-        ) - nominal["drag_attitude"] / i_nom * (rates * np.abs(rates))
         torque = i_nom * (-drift + attitude_reference_accel - dsurface[:, 3:] + reaching[:, 3:])
         inputs = np.concatenate([thrust[:, None], torque], axis=1)
         last_inputs = inputs
 
         # ---- plant: RK4 with inputs, disturbance and drag held over the step
-        disturbance = (
-            as_np(disturbances_53(t))
-            + noise_table[:, min(k // noise_hold, noise_table.shape[1] - 1)]
-        )
-        multipliers = drag_table[:, min(k // drag_hold, drag_table.shape[1] - 1)]
-        drag_position = plant_params["drag_position"] * multipliers[:, :3]
-        drag_attitude = plant_params["drag_attitude"] * multipliers[:, 3:]
-        omega_r = _rotor_speed_sum(
-            plant_params["thrust_factor"],
-            plant_params["drag_factor"],
-            plant_params["arm_length"],
-            inputs,
-        )
-
-        held = (inputs, disturbance, drag_position, drag_attitude, omega_r)
-        next_state = _rk4_step(plant_params, state, held, dt)
+        next_state = _plant_step(prepared, scenario, state, inputs, k, dt)
 
         # ---- status and cost
-        finite = (
-            np.all(np.isfinite(next_state), axis=1)
-            & np.all(np.isfinite(inputs), axis=1)
-            & np.all(np.isfinite(surface), axis=1)
-        )
-        tilt = np.any(np.abs(next_state[:, 3:5]) >= math.pi / 2, axis=1)
-        squared = _rotor_speeds_squared(
-            plant_params["thrust_factor"],
-            plant_params["drag_factor"],
-            plant_params["arm_length"],
-            inputs,
-        )
-        actuator = np.any(squared < 0, axis=1)
-        status |= np.where(finite, 0, 1) | np.where(tilt, 2, 0) | np.where(actuator, 4, 0)
+        status |= _status_bits(plant_params, next_state, inputs, surface)
         position_error = state[:, :3] - ref[:3]
         attitude_error = state[:, 3:6] - attitude_reference
         cost = cost + dt * (np.sum(position_error**2, axis=1) + np.sum(attitude_error**2, axis=1))
         state = next_state
 
     return NumpyRollout(state, status.astype(np.int32), cost)
+
+
+def _memory_step(prepared: dict, modes, samples, k: int):
+    """The fractional memory's 12 channels at step ``k >= 1``: ``(integral, rate,
+    modes)`` from the inputs ``samples = (u, u_prev, u_prev2)``, each ``(n, 12)``."""
+    u, u_prev, u_prev2 = samples
+    u_before = u_prev2 if k > 1 else 2.0 * u_prev - u
+    history = modes @ prepared["readout"].T  # (n, 12, 2)
+    samples = (u, u_prev, u_before)  # each (n, 12)
+    local, taps = prepared["local"], prepared["taps"]
+    outputs = history + sum(local[:, :, i] * samples[i][:, :, None] for i in range(3))
+    increment = prepared["mode_weights"] * sum(taps[i] * samples[i][:, :, None] for i in range(3))
+    modes = modes + (prepared["decay_m1"] * modes + increment)
+    return outputs[..., 0], outputs[..., 1], modes
+
+
+def _reaching_law(prepared: dict, surface, error, error_rate, adaptive, dt: float):
+    """The reaching law with its adaptive bound, and the bound's next estimates."""
+    g = prepared["gains"]
+    sw = _switching(prepared["switching"], surface, g["boundary_layer"])
+    bound = (
+        adaptive[:, :, 0]
+        + adaptive[:, :, 1] * np.abs(error)
+        + adaptive[:, :, 2] * np.abs(error_rate)
+    )
+    reaching = -g["reaching_h1"] * sw - g["reaching_h2"] * surface - (bound + g["mu"]) * sw
+    regressor = np.stack([np.ones_like(error), np.abs(error), np.abs(error_rate)], axis=2)
+    adaptive = adaptive + dt * g["adaptation"] * regressor * np.abs(surface)[:, :, None]
+    return reaching, adaptive
+
+
+def _position_loop(nominal: dict, state, ref, ref_acc, dsurface, reaching):
+    """Eq. (13): the thrust ``(n,)`` and the tilt reference ``(n, 2)`` (roll, pitch)."""
+    virtual = (
+        nominal["drag_position"] / nominal["mass"] * state[:, 6:9]
+        + ref_acc[:3]
+        - dsurface[:, :3]
+        + reaching[:, :3]
+    )
+    gravity = nominal["gravity"]
+    lift = np.maximum(virtual[:, 2] + gravity, 0.1 * gravity)
+    c_psi, s_psi = math.cos(ref[3]), math.sin(ref[3])
+    vx, vy = virtual[:, 0], virtual[:, 1]
+    theta_r = np.arctan((c_psi * vx + s_psi * vy) / lift)
+    phi_r = np.arctan(np.cos(theta_r) * (s_psi * vx - c_psi * vy) / lift)
+    thrust = nominal["mass"] * np.sqrt(vx * vx + vy * vy + lift * lift)
+    return thrust, np.stack([phi_r, theta_r], axis=1)
+
+
+def _attitude_drift(nominal: dict, state, last_inputs):
+    """The nominal model's angular accelerations without torque ``(n, 3)``: gyroscopic,
+    rotor and quadratic drag terms (rotor speed from the previous step's inputs)."""
+    omega_r_model = _rotor_speed_sum(
+        nominal["thrust_factor"], nominal["drag_factor"], nominal["arm_length"], last_inputs
+    )
+    rates = state[:, 9:12]
+    i_nom = nominal["inertia"]
+    p_, q_, r_ = rates[:, 0], rates[:, 1], rates[:, 2]
+    return np.stack(
+        [
+            (i_nom[1] - i_nom[2]) / i_nom[0] * q_ * r_
+            - nominal["rotor_inertia"] / i_nom[0] * q_ * omega_r_model,
+            (i_nom[2] - i_nom[0]) / i_nom[1] * p_ * r_
+            + nominal["rotor_inertia"] / i_nom[1] * p_ * omega_r_model,
+            (i_nom[0] - i_nom[1]) / i_nom[2] * p_ * q_,
+        ],
+        axis=1,
+    ) - nominal["drag_attitude"] / i_nom * (rates * np.abs(rates))
+
+
+def _status_bits(plant_params: dict, next_state, inputs, surface):
+    """The step's status bits ``(n,)``: 1 nonfinite, 2 tilt limit, 4 actuator limit."""
+    finite = (
+        np.all(np.isfinite(next_state), axis=1)
+        & np.all(np.isfinite(inputs), axis=1)
+        & np.all(np.isfinite(surface), axis=1)
+    )
+    tilt = np.any(np.abs(next_state[:, 3:5]) >= math.pi / 2, axis=1)
+    squared = _rotor_speeds_squared(
+        plant_params["thrust_factor"],
+        plant_params["drag_factor"],
+        plant_params["arm_length"],
+        inputs,
+    )
+    actuator = np.any(squared < 0, axis=1)
+    return np.where(finite, 0, 1) | np.where(tilt, 2, 0) | np.where(actuator, 4, 0)
+
+
+def _errors(state, command_filter, ref, ref_vel, dtype):
+    """The attitude reference ``(n, 3)`` and the six axes' errors and error rates."""
+    n = state.shape[0]
+    attitude_reference = np.concatenate(
+        [command_filter[:, :, 0], np.full((n, 1), ref[3], dtype)], axis=1
+    )
+    attitude_reference_rate = np.concatenate(
+        [command_filter[:, :, 1], np.full((n, 1), ref_vel[3], dtype)], axis=1
+    )
+    error = state[:, :6] - np.concatenate(
+        [np.broadcast_to(ref[:3], (n, 3)), attitude_reference], axis=1
+    )
+    error_rate = state[:, 6:12] - np.concatenate(
+        [np.broadcast_to(ref_vel[:3], (n, 3)), attitude_reference_rate], axis=1
+    )
+    return attitude_reference, error, error_rate
+
+
+def _plant_step(prepared: dict, scenario, state, inputs, k: int, dt: float):
+    """The plant's RK4 step ``k``, with the inputs, the disturbance and the drag held."""
+    plant_params = prepared["plant"]
+    drag_table, noise_table = prepared["drag_table"], prepared["noise_table"]
+    drag_hold = max(1, round(scenario.drag_hold / dt))
+    noise_hold = max(1, round(scenario.noise_hold / dt))
+    t = k * dt
+    disturbance = (
+        np.asarray(disturbances_53(t), prepared["dtype"])
+        + noise_table[:, min(k // noise_hold, noise_table.shape[1] - 1)]
+    )
+    multipliers = drag_table[:, min(k // drag_hold, drag_table.shape[1] - 1)]
+    drag_position = plant_params["drag_position"] * multipliers[:, :3]
+    drag_attitude = plant_params["drag_attitude"] * multipliers[:, 3:]
+    omega_r = _rotor_speed_sum(
+        plant_params["thrust_factor"],
+        plant_params["drag_factor"],
+        plant_params["arm_length"],
+        inputs,
+    )
+
+    held = (inputs, disturbance, drag_position, drag_attitude, omega_r)
+    return _rk4_step(plant_params, state, held, dt)
+
+
+def _initial(prepared: dict, scenario, n: int):
+    """The loop's state at ``t = 0``: plant state, memory modes, the last two memory
+    inputs, adaptive estimates, command filter, last inputs (hover thrust)."""
+    dtype, nominal = prepared["dtype"], prepared["nominal"]
+    state = np.tile(
+        np.concatenate([scenario.initial_position, scenario.initial_attitude, np.zeros(6)]),
+        (n, 1),
+    ).astype(dtype)
+    n_modes = prepared["decay_m1"].shape[0]
+    modes = np.zeros((n, 12, n_modes), dtype)
+    u_prev = np.zeros((n, 12), dtype)
+    u_prev2 = np.zeros((n, 12), dtype)
+    adaptive = np.zeros((n, 6, 3), dtype)
+    command_filter = np.zeros((n, 2, 2), dtype)
+    command_filter[:, :, 0] = state[:, 3:5]
+    last_inputs = np.zeros((n, 4), dtype)
+    last_inputs[:, 0] = nominal["mass"] * nominal["gravity"]
+    return state, modes, u_prev, u_prev2, adaptive, command_filter, last_inputs

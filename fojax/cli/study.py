@@ -133,18 +133,8 @@ def _fingerprint(controller, gains, scenario, config, study: Study, dtype, membe
     (``member``: the study's index in a union ``scenario``)."""
     from fojax import study as monte_carlo
 
-    metrics_config = study.metrics_config(config.steps)
-    return monte_carlo.fingerprint(
-        controller,
-        gains,
-        scenario,
-        config,
-        study.seed,
-        dtype,
-        metrics_config,
-        study.device_batch,
-        member=member,
-    )
+    settings = (study.seed, dtype, study.metrics_config(config.steps), study.device_batch)
+    return monte_carlo.fingerprint(controller, gains, scenario, config, *settings, member=member)
 
 
 def _differences(store: Path, fingerprint: dict | None) -> list[tuple] | None:

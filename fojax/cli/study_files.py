@@ -81,11 +81,33 @@ def write_outputs(
     recorded in the summary's provenance (default ``sys.argv``); ``extra``: further
     summary entries. Returns the summary, with ``"files"``: the files written.
     """
+    summary = _header(study, results)
+    arrays = _controller_entries(study, results, summary)
+    if len(results) > 1:
+        summary["paired_differences"] = _paired(results)
+    summary.update(extra or {})
+    summary["provenance"] = provenance(command)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = ["summary.json", "draws.npz"]
+    trajectories = _first_trajectories(results)
+    if trajectories:
+        files.append("trajectories.npz")
+    summary["files"] = files
+    write_json(out / "summary.json", summary)
+    _savez(out / "draws.npz", arrays)
+    if trajectories:
+        _savez(out / "trajectories.npz", trajectories)
+    if figures and trajectories:
+        _draw_figures(study, results, out, summary)
+    return summary
 
-    from fojax import statistics
+
+def _header(study: Study, results: dict) -> dict:
+    """The summary's settings and gains, before the controllers' entries."""
     from fojax import study as monte_carlo
 
-    summary = {
+    return {
         "scenario": study.scenario_id,
         "draws": study.draws,
         "seed": study.seed,
@@ -105,6 +127,13 @@ def write_outputs(
         "excluded_from_metrics": "draws flagged nonfinite or tilt_limit (counted in 'diverged')",
         "controllers": {},
     }
+
+
+def _controller_entries(study: Study, results: dict, summary: dict) -> dict:
+    """Each controller's summary entry into ``summary["controllers"]``; returns the
+    per-draw arrays of ``draws.npz``."""
+    from fojax import study as monte_carlo
+
     arrays = {}
     for name, result in results.items():
         bounds = _reaching_bounds(name, study, result)
@@ -119,24 +148,29 @@ def write_outputs(
             arrays[f"{name}.{metric}"] = values
         for metric, values in bounds.items():
             arrays[f"{name}.{metric}"] = values
-    names = list(results)
-    if len(names) > 1:
-        baseline = names[0]
-        base_table = monte_carlo.metric_table(results[baseline])
-        paired = {}
-        for name in names[1:]:
-            table = monte_carlo.metric_table(results[name])
-            paired[name] = {
-                metric: statistics.paired_difference(table[metric][0], base_table[metric][0])
-                for metric in table
-                if metric in base_table
-            }
-        summary["paired_differences"] = {"baseline": baseline, "minus_baseline": paired}
-    summary.update(extra or {})
-    summary["provenance"] = provenance(command)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    files = ["summary.json", "draws.npz"]
+    return arrays
+
+
+def _paired(results: dict) -> dict:
+    """Each controller's paired differences from the first one's, metric by metric."""
+    from fojax import statistics
+    from fojax import study as monte_carlo
+
+    baseline, *others = list(results)
+    base_table = monte_carlo.metric_table(results[baseline])
+    paired = {}
+    for name in others:
+        table = monte_carlo.metric_table(results[name])
+        paired[name] = {
+            metric: statistics.paired_difference(table[metric][0], base_table[metric][0])
+            for metric in table
+            if metric in base_table
+        }
+    return {"baseline": baseline, "minus_baseline": paired}
+
+
+def _first_trajectories(results: dict) -> dict:
+    """The first (at most eight) kept trajectories of each controller, by array name."""
     trajectories = {}
     for name, result in results.items():
         tr = result.trajectories
@@ -153,26 +187,22 @@ def write_outputs(
         trajectories[f"{name}.attitude_reference"] = tr.info.attitude_reference[few]
         trajectories[f"{name}.surfaces"] = tr.info.surfaces[few]
         trajectories[f"{name}.adaptive"] = tr.info.adaptive[few]
-    if trajectories:
-        files.append("trajectories.npz")
-    summary["files"] = files
-    write_json(out / "summary.json", summary)
-    _savez(out / "draws.npz", arrays)
-    if trajectories:
-        _savez(out / "trajectories.npz", trajectories)
-    if figures and trajectories:
-        from fojax.cli import figures as figs
-        from fojax.cli import style
+    return trajectories
 
-        applied = options_applied_to(study)
-        parts = [f"scenario {study.scenario_id}"]
-        if applied["switching"]:
-            parts.append(f"{study.switching} switching")
-        if applied["fractional_method"]:
-            parts.append(f"{study.fractional} fractional operators")
-        context = ", ".join(parts + [f"dt {study.dt * 1e3:g} ms"])
-        drawn = style.attempt("(all)", figs.plot_all, results, out, "", context) or []
-        if drawn:
-            summary["figures"] = [p.name for p in drawn]
-            write_json(out / "summary.json", summary)
-    return summary
+
+def _draw_figures(study: Study, results: dict, out: Path, summary: dict) -> None:
+    """The figures, each a warning when it fails; their names into the summary."""
+    from fojax.cli import figures as figs
+    from fojax.cli import style
+
+    applied = options_applied_to(study)
+    parts = [f"scenario {study.scenario_id}"]
+    if applied["switching"]:
+        parts.append(f"{study.switching} switching")
+    if applied["fractional_method"]:
+        parts.append(f"{study.fractional} fractional operators")
+    context = ", ".join(parts + [f"dt {study.dt * 1e3:g} ms"])
+    drawn = style.attempt("(all)", figs.plot_all, results, out, "", context) or []
+    if drawn:
+        summary["figures"] = [p.name for p in drawn]
+        write_json(out / "summary.json", summary)

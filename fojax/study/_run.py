@@ -469,19 +469,9 @@ def run(
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
     dispatch = _Dispatch(runner, gains, scenario, config, seed, batch, keep, mesh, member)
     start_time = time.perf_counter()
-    call_times: list[float] = []
     done = draws - _to_compute(segments)
-    for call in calls:
-        t0 = time.perf_counter()
-        dispatch(call, layout["devices"])
-        if chunk_store is not None:
-            _save_blocks(chunk_store, call, dispatch.computed, batch)
-        call_times.append(time.perf_counter() - t0)
-        done += sum(max(0, min(batch, draws - k * batch)) for k in call)
-        if progress and lead:
-            dispatch.report(controller.name, min(done, draws), draws, config.steps, call_times)
-    if progress and lead and calls:
-        print(file=sys.stderr)
+    report = progress and lead and (lambda *a: dispatch.report(controller.name, *a))
+    call_times = _run_calls(dispatch, calls, chunk_store, done, draws, layout, config, report)
     wall = time.perf_counter() - start_time
     result = _result(segments, chunk_store, dispatch.computed, batch, keep, mesh, call_times)
     status, per_draw, kept, computed_draws, compile_time = result
@@ -499,3 +489,22 @@ def run(
             "loaded": draws - computed_draws,
         },
     )
+
+
+def _run_calls(dispatch, calls, chunk_store, done, draws, layout, config, report) -> list:
+    """Each call's blocks run, stored (with a store) and reported (``report``: a
+    function of (done, draws, steps, call times), or False); returns the calls' times."""
+    batch = dispatch.batch
+    call_times: list[float] = []
+    for call in calls:
+        t0 = time.perf_counter()
+        dispatch(call, layout["devices"])
+        if chunk_store is not None:
+            _save_blocks(chunk_store, call, dispatch.computed, batch)
+        call_times.append(time.perf_counter() - t0)
+        done += sum(max(0, min(batch, draws - k * batch)) for k in call)
+        if report:
+            report(min(done, draws), draws, config.steps, call_times)
+    if report and calls:
+        print(file=sys.stderr)
+    return call_times

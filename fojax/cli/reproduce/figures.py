@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from fojax.cli import style
+from fojax.cli.figures import _inputs_envelope as _envelopes
+from fojax.cli.figures import _valid
 
 __all__ = ["FIGURE_NUMBERS", "plot_all"]
 
@@ -40,10 +42,6 @@ DPI = style.DPI
 
 def _kept(results: dict) -> dict:
     return {name: r for name, r in results.items() if r.trajectories is not None}
-
-
-def _valid(result, array) -> np.ndarray:
-    return np.asarray(array)[style.valid_kept(result)]
 
 
 def _reference_velocity(scenario_id: int, times: np.ndarray) -> np.ndarray:
@@ -114,15 +112,6 @@ def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> P
         ax.set_xlabel("t (s)")
     title = f"Fig. {number}: Path following performance in Scenario {scenario_id}"
     return _finish(fig, path, title, results, _handles(results))
-
-
-def _envelopes(result):
-    tr = result.trajectories
-    low = getattr(tr, "inputs_low", None)
-    high = getattr(tr, "inputs_high", None)
-    if low is None or high is None:
-        return _valid(result, tr.inputs), _valid(result, tr.inputs)
-    return _valid(result, low), _valid(result, high)
 
 
 def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int) -> Path:

@@ -272,6 +272,17 @@ def write_report(
     controller -> metric -> comparison) for the per-scenario difference tables.
     """
     tables = tables or {}
+    lines = _markdown(out, summaries, claims, settings, figures, wall_time, tables)
+    report_md = out / "report.md"
+    report_md.write_text("\n".join(lines) + "\n")
+    document = _document(summaries, claims, settings, figures, wall_time, tables)
+    report_json = out / "report.json"
+    output.write_json(report_json, document, default=_json_default)
+    return report_md, report_json
+
+
+def _markdown(out, summaries, claims, settings, figures, wall_time, tables) -> list[str]:
+    """The lines of ``report.md``: settings, verdicts, rule, claims, figures, metrics."""
     lines = [
         "# Labbadi & Cherkaoui, Section V, redone with Monte Carlo",
         "",
@@ -326,8 +337,11 @@ def write_report(
     lines += ["## Metrics by scenario", ""]
     for scenario_id in sorted(summaries):
         lines += _scenario_section(summaries[scenario_id], tables.get(scenario_id))
-    report_md = out / "report.md"
-    report_md.write_text("\n".join(lines) + "\n")
+    return lines
+
+
+def _document(summaries, claims, settings, figures, wall_time, tables) -> dict:
+    """``report.json``: the settings, the rule, the claims, each scenario's tables."""
 
     def scalar_tables(summary):
         return {
@@ -336,7 +350,7 @@ def write_report(
             for name, entry in summary["controllers"].items()
         }
 
-    document = {
+    return {
         "settings": settings,
         "wall_time_s": round(wall_time, 1),
         "baseline": BASELINE,
@@ -361,9 +375,6 @@ def write_report(
         },
         "figures": [p.name for p in figures],
     }
-    report_json = out / "report.json"
-    output.write_json(report_json, document, default=_json_default)
-    return report_md, report_json
 
 
 def _json_default(value):
