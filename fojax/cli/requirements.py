@@ -671,6 +671,10 @@ def tune_main(run: PreparedRequirementRun, args, runtime: dict, argv) -> int:
     problem, config, reqs = run.problem, run.config, run.requirements
     spec = problem.spec
     out = Path(run.out)
+    from fojax.controllers import registry
+
+    takes_switching = "switching" in registry.controller_options(spec.controller)
+    switching = problem.switching if takes_switching else "none (no switching function)"
     command = ["fojax", "tune", *argv]
     session = study_layer.provenance(command)
     actuators = _actuators(run.rotor_speed_limit, args)
@@ -688,7 +692,7 @@ def tune_main(run: PreparedRequirementRun, args, runtime: dict, argv) -> int:
         "tuner": dataclasses.asdict(config)
         if args.method != "cma-es"
         else {"generations": args.generations, "margin": args.margin, "penalty": 100.0},
-        "evaluation_switching": problem.switching,
+        "evaluation_switching": switching,
     }
     if lead:
         out.mkdir(parents=True, exist_ok=True)
@@ -772,7 +776,7 @@ def tune_main(run: PreparedRequirementRun, args, runtime: dict, argv) -> int:
         evaluation = {
             "draws": args.eval_draws,
             "horizon_s": spec.horizon,
-            "switching": problem.switching,
+            "switching": switching,
             "draw_indices": f"{problem_lib.HELDOUT_OFFSET} + [0, {args.eval_draws})",
             "objective": args.objective,
             "actuators": actuators,
@@ -783,7 +787,11 @@ def tune_main(run: PreparedRequirementRun, args, runtime: dict, argv) -> int:
         }
         study_layer.write_json(out / "evaluation.json", evaluation)
         files.append("evaluation.json")
-        print(f"held-out ({args.eval_draws} draws, {problem.switching}):")
+        print(
+            f"held-out ({args.eval_draws} draws"
+            + (f", {problem.switching} switching" if takes_switching else "")
+            + "):"
+        )
         print(f"  initial {initial['describe']}; {args.objective} {initial['objective']:.4g}")
         print(f"  tuned   {tuned['describe']}; {args.objective} {tuned['objective']:.4g}")
     print(f"wrote {out}/: {', '.join(files)}")
