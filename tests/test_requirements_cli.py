@@ -235,3 +235,18 @@ def test_simulate_requirements_yield_matches_per_draw_metrics(tmp_path, tiny, tu
     np.testing.assert_allclose(per_draw["fl.position_rmse"], draws["fl.position_rmse"], rtol=1e-4)
     assert (out / "requirements.png").is_file()
     assert "requirements.png" in summary["figures"]
+
+
+def test_tune_cma_es_baseline_writes_gains(tmp_path, tiny):
+    out = tmp_path / "cma"
+    argv = [
+        "tune", *BASE_TUNE, "--requirements", str(tiny), "--method", "cma-es",
+        "--generations", "1", "--draws", "2", "--validation-draws", "2", "--eval-draws", "0",
+        "--quiet", "--out", str(out),
+    ]  # fmt: skip
+    assert cli.main(argv) == 0
+    document = json.loads((out / "gains.json").read_text())
+    assert document["metadata"]["method"] == "cma-es"
+    assert document["metadata"]["selected_from"] in ("start", "cma-es mean")
+    assert len((out / "history.csv").read_text().splitlines()) == 2  # header + 1 generation
+    assert not (out / "evaluation.json").exists()
