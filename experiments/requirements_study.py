@@ -158,14 +158,14 @@ def evaluate_one(name: str, gains_dict: dict | None, scenario_id: int, switching
 
 def table(results: dict) -> str:
     lines = [
-        "| controller | gains | scenario | switching | yield (95 % interval) | most failed "
-        "| torque effort (N m) |",
+        "| controller | gains | scenario | switching | yield (95 % interval) | failures "
+        "(draws) | torque effort (N m) |",
         "|---|---|---|---|---|---|---|",
     ]
     for row in results["rows"]:
         low, high = row["interval"]
-        worst = row["most_failed"]
-        failed = f"{worst} ({row['failures'][worst]})" if worst else "-"
+        failing = sorted(row["failures"].items(), key=lambda item: -item[1])
+        failed = ", ".join(f"{n} {c}" for n, c in failing if c) or "-"
         lines.append(
             f"| {row['controller']} | {row['gains']} | {row['scenario']} | {row['switching']} "
             f"| {row['passed']}/{row['draws']}, {row['yield']:.1%} ({low:.1%} - {high:.1%}) "
@@ -243,7 +243,10 @@ def main(argv=None) -> int:
     (out / "table.md").write_text(text + "\n")
     print(text)
     if args.update_doc:
-        walls = ", ".join(f"{n} {r['wall_time_s']:.0f} s" for n, r in tuned_records.items())
+        walls = ", ".join(
+            f"{n} {r['wall_time_s']:.0f} s (selected outer step {r['selected'].get('outer_step')})"
+            for n, r in tuned_records.items()
+        )
         head = (
             f"Run: `{' '.join(results['command'])}`. Budget per controller: "
             f"{args.outer_steps} outer x {args.inner_steps} inner Adam steps on "
