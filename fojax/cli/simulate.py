@@ -47,6 +47,7 @@ import time
 from pathlib import Path
 
 from fojax.cli import arguments
+from fojax.cli import requirements as requirements_cli
 from fojax.cli.study import Study, run_study, snapshot_interval
 from fojax.cli.study_files import write_outputs
 
@@ -108,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="output folder (created if needed)",
     )
+    requirements_cli.add_simulate_options(parser)  # --requirements, --rotor-limit
     arguments.add_runtime_options(parser)
     return parser
 
@@ -203,6 +205,7 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
         dtype=dtype,
         gains_sources=sources,
     )
+    study = requirements_cli.configure_study(parser, args, study)  # rotor-limited actuators
     # Build every controller now: bad configurations fail before compiling.
     for name in controllers:
         options = dict(dt=study.dt, horizon=study.horizon, fractional_method=study.fractional)
@@ -269,6 +272,7 @@ def main(argv=None) -> int:
         extra={"wall_time_s": wall},
     )
     _print_summary(summary)
+    summary = requirements_cli.report_simulate(study, args, out, summary, not args.no_figures)
     for flag, users in args.applied.items():
         if len(users) < len(study.controllers):
             value = getattr(args, flag.removeprefix("--"))

@@ -70,6 +70,8 @@ class Study:
     gains_sources: dict = dataclasses.field(default_factory=dict)
     reaching_band: float | tuple[float, ...] = 0.01
     """``fojax.metrics.MetricsConfig.reaching_band``: one band, or six (one per axis)."""
+    rotor_speed_limit: float | None = None
+    """``w_max`` (rad/s) of rotor-limited actuators (None: ideal; ``--rotor-limit``)."""
 
     def metrics_config(self, steps: int):
         from fojax import metrics
@@ -116,6 +118,7 @@ _FLAGS = {
     "scenario.horizon": "--horizon",
     "simulation.horizon": "--horizon",
     "simulation.dt": "--dt",
+    "simulation.rotor_speed_limit": "--rotor-limit or the requirement file's rotor limit",
     "simulation.save_every": "snapshot interval (follows --horizon and --dt)",
     "metrics": "metric settings (follow --horizon and --dt)",
 }
@@ -212,7 +215,12 @@ def _prepared(study: Study, union: UnionMember | None = None):
     mesh = _mesh()
     scenario = _scenario(study) if union is None else union.scenario
     horizon = study.horizon if union is None else union.scenario.horizon
-    config = simulator.SimulationConfig(dt=study.dt, horizon=horizon, save_every=study.save_every)
+    config = simulator.SimulationConfig(
+        dt=study.dt,
+        horizon=horizon,
+        save_every=study.save_every,
+        rotor_speed_limit=study.rotor_speed_limit,
+    )
     dtype = jnp.dtype(study.dtype)
     runs = {}
     for name in study.controllers:
@@ -289,6 +297,7 @@ def _union_key(study: Study):
         study.device_batch,
         study.dtype,
         tuple(band) if isinstance(band, list | tuple) else band,
+        study.rotor_speed_limit,
         json.dumps(gains, sort_keys=True, default=str),
     )
 

@@ -50,6 +50,7 @@ import time
 from pathlib import Path
 
 from fojax.cli import arguments, figures, style
+from fojax.cli import requirements as requirements_cli
 from fojax.cli import study as study_layer
 
 __all__ = ["build_parser", "main", "parse_args"]
@@ -212,6 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
         "whole minibatch). The steps depend on it (rounding), not on the devices or "
         "processes: over P devices, --device-batch DRAWS/P splits each minibatch",
     )
+    requirements_cli.add_tune_options(parser)  # --requirements, --rotor-limit, ...
     arguments.add_runtime_options(parser)
     return parser
 
@@ -324,6 +326,9 @@ def parse_args(argv):
         args.controller = registry.get_controller_class(args.controller).name
     except (TypeError, ValueError) as error:
         parser.error(str(error))
+    requirements_cli.check_tune_options(parser, args, argv)  # the other tuner's options
+    if args.requirements is not None:
+        return requirements_cli.prepare_tune(parser, args), args
     problem_text = _options_that_do_not_apply(args)
     if problem_text:
         parser.error(problem_text)
@@ -526,6 +531,8 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     runtime = arguments.setup_runtime(argv, "fojax tune")
     run, args = parse_args(argv)
+    if args.requirements is not None:
+        return requirements_cli.tune_main(run, args, runtime, argv)
     lead = runtime["process_index"] == 0
     if not lead:
         run = _private_copy(run)

@@ -1,0 +1,263 @@
+"""Section V on real rotors: every controller tuned to one requirement set on
+rotor-limited actuators with the same budget, then its yield on held-out draws of every
+scenario, ``sign`` (the paper's ``sgn``) and ``sat`` switching.
+
+    python -m experiments.requirements_study [--out results/requirements_study]
+        [--requirements examples/requirements/small_quadrotor.toml]
+        [--controllers afonftsmc,anftsmc,fobsmc,bsmc,fl] [--scenarios 1,2,3]
+        [--switching sign,sat] [--draws 1024] [--tune-scenario 2] [--horizon 10]
+        [--tune-draws 8] [--outer-steps 10] [--inner-steps 10] [--update-doc]
+
+Every controller starts from its default gains (the paper's for the AFONFTSMC) and is
+tuned by ``tune_to_requirements`` (mean hinge, Adam at learning rate 0.1, the ``fojax
+tune --requirements`` defaults) on scenario ``--tune-scenario``, minimising effort,
+with the requirement file's rotor limit; then the default and the tuned gains are
+measured on ``--draws`` held-out draws (indices from 2**31, never used in tuning or
+validation) of each scenario at the tuning horizon, with each switching function (the
+FL has none: one row), and the yield with its 95 % Clopper-Pearson interval is
+reported with the most-failed requirement and the mean effort.
+
+Everything is cached in ``--out``: ``tuned/<controller>.json`` (the gains and the
+tuner's record) and ``yield/<label>.json`` (one evaluation); a run started again
+reuses them and computes only what is missing (a changed budget or requirement file
+is a new key: the cache names carry a digest of the settings). Writes
+``results.json`` and ``table.md``; ``--update-doc`` replaces the block
+``requirements-study`` of docs/requirements.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import time
+from pathlib import Path
+
+from fojax.cli import arguments, output
+
+ROOT = Path(__file__).resolve().parent.parent
+DOC = ROOT / "docs" / "requirements.md"
+EXAMPLE = ROOT / "examples" / "requirements" / "small_quadrotor.toml"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from fojax.cli import requirements as requirements_cli
+    from fojax.controllers import registry
+
+    parser = argparse.ArgumentParser(prog="python -m experiments.requirements_study")
+    parser.add_argument(
+        "--out", type=arguments.output_directory, default=Path("results/requirements_study")
+    )
+    parser.add_argument(
+        "--requirements", type=requirements_cli.requirements_file, default=None,
+        help=f"requirement file ({EXAMPLE.relative_to(ROOT)})",
+    )  # fmt: skip
+    parser.add_argument("--controllers", default=",".join(registry.PAPER_CONTROLLERS))
+    parser.add_argument("--scenarios", type=arguments.scenario_ids, default=(1, 2, 3))
+    parser.add_argument("--switching", default="sign,sat")
+    parser.add_argument("--draws", type=arguments.positive_int, default=1024)
+    parser.add_argument("--tune-scenario", type=int, choices=(1, 2, 3), default=2)
+    parser.add_argument("--horizon", type=arguments.positive_float, default=10.0)
+    parser.add_argument("--tune-draws", type=arguments.positive_int, default=8)
+    parser.add_argument("--outer-steps", type=arguments.positive_int, default=10)
+    parser.add_argument("--inner-steps", type=arguments.positive_int, default=10)
+    parser.add_argument("--validation-draws", type=arguments.positive_int, default=32)
+    parser.add_argument("--seed", type=arguments.seed, default=0)
+    parser.add_argument("--update-doc", action="store_true")
+    return parser
+
+
+def _digest(document) -> str:
+    text = json.dumps(document, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:10]
+
+
+def _cached(path: Path, compute):
+    if path.is_file():
+        return json.loads(path.read_text())
+    value = compute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    output.write_json(path, value)
+    return value
+
+
+def tune_one(name: str, reqs, args) -> dict:
+    """Tune ``name`` to ``reqs`` (the study's budget); the gains and the record."""
+    from fojax import requirements as rq  # noqa: F401 - the set is rq's
+    from fojax.controllers import gains_io, registry
+    from fojax.optimize import constrained as co
+    from fojax.optimize.problem import ProblemSpec
+
+    spec = ProblemSpec(
+        controller=name,
+        scenario=args.tune_scenario,
+        horizon=args.horizon,
+        draws=args.tune_draws,
+        seed=args.seed,
+    )
+    gains = registry.get_controller_class(name).default_gains()
+    problem = co.RequirementProblem(spec, gains, reqs, objective="effort")
+    config = co.ConstrainedConfig(
+        outer_steps=args.outer_steps,
+        inner_steps=args.inner_steps,
+        learning_rate=0.1,
+        validation_draws=args.validation_draws,
+    )
+    start = time.perf_counter()
+    result = co.tune_to_requirements(problem, config, progress=True)
+    return {
+        "controller": name,
+        "gains": gains_io.gains_to_dict(problem.gains(result.params)),
+        "selected": result.selected,
+        "initial_validation": result.initial,
+        "history": [
+            {k: row[k] for k in ("outer_step", "objective", "penalty", "wall_time_s")}
+            | {"validation_yield": row.get("validation", {}).get("yield")}
+            for row in result.history
+        ],
+        "wall_time_s": round(time.perf_counter() - start, 1),
+        "draw_steps": (1 + config.outer_steps * (config.inner_steps + 1)) * spec.draws * spec.steps,
+        "load_average": output.load_average(),
+    }
+
+
+def evaluate_one(name: str, gains_dict: dict | None, scenario_id: int, switching, reqs, args):
+    """The yield of ``name`` (default gains when ``gains_dict`` is None) on the held-out
+    draws of ``scenario_id`` with ``switching``, rotor-limited as the set asks."""
+    import numpy as np
+
+    from fojax import requirements as rq
+    from fojax import scenarios
+    from fojax.controllers import gains_io, registry
+    from fojax.optimize.problem import HELDOUT_OFFSET
+
+    options = {"dt": 1e-3, "horizon": args.horizon}
+    if switching is not None:
+        options["switching"] = switching
+    controller = registry.make_controller(name, **registry.options_for(name, options))
+    if gains_dict is None:
+        gains = controller.default_gains()
+    else:
+        gains = gains_io.gains_from_dict(name, gains_dict, "study")
+    config = rq.simulation_config(reqs, args.horizon)
+    scenario = scenarios.get_scenario(scenario_id)
+    keys = np.asarray(scenarios.draw_keys(args.seed, HELDOUT_OFFSET + np.arange(args.draws)))
+    start = time.perf_counter()
+    metrics, status = rq.measure(controller, gains, scenario, reqs, keys, config)
+    valid = (status & rq.DIVERGED) == 0
+    result = rq.evaluate(reqs, metrics, valid=valid)
+    return {
+        **result.to_dict(),
+        "diverged": int(np.sum(~valid)),
+        "mean_thrust_effort_N": float(np.nanmean(metrics["thrust_effort"])),
+        "mean_torque_effort_Nm": float(np.nanmean(metrics["torque_effort"])),
+        "wall_time_s": round(time.perf_counter() - start, 1),
+    }
+
+
+def table(results: dict) -> str:
+    lines = [
+        "| controller | gains | scenario | switching | yield (95 % interval) | failures "
+        "(draws) | torque effort (N m) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for row in results["rows"]:
+        low, high = row["interval"]
+        failing = sorted(row["failures"].items(), key=lambda item: -item[1])
+        failed = ", ".join(f"{n} {c}" for n, c in failing if c) or "-"
+        lines.append(
+            f"| {row['controller']} | {row['gains']} | {row['scenario']} | {row['switching']} "
+            f"| {row['passed']}/{row['draws']}, {row['yield']:.1%} ({low:.1%} - {high:.1%}) "
+            f"| {failed} | {row['mean_torque_effort_Nm']:.3g} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    from fojax import requirements as rq
+    from fojax.controllers import registry
+
+    args = build_parser().parse_args(argv)
+    reqs = args.requirements or rq.load(EXAMPLE)
+    controllers = [c.strip() for c in args.controllers.split(",") if c.strip()]
+    for name in controllers:
+        registry.get_controller_class(name)
+    switchings = [s.strip() for s in args.switching.split(",") if s.strip()]
+    out = Path(args.out)
+    budget = {
+        "requirements": reqs.to_dict(),
+        "tune_scenario": args.tune_scenario,
+        "horizon": args.horizon,
+        "tune_draws": args.tune_draws,
+        "outer_steps": args.outer_steps,
+        "inner_steps": args.inner_steps,
+        "validation_draws": args.validation_draws,
+        "seed": args.seed,
+    }
+    key = _digest(budget)
+    rows, tuned_records = [], {}
+    for name in controllers:
+        record = _cached(
+            out / "tuned" / f"{name}-{key}.json", lambda n=name: tune_one(n, reqs, args)
+        )
+        tuned_records[name] = record
+        takes = "switching" in registry.controller_options(name)
+        for scenario_id in args.scenarios:
+            for switching in switchings if takes else [None]:
+                for label, gains in (("default", None), ("tuned", record["gains"])):
+                    ident = _digest(
+                        [budget if gains else reqs.to_dict(), name, label, scenario_id,
+                         switching, args.draws, args.horizon]
+                    )  # fmt: skip
+                    path = out / "yield" / f"{name}-{label}-s{scenario_id}-{switching}-{ident}.json"
+                    row = _cached(
+                        path,
+                        lambda n=name, g=gains, s=scenario_id, w=switching: evaluate_one(
+                            n, g, s, w, reqs, args
+                        ),
+                    )
+                    rows.append(
+                        {
+                            "controller": name,
+                            "gains": label,
+                            "scenario": scenario_id,
+                            "switching": switching or "-",
+                            **row,
+                        }
+                    )
+                    print(f"{name} {label} scenario {scenario_id} {switching or '-'}: "
+                          f"{row['passed']}/{row['draws']}", flush=True)  # fmt: skip
+    results = {
+        "budget": budget,
+        "held_out_draws": args.draws,
+        "rows": rows,
+        "tuning": {
+            n: {k: v for k, v in r.items() if k != "gains"} for n, r in tuned_records.items()
+        },
+        "command": ["python", "-m", "experiments.requirements_study", *(argv or sys.argv[1:])],
+        "load_average": output.load_average(),
+    }
+    output.write_json(out / "results.json", results)
+    text = table(results)
+    (out / "table.md").write_text(text + "\n")
+    print(text)
+    if args.update_doc:
+        walls = ", ".join(
+            f"{n} {r['wall_time_s']:.0f} s (selected outer step {r['selected'].get('outer_step')})"
+            for n, r in tuned_records.items()
+        )
+        head = (
+            f"Run: `{' '.join(results['command'])}`. Budget per controller: "
+            f"{args.outer_steps} outer x {args.inner_steps} inner Adam steps on "
+            f"{args.tune_draws} draws x {args.horizon:g} s of scenario {args.tune_scenario}, "
+            f"{args.validation_draws} validation draws; held-out: {args.draws} draws per "
+            f"row at {args.horizon:g} s. Tuning wall time: {walls} (2 shared cores, load "
+            f"average at the end {results['load_average']})."
+        )
+        output.splice(DOC, head + "\n\n" + text, name="requirements-study")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

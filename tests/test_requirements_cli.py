@@ -1,0 +1,252 @@
+"""``fojax simulate --requirements`` and ``fojax tune --requirements``: bad files and
+options end in exit status 2 before anything compiles; the yield in summary.json is the
+count of its own per-draw metrics; a tiny tuning run writes gains that simulate reads."""
+
+import json
+
+import numpy as np
+import pytest
+
+from fojax import cli
+from fojax import requirements as rq
+from fojax.cli import simulate, tune
+from fojax.optimize import constrained, tuner  # noqa: F401 - imported (jax.jit at import)
+
+TINY = """
+description = "tiny test set"
+[settings]
+thrust_to_weight = 2.0
+[[requirements]]
+name = "tilt"
+metric = "max_tilt"
+max = 5
+unit = "deg"
+[[requirements]]
+name = "rotor limits"
+metric = "rotor_saturation"
+max = 2
+unit = "%"
+[[requirements]]
+name = "overshoot"
+metric = "position_overshoot"
+max = 5
+unit = "mm"
+"""
+
+BASE_SIMULATE = ["--scenario", "2", "--controller", "fl", "--draws", "4", "--horizon", "0.3"]
+BASE_TUNE = ["--scenario", "2", "--controller", "fl", "--horizon", "0.3"]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    path = tmp_path_factory.mktemp("requirements") / "tiny.toml"
+    path.write_text(TINY)
+    return path
+
+
+def _exit_2(capsys, run, argv):
+    with pytest.raises(SystemExit) as info:
+        run(argv)
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+BAD_FILES = [
+    ('[[requirements]]\nname = "a"\nmetric = "overshoot"\nmax = 1\nunit = "m"\n',
+     "unknown metric 'overshoot'"),
+    ('[[requirements]]\nname = "a"\nmetric = "max_tilt"\nmax = 10\nunit = "m"\n',
+     "write unit = 'rad' or 'deg'"),
+    ('[[requirements]]\nname = "a"\nmetric = "rotor_saturation"\nmax = 120\nunit = "%"\n',
+     "share in [0, 1]"),
+    ('[settings]\nthrust_to_weight = 0.8\n[[requirements]]\nname = "a"\n'
+     'metric = "max_tilt"\nmax = 10\nunit = "deg"\n', "cannot hover"),
+    ("requirements = [", "is not valid TOML"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("text, message", BAD_FILES)
+@pytest.mark.parametrize("command", ["simulate", "tune"])
+def test_bad_requirement_file_exits_2_before_compiling(
+    tmp_path, capsys, monkeypatch, text, message, command
+):
+    import jax
+
+    def no_compiling(*args, **kwargs):  # pragma: no cover - the test fails if reached
+        raise AssertionError("compiled before the requirement file was checked")
+
+    monkeypatch.setattr(jax, "jit", no_compiling)
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    out = tmp_path / "out"
+    base = BASE_SIMULATE if command == "simulate" else BASE_TUNE
+    argv = [command, *base, "--requirements", str(path), "--out", str(out)]
+    with pytest.raises(SystemExit) as info:
+        cli.main(argv)
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --requirements" in err and message in err
+    assert "Traceback" not in err
+    assert not out.exists()
+
+
+def test_missing_file_and_bad_rotor_limit(tmp_path, capsys, tiny):
+    out = ["--out", str(tmp_path / "o")]
+    err = _exit_2(
+        capsys,
+        simulate.parse_args,
+        [*BASE_SIMULATE, "--requirements", str(tmp_path / "none.toml"), *out],
+    )
+    assert "requirement file" in err and "does not exist" in err
+    err = _exit_2(capsys, simulate.parse_args, [*BASE_SIMULATE, "--rotor-limit", "1", *out])
+    assert "argument --rotor-limit" in err and "cannot hover" in err
+    err = _exit_2(capsys, tune.parse_args, [*BASE_TUNE, "--rotor-limit", "abc", *out])
+    assert "argument --rotor-limit" in err
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--position-weight", "2"], "--position-weight applies to the weighted-sum tuner only"),
+        (["--steps", "3"], "--steps applies to the weighted-sum tuner only"),
+        (["--cvar-fraction", "0.2"], "--cvar-fraction applies to the weighted-sum tuner"),
+        (["--resume"], "--resume applies to the weighted-sum tuner only"),
+        (["--objective", "mean"], "--objective mean is the weighted-sum tuner's"),
+        (["--method", "cma-es", "--inner-steps", "3"], "--inner-steps applies to the gradient"),
+        (["--method", "cma-es", "--learning-rate", "0.1"], "--learning-rate applies to the"),
+        (["--generations", "3"], "--generations applies to --method cma-es only"),
+        (["--method", "lbfgs", "--clip-norm", "2"], "--clip-norm applies to --method adam"),
+        (["--eval-switching", "sat"], "--eval-switching does not apply to fl"),
+    ],
+)
+def test_tune_options_of_the_other_tuner(tmp_path, capsys, tiny, extra, message):
+    argv = [*BASE_TUNE, "--requirements", str(tiny), *extra, "--out", str(tmp_path / "o")]
+    err = _exit_2(capsys, tune.parse_args, argv)
+    assert message in err
+    assert err.strip().splitlines()[-1].startswith("fojax tune: error:")
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--rotor-limit", "2"], "--rotor-limit applies with --requirements FILE only"),
+        (["--outer-steps", "2"], "--outer-steps applies with --requirements FILE only"),
+        (["--objective", "effort"], "--objective effort applies with --requirements FILE only"),
+        (["--method", "cma-es"], "--method cma-es applies with --requirements FILE only"),
+    ],
+)
+def test_requirement_options_without_requirements(tmp_path, capsys, extra, message):
+    argv = [*BASE_TUNE, *extra, "--out", str(tmp_path / "o")]
+    assert message in _exit_2(capsys, tune.parse_args, argv)
+
+
+def test_tune_defaults_with_requirements(tmp_path, tiny):
+    run, args = tune.parse_args([*BASE_TUNE, "--requirements", str(tiny), "--out", str(tmp_path)])
+    assert (args.objective, args.method, args.draws) == ("effort", "adam", 8)
+    assert (run.config.outer_steps, run.config.inner_steps) == (10, 10)
+    assert run.config.learning_rate == 0.1 and run.config.formulation == "mean"
+    assert run.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(2.0))
+    # --rotor-limit replaces the file's limit, in the simulation and in the metric.
+    run, _ = tune.parse_args(
+        [*BASE_TUNE, "--requirements", str(tiny), "--rotor-limit", "3", "--out", str(tmp_path)]
+    )
+    assert run.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(3.0))
+    assert run.requirements.settings.thrust_to_weight == 3.0
+    assert run.problem.sim_config.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(3.0))
+    # Without --requirements the weighted-sum tuner keeps its defaults.
+    _, args = tune.parse_args([*BASE_TUNE, "--out", str(tmp_path / "w")])
+    assert (args.objective, args.method, args.draws) == ("mean", "lbfgs", 16)
+
+
+@pytest.fixture(scope="module")
+def tuned(tmp_path_factory, tiny):
+    """A tiny requirement tuning run of the FL (the cheapest controller to compile)."""
+    out = tmp_path_factory.mktemp("tuned")
+    argv = [
+        "tune", *BASE_TUNE, "--requirements", str(tiny), "--draws", "2", "--outer-steps", "2",
+        "--inner-steps", "2", "--validation-draws", "4", "--eval-draws", "4", "--quiet",
+        "--out", str(out),
+    ]  # fmt: skip
+    assert cli.main(argv) == 0
+    return out
+
+
+def test_tune_to_requirements_writes_gains_and_heldout_yield(tuned, tiny):
+    document = json.loads((tuned / "gains.json").read_text())
+    assert document["controller"] == "fl"
+    meta = document["metadata"]
+    assert meta["tuned_to"] == "requirements" and meta["objective"] == "effort"
+    assert meta["actuators"]["rotor_limited"] is True
+    assert meta["requirements"]["requirements"][0]["name"] == "tilt"
+    history = (tuned / "history.csv").read_text().splitlines()
+    assert len(history) == 3 and "constraint[overshoot]" in history[0]
+    evaluation = json.loads((tuned / "evaluation.json").read_text())
+    for label in ("initial", "tuned"):
+        entry = evaluation[label]
+        assert entry["draws"] == 4
+        assert entry["interval"] == pytest.approx(list(rq.clopper_pearson(entry["passed"], 4)))
+        assert set(entry["failures"]) == {"tilt", "rotor limits", "overshoot"}
+
+
+def test_simulate_requirements_yield_matches_per_draw_metrics(tmp_path, tiny, tuned, capsys):
+    out = tmp_path / "sim"
+    argv = [
+        "simulate", *BASE_SIMULATE, "--requirements", str(tiny), "--gains",
+        str(tuned / "gains.json"), "--keep", "0", "--quiet", "--out", str(out),
+    ]  # fmt: skip
+    assert cli.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "requirements (3: tilt, rotor limits, overshoot)" in printed
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["gains"]["fl"]["source"].endswith("gains.json")
+    assert summary["actuators"]["rotor_limited"] is True
+    assert summary["actuators"]["rotor_speed_limit_rad_s"] == pytest.approx(
+        rq.rotor_speed_limit(2.0)
+    )
+    assert [r["name"] for r in summary["requirements"]["requirements"]] == [
+        "tilt",
+        "rotor limits",
+        "overshoot",
+    ]
+    entry = summary["controllers"]["fl"]["requirements"]
+    # Recount from the saved per-draw metrics, by hand.
+    per_draw = np.load(out / "requirements.npz")
+    reqs = rq.load(tiny)
+    bounds = {r.name: (r.metric, r.canonical_value) for r in reqs}
+    meets = {
+        name: np.isfinite(per_draw[f"fl.{metric}"]) & (per_draw[f"fl.{metric}"] <= bound)
+        for name, (metric, bound) in bounds.items()
+    }
+    passed = np.all(np.stack(list(meets.values())), 0)
+    assert entry["draws"] == 4
+    assert entry["passed"] == int(np.sum(passed))
+    assert entry["yield"] == pytest.approx(np.mean(passed))
+    assert entry["failures"] == {name: int(np.sum(~ok)) for name, ok in meets.items()}
+    assert entry["interval"] == pytest.approx(list(rq.clopper_pearson(entry["passed"], 4)))
+    assert np.array_equal(per_draw["fl.passed"], passed)
+    worst = max(entry["failures"].values())
+    if worst:
+        assert entry["failures"][entry["most_failed"]] == worst
+    else:
+        assert entry["most_failed"] is None
+    # The same draws and actuators as the study: metrics shared with fojax.metrics agree.
+    draws = np.load(out / "draws.npz")
+    np.testing.assert_allclose(per_draw["fl.position_rmse"], draws["fl.position_rmse"], rtol=1e-4)
+    assert (out / "requirements.png").is_file()
+    assert "requirements.png" in summary["figures"]
+
+
+def test_tune_cma_es_baseline_writes_gains(tmp_path, tiny):
+    out = tmp_path / "cma"
+    argv = [
+        "tune", *BASE_TUNE, "--requirements", str(tiny), "--method", "cma-es",
+        "--generations", "1", "--draws", "2", "--validation-draws", "2", "--eval-draws", "0",
+        "--quiet", "--out", str(out),
+    ]  # fmt: skip
+    assert cli.main(argv) == 0
+    document = json.loads((out / "gains.json").read_text())
+    assert document["metadata"]["method"] == "cma-es"
+    assert document["metadata"]["selected_from"] in ("start", "cma-es mean")
+    assert len((out / "history.csv").read_text().splitlines()) == 2  # header + 1 generation
+    assert not (out / "evaluation.json").exists()
