@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -29,12 +28,10 @@ SIGMA_FACTOR = 5.0
 
 def rotor_speed_limit(thrust_to_weight: float = THRUST_TO_WEIGHT) -> float:
     """``w_max`` (rad/s) at which four rotors give ``thrust_to_weight`` times the nominal
-    weight (:func:`fojax.plant.nominal_params`: m = 0.74 kg, rho_b = 3e-3 N s^2)."""
-    from fojax import plant
+    weight (:func:`fojax.requirements.rotor_speed_limit`)."""
+    from fojax import requirements
 
-    params = plant.nominal_params()
-    weight = float(params.mass) * float(params.gravity)
-    return math.sqrt(thrust_to_weight * weight / (4.0 * float(params.thrust_factor)))
+    return requirements.rotor_speed_limit(thrust_to_weight)
 
 
 # ------------------------------------------------------------------------- settings

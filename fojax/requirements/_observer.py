@@ -57,8 +57,7 @@ def rotor_speed_limit(thrust_to_weight: float = 2.0, params: plant.PlantParams |
     ``params`` (default :func:`fojax.plant.nominal_params`: m = 0.74 kg, rho_b = 3e-3
     N s^2): ``w_max = sqrt(thrust_to_weight m g / (4 rho_b))``, 34.78 rad/s at 2.
 
-    (The library twin of ``experiments/sensitivity.rotor_speed_limit``, so that requirement
-    files can ask for rotor-limited actuators by their thrust-to-weight ratio.)"""
+    Requirement files ask for rotor-limited actuators by this ratio (docs/model.md)."""
     if not (isinstance(thrust_to_weight, int | float) and thrust_to_weight > 0):
         raise ValueError(f"thrust_to_weight must be a number > 0, got {thrust_to_weight!r}")
     params = plant.nominal_params() if params is None else params
