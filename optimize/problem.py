@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import scenarios, sharding, simulator
+from fojax import export_cache, scenarios, sharding, simulator
 from fojax.controllers import registry
 from fojax.optimize import cost as cost_lib
 from fojax.optimize import params as params_lib
@@ -339,6 +339,7 @@ class TuningProblem:
             mesh or sharding.one_device_mesh(),
             device_batch,
             options,
+            key={"spec": spec.as_dict(), "base_gains": _gains_key(base_gains)},
         )
         template = {f.name: jnp.zeros(f.param_shape, dtype) for f in param_map.fields}
         _, self._unravel = param_map.ravel(template)
@@ -425,7 +426,12 @@ class TuningProblem:
         return self._batch_value(vectors, jnp.asarray(width_scale, self.spec.jnp_dtype), keys)
 
 
-def _over_mesh(per_draw, reduce, mesh, device_batch=None, compiler_options=None):
+def _gains_key(gains) -> dict:
+    """Gains as a JSON-ready description (a program key of :mod:`fojax.export_cache`)."""
+    return {name: np.asarray(value).tolist() for name, value in gains._asdict().items()}
+
+
+def _over_mesh(per_draw, reduce, mesh, device_batch=None, compiler_options=None, key=None):
     """``value_and_grad`` with the draws over ``mesh``: the minibatch's keys in blocks of
     ``device_batch`` (default: the whole minibatch, one block), one block per device
     and call (the last block completed by repeating the last key, a short last call by
@@ -438,11 +444,14 @@ def _over_mesh(per_draw, reduce, mesh, device_batch=None, compiler_options=None)
     block whatever the mesh, so every mesh, one device or the devices of several
     processes, gives the same per-draw values and hence the same objective and
     gradient, bit for bit, for a given ``device_batch`` (XLA rounds a draw according to
-    its batch: :mod:`fojax.study`)."""
+    its batch: :mod:`fojax.study`). key: what ``per_draw`` closes over; given, its
+    program is kept across processes (:func:`fojax.export_cache.reusable`)."""
     devices = int(mesh.devices.size)
     run = sharding.sharded_batch(
         per_draw, mesh, batched=(False, False, True), compiler_options=compiler_options
     )
+    if key is not None:
+        run = export_cache.reusable(run, "gradient", key, compiler_options)
     several = any(d.process_index != jax.process_index() for d in mesh.devices.flat)
 
     def value_and_grad(params, width_scale, keys):
@@ -473,7 +482,15 @@ def _over_mesh(per_draw, reduce, mesh, device_batch=None, compiler_options=None)
 
 
 @functools.lru_cache(maxsize=16)
-def _evaluator(spec: ProblemSpec, scenario: scenarios.Scenario, horizon: float, switching: str):
+def _evaluator(
+    spec: ProblemSpec,
+    scenario: scenarios.Scenario,
+    horizon: float,
+    switching: str,
+    registered: bool = False,
+):
+    """The compiled per-draw evaluation; ``registered``: ``scenario`` is the spec's own
+    (its program is then kept across processes, :mod:`fojax.export_cache`)."""
     dtype = spec.jnp_dtype
     steps = int(round(horizon / spec.dt))
     sim_config = simulator.SimulationConfig(
@@ -488,7 +505,10 @@ def _evaluator(spec: ProblemSpec, scenario: scenarios.Scenario, horizon: float, 
         effective, diverged = cost_lib.guard(spec.cost, j, status)
         return cost_lib.DrawCosts(effective, terms, status, diverged)
 
-    return jax.jit(run)
+    if not registered:  # a modified scenario: its functions have no stable description
+        return jax.jit(run)
+    key = {"spec": spec.as_dict(), "horizon": horizon, "switching": switching}
+    return export_cache.reusable(jax.jit(run), "evaluation", key)
 
 
 def evaluate(
@@ -509,10 +529,11 @@ def evaluate(
     Runs in chunks of ``chunk`` draws (one compilation per setting). Forward only.
     """
     horizon = spec.horizon if horizon is None else float(horizon)
+    registered = scenario is None
     scenario = scenarios.get_scenario(spec.scenario) if scenario is None else scenario
     # The seed and the minibatch size do not enter the compiled evaluation.
     key = dataclasses.replace(spec, seed=0, draws=1, compile="optimized")
-    run = _evaluator(key, scenario, horizon, switching)
+    run = _evaluator(key, scenario, horizon, switching, registered)
     dtype = spec.jnp_dtype
     gains = type(gains)(*(jnp.asarray(g, dtype) for g in gains))
     keys = np.asarray(keys)

@@ -1,0 +1,170 @@
+"""Compiled programs reused across processes without tracing them again.
+
+JAX's persistent compilation cache (``jax_compilation_cache_dir``) keeps the compiled
+executable, but every new process still traces the Python function and lowers it to
+StableHLO before it can look the executable up: for the tuner's gradient (the
+checkpointed reverse pass of a whole closed-loop rollout) that is seconds of every
+start. :func:`reusable` keeps the lowered program as well (``jax.export``): the first
+process exports it into ``<compilation cache>/exported/``, later ones deserialise it
+and call it, so that a warm start traces nothing and compiles nothing.
+
+The program is identified by what it closes over (``key``: the caller's description,
+e.g. a tuning problem's settings and base gains), the arguments' tree, shapes, dtypes
+and shardings, the source of ``fojax`` and ``fojax.optimize``, and the JAX version and
+devices. Every call, the first included, runs the exported program, so a cold and a
+warm start compute the same numbers. Nothing is kept (the function is jitted as it is)
+when the persistent compilation cache is off or when several processes run
+(``jax.distributed``).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib
+import importlib.metadata
+import json
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import jax
+
+__all__ = ["reusable", "source_digest"]
+
+_FORMAT = 1
+_REGISTERED: dict[type, str] = {}
+
+
+@functools.lru_cache(maxsize=1)
+def source_digest() -> str:
+    """A hash of the source of ``fojax`` and ``fojax.optimize`` (every ``*.py``)."""
+    from fojax import optimize
+
+    digest = hashlib.sha256()
+    for root in sorted({Path(__file__).resolve().parent, Path(optimize.__file__).parent}):
+        for path in sorted(root.rglob("*.py")):
+            digest.update(path.relative_to(root.parent).as_posix().encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _folder() -> Path | None:
+    """``<jax_compilation_cache_dir>/exported`` when the persistent cache is on."""
+    if not jax.config.jax_enable_compilation_cache:
+        return None
+    root = jax.config.jax_compilation_cache_dir
+    return Path(root) / "exported" if root else None
+
+
+def _namedtuples(treedef) -> set[type]:
+    found, stack = set(), [treedef]
+    while stack:
+        node = stack.pop()
+        data = node.node_data()
+        if data is not None and isinstance(data[0], type) and hasattr(data[0], "_fields"):
+            found.add(data[0])
+        stack.extend(node.children())
+    return found
+
+
+def _register(types) -> list[str]:
+    """Registers NamedTuple types with ``jax.export`` (by ``module:qualname``)."""
+    names = []
+    for cls in sorted(types, key=lambda c: (c.__module__, c.__qualname__)):
+        if cls not in _REGISTERED:
+            name = f"{cls.__module__}:{cls.__qualname__}"
+            jax.export.register_namedtuple_serialization(cls, serialized_name=name)
+            _REGISTERED[cls] = name
+        names.append(_REGISTERED[cls])
+    return names
+
+
+def _import(name: str) -> type:
+    module, qualname = name.split(":")
+    obj: Any = importlib.import_module(module)
+    for part in qualname.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _signature(args) -> tuple:
+    leaves, treedef = jax.tree.flatten(args)
+    return str(treedef), tuple(
+        (tuple(leaf.shape), str(leaf.dtype), str(getattr(leaf, "sharding", None)))
+        for leaf in map(jax.numpy.asarray, leaves)
+    )
+
+
+def _digest(name: str, key: Mapping, signature: tuple, options) -> str:
+    devices = jax.devices()
+    document = {
+        "format": _FORMAT,
+        "name": name,
+        "key": key,
+        "signature": signature,
+        "compiler_options": options,
+        "source": source_digest(),
+        "jax": [jax.__version__, importlib.metadata.version("jaxlib")],
+        "x64": bool(jax.config.jax_enable_x64),
+        "devices": [len(devices), devices[0].platform, devices[0].device_kind],
+    }
+    text = json.dumps(document, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def _load(path: Path):
+    header, _, payload = path.read_bytes().partition(b"\n")
+    _register([_import(name) for name in json.loads(header)["types"]])
+    return jax.export.deserialize(bytearray(payload))
+
+
+def _save(path: Path, exported) -> None:
+    types = _namedtuples(exported.in_tree) | _namedtuples(exported.out_tree)
+    header = json.dumps({"types": _register(types)}).encode()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}")
+    temporary.write_bytes(header + b"\n" + exported.serialize())
+    os.replace(temporary, path)
+
+
+def reusable(
+    jitted: Callable, name: str, key: Mapping, compiler_options: dict | None = None
+) -> Callable:
+    """``jitted`` (a ``jax.jit`` function), its lowered program kept across processes.
+
+    name: a short name for the file. key: JSON-ready description of everything
+    ``jitted`` closes over (the arguments' shapes, the source and JAX's version are
+    added here); two functions with the same name and key must compute the same.
+    compiler_options: XLA's options for compiling the (deserialised) program, those
+    ``jitted`` was given. Returns a function of the same arguments; one program per
+    argument signature, loaded or exported at its first call. A file that cannot be
+    read is exported again.
+    """
+
+    programs: dict[tuple, Callable] = {}
+
+    def call(*args):
+        folder = _folder()
+        if folder is None or jax.process_count() > 1:
+            return jitted(*args)
+        signature = _signature(args)
+        program = programs.get(signature)
+        if program is None:
+            path = folder / f"{name}-{_digest(name, key, signature, compiler_options)}.bin"
+            exported = None
+            if path.is_file():
+                try:
+                    exported = _load(path)
+                except Exception:  # a damaged or foreign file: export again
+                    exported = None
+            if exported is None:
+                exported = jax.export.export(jitted)(*args)
+                _save(path, exported)
+            program = programs[signature] = jax.jit(
+                exported.call, compiler_options=compiler_options
+            )
+        return program(*args)
+
+    return call
