@@ -16,10 +16,13 @@ import sys
 from pathlib import Path
 
 __all__ = [
+    "check_controllers",
     "check_input_file",
     "check_output_directory",
     "check_output_file",
     "controller_flags",
+    "enable_dtype",
+    "horizon_steps",
     "input_file",
     "nonnegative_float",
     "nonnegative_int",
@@ -31,6 +34,7 @@ __all__ = [
     "positive_ints",
     "seed",
     "add_device_batch",
+    "add_options",
     "add_runtime_options",
     "add_study_options",
     "compile_cache_dir",
@@ -173,6 +177,39 @@ def controller_flags(controllers, flags: dict) -> dict[str, list[str]]:
             )
         applied[flag] = users
     return applied
+
+
+def check_controllers(parser, names, dt, horizon, fractional, switching) -> None:
+    """Build every controller of ``names`` now (each with the options it takes): a bad
+    configuration is a ``parser.error`` naming the controller, before compiling."""
+    from fojax.controllers import registry
+
+    options = dict(dt=dt, horizon=horizon, fractional_method=fractional, switching=switching)
+    for name in names:
+        try:
+            registry.make_controller(name, **registry.options_for(name, options))
+        except ValueError as error:
+            parser.error(f"{name}: {error}")
+
+
+def horizon_steps(parser, horizon: float, dt: float, example: bool = True) -> int:
+    """The steps of ``dt`` in ``horizon``; a ``parser.error`` when ``dt`` exceeds it or it
+    is not a whole number of steps (``example``: the message suggests a ``--horizon``)."""
+    if dt > horizon:
+        parser.error(f"--dt ({dt}) must not exceed the horizon ({horizon})")
+    steps = horizon / dt
+    if abs(steps - round(steps)) > 1e-6 * steps:
+        hint = f" s; e.g. --horizon {round(steps) * dt:g}" if example else ""
+        parser.error(f"the horizon ({horizon} s) must be a whole number of steps of {dt}{hint}")
+    return round(steps)
+
+
+def enable_dtype(dtype: str) -> None:
+    """``--dtype float64`` turns JAX's 64-bit mode on (before any array is made)."""
+    if dtype == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
 
 
 # ------------------------------------------------------------------------------ paths
@@ -349,6 +386,22 @@ class _Removed(argparse.Action):
 
     def __call__(self, parser, namespace, values, option_string=None):
         parser.error(f"{option_string} was removed: {self.replacement}")
+
+
+def add_options(parser, *options: tuple[str, dict]) -> None:
+    """Add each ``(flag, add_argument keywords)`` to ``parser`` (or an argument group), in
+    order: a command's options declared as one table."""
+    for flag, keywords in options:
+        parser.add_argument(flag, **keywords)
+
+
+OUTPUT_FOLDER = dict(
+    required=True, type=output_directory, metavar="DIR", help="output folder (created if needed)"
+)
+"""``--out DIR`` of the commands that write a folder of results (``simulate``, ``tune``)."""
+
+STEP = dict(type=positive_float, default=1e-3, help="step, s (1e-3)")
+"""``--dt`` of ``simulate`` and ``tune``."""
 
 
 def add_device_batch(parser: argparse.ArgumentParser) -> None:

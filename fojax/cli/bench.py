@@ -75,78 +75,40 @@ def _horizons(text: str) -> tuple[float, ...]:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fojax bench",
-        description=(
-            "Throughput of the standard workload (scenario 2, AFONFTSMC, SOE, RK4, 1 ms, "
-            "float32): forward, gradient, NumPy reference. Defaults finish in a few "
-            "minutes on a 2-core CPU."
-        ),
+        description="Throughput of the standard workload (scenario 2, AFONFTSMC, SOE, RK4, 1 ms, "
+        "float32): forward, gradient, NumPy reference. Defaults finish in a few minutes on a "
+        "2-core CPU.",
     )
-    parser.add_argument(
-        "--json",
-        type=arguments.output_file,
-        metavar="FILE",
-        help="write every figure, with units and provenance, here (checked before running)",
+    count, counts = arguments.positive_int, arguments.positive_ints
+    # fmt: off
+    arguments.add_options(
+        parser,
+        ("--json", dict(type=arguments.output_file, metavar="FILE", help="write every figure, "
+                        "with units and provenance, here (checked before running)")),
+        ("--draws", dict(type=counts, default=DEFAULT_DRAWS, help="forward draw counts")),
+        ("--long-horizon", dict(type=_horizon, default=4.0, help="horizon (s), small batches")),
+        ("--short-horizon", dict(type=_horizon, default=1.0, help="horizon (s), big batches")),
+        ("--long-max-draws", dict(type=count, default=64,
+                                  help="batches up to this size run the long horizon")),
+        ("--repeats", dict(type=count, default=3, help="timed runs (median)")),
+        ("--chunk", dict(type=count, default=DEFAULT_CHUNK, help="draws per compiled call for "
+                         "bigger forward batches (Monte Carlo chunks)")),
+        ("--gradient-draws", dict(type=counts, default=(64, 256), help="draw counts of the "
+                                  "gradient runs (comma-separated; default 64,256)")),
+        ("--gradient-horizons", dict(type=_horizons, default=(0.25, 1.0, 4.0), help="horizons "
+                                     "(s) of the gradient runs (memory against horizon)")),
+        ("--numpy-draws", dict(type=counts, default=None, help="draw counts of the NumPy "
+                               "reference (default: the forward ones)")),
+        ("--numpy-horizon", dict(type=_horizon, default=0.25, help="NumPy horizon (s)")),
+        ("--scaling", dict(action="store_true", help="also measure forward cost against draws "
+                           "and horizon (linearity)")),
+        ("--devices", dict(type=count, default=None, help="CPU only: XLA host devices to split "
+                           "the draws over (default: CPU cores)")),
+        ("--small", dict(action="store_true", help="tiny sizes for a smoke test (seconds, not "
+                         "minutes; figures meaningless); it sets --draws, the horizons, "
+                         "--repeats and the gradient and NumPy sizes itself")),
     )
-    parser.add_argument(
-        "--draws", type=arguments.positive_ints, default=DEFAULT_DRAWS, help="forward draw counts"
-    )
-    parser.add_argument(
-        "--long-horizon", type=_horizon, default=4.0, help="horizon (s), small batches"
-    )
-    parser.add_argument(
-        "--short-horizon", type=_horizon, default=1.0, help="horizon (s), big batches"
-    )
-    parser.add_argument(
-        "--long-max-draws",
-        type=arguments.positive_int,
-        default=64,
-        help="batches up to this size run the long horizon",
-    )
-    parser.add_argument(
-        "--repeats", type=arguments.positive_int, default=3, help="timed runs (median)"
-    )
-    parser.add_argument(
-        "--chunk",
-        type=arguments.positive_int,
-        default=DEFAULT_CHUNK,
-        help="draws per compiled call for bigger forward batches (Monte Carlo chunks)",
-    )
-    parser.add_argument(
-        "--gradient-draws",
-        type=arguments.positive_ints,
-        default=(64, 256),
-        help="draw counts of the gradient runs (comma-separated; default 64,256)",
-    )
-    parser.add_argument(
-        "--gradient-horizons",
-        type=_horizons,
-        default=(0.25, 1.0, 4.0),
-        help="horizons (s) of the gradient runs (memory against horizon)",
-    )
-    parser.add_argument(
-        "--numpy-draws",
-        type=arguments.positive_ints,
-        default=None,
-        help="draw counts of the NumPy reference (default: the forward ones)",
-    )
-    parser.add_argument("--numpy-horizon", type=_horizon, default=0.25, help="NumPy horizon (s)")
-    parser.add_argument(
-        "--scaling",
-        action="store_true",
-        help="also measure forward cost against draws and horizon (linearity)",
-    )
-    parser.add_argument(
-        "--devices",
-        type=arguments.positive_int,
-        default=None,
-        help="CPU only: XLA host devices to split the draws over (default: CPU cores)",
-    )
-    parser.add_argument(
-        "--small",
-        action="store_true",
-        help="tiny sizes for a smoke test (seconds, not minutes; figures meaningless); it "
-        "sets --draws, the horizons, --repeats and the gradient and NumPy sizes itself",
-    )
+    # fmt: on
     return parser
 
 

@@ -250,13 +250,8 @@ def measure_numpy(count: int, horizon: float) -> dict:
     numpy_reference.simulate(prepared, work.scenario, work.config)
     run_s = time.perf_counter() - start
     steps = work.config.steps
-    return {
-        "draws": count,
-        "horizon_s": horizon,
-        "steps": steps,
-        "run_s": run_s,
-        "draw_steps_per_s": count * steps / run_s,
-    }
+    rate = count * steps / run_s
+    return dict(draws=count, horizon_s=horizon, steps=steps, run_s=run_s, draw_steps_per_s=rate)
 
 
 def measure_crazyflow(count: int, steps: int) -> dict:

@@ -1,5 +1,6 @@
 """Figures of Monte Carlo runs: tracking, errors, inputs, paths, adaptive estimates;
-and a tuning run's convergence (:func:`plot_convergence`, ``fojax tune``).
+a tuning run's convergence (:func:`plot_convergence`, ``fojax tune``) and the yield of
+a requirement set (:func:`plot_yield`, ``fojax simulate --requirements``).
 
 Each function takes ``{controller name: MonteCarloResult}`` (results with kept
 trajectories) and writes one PNG and a PDF beside it (:func:`fojax.cli.style.save`).
@@ -28,6 +29,7 @@ __all__ = [
     "plot_inputs",
     "plot_path",
     "plot_tracking",
+    "plot_yield",
 ]
 
 COLORS = style.CONTROLLER_COLORS  # kept for callers of the old name
@@ -295,80 +297,17 @@ def plot_convergence(
     history = _read_history(history_csv)
     if not history.get("step"):
         raise ValueError(f"{history_csv} holds no step")
+    series = _convergence_series(history, validation_start)
     plt = style.pyplot()
     fig = plt.figure(figsize=(11, 7), layout="constrained")
     axes = fig.subplots(2, 2, sharey="row")
-    step = np.asarray(history["step"])
-    wall = np.asarray(history["wall_time_s"])
-    objective = np.asarray(history["objective"])
-    mean_cost = np.asarray(history["mean_cost"])
-    worst = np.asarray(history["max_cost"])
-    diverged = np.asarray(history.get("diverged", [0] * len(step))) > 0
-    validation = np.asarray(history.get("validation_cost", [math.nan] * len(step)))
-    validated = np.isfinite(validation)
-    orange = "#E69F00"
-    if validation_start is not None and validated.any():  # the start, validated at step 0
-        step, wall = np.concatenate([[0.0], step]), np.concatenate([[0.0], wall])
-        pad = np.asarray([math.nan])
-        objective, mean_cost, worst = (
-            np.concatenate([pad, a]) for a in (objective, mean_cost, worst)
-        )
-        diverged = np.concatenate([[False], diverged])
-        validation = np.concatenate([[validation_start], validation])
-        validated = np.isfinite(validation)
-        history = {**history, "grad_norm": np.concatenate([pad, history["grad_norm"]])}
-    show_mean = not np.allclose(objective, mean_cost, rtol=1e-6, equal_nan=True)
-    dark, blue, green, red = "#333333", "#0072B2", "#009E73", "#D55E00"
-    held_out = dict(ls="none", marker="D", ms=7, mfc="white", mec=green, mew=2, zorder=6)
-    handles = [Line2D([], [], color=dark, lw=1.4, marker="o", ms=2.5, label="objective")]
-    if show_mean:
-        handles.append(Line2D([], [], color=blue, lw=0.9, label="minibatch mean cost"))
-    handles.append(Line2D([], [], color=blue, lw=0.8, ls=":", label="minibatch worst cost"))
-    for col, x in enumerate((step, wall)):
-        ax = axes[0, col]
-        ax.plot(x, objective, color=dark, lw=1.4, marker="o", ms=2.5, zorder=4)
-        if show_mean:
-            ax.plot(x, mean_cost, color=blue, lw=0.9, zorder=3)
-        ax.plot(x, worst, color=blue, lw=0.8, ls=":", zorder=3)
-        if np.any(diverged):
-            ax.scatter(x[diverged], objective[diverged], marker="x", color=red, zorder=5)
-        axes[1, col].plot(x, history["grad_norm"], color=dark, lw=1.2, marker="o", ms=2.5)
-        if validated.any():
-            # Against wall time as steps: the start's gains stand until the next
-            # validation (the start is validated while the gradient compiles).
-            ax.plot(x[validated], validation[validated], color=orange, lw=1.2, marker="s", ms=4,
-                    zorder=5, drawstyle="steps-post" if col else "default")  # fmt: skip
-        if clip_norm is not None:
-            axes[1, col].axhline(clip_norm, color="0.5", ls="--", lw=0.9)
-    if np.any(diverged):
-        handles.append(
-            Line2D([], [], ls="none", marker="x", color=red, label="step with diverged draws")
-        )
-    if validated.any():
-        best = history.get("best_step", [math.nan])[-1]
-        handles.append(
-            Line2D([], [], color=orange, lw=1.2, marker="s", ms=4,
-                   label=f"validation cost (returned: step {best:.0f})")
-        )  # fmt: skip
+    handles = _draw_progress(axes, series, clip_norm)
     if evaluation and "initial" in evaluation and "tuned" in evaluation:
-        initial = evaluation["initial"]["mean_cost"]
-        tuned = evaluation["tuned"]["mean_cost"]
-        axes[0, 0].plot([0, step[-1]], [initial, tuned], **held_out)
-        axes[0, 1].plot([wall[-1]], [tuned], **held_out)
-        handles.append(
-            Line2D(
-                [],
-                [],
-                **held_out,
-                label=f"held-out mean cost of the initial (step 0) and tuned gains "
-                f"({evaluation['draws']} draws, {evaluation['switching']}, "
-                f"{evaluation['horizon_s']:g} s)",
-            )  # fmt: skip
-        )
+        handles.append(_draw_heldout(axes, series, evaluation))
     if clip_norm is not None:
         handles.append(Line2D([], [], color="0.5", ls="--", lw=0.9, label="gradient clip norm"))
-    costs = np.concatenate([objective, worst, validation[validated]])
-    for row, values in enumerate((costs, history["grad_norm"])):
+    costs = np.concatenate([series["objective"], series["worst"], series["validation_costs"]])
+    for row, values in enumerate((costs, series["grad_norm"])):
         values = np.asarray(values, dtype=float)
         values = values[np.isfinite(values)]
         if values.size and np.all(values > 0) and values.max() > 10 * values.min():
@@ -378,8 +317,168 @@ def plot_convergence(
     axes[0, 0].set_ylabel("cost")
     axes[1, 0].set_ylabel("gradient norm (before clipping)")
     axes[1, 0].set_xlabel("step")
-    first = wall[1] if validation_start is not None and validated.any() else wall[0]
+    first = series["wall"][1] if series["with_start"] else series["wall"][0]
     axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {first:.1f} s, compilation included")
     fig.suptitle(title, fontsize=10)
     style.legend_below(fig, handles, ncol=2 if len(handles) > 4 else len(handles))
+    return style.save(fig, path)
+
+
+def _convergence_series(history: dict, validation_start: float | None) -> dict:
+    """The columns :func:`plot_convergence` draws, as arrays; with ``validation_start``
+    (the start's validation cost) and validated steps, the start as a step 0 first."""
+    step = np.asarray(history["step"])
+    wall = np.asarray(history["wall_time_s"])
+    objective = np.asarray(history["objective"])
+    mean_cost = np.asarray(history["mean_cost"])
+    worst = np.asarray(history["max_cost"])
+    grad_norm = history["grad_norm"]
+    diverged = np.asarray(history.get("diverged", [0] * len(step))) > 0
+    validation = np.asarray(history.get("validation_cost", [math.nan] * len(step)))
+    with_start = validation_start is not None and np.isfinite(validation).any()
+    if with_start:  # the start, validated at step 0
+        step, wall = np.concatenate([[0.0], step]), np.concatenate([[0.0], wall])
+        pad = np.asarray([math.nan])
+        objective, mean_cost, worst = (
+            np.concatenate([pad, a]) for a in (objective, mean_cost, worst)
+        )
+        diverged = np.concatenate([[False], diverged])
+        validation = np.concatenate([[validation_start], validation])
+        grad_norm = np.concatenate([pad, grad_norm])
+    validated = np.isfinite(validation)
+    return {
+        "step": step,
+        "wall": wall,
+        "objective": objective,
+        "mean_cost": mean_cost,
+        "worst": worst,
+        "grad_norm": grad_norm,
+        "diverged": diverged,
+        "validation": validation,
+        "validated": validated,
+        "validation_costs": validation[validated],
+        "best_step": history.get("best_step", [math.nan])[-1],
+        "with_start": with_start,
+    }
+
+
+def _draw_progress(axes, series: dict, clip_norm: float | None) -> list:
+    """The objective, the minibatch costs, the validation costs and the gradient norm
+    against step and wall time; returns their legend handles."""
+    from matplotlib.lines import Line2D
+
+    objective, diverged, validated = series["objective"], series["diverged"], series["validated"]
+    show_mean = not np.allclose(objective, series["mean_cost"], rtol=1e-6, equal_nan=True)
+    dark, blue, red, orange = "#333333", "#0072B2", "#D55E00", "#E69F00"
+    handles = [Line2D([], [], color=dark, lw=1.4, marker="o", ms=2.5, label="objective")]
+    if show_mean:
+        handles.append(Line2D([], [], color=blue, lw=0.9, label="minibatch mean cost"))
+    handles.append(Line2D([], [], color=blue, lw=0.8, ls=":", label="minibatch worst cost"))
+    for col, x in enumerate((series["step"], series["wall"])):
+        ax = axes[0, col]
+        ax.plot(x, objective, color=dark, lw=1.4, marker="o", ms=2.5, zorder=4)
+        if show_mean:
+            ax.plot(x, series["mean_cost"], color=blue, lw=0.9, zorder=3)
+        ax.plot(x, series["worst"], color=blue, lw=0.8, ls=":", zorder=3)
+        if np.any(diverged):
+            ax.scatter(x[diverged], objective[diverged], marker="x", color=red, zorder=5)
+        axes[1, col].plot(x, series["grad_norm"], color=dark, lw=1.2, marker="o", ms=2.5)
+        if validated.any():
+            # Against wall time as steps: the start's gains stand until the next
+            # validation (the start is validated while the gradient compiles).
+            ax.plot(x[validated], series["validation_costs"], color=orange, lw=1.2, marker="s",
+                    ms=4, zorder=5, drawstyle="steps-post" if col else "default")  # fmt: skip
+        if clip_norm is not None:
+            axes[1, col].axhline(clip_norm, color="0.5", ls="--", lw=0.9)
+    if np.any(diverged):
+        handles.append(
+            Line2D([], [], ls="none", marker="x", color=red, label="step with diverged draws")
+        )
+    if validated.any():
+        handles.append(
+            Line2D([], [], color=orange, lw=1.2, marker="s", ms=4,
+                   label=f"validation cost (returned: step {series['best_step']:.0f})")
+        )  # fmt: skip
+    return handles
+
+
+def _draw_heldout(axes, series: dict, evaluation: dict):
+    """The held-out mean cost of the initial (at step 0) and the tuned gains; its handle."""
+    from matplotlib.lines import Line2D
+
+    held_out = dict(ls="none", marker="D", ms=7, mfc="white", mec="#009E73", mew=2, zorder=6)
+    initial = evaluation["initial"]["mean_cost"]
+    tuned = evaluation["tuned"]["mean_cost"]
+    axes[0, 0].plot([0, series["step"][-1]], [initial, tuned], **held_out)
+    axes[0, 1].plot([series["wall"][-1]], [tuned], **held_out)
+    return Line2D(
+        [],
+        [],
+        **held_out,
+        label=f"held-out mean cost of the initial (step 0) and tuned gains "
+        f"({evaluation['draws']} draws, {evaluation['switching']}, "
+        f"{evaluation['horizon_s']:g} s)",
+    )
+
+
+def plot_yield(results: dict, path: Path, title: str) -> Path:
+    """Left: the yield per controller with its 95 % Clopper-Pearson interval. Right: the
+    share of draws failing each requirement, per controller."""
+    plt = style.pyplot()
+    names = list(results)
+    first = results[names[0]]
+    requirements = list(first.names)
+    fig, (left, right) = plt.subplots(
+        1,
+        2,
+        figsize=(10.5, 0.5 + 0.45 * max(4, len(requirements) * len(names) ** 0.5)),
+        layout="constrained",
+        gridspec_kw={"width_ratios": [1, 1.6]},
+    )
+    y = np.arange(len(names))
+    for i, name in enumerate(names):
+        result = results[name]
+        low, high = result.interval
+        value = result.yield_
+        color = style.color(name, i)
+        left.barh(i, 100 * value, color=color, alpha=0.35, height=0.6)
+        left.errorbar(
+            100 * value,
+            i,
+            xerr=[[100 * (value - low)], [100 * (high - value)]],
+            fmt="o",
+            color=color,
+            capsize=4,
+        )
+        left.annotate(
+            f"{value:.0%} ({result.passed}/{result.draws})",
+            (100 * high, i),
+            xytext=(4, 0),
+            textcoords="offset points",
+            va="center",
+            fontsize=8,
+        )
+    left.set_yticks(y, names)
+    left.invert_yaxis()
+    left.set_xlim(0, 125)
+    left.set_xticks([0, 25, 50, 75, 100])
+    left.set_xlabel("yield (%), 95 % Clopper-Pearson interval")
+    left.set_title("draws meeting every requirement", fontsize=9)
+    left.grid(axis="x", alpha=0.3)
+    height = 0.8 / len(names)
+    rows = np.arange(len(requirements))
+    for i, name in enumerate(names):
+        result = results[name]
+        share = 100 * np.asarray(result.failures) / result.draws
+        offset = (i - (len(names) - 1) / 2) * height
+        right.barh(rows + offset, share, height=height, color=style.color(name, i), label=name)
+    right.set_yticks(rows, requirements)
+    right.invert_yaxis()
+    right.set_xlim(0, 100)
+    right.set_xlabel("draws failing the requirement (%)")
+    right.set_title("failures per requirement", fontsize=9)
+    right.grid(axis="x", alpha=0.3)
+    if len(names) > 1:
+        right.legend(fontsize=8, loc="best")
+    style.suptitle(fig, title, "a diverged draw fails every requirement")
     return style.save(fig, path)

@@ -230,18 +230,9 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
             f"config.dt ({config.dt}) must equal the controller's dt ({prepared['dt']})"
         )
     dtype = prepared["dtype"]
-
-    def as_np(x):
-        return np.asarray(x, dtype)
-
     dt = config.dt
     g = prepared["gains"]
-    nominal = prepared["nominal"]
-    filter_transition = prepared["filter_transition"]
-    filter_input = prepared["filter_input"]
-    w, zeta = prepared["filter_frequency"], prepared["filter_damping"]
-    plant_params = prepared["plant"]
-    n = plant_params["mass"].shape[0]
+    n = prepared["plant"]["mass"].shape[0]
 
     state, modes, u_prev, u_prev2, adaptive, command_filter, last_inputs = _initial(
         prepared, scenario, n
@@ -251,7 +242,7 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
 
     for k in range(config.steps):
         t = k * dt
-        ref, ref_vel, ref_acc = (as_np(a) for a in reference_54_55(t))
+        ref, ref_vel, ref_acc = (np.asarray(a, dtype) for a in reference_54_55(t))
 
         # ---- controller: errors of the six axes
         attitude_reference, error, error_rate = _errors(state, command_filter, ref, ref_vel, dtype)
@@ -276,30 +267,22 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
         reaching, adaptive = _reaching_law(prepared, surface, error, error_rate, adaptive, dt)
 
         # ---- position loop, eq. (13)
-        thrust, tilt_reference = _position_loop(nominal, state, ref, ref_acc, dsurface, reaching)
+        thrust, tilt_reference = _position_loop(
+            prepared["nominal"], state, ref, ref_acc, dsurface, reaching
+        )
 
         # ---- command filter and attitude loop
-        filtered_accel = (
-            w * w * (tilt_reference - command_filter[:, :, 0])
-            - 2.0 * zeta * w * command_filter[:, :, 1]
+        terms = (ref_acc, dsurface, reaching)
+        torque, command_filter = _attitude_loop(
+            prepared, state, command_filter, tilt_reference, terms, last_inputs
         )
-        attitude_reference_accel = np.concatenate(
-            [filtered_accel, np.full((n, 1), ref_acc[3], dtype)], axis=1
-        )
-        command_filter = (
-            command_filter @ filter_transition.T + tilt_reference[:, :, None] * filter_input
-        )
-        drift = _attitude_drift(nominal, state, last_inputs)
-        i_nom = nominal["inertia"]
-        torque = i_nom * (-drift + attitude_reference_accel - dsurface[:, 3:] + reaching[:, 3:])
-        inputs = np.concatenate([thrust[:, None], torque], axis=1)
-        last_inputs = inputs
+        inputs = last_inputs = np.concatenate([thrust[:, None], torque], axis=1)
 
         # ---- plant: RK4 with inputs, disturbance and drag held over the step
         next_state = _plant_step(prepared, scenario, state, inputs, k, dt)
 
         # ---- status and cost
-        status |= _status_bits(plant_params, next_state, inputs, surface)
+        status |= _status_bits(prepared["plant"], next_state, inputs, surface)
         position_error = state[:, :3] - ref[:3]
         attitude_error = state[:, 3:6] - attitude_reference
         cost = cost + dt * (np.sum(position_error**2, axis=1) + np.sum(attitude_error**2, axis=1))
@@ -353,6 +336,30 @@ def _position_loop(nominal: dict, state, ref, ref_acc, dsurface, reaching):
     phi_r = np.arctan(np.cos(theta_r) * (s_psi * vx - c_psi * vy) / lift)
     thrust = nominal["mass"] * np.sqrt(vx * vx + vy * vy + lift * lift)
     return thrust, np.stack([phi_r, theta_r], axis=1)
+
+
+def _attitude_loop(prepared: dict, state, command_filter, tilt_reference, terms, last_inputs):
+    """The command filter's step and the attitude loop's torques ``(n, 3)``: returns
+    ``(torque, next command_filter)``; ``terms``: ``(ref_acc, dsurface, reaching)``."""
+    ref_acc, dsurface, reaching = terms
+    nominal, dtype, n = prepared["nominal"], prepared["dtype"], state.shape[0]
+    w, zeta = prepared["filter_frequency"], prepared["filter_damping"]
+    filtered_accel = (
+        w * w * (tilt_reference - command_filter[:, :, 0])
+        - 2.0 * zeta * w * command_filter[:, :, 1]
+    )
+    attitude_reference_accel = np.concatenate(
+        [filtered_accel, np.full((n, 1), ref_acc[3], dtype)], axis=1
+    )
+    command_filter = (
+        command_filter @ prepared["filter_transition"].T
+        + tilt_reference[:, :, None] * prepared["filter_input"]
+    )
+    drift = _attitude_drift(nominal, state, last_inputs)
+    torque = nominal["inertia"] * (
+        -drift + attitude_reference_accel - dsurface[:, 3:] + reaching[:, 3:]
+    )
+    return torque, command_filter
 
 
 def _attitude_drift(nominal: dict, state, last_inputs):

@@ -3,8 +3,9 @@ files, the provenance of a run (command, versions, git commit, machine) and the
 generated blocks of the docs.
 
 * :func:`log`: one progress line on stderr (nothing with ``quiet``).
-* :func:`write_json`: atomic JSON files (a run stopped while writing leaves the old
-  file or the new one, never half of one).
+* :func:`write_json`, :func:`write_npz`, :func:`write_csv`: atomic JSON, NumPy and CSV
+  files (a run stopped while writing leaves the old file or the new one, never half of
+  one).
 * :func:`git_commit`, :func:`commit_label`: the checkout's commit and whether it has
   uncommitted changes; :func:`provenance`: what a result needs to be rerun exactly;
   :func:`run_context`: that, with the CPU model and the load average (the studies').
@@ -33,7 +34,9 @@ __all__ = [
     "provenance",
     "run_context",
     "splice",
+    "write_csv",
     "write_json",
+    "write_npz",
 ]
 
 
@@ -51,6 +54,28 @@ def write_json(path: Path, document: Any, default=str) -> Path:
     tmp.write_text(json.dumps(document, indent=1, default=default) + "\n")
     os.replace(tmp, path)
     return path
+
+
+def write_npz(path: Path, arrays: dict) -> None:
+    """``path`` holding ``arrays`` (compressed ``.npz``), written atomically."""
+    import numpy as np
+
+    tmp = path.with_name(f".{path.stem}.tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    """``path`` holding ``rows`` (a header from the first row's keys), written atomically."""
+    import csv
+
+    tmp = path.with_name(f".{path.name}.tmp")
+    with tmp.open("w", newline="") as handle:
+        if rows:
+            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    tmp.replace(path)
 
 
 # ------------------------------------------------------------------------- provenance

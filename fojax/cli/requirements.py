@@ -27,15 +27,16 @@ status 2) before anything compiles, as is an option that applies to the other tu
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
-import json
 import math
-import sys
 import time
 from pathlib import Path
 
+from fojax.cli import arguments
+from fojax.cli._requirement_tuning import PreparedRequirementRun, prepare_tune, tune_main
+
 __all__ = [
+    "PreparedRequirementRun",
     "add_simulate_options",
     "add_tune_options",
     "check_tune_options",
@@ -96,7 +97,6 @@ def requirements_file(text: str):
     """argparse type: a requirement file (TOML or JSON), loaded and checked
     (:func:`fojax.requirements.load`); every problem in one message."""
     from fojax import requirements as rq
-    from fojax.cli import arguments
 
     try:
         path = arguments.check_input_file(text, "requirement file")
@@ -136,7 +136,7 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _resolve(args):
+def resolve_requirements(args):
     """``(requirement set or None, w_max or None)``: the file's set with ``--rotor-limit``
     applied, and the rotor speed limit the simulation uses (None: ideal actuators)."""
     from fojax import requirements as rq
@@ -157,7 +157,7 @@ def _resolve(args):
     return None, None
 
 
-def _actuators(limit: float | None, args) -> dict:
+def actuators_record(limit: float | None, args) -> dict:
     from fojax import requirements as rq
 
     if limit is None:
@@ -188,7 +188,7 @@ def add_simulate_options(parser: argparse.ArgumentParser) -> None:
 def configure_study(parser, args, study):
     """The study on the actuators asked for (rotor-limited by ``--rotor-limit`` or the
     requirement file); keeps the resolved set in ``args.requirement_set``."""
-    reqs, limit = _resolve(args)
+    reqs, limit = resolve_requirements(args)
     args.requirement_set, args.rotor_speed_limit = reqs, limit
     if limit is None:
         return study
@@ -216,18 +216,16 @@ def report_simulate(study, args, out: Path, summary: dict, figures: bool = True)
     """After ``write_outputs``: the actuators in ``summary.json`` and, with
     ``--requirements``, the yield per controller (printed, in ``summary.json``,
     ``requirements.npz``, ``requirements.png``). Returns the updated summary."""
-    import numpy as np
-
-    from fojax import requirements as rq
     from fojax.cli import style
-    from fojax.cli.output import write_json
+    from fojax.cli.figures import plot_yield
+    from fojax.cli.output import write_json, write_npz
 
     reqs = getattr(args, "requirement_set", None)
     limit = getattr(args, "rotor_speed_limit", None)
     if reqs is None and limit is None:
         return summary
     out = Path(out)
-    summary["actuators"] = _actuators(limit, args)
+    summary["actuators"] = actuators_record(limit, args)
     if limit is not None:
         print(
             f"rotor-limited actuators: w_max {limit:.4g} rad/s (thrust-to-weight "
@@ -237,19 +235,7 @@ def report_simulate(study, args, out: Path, summary: dict, figures: bool = True)
         write_json(out / "summary.json", summary)
         return summary
     start = time.perf_counter()
-    measured = measure_study(study, reqs)
-    results, arrays = {}, {}
-    for name, (metrics, status) in measured.items():
-        valid = (status & rq.DIVERGED) == 0
-        result = rq.evaluate(reqs, metrics, valid=valid)
-        results[name] = result
-        entry = result.to_dict()
-        entry["diverged"] = int(np.sum(~valid))
-        summary["controllers"].setdefault(name, {})["requirements"] = entry
-        for metric, values in metrics.items():
-            arrays[f"{name}.{metric}"] = values
-        arrays[f"{name}.status"] = status
-        arrays[f"{name}.passed"] = np.all(result.matrix, axis=0)
+    results, arrays = _yields(measure_study(study, reqs), reqs, summary)
     summary["requirements"] = {
         **reqs.to_dict(),
         "names": list(reqs.names),
@@ -261,21 +247,12 @@ def report_simulate(study, args, out: Path, summary: dict, figures: bool = True)
         "interval": "Clopper-Pearson, 95 %",
         "wall_time_s": round(time.perf_counter() - start, 2),
     }
-    _savez(out / "requirements.npz", arrays)
+    write_npz(out / "requirements.npz", arrays)
     files = summary.setdefault("files", [])
     if "requirements.npz" not in files:
         files.append("requirements.npz")
     write_json(out / "summary.json", summary)
-    print(f"requirements ({len(reqs)}: {', '.join(reqs.names)}):")
-    width = max(len(n) for n in results)
-    for name, result in results.items():
-        print(f"  {name:<{width}} {result.describe()}")
-        failing = [(n, f) for n, f in zip(result.names, result.failures, strict=True) if f]
-        if failing:
-            print(
-                f"  {'':<{width}} failures: "
-                + ", ".join(f"{n} {f}/{result.draws}" for n, f in failing)
-            )
+    _print_yields(reqs, results)
     if figures:
         drawn = style.attempt(
             "requirements.png",
@@ -292,81 +269,39 @@ def report_simulate(study, args, out: Path, summary: dict, figures: bool = True)
     return summary
 
 
-def _savez(path: Path, arrays: dict) -> None:
-    import os
-
+def _yields(measured: dict, reqs, summary: dict) -> tuple[dict, dict]:
+    """``({name: YieldResult}, per-draw arrays)`` of the measured metrics; each result in
+    ``summary["controllers"][name]["requirements"]``."""
     import numpy as np
 
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    from fojax import requirements as rq
+
+    results, arrays = {}, {}
+    for name, (metrics, status) in measured.items():
+        valid = (status & rq.DIVERGED) == 0
+        result = rq.evaluate(reqs, metrics, valid=valid)
+        results[name] = result
+        entry = result.to_dict()
+        entry["diverged"] = int(np.sum(~valid))
+        summary["controllers"].setdefault(name, {})["requirements"] = entry
+        for metric, values in metrics.items():
+            arrays[f"{name}.{metric}"] = values
+        arrays[f"{name}.status"] = status
+        arrays[f"{name}.passed"] = np.all(result.matrix, axis=0)
+    return results, arrays
 
 
-def plot_yield(results: dict, path: Path, title: str) -> Path:
-    """Left: the yield per controller with its 95 % Clopper-Pearson interval. Right: the
-    share of draws failing each requirement, per controller."""
-    import numpy as np
-
-    from fojax.cli import style
-
-    plt = style.pyplot()
-    names = list(results)
-    first = results[names[0]]
-    requirements = list(first.names)
-    fig, (left, right) = plt.subplots(
-        1,
-        2,
-        figsize=(10.5, 0.5 + 0.45 * max(4, len(requirements) * len(names) ** 0.5)),
-        layout="constrained",
-        gridspec_kw={"width_ratios": [1, 1.6]},
-    )
-    y = np.arange(len(names))
-    for i, name in enumerate(names):
-        result = results[name]
-        low, high = result.interval
-        value = result.yield_
-        color = style.color(name, i)
-        left.barh(i, 100 * value, color=color, alpha=0.35, height=0.6)
-        left.errorbar(
-            100 * value,
-            i,
-            xerr=[[100 * (value - low)], [100 * (high - value)]],
-            fmt="o",
-            color=color,
-            capsize=4,
-        )
-        left.annotate(
-            f"{value:.0%} ({result.passed}/{result.draws})",
-            (100 * high, i),
-            xytext=(4, 0),
-            textcoords="offset points",
-            va="center",
-            fontsize=8,
-        )
-    left.set_yticks(y, names)
-    left.invert_yaxis()
-    left.set_xlim(0, 125)
-    left.set_xticks([0, 25, 50, 75, 100])
-    left.set_xlabel("yield (%), 95 % Clopper-Pearson interval")
-    left.set_title("draws meeting every requirement", fontsize=9)
-    left.grid(axis="x", alpha=0.3)
-    height = 0.8 / len(names)
-    rows = np.arange(len(requirements))
-    for i, name in enumerate(names):
-        result = results[name]
-        share = 100 * np.asarray(result.failures) / result.draws
-        offset = (i - (len(names) - 1) / 2) * height
-        right.barh(rows + offset, share, height=height, color=style.color(name, i), label=name)
-    right.set_yticks(rows, requirements)
-    right.invert_yaxis()
-    right.set_xlim(0, 100)
-    right.set_xlabel("draws failing the requirement (%)")
-    right.set_title("failures per requirement", fontsize=9)
-    right.grid(axis="x", alpha=0.3)
-    if len(names) > 1:
-        right.legend(fontsize=8, loc="best")
-    style.suptitle(fig, title, "a diverged draw fails every requirement")
-    return style.save(fig, path)
+def _print_yields(reqs, results: dict) -> None:
+    print(f"requirements ({len(reqs)}: {', '.join(reqs.names)}):")
+    width = max(len(n) for n in results)
+    for name, result in results.items():
+        print(f"  {name:<{width}} {result.describe()}")
+        failing = [(n, f) for n, f in zip(result.names, result.failures, strict=True) if f]
+        if failing:
+            print(
+                f"  {'':<{width}} failures: "
+                + ", ".join(f"{n} {f}/{result.draws}" for n, f in failing)
+            )
 
 
 # ---------------------------------------------------------------------------- tune
@@ -381,34 +316,22 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group(
         "tuning to requirements (--requirements FILE; docs/requirements.md)"
     )
-    d = TUNE_DEFAULTS
-    group.add_argument(
-        "--outer-steps",
-        type=_positive_int,
-        help=f"augmented-Lagrangian multiplier updates, each validated ({d['outer_steps']})",
-    )
-    group.add_argument(
-        "--inner-steps",
-        type=_positive_int,
-        help=f"optimiser steps per outer step ({d['inner_steps']})",
-    )
-    group.add_argument(
-        "--formulation",
-        choices=("mean", "chance"),
-        help="constraint per requirement: mean (the mean hinge violation over the draws, "
-        "every draw must meet it; default) or chance (a smooth share of draws violating, "
-        "at most 5 %%)",
-    )
-    group.add_argument(
-        "--margin",
-        type=_nonnegative_float,
-        help=f"a draw must beat each bound by this share of its scale ({d['margin']})",
-    )
-    group.add_argument(
-        "--generations",
-        type=_positive_int,
-        help=f"CMA-ES generations (--method cma-es only; {d['generations']})",
-    )
+    d, count = TUNE_DEFAULTS, arguments.positive_int
+    arguments.add_options(
+        group,
+        ("--outer-steps", dict(type=count, help="augmented-Lagrangian multiplier updates, each "
+                               f"validated ({d['outer_steps']})")),
+        ("--inner-steps", dict(type=count, help="optimiser steps per outer step "
+                               f"({d['inner_steps']})")),
+        ("--formulation", dict(choices=("mean", "chance"), help="constraint per requirement: "
+                               "mean (the mean hinge violation over the draws, every draw must "
+                               "meet it; default) or chance (a smooth share of draws violating, "
+                               "at most 5 %%)")),
+        ("--margin", dict(type=arguments.nonnegative_float, help="a draw must beat each bound by "
+                          f"this share of its scale ({d['margin']})")),
+        ("--generations", dict(type=count, help="CMA-ES generations (--method cma-es only; "
+                               f"{d['generations']})")),
+    )  # fmt: skip
     for action in parser._actions:
         if action.dest == "objective":
             action.choices = tuple(cost.OBJECTIVES) + REQUIREMENT_OBJECTIVES
@@ -426,18 +349,6 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
                 f"{action.help}; with --requirements: adam (default) or lbfgs for the "
                 "augmented Lagrangian, or cma-es (the derivative-free baseline)"
             )
-
-
-def _positive_int(text):
-    from fojax.cli import arguments
-
-    return arguments.positive_int(text)
-
-
-def _nonnegative_float(text):
-    from fojax.cli import arguments
-
-    return arguments.nonnegative_float(text)
 
 
 def _given(parser: argparse.ArgumentParser, argv) -> set[str]:
@@ -523,284 +434,3 @@ def check_tune_options(parser, args, argv) -> None:
             setattr(args, dest, value)
     if args.clip_norm is None:
         args.clip_norm = 1.0
-
-
-@dataclasses.dataclass
-class PreparedRequirementRun:
-    """``fojax tune --requirements``, checked: the problem and the tuner's settings."""
-
-    problem: object
-    config: object
-    requirements: object
-    rotor_speed_limit: float | None
-    init_gains: object
-    init_label: str
-    out: Path
-
-
-def prepare_tune(parser, args) -> PreparedRequirementRun:
-    """The requirement problem and the tuner's settings; every error is a ``parser.error``
-    before anything compiles."""
-    from fojax.cli import arguments
-    from fojax.cli import tune as tune_cli
-    from fojax.controllers import registry
-    from fojax.optimize import constrained as co
-    from fojax.optimize import params, problem
-
-    try:
-        arguments.controller_flags(
-            [args.controller],
-            {
-                "--fractional": ("fractional_method", args.fractional),
-                "--eval-switching": ("switching", args.eval_switching),
-            },
-        )
-    except ValueError as error:
-        parser.error(str(error))
-    args.fractional = args.fractional or "soe"
-    args.eval_switching = args.eval_switching or "sat"
-    reqs, limit = _resolve(args)
-    if args.dtype == "float64":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp
-
-    dtype = jnp.dtype(args.dtype)
-    if args.fields == "default":
-        fields = None
-    elif args.fields == "all":
-        fields = registry.get_controller_class(args.controller).GAINS.names
-    else:
-        fields = tuple(f.strip() for f in args.fields.split(",") if f.strip())
-    gains, label = tune_cli._initial_gains(parser, args, dtype)
-    try:
-        params.make_parameter_map(args.controller, fields, args.share)
-        spec = problem.ProblemSpec(
-            controller=args.controller,
-            scenario=args.scenario,
-            horizon=float(args.horizon),
-            dt=float(args.dt),
-            draws=args.draws,
-            seed=args.seed,
-            fields=fields,
-            share=args.share,
-            fractional=args.fractional,
-            dtype=args.dtype,
-            compile=args.compile,
-        )
-        config = co.ConstrainedConfig(
-            formulation=args.formulation,
-            outer_steps=args.outer_steps,
-            inner_steps=args.inner_steps,
-            method="lbfgs" if args.method == "lbfgs" else "adam",
-            learning_rate=args.learning_rate,
-            clip_norm=args.clip_norm,
-            margin=args.margin,
-            allowed_share=0.05 if args.formulation == "chance" else 0.0,
-            validation_draws=args.validation_draws,
-        )
-        built = co.RequirementProblem(
-            spec,
-            gains,
-            reqs,
-            objective=args.objective,
-            rotor_limited=limit is not None,
-            switching=args.eval_switching,
-        )
-    except ValueError as error:
-        parser.error(str(error))
-    return PreparedRequirementRun(built, config, reqs, limit, gains, label, args.out)
-
-
-def _history_rows(history: list, names) -> list[dict]:
-    rows = []
-    for row in history:
-        validation = row.get("validation") or {}
-        out = {
-            "outer_step": row["outer_step"],
-            "objective": row["objective"],
-            "loss": row["loss"],
-            "max_constraint": max(max(row["constraints"]), 0.0),
-            "penalty": row["penalty"],
-            "valid_draws": row["valid_draws"],
-            "validation_yield": validation.get("yield"),
-            "validation_passed": validation.get("passed"),
-            "validation_draws": validation.get("draws"),
-            "validation_objective": validation.get("objective"),
-            "wall_time_s": row["wall_time_s"],
-        }
-        for name, c, lam in zip(names, row["constraints"], row["multipliers"], strict=True):
-            out[f"constraint[{name}]"] = c
-            out[f"multiplier[{name}]"] = lam
-        rows.append(out)
-    return rows
-
-
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with tmp.open("w", newline="") as handle:
-        if rows:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-    tmp.replace(path)
-
-
-def _heldout(problem, params_or_gains, keys) -> dict:
-    from fojax import requirements as rq
-
-    evaluated = problem.evaluate(params_or_gains, keys)
-    result = evaluated["yield"]
-    return {
-        **result.to_dict(),
-        "objective": evaluated["objective"],
-        "diverged": int(((evaluated["status"] & rq.DIVERGED) != 0).sum()),
-        "describe": result.describe(),
-    }
-
-
-def tune_main(run: PreparedRequirementRun, args, runtime: dict, argv) -> int:
-    """Run ``fojax tune --requirements``: tune, write the files, print the report."""
-    from fojax.cli import study as study_layer
-    from fojax.controllers import gains_io
-    from fojax.optimize import constrained as co
-    from fojax.optimize import problem as problem_lib
-
-    lead = runtime["process_index"] == 0
-    problem, config, reqs = run.problem, run.config, run.requirements
-    spec = problem.spec
-    out = Path(run.out)
-    from fojax.controllers import registry
-
-    takes_switching = "switching" in registry.controller_options(spec.controller)
-    switching = problem.switching if takes_switching else "none (no switching function)"
-    command = ["fojax", "tune", *argv]
-    session = study_layer.provenance(command)
-    actuators = _actuators(run.rotor_speed_limit, args)
-    init_record = study_layer.gains_record(
-        run.init_gains, None if run.init_label in ("paper", "naive") else run.init_label
-    )
-    if run.init_label in ("paper", "naive"):
-        init_record["source"] = "defaults" if run.init_label == "paper" else "naive"
-    settings = {
-        "requirements": reqs.to_dict(),
-        "objective": args.objective,
-        "method": args.method,
-        "actuators": actuators,
-        "problem": spec.as_dict(),
-        "tuner": dataclasses.asdict(config)
-        if args.method != "cma-es"
-        else {"generations": args.generations, "margin": args.margin, "penalty": 100.0},
-        "evaluation_switching": switching,
-    }
-    if lead:
-        out.mkdir(parents=True, exist_ok=True)
-        record = {
-            "controller": spec.controller,
-            "init": run.init_label,
-            "init_gains": init_record,
-            **settings,
-            "sessions": [session],
-        }
-        study_layer.write_json(out / "run.json", record)
-    if not args.quiet and lead:
-        print(
-            f"tuning {spec.controller} to {len(reqs)} requirements ({', '.join(reqs.names)}) "
-            f"on scenario {spec.scenario}, {spec.draws} draws x {spec.horizon:g} s, "
-            + ("rotor-limited" if run.rotor_speed_limit else "ideal actuators")
-            + f", minimising {args.objective}, {args.method}",
-            file=sys.stderr,
-            flush=True,
-        )
-    start = time.perf_counter()
-    try:
-        if args.method == "cma-es":
-            x0, _ = problem.param_map.ravel(problem.initial_params())
-            popsize = 4 + int(3 * math.log(max(int(x0.size), 1)))
-            per_generation = popsize * spec.draws * spec.steps
-            outcome = co.cma_es_requirements(
-                problem,
-                args.generations * per_generation,
-                margin=args.margin,
-                popsize=popsize,
-                seed=spec.seed,
-                validation_draws=config.validation_draws,
-            )
-            params, selected = outcome["params"], outcome["selected"] or {}
-            history_rows = outcome["history"]
-            selected_label = selected.get("candidate", "cma-es mean")
-            draw_steps = outcome["draw_steps"]
-        else:
-            result = co.tune_to_requirements(problem, config, progress=not args.quiet and lead)
-            params, selected = result.params, result.selected
-            history_rows = _history_rows(result.history, reqs.names)
-            selected_label = f"outer step {selected.get('outer_step')}"
-            evaluations = 1 + config.outer_steps * (config.inner_steps + 1)
-            draw_steps = evaluations * spec.draws * spec.steps
-    except KeyboardInterrupt:
-        return 130
-    tuning_wall = time.perf_counter() - start
-    if not lead:
-        return 0
-    gains = problem.gains(params)
-    metadata = {
-        "tuned_to": "requirements",
-        "selected": selected,
-        "selected_from": selected_label,
-        "init_gains": init_record,
-        "provenance": session,
-        **settings,
-        "tuning_wall_time_s": round(tuning_wall, 1),
-        "draw_steps": draw_steps,
-    }
-    gains_io.save_gains(
-        out / "gains.json", spec.controller, gains, json.loads(json.dumps(metadata, default=_plain))
-    )
-    _write_csv(out / "history.csv", history_rows)
-    files = ["gains.json", "history.csv", "run.json"]
-    print(
-        f"tuned {spec.controller} to the requirements on scenario {spec.scenario} "
-        f"({args.method}, {spec.draws} draws x {spec.horizon:g} s, "
-        f"{tuning_wall:.0f} s); selected {selected_label}"
-        + (
-            f": validation {selected['yield']:.1%} ({selected['passed']}/{selected['draws']})"
-            if "yield" in selected
-            else ""
-        )
-    )
-    if args.eval_draws > 0:
-        keys = problem.heldout_keys(args.eval_draws)
-        initial = _heldout(problem, run.init_gains, keys)
-        tuned = _heldout(problem, gains, keys)
-        evaluation = {
-            "draws": args.eval_draws,
-            "horizon_s": spec.horizon,
-            "switching": switching,
-            "draw_indices": f"{problem_lib.HELDOUT_OFFSET} + [0, {args.eval_draws})",
-            "objective": args.objective,
-            "actuators": actuators,
-            "initial": initial,
-            "tuned": tuned,
-            "tuned_gains_from": selected_label,
-            "provenance": session,
-        }
-        study_layer.write_json(out / "evaluation.json", evaluation)
-        files.append("evaluation.json")
-        print(
-            f"held-out ({args.eval_draws} draws"
-            + (f", {problem.switching} switching" if takes_switching else "")
-            + "):"
-        )
-        print(f"  initial {initial['describe']}; {args.objective} {initial['objective']:.4g}")
-        print(f"  tuned   {tuned['describe']}; {args.objective} {tuned['objective']:.4g}")
-    print(f"wrote {out}/: {', '.join(files)}")
-    return 0
-
-
-def _plain(value):
-    import numpy as np
-
-    if isinstance(value, np.ndarray | np.generic):
-        return value.tolist()
-    return str(value)

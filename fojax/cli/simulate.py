@@ -62,53 +62,36 @@ def build_parser() -> argparse.ArgumentParser:
         prog="fojax simulate",
         description="Monte Carlo study of a scenario of the paper under one or more controllers.",
     )
-    parser.add_argument("--scenario", type=int, required=True, choices=scenarios.SCENARIO_IDS)
-    parser.add_argument(
-        "--controller",
-        required=True,
-        help=f"one of {', '.join(registry.controller_names())}, several separated by "
-        "commas (the first is the baseline of the paired differences), or 'all'",
+    per_law = " With one controller that has none, an error; with several, the summary says "
+    per_law += "which it applied to"
+    # fmt: off
+    arguments.add_options(
+        parser,
+        ("--scenario", dict(type=int, required=True, choices=scenarios.SCENARIO_IDS)),
+        ("--controller", dict(required=True, help=f"one of {', '.join(registry.controller_names())}"
+                              ", several separated by commas (the first is the baseline of the "
+                              "paired differences), or 'all'")),
+        ("--draws", dict(type=arguments.positive_int, required=True)),
+        ("--seed", dict(type=arguments.seed, default=0)),
+        ("--horizon", dict(type=arguments.positive_float, help="s (default: the scenario's)")),
+        ("--dt", arguments.STEP),
+        ("--gains", dict(action="append", default=[], type=arguments.input_file, metavar="FILE",
+                         help="gains file (JSON, as fojax tune writes); repeat for several "
+                         "controllers")),
+        ("--fractional", dict(choices=fractional.METHODS, help="fractional operator method of "
+                              "the controllers with fractional operators (afonftsmc, fobsmc; "
+                              "default soe; oustaloup is the paper's)." + per_law)),
+        ("--switching", dict(choices=SWITCHING_FUNCTIONS, help="switching function of the "
+                             "sliding-mode controllers (all but fl; default sign, the paper's)."
+                             + per_law)),
     )
-    parser.add_argument("--draws", type=arguments.positive_int, required=True)
-    parser.add_argument("--seed", type=arguments.seed, default=0)
-    parser.add_argument(
-        "--horizon", type=arguments.positive_float, help="s (default: the scenario's)"
-    )
-    parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s (1e-3)")
-    parser.add_argument(
-        "--gains",
-        action="append",
-        default=[],
-        type=arguments.input_file,
-        metavar="FILE",
-        help="gains file (JSON, as fojax tune writes); repeat for several controllers",
-    )
-    parser.add_argument(
-        "--fractional",
-        choices=fractional.METHODS,
-        help="fractional operator method of the controllers with fractional operators "
-        "(afonftsmc, fobsmc; default soe; oustaloup is the paper's). With one controller "
-        "that has none, an error; with several, the summary says which it applied to",
-    )
-    parser.add_argument(
-        "--switching",
-        choices=SWITCHING_FUNCTIONS,
-        help="switching function of the sliding-mode controllers (all but fl; default "
-        "sign, the paper's). With one controller that has none, an error; with several, "
-        "the summary says which it applied to",
-    )
+    # fmt: on
     arguments.add_study_options(
         parser,
         64,
         "draws whose trajectories are kept for figures (64; 0: no trajectories, no figures)",
     )
-    parser.add_argument(
-        "--out",
-        required=True,
-        type=arguments.output_directory,
-        metavar="DIR",
-        help="output folder (created if needed)",
-    )
+    arguments.add_options(parser, ("--out", arguments.OUTPUT_FOLDER))
     requirements_cli.add_simulate_options(parser)  # --requirements, --rotor-limit
     arguments.add_runtime_options(parser)
     return parser
@@ -142,7 +125,7 @@ def _controllers(parser, text: str) -> tuple[str, ...]:
 def parse_args(argv) -> tuple[Study, argparse.Namespace]:
     """Parse and validate; raises ``SystemExit`` with a message on bad input."""
     from fojax import scenarios
-    from fojax.controllers import gains_io, registry
+    from fojax.controllers import gains_io
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -159,21 +142,10 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
         parser.error(str(error))
     scenario = scenarios.get_scenario(args.scenario)
     horizon = args.horizon if args.horizon is not None else scenario.horizon
-    if args.dt > horizon:
-        parser.error(f"--dt ({args.dt}) must not exceed the horizon ({horizon})")
-    steps = horizon / args.dt
-    if abs(steps - round(steps)) > 1e-6 * steps:
-        parser.error(
-            f"the horizon ({horizon} s) must be a whole number of steps of {args.dt} s; "
-            f"e.g. --horizon {round(steps) * args.dt:g}"
-        )
-    steps = round(steps)
+    steps = arguments.horizon_steps(parser, horizon, args.dt)
     gains, sources = {}, {}
     dtype = args.dtype
-    if dtype == "float64":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
+    arguments.enable_dtype(dtype)
     for path in args.gains:
         try:
             name, value, _ = gains_io.load_gains(path, dtype)
@@ -206,14 +178,9 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
         gains_sources=sources,
     )
     study = requirements_cli.configure_study(parser, args, study)  # rotor-limited actuators
-    # Build every controller now: bad configurations fail before compiling.
-    for name in controllers:
-        options = dict(dt=study.dt, horizon=study.horizon, fractional_method=study.fractional)
-        options["switching"] = study.switching
-        try:
-            registry.make_controller(name, **registry.options_for(name, options))
-        except ValueError as error:
-            parser.error(f"{name}: {error}")
+    arguments.check_controllers(
+        parser, controllers, study.dt, study.horizon, study.fractional, study.switching
+    )
     return study, args
 
 

@@ -427,29 +427,16 @@ class _Job:
         batch = self.study.device_batch or monte_carlo.default_device_batch()
         per_call = batch * (1 if self.mesh is None else int(self.mesh.devices.size))
         shapes = tuple((tuple(g.shape), str(g.dtype)) for g in self.gains)
-        return (
-            self.controller,
-            self.scenario,
-            self.config,
-            self.metrics_config,
-            str(self.dtype),
-            per_call,
-            shapes,
-        )
+        settings = (self.controller, self.scenario, self.config, self.metrics_config)
+        return (*settings, str(self.dtype), per_call, shapes)
 
     def compile(self):
         from fojax import study as monte_carlo
 
+        run = (self.controller, self.gains, self.scenario, self.config)
         per_call = self.compile_key()[5]
         return monte_carlo.compile_chunk_runner(
-            self.controller,
-            self.gains,
-            self.scenario,
-            self.config,
-            per_call,
-            self.metrics_config,
-            self.dtype,
-            self.mesh,
+            *run, per_call, self.metrics_config, self.dtype, self.mesh
         )
 
     def pending(self) -> bool:
@@ -464,15 +451,8 @@ class _Job:
         keep = min(max(self.study.keep, 0), self.study.draws)
         answer = True
         if jax.process_index() == 0 and (self.store / "manifest.json").is_file():
-            fingerprint = _fingerprint(
-                self.controller,
-                self.gains,
-                self.scenario,
-                self.config,
-                self.study,
-                self.dtype,
-                self.member,
-            )
+            run = (self.controller, self.gains, self.scenario, self.config, self.study)
+            fingerprint = _fingerprint(*run, self.dtype, self.member)
             try:
                 store = monte_carlo.ChunkStore(self.store, fingerprint, writable=False)
                 segments = _store.plan(store.ranges(), self.study.draws, keep)
@@ -510,6 +490,31 @@ class _Job:
         )
 
 
+def _jobs(studies: list[tuple[Study, Path]], overwrite: bool) -> list[_Job]:
+    """Every (study, controller) run, in order, each study alone or in its union
+    (:func:`plan_unions`), after checking (or, with ``overwrite``, discarding) the stores."""
+    unions = plan_unions([study for study, _ in studies])
+    for index, (study, out) in enumerate(studies):
+        chunks = Path(out) / "chunks"
+        if overwrite and chunks.exists():
+            import jax
+
+            if jax.process_index() == 0:
+                shutil.rmtree(chunks)
+        elif chunks.exists() and unions[index] is not None and _stored_alone(study, out):
+            unions[index] = None
+    unions = _agreed(unions)
+    for index, (study, out) in enumerate(studies):
+        if not overwrite and (Path(out) / "chunks").exists():
+            check_stores(study, out, unions[index])
+    jobs = []
+    for (study, out), union in zip(studies, unions, strict=True):
+        prepared = _prepared(study, union)
+        member = None if union is None else union.member
+        jobs.extend(_Job(study, out, name, prepared, member) for name in study.controllers)
+    return jobs
+
+
 def run_studies(
     studies: list[tuple[Study, Path]],
     progress: bool = True,
@@ -534,25 +539,7 @@ def run_studies(
     import concurrent.futures
 
     threads = compile_threads() if threads is None else threads
-    unions = plan_unions([study for study, _ in studies])
-    for index, (study, out) in enumerate(studies):
-        chunks = Path(out) / "chunks"
-        if overwrite and chunks.exists():
-            import jax
-
-            if jax.process_index() == 0:
-                shutil.rmtree(chunks)
-        elif chunks.exists() and unions[index] is not None and _stored_alone(study, out):
-            unions[index] = None
-    unions = _agreed(unions)
-    for index, (study, out) in enumerate(studies):
-        if not overwrite and (Path(out) / "chunks").exists():
-            check_stores(study, out, unions[index])
-    jobs = []
-    for (study, out), union in zip(studies, unions, strict=True):
-        prepared = _prepared(study, union)
-        member = None if union is None else union.member
-        jobs.extend(_Job(study, out, name, prepared, member) for name in study.controllers)
+    jobs = _jobs(studies, overwrite)
     pending = [job.pending() for job in jobs]
     compiled: dict = {}
     executor = concurrent.futures.ThreadPoolExecutor(threads) if threads > 0 else None

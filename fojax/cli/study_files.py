@@ -5,10 +5,9 @@ figures (:mod:`fojax.cli.figures`)."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-from fojax.cli.output import provenance, write_json
+from fojax.cli.output import provenance, write_json, write_npz
 from fojax.cli.study import Study, _mesh, gains_record, options_applied_to
 
 __all__ = ["write_outputs"]
@@ -58,14 +57,6 @@ def _batch_layout(study: Study) -> dict:
     return layout
 
 
-def _savez(path: Path, arrays: dict) -> None:
-    import numpy as np
-
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
-
-
 def write_outputs(
     study: Study,
     results: dict,
@@ -95,9 +86,9 @@ def write_outputs(
         files.append("trajectories.npz")
     summary["files"] = files
     write_json(out / "summary.json", summary)
-    _savez(out / "draws.npz", arrays)
+    write_npz(out / "draws.npz", arrays)
     if trajectories:
-        _savez(out / "trajectories.npz", trajectories)
+        write_npz(out / "trajectories.npz", trajectories)
     if figures and trajectories:
         _draw_figures(study, results, out, summary)
     return summary

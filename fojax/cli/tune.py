@@ -49,195 +49,134 @@ import sys
 import time
 from pathlib import Path
 
-from fojax.cli import arguments, figures, style
+from fojax.cli import _tuning, arguments, figures, style
 from fojax.cli import requirements as requirements_cli
 from fojax.cli import study as study_layer
 
 __all__ = ["build_parser", "main", "parse_args"]
 
+_TERMS = ("position", "attitude", "effort", "chattering")
+"""The weighted-sum cost's terms (``--<term>-weight``; ``mean_terms`` in ``evaluation.json``)."""
+
 
 def build_parser() -> argparse.ArgumentParser:
-    from fojax import fractional, scenarios
-    from fojax.controllers import SWITCHING_FUNCTIONS, registry
-    from fojax.optimize import cost, params
-    from fojax.optimize.tuner import TunerConfig
-
-    defaults = cost.CostConfig()
-    tuner = TunerConfig()
     parser = argparse.ArgumentParser(
         prog="fojax tune",
         description="Tune a controller's gains by gradient over Monte Carlo draws of a scenario.",
     )
-    parser.add_argument("--scenario", type=int, required=True, choices=scenarios.SCENARIO_IDS)
-    parser.add_argument(
-        "--controller", required=True, help=f"one of {', '.join(registry.controller_names())}"
-    )
-    parser.add_argument(
-        "--draws",
-        type=arguments.positive_int,
-        default=16,
-        help="draws per step (16: with --method lbfgs one fixed sample)",
-    )
-    parser.add_argument(
-        "--steps", type=arguments.positive_int, default=6, help="optimisation steps (6)"
-    )
-    parser.add_argument(
-        "--horizon", type=arguments.positive_float, default=10.0, help="tuning horizon, s (10)"
-    )
-    parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s (1e-3)")
-    parser.add_argument(
-        "--init",
-        default="paper",
-        metavar="paper|naive|FILE",
-        help="initial gains: the controller's defaults (paper), a knowledge-free guess "
-        "(naive: positive gains 1, p/q = 1.5, orders 0.5), or a gains file (paper)",
-    )
-    parser.add_argument("--objective", choices=cost.OBJECTIVES, default=defaults.objective)
-    parser.add_argument(
-        "--cvar-fraction",
-        type=arguments.positive_float,
-        help=f"worst fraction of draws averaged by --objective cvar ({defaults.cvar_fraction}; "
-        "an error with --objective mean)",
-    )
-    parser.add_argument("--error", choices=cost.ERRORS, default=defaults.error)
-    for name in ("position", "attitude", "effort", "chattering"):
-        value = getattr(defaults, f"{name}_weight")
-        parser.add_argument(
-            f"--{name}-weight", type=arguments.nonnegative_float, default=value, help=f"({value:g})"
-        )
-    parser.add_argument("--seed", type=arguments.seed, default=0, help="draws' seed (0)")
-    parser.add_argument(
-        "--fields",
-        default="default",
-        help="comma-separated gain fields to tune; 'default': every bounded field except "
-        "the constant and smoothing ones (mu, boundary_layer); 'all': every field",
-    )
-    parser.add_argument("--share", choices=tuple(params.SHARING), default="paper")
-    parser.add_argument(
-        "--method",
-        choices=("adam", "lbfgs"),
-        default=tuner.method,
-        help=f"adam: fresh minibatches each step; lbfgs: quasi-Newton on one fixed sample of "
-        f"--draws draws ({tuner.method})",
-    )
-    parser.add_argument(
-        "--learning-rate",
-        type=arguments.positive_float,
-        help=f"Adam's step ({tuner.learning_rate}; --method adam only)",
-    )
-    parser.add_argument(
-        "--max-step",
-        type=arguments.positive_float,
-        help=f"L-BFGS's largest change of a parameter per step ({tuner.max_step}; --method "
-        "lbfgs only)",
-    )
-    parser.add_argument(
-        "--clip-norm",
-        type=arguments.positive_float,
-        help=f"Adam's gradient-norm clip ({tuner.clip_norm}; --method adam only)",
-    )
-    parser.add_argument(
-        "--anneal-start",
-        type=arguments.positive_float,
-        help=f"boundary-layer scale of the first step ({tuner.anneal_start}; --method adam "
-        "only, L-BFGS keeps --anneal-end; controllers with a boundary layer only)",
-    )
-    parser.add_argument(
-        "--anneal-end",
-        type=arguments.positive_float,
-        help=f"boundary-layer scale of the last step ({tuner.anneal_end}; controllers with a "
-        "boundary layer only)",
-    )
-    parser.add_argument(
-        "--checkpoint-every", type=arguments.positive_int, default=tuner.checkpoint_every
-    )
-    parser.add_argument(
-        "--validation-draws",
-        type=arguments.nonnegative_int,
-        default=tuner.validation_draws,
-        help=f"validation draws scoring the start and every --validate-every steps; the "
-        f"best validated gains are returned ({tuner.validation_draws}; 0: no validation, "
-        "the last step's gains are returned)",
-    )
-    parser.add_argument(
-        "--validate-every",
-        type=arguments.positive_int,
-        help=f"steps between validations ({tuner.validate_every}; the last step is always "
-        "validated; an error with --validation-draws 0)",
-    )
-    parser.add_argument(
-        "--fractional",
-        choices=fractional.METHODS,
-        help="fractional operator method (soe; controllers with fractional operators only: "
-        "afonftsmc, fobsmc)",
-    )
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument(
-        "--compile",
-        choices=("optimized", "fast"),
-        default="optimized",
-        help="fast: compile the gradient without LLVM's optimisation passes (about 3x "
-        "faster to compile, about 2x slower per step: for short runs); optimized (default)",
-    )
-    parser.add_argument(
-        "--eval-draws",
-        type=arguments.nonnegative_int,
-        default=32,
-        help="held-out draws (32; 0: none)",
-    )
-    parser.add_argument(
-        "--eval-horizon",
-        type=arguments.positive_float,
-        help="s (default: the tuning horizon; an error with --eval-draws 0)",
-    )
-    parser.add_argument(
-        "--eval-switching",
-        choices=SWITCHING_FUNCTIONS,
-        help="switching function of the validation and held-out runs (sat; controllers "
-        "with a switching function only: all but fl)",
-    )
-    parser.add_argument("--resume", action="store_true", help="continue the run in DIR")
-    parser.add_argument("--quiet", action="store_true", help="no progress display")
-    parser.add_argument(
-        "--out",
-        required=True,
-        type=arguments.output_directory,
-        metavar="DIR",
-        help="output folder (created if needed)",
-    )
-    parser.add_argument(
-        "--device-batch",
-        type=arguments.positive_int,
-        metavar="N",
-        help="draws of a minibatch each device differentiates in one call (default: the "
-        "whole minibatch). The steps depend on it (rounding), not on the devices or "
-        "processes: over P devices, --device-batch DRAWS/P splits each minibatch",
-    )
+    arguments.add_options(parser, *_problem_options(), *_tuner_options(), *_run_options())
     requirements_cli.add_tune_options(parser)  # --requirements, --rotor-limit, ...
     arguments.add_runtime_options(parser)
     return parser
 
 
-def _initial_gains(parser, args, dtype):
-    from fojax.controllers import gains_io, registry
-    from fojax.optimize import params
+# fmt: off
+def _problem_options() -> tuple:
+    """What is tuned, on which draws, to which cost."""
+    from fojax import scenarios
+    from fojax.controllers import registry
+    from fojax.optimize import cost, params
 
-    if args.init == "paper":
-        return registry.get_controller_class(args.controller).default_gains(dtype), "paper"
-    if args.init == "naive":
-        return params.naive_gains(args.controller, dtype), "naive"
-    try:
-        path = arguments.check_input_file(args.init, "gains file")
-    except ValueError as error:
-        parser.error(f"--init: {error}; give paper, naive or a gains file (JSON)")
-    try:
-        name, gains, _ = gains_io.load_gains(path, dtype)
-    except ValueError as error:
-        message = str(error)
-        parser.error(f"--init: {message}" if str(path) in message else f"--init {path}: {message}")
-    if name != args.controller:
-        parser.error(f"--init {args.init} holds gains of {name!r}, not of {args.controller!r}")
-    return gains, str(Path(args.init).resolve())
+    defaults, count, real = cost.CostConfig(), arguments.positive_int, arguments.positive_float
+    weights = (
+        (f"--{name}-weight", dict(type=arguments.nonnegative_float, default=value,
+                                  help=f"({value:g})"))
+        for name in _TERMS
+        for value in [getattr(defaults, f"{name}_weight")]
+    )
+    return (
+        ("--scenario", dict(type=int, required=True, choices=scenarios.SCENARIO_IDS)),
+        ("--controller", dict(required=True,
+                              help=f"one of {', '.join(registry.controller_names())}")),
+        ("--draws", dict(type=count, default=16,
+                         help="draws per step (16: with --method lbfgs one fixed sample)")),
+        ("--steps", dict(type=count, default=6, help="optimisation steps (6)")),
+        ("--horizon", dict(type=real, default=10.0, help="tuning horizon, s (10)")),
+        ("--dt", arguments.STEP),
+        ("--init", dict(default="paper", metavar="paper|naive|FILE",
+                        help="initial gains: the controller's defaults (paper), a knowledge-free "
+                        "guess (naive: positive gains 1, p/q = 1.5, orders 0.5), or a gains file "
+                        "(paper)")),
+        ("--objective", dict(choices=cost.OBJECTIVES, default=defaults.objective)),
+        ("--cvar-fraction", dict(type=real, help="worst fraction of draws averaged by "
+                                 f"--objective cvar ({defaults.cvar_fraction}; an error with "
+                                 "--objective mean)")),
+        ("--error", dict(choices=cost.ERRORS, default=defaults.error)),
+        *weights,
+        ("--seed", dict(type=arguments.seed, default=0, help="draws' seed (0)")),
+        ("--fields", dict(default="default", help="comma-separated gain fields to tune; "
+                          "'default': every bounded field except the constant and smoothing "
+                          "ones (mu, boundary_layer); 'all': every field")),
+        ("--share", dict(choices=tuple(params.SHARING), default="paper")),
+    )
+
+
+def _tuner_options() -> tuple:
+    """The optimiser: its method and step, annealing, checkpoints and validation."""
+    from fojax.optimize.tuner import TunerConfig
+
+    tuner, real = TunerConfig(), arguments.positive_float
+    return (
+        ("--method", dict(choices=("adam", "lbfgs"), default=tuner.method,
+                          help="adam: fresh minibatches each step; lbfgs: quasi-Newton on one "
+                          f"fixed sample of --draws draws ({tuner.method})")),
+        ("--learning-rate", dict(type=real, help=f"Adam's step ({tuner.learning_rate}; "
+                                 "--method adam only)")),
+        ("--max-step", dict(type=real, help="L-BFGS's largest change of a parameter per step "
+                            f"({tuner.max_step}; --method lbfgs only)")),
+        ("--clip-norm", dict(type=real, help=f"Adam's gradient-norm clip ({tuner.clip_norm}; "
+                             "--method adam only)")),
+        ("--anneal-start", dict(type=real, help="boundary-layer scale of the first step "
+                                f"({tuner.anneal_start}; --method adam only, L-BFGS keeps "
+                                "--anneal-end; controllers with a boundary layer only)")),
+        ("--anneal-end", dict(type=real, help="boundary-layer scale of the last step "
+                              f"({tuner.anneal_end}; controllers with a boundary layer only)")),
+        ("--checkpoint-every", dict(type=arguments.positive_int,
+                                    default=tuner.checkpoint_every)),
+        ("--validation-draws", dict(type=arguments.nonnegative_int,
+                                    default=tuner.validation_draws,
+                                    help="validation draws scoring the start and every "
+                                    "--validate-every steps; the best validated gains are "
+                                    f"returned ({tuner.validation_draws}; 0: no validation, "
+                                    "the last step's gains are returned)")),
+        ("--validate-every", dict(type=arguments.positive_int, help="steps between validations "
+                                  f"({tuner.validate_every}; the last step is always "
+                                  "validated; an error with --validation-draws 0)")),
+    )
+
+
+def _run_options() -> tuple:
+    """How the run computes (operators, dtype, compilation, devices), its held-out
+    evaluation and its output folder."""
+    from fojax import fractional
+    from fojax.controllers import SWITCHING_FUNCTIONS
+
+    return (
+        ("--fractional", dict(choices=fractional.METHODS, help="fractional operator method "
+                              "(soe; controllers with fractional operators only: afonftsmc, "
+                              "fobsmc)")),
+        ("--dtype", dict(choices=("float32", "float64"), default="float32")),
+        ("--compile", dict(choices=("optimized", "fast"), default="optimized",
+                           help="fast: compile the gradient without LLVM's optimisation passes "
+                           "(about 3x faster to compile, about 2x slower per step: for short "
+                           "runs); optimized (default)")),
+        ("--eval-draws", dict(type=arguments.nonnegative_int, default=32,
+                              help="held-out draws (32; 0: none)")),
+        ("--eval-horizon", dict(type=arguments.positive_float, help="s (default: the tuning "
+                                "horizon; an error with --eval-draws 0)")),
+        ("--eval-switching", dict(choices=SWITCHING_FUNCTIONS, help="switching function of "
+                                  "the validation and held-out runs (sat; controllers with a "
+                                  "switching function only: all but fl)")),
+        ("--resume", dict(action="store_true", help="continue the run in DIR")),
+        ("--quiet", dict(action="store_true", help="no progress display")),
+        ("--out", arguments.OUTPUT_FOLDER),
+        ("--device-batch", dict(type=arguments.positive_int, metavar="N",
+                                help="draws of a minibatch each device differentiates in one "
+                                "call (default: the whole minibatch). The steps depend on it "
+                                "(rounding), not on the devices or processes: over P devices, "
+                                "--device-batch DRAWS/P splits each minibatch")),
+    )
+# fmt: on
 
 
 def _options_that_do_not_apply(args) -> str | None:
@@ -274,13 +213,7 @@ def _options_that_do_not_apply(args) -> str | None:
     if args.eval_horizon is not None and args.eval_draws == 0:
         return "--eval-horizon applies with held-out draws only (--eval-draws is 0)"
     try:
-        arguments.controller_flags(
-            [args.controller],
-            {
-                "--fractional": ("fractional_method", args.fractional),
-                "--eval-switching": ("switching", args.eval_switching),
-            },
-        )
+        _tuning.check_law_options(args)
     except ValueError as error:
         return str(error)
     cls = registry.get_controller_class(args.controller)
@@ -318,7 +251,7 @@ def parse_args(argv):
     """Parse and validate; returns ``(PreparedRun, args)``. Raises ``SystemExit`` with
     a message on bad input, before anything is compiled or written."""
     from fojax.controllers import registry
-    from fojax.optimize import cost, params, problem, tuner
+    from fojax.optimize import params, tuner
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -333,67 +266,13 @@ def parse_args(argv):
     if problem_text:
         parser.error(problem_text)
     _defaults(args)
-    if args.dtype == "float64":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp
-
-    dtype = jnp.dtype(args.dtype)
-    if args.fields == "default":
-        fields = None
-    elif args.fields == "all":
-        fields = registry.get_controller_class(args.controller).GAINS.names
-    else:
-        fields = tuple(f.strip() for f in args.fields.split(",") if f.strip())
+    dtype, fields = _tuning.dtype_and_fields(args)
     try:
-        cost_config = cost.CostConfig(
-            error=args.error,
-            position_weight=args.position_weight,
-            attitude_weight=args.attitude_weight,
-            effort_weight=args.effort_weight,
-            chattering_weight=args.chattering_weight,
-            objective=args.objective,
-            cvar_fraction=args.cvar_fraction,
-        )
-        spec = problem.ProblemSpec(
-            controller=args.controller,
-            scenario=args.scenario,
-            horizon=float(args.horizon),
-            dt=float(args.dt),
-            draws=args.draws,
-            seed=args.seed,
-            cost=cost_config,
-            fields=fields,
-            share=args.share,
-            fractional=args.fractional,
-            dtype=args.dtype,
-            compile=args.compile,
-        )
-        config = tuner.TunerConfig(
-            steps=args.steps,
-            method=args.method,
-            learning_rate=args.learning_rate,
-            max_step=args.max_step,
-            clip_norm=args.clip_norm,
-            anneal_start=args.anneal_start,
-            anneal_end=args.anneal_end,
-            checkpoint_every=args.checkpoint_every,
-            validation_draws=args.validation_draws,
-            validate_every=args.validate_every,
-            validation_switching=args.eval_switching,
-        )
-        if args.eval_horizon is not None:
-            steps = args.eval_horizon / args.dt
-            if abs(steps - round(steps)) > 1e-6 * steps:
-                raise ValueError(
-                    f"--eval-horizon ({args.eval_horizon} s) must be a whole number of steps "
-                    f"of {args.dt} s"
-                )
+        spec, config = _problem_and_tuner(args, fields)
         params.make_parameter_map(args.controller, fields, args.share)
     except ValueError as error:
         parser.error(str(error))
-    gains, label = _initial_gains(parser, args, dtype)
+    gains, label = _tuning.initial_gains(parser, args, dtype)
     try:
         run = tuner.prepare(spec, config, gains, label, args.out, resume=args.resume)
     except ValueError as error:
@@ -401,43 +280,57 @@ def parse_args(argv):
     return run, args
 
 
+def _problem_and_tuner(args, fields):
+    """``(ProblemSpec, TunerConfig)`` of the options; ``ValueError`` on a bad setting."""
+    from fojax.optimize import cost, tuner
+
+    def take(*names) -> dict:
+        return {name: getattr(args, name) for name in names}
+
+    weights = (f"{term}_weight" for term in _TERMS)
+    cost_config = cost.CostConfig(**take("error", *weights, "objective", "cvar_fraction"))
+    spec = _tuning.problem_spec(args, fields, cost=cost_config)
+    config = tuner.TunerConfig(
+        **take("steps", "method", "learning_rate", "max_step", "clip_norm", "anneal_start"),
+        **take("anneal_end", "checkpoint_every", "validation_draws", "validate_every"),
+        validation_switching=args.eval_switching,
+    )
+    if args.eval_horizon is not None:
+        steps = args.eval_horizon / args.dt
+        if abs(steps - round(steps)) > 1e-6 * steps:
+            raise ValueError(
+                f"--eval-horizon ({args.eval_horizon} s) must be a whole number of steps "
+                f"of {args.dt} s"
+            )
+    return spec, config
+
+
 def _evaluate(run, result, args) -> dict:
+    """The held-out cost of the initial and the tuned gains (``evaluation.json``)."""
     import numpy as np
 
     from fojax.optimize import problem as problem_lib
 
     horizon = args.eval_horizon or run.spec.horizon
     keys = result.problem.heldout_keys(args.eval_draws)
-    out = {
-        "draws": args.eval_draws,
-        "horizon_s": horizon,
-        "switching": args.eval_switching,
-        "draw_indices": f"{problem_lib.HELDOUT_OFFSET} + [0, {args.eval_draws})",
-        "tuned_gains_from_step": result.best_step,
-    }
-    for label, gains in (("initial", run.init_gains), ("tuned", result.gains)):
+
+    def score(gains) -> dict:
         costs = problem_lib.evaluate(
             run.spec, gains, keys, horizon=horizon, switching=args.eval_switching
         )
-        out[label] = {
+        terms = np.mean(costs.terms, 0).tolist()
+        return {
             "mean_cost": float(np.mean(costs.cost)),
             "std_cost": float(np.std(costs.cost, ddof=1)) if args.eval_draws > 1 else None,
-            "mean_terms": dict(
-                zip(
-                    ("position", "attitude", "effort", "chattering"),
-                    np.mean(costs.terms, 0).tolist(),
-                    strict=True,
-                )
-            ),
+            "mean_terms": dict(zip(_TERMS, terms, strict=True)),
             "diverged": int(np.sum(costs.diverged)),
         }
-    return out
 
-
-def _init_source(run) -> str | None:
-    """The initial gains' file, or None for the defaults (paper) and naive gains."""
-    label = run.init_label
-    return label if label not in ("paper", "naive") else None
+    gains = {"initial": run.init_gains, "tuned": result.gains}
+    before = {"tuned_gains_from_step": result.best_step}
+    return _tuning.heldout_evaluation(
+        args.eval_draws, horizon, args.eval_switching, score, gains, before
+    )
 
 
 def _record_session(run, command: list[str], device_batch: int | None = None) -> dict:
@@ -449,14 +342,11 @@ def _record_session(run, command: list[str], device_batch: int | None = None) ->
             record = json.loads(path.read_text())
         except (OSError, ValueError):
             record = {}
-    init = study_layer.gains_record(run.init_gains, _init_source(run))
-    if run.init_label in ("paper", "naive"):
-        init["source"] = "defaults" if run.init_label == "paper" else "naive"
     record.update(
         {
             "controller": run.spec.controller,
             "init": run.init_label,
-            "init_gains": init,
+            "init_gains": _tuning.init_record(run.init_gains, run.init_label),
             "problem": run.fingerprint["problem"],
             "tuner": run.fingerprint["tuner"],
         }
@@ -551,10 +441,32 @@ def main(argv=None) -> int:
 
         shutil.rmtree(run.out, ignore_errors=True)
         return 0
+    _print_result(run, result, runtime, time.perf_counter() - start)
+    _save_tuned_gains(run, record, earlier)
+    files = ["gains.json", "history.csv", "run.json"]
+    evaluation = None
+    if args.eval_draws > 0:
+        evaluation = _evaluate(run, result, args)
+        evaluation["provenance"] = record["sessions"][-1]
+        study_layer.write_json(args.out / "evaluation.json", evaluation)
+        files.append("evaluation.json")
+        print(
+            f"held-out cost ({evaluation['draws']} draws, {evaluation['horizon_s']:g} s, "
+            f"{evaluation['switching']}): initial {evaluation['initial']['mean_cost']:.5g}, "
+            f"tuned {evaluation['tuned']['mean_cost']:.5g}"
+        )
+    if _draw_convergence(run, result, args, evaluation) is not None:
+        files.append("convergence.png (+ .pdf)")
+    print(f"wrote {args.out}/: {', '.join(files)}")
+    return 0
+
+
+def _print_result(run, result, runtime: dict, wall: float) -> None:
+    """The run's steps and final objective, and which gains it returned."""
     print(
         f"tuned {run.spec.controller} on scenario {run.spec.scenario}: {result.completed} "
         f"steps x {run.spec.draws} draws x {run.spec.horizon:g} s, final objective "
-        f"{result.history[-1]['objective']:.5g} ({time.perf_counter() - start:.0f} s)"
+        f"{result.history[-1]['objective']:.5g} ({wall:.0f} s)"
     )
     if runtime["process_count"] > 1:
         print(f"over {runtime['process_count']} processes, {runtime['device_count']} devices")
@@ -570,20 +482,11 @@ def main(argv=None) -> int:
             f"{v['initial']:.5g} at the start and {v['final']:.5g} at the last step "
             f"({v['draws']} validation draws, {v['switching']}, {v['horizon_s']:g} s)"
         )
-    _save_tuned_gains(run, record, earlier)
-    files = ["gains.json", "history.csv", "run.json"]
-    evaluation = None
-    if args.eval_draws > 0:
-        evaluation = _evaluate(run, result, args)
-        evaluation["provenance"] = record["sessions"][-1]
-        study_layer.write_json(args.out / "evaluation.json", evaluation)
-        files.append("evaluation.json")
-        print(
-            f"held-out cost ({evaluation['draws']} draws, {evaluation['horizon_s']:g} s, "
-            f"{evaluation['switching']}): initial {evaluation['initial']['mean_cost']:.5g}, "
-            f"tuned {evaluation['tuned']['mean_cost']:.5g}"
-        )
-    figure = style.attempt(
+
+
+def _draw_convergence(run, result, args, evaluation: dict | None):
+    """``convergence.png`` (and ``.pdf``); None (a warning) when it cannot be drawn."""
+    return style.attempt(
         "convergence.png",
         figures.plot_convergence,
         args.out / "history.csv",
@@ -594,10 +497,6 @@ def main(argv=None) -> int:
         f"{run.spec.draws} draws x {run.spec.horizon:g} s per step, {args.objective} objective",
         None if result.validation is None else result.validation["initial"],
     )
-    if figure is not None:
-        files.append("convergence.png (+ .pdf)")
-    print(f"wrote {args.out}/: {', '.join(files)}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -143,40 +143,29 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(
         prog="fojax reproduce",
-        description=(
-            "The paper's Section V with Monte Carlo: 3 scenarios x 5 controllers on the same "
-            "draws; report, JSON and Figs. 5-16."
-        ),
+        description="The paper's Section V with Monte Carlo: 3 scenarios x 5 controllers on the "
+        "same draws; report, JSON and Figs. 5-16.",
     )
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR")
-    parser.add_argument(
-        "--draws",
-        type=arguments.positive_int,
-        default=DEFAULT_DRAWS,
-        help=f"draws per scenario and controller (default {DEFAULT_DRAWS}: < 10 min on 2 cores)",
+    # fmt: off
+    arguments.add_options(
+        parser,
+        ("--out", dict(required=True, type=Path, metavar="DIR")),
+        ("--draws", dict(type=arguments.positive_int, default=DEFAULT_DRAWS,
+                         help=f"draws per scenario and controller (default {DEFAULT_DRAWS}: "
+                         "< 10 min on 2 cores)")),
+        ("--seed", dict(type=arguments.nonnegative_int, default=0)),
+        ("--switching", dict(choices=SWITCHING_FUNCTIONS, default="sign", help="switching "
+                             "function of the sliding-mode controllers (default sign, the "
+                             "paper's)")),
+        ("--fractional", dict(choices=fractional.METHODS, default="soe", help="fractional "
+                              "operator method (default soe; oustaloup is the paper's CRONE)")),
+        ("--scenarios", dict(type=arguments.scenario_ids, default=(1, 2, 3),
+                             help="subset, e.g. 1,3")),
+        ("--horizon", dict(type=arguments.positive_float, help="simulated time (s) for every "
+                           "scenario (default: each scenario's, 80/80/50 s)")),
+        ("--dt", dict(type=arguments.positive_float, default=1e-3, help="step, s")),
     )
-    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
-    parser.add_argument(
-        "--switching",
-        choices=SWITCHING_FUNCTIONS,
-        default="sign",
-        help="switching function of the sliding-mode controllers (default sign, the paper's)",
-    )
-    parser.add_argument(
-        "--fractional",
-        choices=fractional.METHODS,
-        default="soe",
-        help="fractional operator method (default soe; oustaloup is the paper's CRONE)",
-    )
-    parser.add_argument(
-        "--scenarios", type=arguments.scenario_ids, default=(1, 2, 3), help="subset, e.g. 1,3"
-    )
-    parser.add_argument(
-        "--horizon",
-        type=arguments.positive_float,
-        help="simulated time (s) for every scenario (default: each scenario's, 80/80/50 s)",
-    )
-    parser.add_argument("--dt", type=arguments.positive_float, default=1e-3, help="step, s")
+    # fmt: on
     arguments.add_study_options(
         parser, 32, "draws whose trajectories are kept for the figures (32)"
     )
@@ -192,21 +181,13 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
     parser = build_parser()
     args = parser.parse_args(argv)
     names = registry.PAPER_CONTROLLERS
-    if args.dtype == "float64":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
+    arguments.enable_dtype(args.dtype)
     band = claims_module.reaching_band(args.dt)
     studies = []
     for scenario_id in args.scenarios:
         scenario = scenarios.get_scenario(scenario_id)
         horizon = args.horizon if args.horizon is not None else scenario.horizon
-        if args.dt > horizon:
-            parser.error(f"--dt ({args.dt}) must not exceed the horizon ({horizon})")
-        steps = horizon / args.dt
-        if abs(steps - round(steps)) > 1e-6 * steps:
-            parser.error(f"the horizon ({horizon} s) must be a whole number of steps of {args.dt}")
-        steps = round(steps)
+        steps = arguments.horizon_steps(parser, horizon, args.dt, example=False)
         studies.append(
             _make_study(
                 scenario_id=scenario_id,
@@ -225,13 +206,9 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
                 reaching_band=band,
             )
         )
-    for name in studies[0].controllers:
-        options = dict(dt=args.dt, horizon=studies[0].horizon, fractional_method=args.fractional)
-        options["switching"] = args.switching
-        try:
-            registry.make_controller(name, **registry.options_for(name, options))
-        except ValueError as error:
-            parser.error(f"{name}: {error}")
+    arguments.check_controllers(
+        parser, studies[0].controllers, args.dt, studies[0].horizon, args.fractional, args.switching
+    )
     return studies, args
 
 
