@@ -41,6 +41,7 @@ __all__ = [
     "ControlInfo",
     "ControlLaw",
     "Controller",
+    "FractionalMemory",
     "LawOutput",
     "Observation",
     "check_positive",
