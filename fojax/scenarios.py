@@ -417,22 +417,20 @@ def reference_and_disturbance(scenario: Scenario, member: Array, t: Array):
     )
 
 
+_SCENARIO_1 = Scenario(
+    scenario_id=1,
+    name="drag uncertainty + disturbances (53), reference (54)-(55)",
+    horizon=80.0,
+    reference=reference_54_55,
+    disturbance=disturbances_53,
+    drag_variation=0.2,
+)
 _SCENARIOS = {
-    1: Scenario(
-        scenario_id=1,
-        name="drag uncertainty + disturbances (53), reference (54)-(55)",
-        horizon=80.0,
-        reference=reference_54_55,
-        disturbance=disturbances_53,
-        drag_variation=0.2,
-    ),
-    2: Scenario(
+    1: _SCENARIO_1,
+    2: dataclasses.replace(
+        _SCENARIO_1,
         scenario_id=2,
         name="scenario 1 + Gaussian random disturbances",
-        horizon=80.0,
-        reference=reference_54_55,
-        disturbance=disturbances_53,
-        drag_variation=0.2,
         noise_std_position=0.1,
         noise_std_attitude=0.1,
     ),

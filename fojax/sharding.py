@@ -335,18 +335,16 @@ def shard_draws(tree: Any, mesh: Mesh) -> Any:
             f"{count} draws do not split evenly over {size} devices; use a multiple of "
             f"{size} draws or pad them with fojax.sharding.pad_draws"
         )
-    sharding = draw_sharding(mesh)
-
-    def place(leaf):
-        host = np.asarray(leaf)
-        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
-
-    return jax.tree.map(place, tree)
+    return _place(tree, draw_sharding(mesh))
 
 
 def replicate(tree: Any, mesh: Mesh) -> Any:
     """Place every array of ``tree`` whole on every device of ``mesh``."""
-    sharding = replicated_sharding(mesh)
+    return _place(tree, replicated_sharding(mesh))
+
+
+def _place(tree: Any, sharding: NamedSharding) -> Any:
+    """Every array of ``tree`` copied from the host onto ``sharding``'s devices."""
 
     def place(leaf):
         host = np.asarray(leaf)

@@ -246,53 +246,117 @@ def rollout(
     :func:`fojax.study.run` checks them.
     """
     controller = as_controller(controller)
-    dt = config.dt
-    dtype = jnp.asarray(draw.params.mass).dtype
     batch = tuple(jnp.shape(draw.params.mass))
     params = controller.prepare(gains, model, batch)
-    state0 = _per_draw(scenarios.initial_state(scenario, dtype), 1, batch)
-    status_observer = observers.Status()
+    loop = _Loop(
+        controller,
+        scenario,
+        config,
+        observer,
+        jnp.asarray(draw.params.mass).dtype,
+        batch,
+        _held_values(scenario, config),
+    )
+    loop0 = loop.first(params, draw)
+    final, trajectory = lax.scan(loop.block_body(params, draw), loop0, jnp.arange(config.blocks))
+    outputs = observer.finalize(final.observed) if observer is not None else None
+    return Rollout(jnp.stack(final.state), final.status, outputs, trajectory)
 
-    def reference_at(draw, k):
+
+_STATUS = observers.Status()
+
+
+@dataclasses.dataclass(frozen=True)
+class _Loop:
+    """The time loop of one rollout, its static configuration settled in Python before
+    tracing: the controller, the scenario, the settings, the observer (``None``: none),
+    the draw's dtype and batch shape, and ``held(draw, k)`` (:func:`_held_values`)."""
+
+    controller: Any
+    scenario: scenarios.Scenario
+    config: SimulationConfig
+    observer: Any
+    dtype: Any
+    batch: tuple[int, ...]
+    held: Any
+
+    def reference_at(self, draw, k):
         """The time, the reference with its two derivatives and the deterministic
         disturbance at step ``k`` (time only: shared by every draw; for a union
         scenario, each draw's member's, the batch last)."""
-        t = k.astype(dtype) * dt
-        derivatives, disturbance = scenarios.reference_and_disturbance(scenario, draw.member, t)
-        return t, tuple(d.astype(dtype) for d in derivatives), disturbance.astype(dtype)
+        t = k.astype(self.dtype) * self.config.dt
+        derivatives, disturbance = scenarios.reference_and_disturbance(
+            self.scenario, draw.member, t
+        )
+        return t, tuple(d.astype(self.dtype) for d in derivatives), disturbance.astype(self.dtype)
 
-    def observe(draw, k, state):
-        t, (ref, ref_vel, ref_acc), _ = reference_at(draw, k)
+    def observe(self, draw, k, state):
+        t, (ref, ref_vel, ref_acc), _ = self.reference_at(draw, k)
         return Observation(t, state, ref, ref_vel, ref_acc)
 
-    obs0 = observe(draw, jnp.zeros((), jnp.int32), plant.state_blocks(state0))
-    control0 = controller.init(params, obs0)
-    # The first control update; later ones run at the end of the iteration before.
-    control1, inputs0, info0 = controller.step(params, control0, obs0)
-    held_at = _held_values(scenario, config)
+    def first(self, params, draw) -> LoopState:
+        """The carry at step 0, with the first control update (later ones run at the end
+        of the iteration before)."""
+        state0 = _per_draw(scenarios.initial_state(self.scenario, self.dtype), 1, self.batch)
+        obs0 = self.observe(draw, jnp.zeros((), jnp.int32), plant.state_blocks(state0))
+        control0 = self.controller.init(params, obs0)
+        control1, inputs0, info0 = self.controller.step(params, control0, obs0)
+        observer = self.observer
+        return LoopState(
+            state=_entries(state0),
+            trig=plant.attitude_trig(*_entries(state0)[3:6]),
+            held=self.held(draw, jnp.zeros((), jnp.int32)),
+            control=control1,
+            inputs=_entries(inputs0),
+            info=info0,
+            status=broadcast_batch(_STATUS.init(self.dtype), self.batch),
+            observed=broadcast_batch(observer.init(self.dtype), self.batch)
+            if observer is not None
+            else None,
+        )
 
-    def step(params, draw, loop: LoopState, k):
-        t, (reference, _, _), deterministic = reference_at(draw, k)
+    def plant_step(self, draw, loop: LoopState, deterministic) -> tuple:
+        """The plant's state entries after step ``k``: one RK4 step with the held noise,
+        drag and command (clipped to the rotor speed limit, if any)."""
         noise, drag = loop.held
         k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
         if drag is not None:
             k_p, k_phi = k_p * drag[:3], k_phi * drag[3:]
         deterministic = observers.per_component(deterministic, loop.state[0][None])
         if noise is not None:
-            deterministic = deterministic + noise.astype(dtype)
+            deterministic = deterministic + noise.astype(self.dtype)
         applied = loop.inputs
-        if config.rotor_speed_limit is not None:
-            applied = plant.saturate_inputs(draw.params, applied, config.rotor_speed_limit)
-        next_state = plant.rk4_step_parts(
+        if self.config.rotor_speed_limit is not None:
+            applied = plant.saturate_inputs(draw.params, applied, self.config.rotor_speed_limit)
+        return plant.rk4_step_parts(
             draw.params,
             loop.state,
             applied,
             unstack(deterministic),
-            dt,
+            self.config.dt,
             unstack(k_p),
             unstack(k_phi),
             loop.trig,
         )
+
+    def fold(self, draw, loop: LoopState, k, record: observers.StepRecord):
+        """The status flags and the observer's state with step ``k``'s record folded in
+        (a union's draw only up to its own scenario's horizon)."""
+        status = _STATUS.update(loop.status, record)
+        observer = self.observer
+        observed = observer.update(loop.observed, record) if observer is not None else None
+        if self.scenario.members:
+            active = k < draw.steps
+            status, observed = jax.tree.map(
+                lambda new, old: jnp.where(active, new, old),
+                (status, observed),
+                (loop.status, loop.observed),
+            )
+        return status, observed
+
+    def step(self, params, draw, loop: LoopState, k):
+        t, (reference, _, _), deterministic = self.reference_at(draw, k)
+        next_state = self.plant_step(draw, loop, deterministic)
         blocks = _blocks(loop.state)
         state = jnp.concatenate(blocks)
         record = observers.StepRecord(
@@ -305,23 +369,15 @@ def rollout(
             error=observers.tracking_error(blocks, reference, loop.info.attitude_reference),
             plant=draw.params,
         )
-        status = status_observer.update(loop.status, record)
-        observed = observer.update(loop.observed, record) if observer is not None else None
-        if scenario.members:  # a union: record the draw up to its own scenario's horizon
-            active = k < draw.steps
-            status, observed = jax.tree.map(
-                lambda new, old: jnp.where(active, new, old),
-                (status, observed),
-                (loop.status, loop.observed),
-            )
+        status, observed = self.fold(draw, loop, k, record)
         # The control update of step k + 1, from the new state.
-        control, next_inputs, next_info = controller.step(
-            params, loop.control, observe(draw, k + 1, _blocks(next_state))
+        control, next_inputs, next_info = self.controller.step(
+            params, loop.control, self.observe(draw, k + 1, _blocks(next_state))
         )
         loop = LoopState(
             state=next_state,
             trig=plant.attitude_trig(*next_state[3:6]),
-            held=held_at(draw, k + 1),
+            held=self.held(draw, k + 1),
             control=control,
             inputs=_entries(next_inputs),
             info=next_info,
@@ -330,41 +386,35 @@ def rollout(
         )
         return loop, (reference, record.inputs, record.info)
 
-    def one_step(loop, k):
-        return step(params, draw, loop, k)
+    def block_body(self, params, draw):
+        """The outer scan's body: ``save_every`` steps (an inner scan, each step
+        checkpointed with :func:`_save_expensive`), then the block's :class:`Snapshot`;
+        the block is rematerialised under ``grad``."""
+        every, dt, batch = self.config.save_every, self.config.dt, self.batch
 
-    one_step = jax.checkpoint(one_step, policy=_save_expensive)
+        def one_step(loop, k):
+            return self.step(params, draw, loop, k)
 
-    @jax.checkpoint
-    def block(loop: LoopState, block_index):
-        ks = block_index * config.save_every + jnp.arange(config.save_every)
-        loop, (refs, inputs, infos) = lax.scan(one_step, loop, ks)
-        t_end = (block_index + 1).astype(dtype) * config.save_every * dt
-        last = jax.tree.map(lambda x: x[-1], (refs, inputs, infos))
-        snapshot = Snapshot(
-            _per_draw(t_end, 0, batch),
-            jnp.stack(loop.state),
-            _per_draw(last[0], 1, batch),
-            last[1],
-            last[2],
-            jnp.min(inputs, axis=0),
-            jnp.max(inputs, axis=0),
-        )
-        return loop, snapshot
+        one_step = jax.checkpoint(one_step, policy=_save_expensive)
 
-    loop0 = LoopState(
-        state=_entries(state0),
-        trig=plant.attitude_trig(*_entries(state0)[3:6]),
-        held=held_at(draw, jnp.zeros((), jnp.int32)),
-        control=control1,
-        inputs=_entries(inputs0),
-        info=info0,
-        status=broadcast_batch(status_observer.init(dtype), batch),
-        observed=broadcast_batch(observer.init(dtype), batch) if observer is not None else None,
-    )
-    final, trajectory = lax.scan(block, loop0, jnp.arange(config.blocks))
-    outputs = observer.finalize(final.observed) if observer is not None else None
-    return Rollout(jnp.stack(final.state), final.status, outputs, trajectory)
+        @jax.checkpoint
+        def block(loop: LoopState, block_index):
+            ks = block_index * every + jnp.arange(every)
+            loop, (refs, inputs, infos) = lax.scan(one_step, loop, ks)
+            t_end = (block_index + 1).astype(self.dtype) * every * dt
+            last = jax.tree.map(lambda x: x[-1], (refs, inputs, infos))
+            snapshot = Snapshot(
+                _per_draw(t_end, 0, batch),
+                jnp.stack(loop.state),
+                _per_draw(last[0], 1, batch),
+                last[1],
+                last[2],
+                jnp.min(inputs, axis=0),
+                jnp.max(inputs, axis=0),
+            )
+            return loop, snapshot
+
+        return block
 
 
 def _blocks(entries: tuple) -> plant.StateBlocks:

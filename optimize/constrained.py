@@ -252,26 +252,10 @@ def minimize(
     start = time.perf_counter()
     lam = jnp.zeros(requirements)
     rho = float(config.penalty)
-    optimizer = config.optimizer()
     # Every number passed as an array of the default float: one compilation of ``step``.
     _, _, f0, _, _ = step(params, data, n, jnp.asarray(1.0), lam, jnp.asarray(rho))
     scale = float(f0) if float(f0) > 1e-12 else 1.0
-
-    def inner_value(p, lam, rho):
-        return step(p, data, n, jnp.asarray(scale), lam, rho)
-
-    @jax.jit
-    def lbfgs_update(p, state, lam, rho):
-        loss, gradient, *_ = step(p, data, n, scale, lam, rho)
-        updates, state = optimizer.update(
-            gradient,
-            state,
-            p,
-            value=loss,
-            grad=gradient,
-            value_fn=lambda q: step(q, data, n, scale, lam, rho)[0],
-        )
-        return optax.apply_updates(p, updates), state
+    inner = _inner_loop(step, data, n, scale, config)
 
     def score(p):
         return validate(p) if validate is not None else None
@@ -283,16 +267,7 @@ def minimize(
     history = []
     previous = math.inf
     for outer in range(1, config.outer_steps + 1):
-        state = optimizer.init(params)
-        lam_rho = (lam, jnp.asarray(rho))
-        for _ in range(config.inner_steps):
-            if config.method == "lbfgs":
-                params, state = lbfgs_update(params, state, *lam_rho)
-            else:
-                _, gradient, *_ = inner_value(params, *lam_rho)
-                updates, state = optimizer.update(gradient, state, params)
-                params = optax.apply_updates(params, updates)
-        loss, _, f, c, valid = inner_value(params, *lam_rho)
+        params, (loss, f, c, valid) = inner(params, lam, jnp.asarray(rho))
         c = np.asarray(c, np.float64)
         lam = jnp.maximum(0.0, lam + rho * jnp.asarray(c, lam.dtype))
         worst = float(np.max(np.maximum(c, 0.0)))
@@ -318,11 +293,7 @@ def minimize(
             best_params = params
         history.append(row)
         if progress:
-            text = f"  outer {outer}/{config.outer_steps}  objective {row['objective']:.4e}  "
-            text += f"max c {worst:.3g}  rho {rho:g}"
-            if scored is not None:
-                text += f"  validation yield {scored['yield']:.1%}"
-            print(text, file=sys.stderr, flush=True)
+            _print_outer(row, config.outer_steps, worst, scored)
     return ConstrainedResult(
         best_params,
         history,
@@ -333,6 +304,53 @@ def minimize(
         params,
         initial,
     )
+
+
+def _inner_loop(step: Callable, data: Any, n: int, scale: float, config: ConstrainedConfig):
+    """``run(params, lam, rho) -> (params, (L, f, c, valid))``: :func:`minimize`'s inner
+    loop, ``config.inner_steps`` steps of ``config``'s optimizer on ``L(.; lam, rho)``
+    from ``params`` (a fresh optimizer state), and ``step``'s values at the last
+    iterate."""
+    optimizer = config.optimizer()
+
+    def inner_value(p, lam, rho):
+        return step(p, data, n, jnp.asarray(scale), lam, rho)
+
+    @jax.jit
+    def lbfgs_update(p, state, lam, rho):
+        loss, gradient, *_ = step(p, data, n, scale, lam, rho)
+        updates, state = optimizer.update(
+            gradient,
+            state,
+            p,
+            value=loss,
+            grad=gradient,
+            value_fn=lambda q: step(q, data, n, scale, lam, rho)[0],
+        )
+        return optax.apply_updates(p, updates), state
+
+    def run(params, lam, rho):
+        state = optimizer.init(params)
+        for _ in range(config.inner_steps):
+            if config.method == "lbfgs":
+                params, state = lbfgs_update(params, state, lam, rho)
+            else:
+                _, gradient, *_ = inner_value(params, lam, rho)
+                updates, state = optimizer.update(gradient, state, params)
+                params = optax.apply_updates(params, updates)
+        loss, _, f, c, valid = inner_value(params, lam, rho)
+        return params, (loss, f, c, valid)
+
+    return run
+
+
+def _print_outer(row: dict, outer_steps: int, worst: float, scored: dict | None) -> None:
+    """:func:`minimize`'s progress line of one outer iteration (stderr)."""
+    text = f"  outer {row['outer_step']}/{outer_steps}  objective {row['objective']:.4e}  "
+    text += f"max c {worst:.3g}  rho {row['penalty']:g}"
+    if scored is not None:
+        text += f"  validation yield {scored['yield']:.1%}"
+    print(text, file=sys.stderr, flush=True)
 
 
 # -------------------------------------------------------------- the simulator problem

@@ -106,7 +106,17 @@ class _Objective:
     def wall(self) -> float:
         return time.perf_counter() - self.start - self.excluded
 
-    def report(self, callback, x, row) -> None:
+    def record(self, history: list, callback, x, objective: float, best: float) -> None:
+        """Append a row to ``history`` (:class:`DFResult`) and pass it to ``callback``
+        with the parameters of ``x`` (the callback's time excluded)."""
+        row = {
+            "evaluations": self.evaluations,
+            "draw_steps": self.budget.used,
+            "wall_time_s": round(self.wall, 3),
+            "objective": objective,
+            "best_objective": float(best),
+        }
+        history.append(row)
         if callback is None:
             return
         t0 = time.perf_counter()
@@ -153,15 +163,7 @@ def cma_es(
         es.tell(candidates, values)
         generation += 1
         best = min(best, min(values))
-        row = {
-            "evaluations": objective.evaluations,
-            "draw_steps": budget.used,
-            "wall_time_s": round(objective.wall, 3),
-            "objective": float(np.min(values)),
-            "best_objective": float(best),
-        }
-        history.append(row)
-        objective.report(callback, es.result.xfavorite, row)
+        objective.record(history, callback, es.result.xfavorite, float(np.min(values)), best)
     return _result("cma-es", objective, np.asarray(es.result.xfavorite), history, budget)
 
 
@@ -201,15 +203,7 @@ def nelder_mead(
         if value < state["best"]:
             state["best"], state["x"] = value, np.array(x)
         if objective.evaluations % callback_every == 0:
-            row = {
-                "evaluations": objective.evaluations,
-                "draw_steps": budget.used,
-                "wall_time_s": round(objective.wall, 3),
-                "objective": value,
-                "best_objective": float(state["best"]),
-            }
-            history.append(row)
-            objective.report(callback, state["x"], row)
+            objective.record(history, callback, state["x"], value, state["best"])
         return value
 
     simplex = objective.x0[None, :] + np.vstack([np.zeros(size), step * np.eye(size)])
@@ -277,10 +271,6 @@ def cma_es_requirements(
     and the final distribution mean are validated; the better by yield, then objective,
     is returned: ``{"params", "selected", "history", "wall_time_s", "draw_steps"}``."""
     import cma  # noqa: F401  (without the extra, fail before compiling)
-    import jax
-
-    from fojax import requirements as rq
-    from fojax.optimize.constrained import _rank, _validation_summary
 
     start = time.perf_counter()
     budget = Budget(budget_draw_steps)
@@ -288,19 +278,7 @@ def cma_es_requirements(
     x0, unravel = problem.param_map.ravel(params0)
     n = problem.spec.draws if draws is None else int(draws)
 
-    def penalised(vectors, keys):
-        objective, violations, status = problem._batch_value(vectors, keys, unravel)
-        valid = (
-            jnp.isfinite(objective)
-            & jnp.all(jnp.isfinite(violations), 1)
-            & ((status & rq.DIVERGED) == 0)
-        )
-        count = jnp.maximum(jnp.sum(valid, -1), 1)
-        f = jnp.sum(jnp.where(valid, objective, 0.0), -1) / count
-        hinge = jnp.where(valid[:, None, :], rq.squared_hinge(violations, margin), 1.0)
-        return f, jnp.sum(jnp.mean(hinge, -1), -1)
-
-    penalised = jax.jit(penalised)
+    penalised = _penalised(problem, unravel, margin)
     f0, _ = penalised(jnp.asarray(x0)[None], problem.base.minibatch_keys(0, n))
     scale = max(float(f0[0]), 1e-12)
     es, per_generation = cma_strategy(x0, sigma0, seed, popsize, n * problem.spec.steps, budget)
@@ -323,15 +301,7 @@ def cma_es_requirements(
             }
         )
     final = unravel(jnp.asarray(es.result.xfavorite, problem.dtype))
-    chosen, selected = params0, None
-    if validation_draws:
-        keys = problem.validation_keys(validation_draws)
-        selected = {**_validation_summary(problem.evaluate(params0, keys)), "candidate": "start"}
-        scored = _validation_summary(problem.evaluate(final, keys))
-        if _rank(scored) > _rank(selected):
-            chosen, selected = final, {**scored, "candidate": "cma-es mean"}
-    else:
-        chosen = final
+    chosen, selected = _select(problem, params0, final, validation_draws)
     return {
         "params": chosen,
         "selected": selected,
@@ -339,3 +309,41 @@ def cma_es_requirements(
         "wall_time_s": time.perf_counter() - start,
         "draw_steps": budget.used,
     }
+
+
+def _penalised(problem, unravel: Callable, margin: float) -> Callable:
+    """:func:`cma_es_requirements`' jitted ``(vectors, keys) -> (f (candidates,), sum_j
+    mean_i max(v_ij + margin, 0)^2 (candidates,))``, ``f`` the mean objective over the
+    valid draws; a diverged draw's hinge is 1."""
+    import jax
+
+    from fojax import requirements as rq
+
+    def penalised(vectors, keys):
+        objective, violations, status = problem._batch_value(vectors, keys, unravel)
+        valid = (
+            jnp.isfinite(objective)
+            & jnp.all(jnp.isfinite(violations), 1)
+            & ((status & rq.DIVERGED) == 0)
+        )
+        count = jnp.maximum(jnp.sum(valid, -1), 1)
+        f = jnp.sum(jnp.where(valid, objective, 0.0), -1) / count
+        hinge = jnp.where(valid[:, None, :], rq.squared_hinge(violations, margin), 1.0)
+        return f, jnp.sum(jnp.mean(hinge, -1), -1)
+
+    return jax.jit(penalised)
+
+
+def _select(problem, params0: Any, final: Any, validation_draws: int) -> tuple:
+    """``(params, selected)``: the start or CMA-ES's final mean, the better on
+    ``validation_draws`` validation draws (without validation: the final mean, ``None``)."""
+    from fojax.optimize.constrained import _rank, _validation_summary
+
+    if not validation_draws:
+        return final, None
+    keys = problem.validation_keys(validation_draws)
+    selected = {**_validation_summary(problem.evaluate(params0, keys)), "candidate": "start"}
+    scored = _validation_summary(problem.evaluate(final, keys))
+    if _rank(scored) > _rank(selected):
+        return final, {**scored, "candidate": "cma-es mean"}
+    return params0, selected

@@ -3,7 +3,7 @@ declared gains, the registry and gains files.
 
 * :mod:`~fojax.controllers.base`: the controller interface the simulator calls
   (:class:`Observation`, :class:`ControlInfo`), :class:`ControlLaw` (the base of every
-  law) and :class:`LawOutput`;
+  law), :class:`FractionalMemory` (a law's fractional memory) and :class:`LawOutput`;
 * :mod:`~fojax.controllers.gains`: :class:`GainField`, :class:`GainSpec`,
   :class:`Bounds`: gains declared once;
 * :mod:`~fojax.controllers.cascade`: :class:`Cascade`, the position/attitude cascade
@@ -26,6 +26,7 @@ from fojax.controllers.base import (
     ControlInfo,
     ControlLaw,
     Controller,
+    FractionalMemory,
     LawOutput,
     Observation,
     abs_power,
@@ -60,6 +61,7 @@ __all__ = [
     "FLGains",
     "FOBSMC",
     "FOBSMCGains",
+    "FractionalMemory",
     "GainField",
     "GainSpec",
     "LawOutput",

@@ -29,15 +29,19 @@ by forward Euler at the control step from zero.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from fojax import fractional
 from fojax._arrays import unstack
-from fojax.controllers.base import ControlLaw, LawOutput, signed_power, switching
+from fojax.controllers.base import (
+    ControlLaw,
+    FractionalMemory,
+    LawOutput,
+    signed_power,
+    switching,
+)
 from fojax.controllers.gains import Bounds, GainField, GainSpec, per_axis
 from fojax.controllers.registry import register
 
@@ -119,7 +123,7 @@ class AFONFTSMCState(NamedTuple):
 
 @register
 @dataclasses.dataclass(frozen=True)
-class AFONFTSMC(ControlLaw):
+class AFONFTSMC(FractionalMemory, ControlLaw):
     """The paper's control law (see the module docstring).
 
     Args:
@@ -128,6 +132,8 @@ class AFONFTSMC(ControlLaw):
             CRONE filters, Remark 4) or ``"gl"`` (:mod:`fojax.fractional`).
         fractional_options: extra options of the operator, ``(name, value)`` pairs.
         switching: ``"sign"`` (the paper), ``"sat"`` or ``"tanh"``.
+
+    ``memory``: the fractional memory of the 12 surface channels (:class:`FractionalMemory`).
     """
 
     fractional_method: str = "soe"
@@ -136,18 +142,6 @@ class AFONFTSMC(ControlLaw):
 
     name = "afonftsmc"
     GAINS = GAINS
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        self.memory  # noqa: B018 (validates the method and its options before tracing)
-
-    @functools.cached_property
-    def memory(self) -> Any:
-        """The fractional memory of the 12 surface channels (built once)."""
-        operator = fractional.make_operator(
-            self.fractional_method, self.dt, self.horizon, **dict(self.fractional_options)
-        )
-        return fractional.integral_with_rate(operator)
 
     @staticmethod
     def reaching_time_bound(gains: AFONFTSMCGains, initial_surface: Array) -> Array:

@@ -40,14 +40,12 @@ its ``hbar_1``, its boundary layers, and ``gamma = 0.9``.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from fojax import fractional
-from fojax.controllers.base import ControlLaw, LawOutput, switching
+from fojax.controllers.base import ControlLaw, FractionalMemory, LawOutput, switching
 from fojax.controllers.gains import Bounds, GainField, GainSpec, per_axis
 from fojax.controllers.registry import register
 
@@ -119,7 +117,7 @@ class FOBSMCParams(NamedTuple):
 
 @register
 @dataclasses.dataclass(frozen=True)
-class FOBSMC(ControlLaw):
+class FOBSMC(FractionalMemory, ControlLaw):
     """Fractional-order backstepping sliding mode control, laws (F1)-(F2).
 
     Args: ``dt``, ``horizon``, and
@@ -128,6 +126,9 @@ class FOBSMC(ControlLaw):
         fractional_method: ``"soe"`` (accurate default), ``"oustaloup"`` (CRONE) or
             ``"gl"`` (:mod:`fojax.fractional`).
         fractional_options: extra options of the operator, ``(name, value)`` pairs.
+
+    ``memory`` (:class:`FractionalMemory`): ``D^(gamma-1) e1`` and its time derivative
+    ``D^gamma e1`` from one memory, the integral of order ``1 - gamma`` and its rate.
     """
 
     switching: str = "sign"
@@ -136,20 +137,6 @@ class FOBSMC(ControlLaw):
 
     name = "fobsmc"
     GAINS = FOBSMC_GAINS
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        self.memory  # noqa: B018 (validates the method and its options before tracing)
-
-    @functools.cached_property
-    def memory(self) -> Any:
-        """``D^(gamma-1) e1`` and its time derivative ``D^gamma e1`` from one memory: the
-        integral of order ``1 - gamma`` and its rate
-        (:func:`fojax.fractional.integral_with_rate`)."""
-        operator = fractional.make_operator(
-            self.fractional_method, self.dt, self.horizon, **dict(self.fractional_options)
-        )
-        return fractional.integral_with_rate(operator)
 
     def steady_state_error_bound(self, gains: FOBSMCGains, disturbance: Array) -> Array:
         """``(..., 6)`` steady-state ``|e1|`` under a constant disturbance ``d``: 0.

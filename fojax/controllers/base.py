@@ -24,12 +24,14 @@ functions above itself.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any, ClassVar, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
 
+from fojax import fractional
 from fojax.controllers.gains import GainSpec
 
 Array = jax.Array
@@ -39,6 +41,7 @@ __all__ = [
     "ControlInfo",
     "ControlLaw",
     "Controller",
+    "FractionalMemory",
     "LawOutput",
     "Observation",
     "check_positive",
@@ -209,6 +212,25 @@ class ControlLaw:
 
     def step(self, params: Any, state: Any, e1: Array, e2: Array) -> tuple[Any, LawOutput]:
         raise NotImplementedError(f"{type(self).__name__} must implement step")
+
+
+class FractionalMemory:
+    """Mixin of a :class:`ControlLaw` with a fractional memory: the law's fields
+    ``fractional_method`` and ``fractional_options`` (``(name, value)`` pairs) choose the
+    operator (:func:`fojax.fractional.make_operator`), checked when the law is made."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.memory  # noqa: B018 (validates the method and its options before tracing)
+
+    @functools.cached_property
+    def memory(self) -> Any:
+        """The law's fractional integral and its rate from one memory
+        (:func:`fojax.fractional.integral_with_rate`), built once."""
+        operator = fractional.make_operator(
+            self.fractional_method, self.dt, self.horizon, **dict(self.fractional_options)
+        )
+        return fractional.integral_with_rate(operator)
 
 
 def switching(kind: str, surface: Array, width: Array) -> Array:

@@ -138,26 +138,26 @@ def batch_layout(draws: int, device_batch: int | None = None, mesh=None) -> dict
 
 def check_run_arguments(draws, seed, device_batch=None) -> None:
     """``ValueError`` saying what to change for a bad draw count, seed or block size."""
-    if isinstance(draws, bool) or not isinstance(draws, int | np.integer) or draws < 1:
-        raise ValueError(f"draws must be a positive integer, got {draws!r}")
-    if draws > MAX_DRAWS:
-        raise ValueError(
-            f"draws must be at most 2**32 = {MAX_DRAWS} (draw indices are 32-bit; more "
-            f"would repeat draws), got {draws}; split the study over several seeds"
-        )
-    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    if seed > MAX_SEED:
-        raise ValueError(
-            f"seed must be at most 2**63 - 1 = {MAX_SEED} (the range of jax.random.PRNGKey), "
-            f"got {seed}"
-        )
-    if device_batch is not None and (
-        isinstance(device_batch, bool)
-        or not isinstance(device_batch, int | np.integer)
-        or device_batch < 1
-    ):
+    limits = (
+        ("draws", draws, 1, "a positive", MAX_DRAWS, "2**32", "draw indices are 32-bit; more "
+         "would repeat draws", "; split the study over several seeds"),
+        ("seed", seed, 0, "a non-negative", MAX_SEED, "2**63 - 1",
+         "the range of jax.random.PRNGKey", ""),
+    )  # fmt: skip
+    for label, value, lowest, kind, top, top_text, why, advice in limits:
+        if _not_integer(value, lowest):
+            raise ValueError(f"{label} must be {kind} integer, got {value!r}")
+        if value > top:
+            raise ValueError(
+                f"{label} must be at most {top_text} = {top} ({why}), got {value}{advice}"
+            )
+    if device_batch is not None and _not_integer(device_batch, 1):
         raise ValueError(f"device_batch must be a positive integer, got {device_batch!r}")
+
+
+def _not_integer(value, lowest: int) -> bool:
+    """Whether ``value`` is not an integer (``bool`` is not one) ``>= lowest``."""
+    return isinstance(value, bool) or not isinstance(value, int | np.integer) or value < lowest
 
 
 def check_settings(controller, scenario, config, metrics_config=None) -> None:
@@ -444,12 +444,7 @@ def run(
     Returns a :class:`MonteCarloResult`, the same on every process.
     """
     controller = as_controller(controller)
-    if hasattr(controller, "check_gains"):
-        controller.check_gains(gains)
-    check_run_arguments(draws, seed, device_batch)
-    if isinstance(keep, bool) or not isinstance(keep, int | np.integer) or keep < 0:
-        raise ValueError(f"keep must be an integer >= 0 (0: no trajectories), got {keep!r}")
-    member = check_member(scenario, member)
+    member = _check_run(controller, gains, scenario, draws, seed, device_batch, keep, member)
     draws, seed = int(draws), int(seed)
     batch = int(device_batch or default_device_batch())
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
@@ -460,34 +455,43 @@ def run(
     lead = jax.process_index() == 0
     chunk_store = None
     if store is not None and lead:
-        settings = fingerprint(
-            controller, gains, scenario, config, seed, dtype, metrics_config, batch, member=member
-        )
-        chunk_store = ChunkStore(Path(store), settings)
+        fields = (controller, gains, scenario, config, seed, dtype, metrics_config, batch)
+        chunk_store = ChunkStore(Path(store), fingerprint(*fields, member=member))
     segments, calls = _plan_calls(chunk_store, draws, keep, batch, layout["devices"], mesh)
     if runner is None and calls:
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
     dispatch = _Dispatch(runner, gains, scenario, config, seed, batch, keep, mesh, member)
     start_time = time.perf_counter()
-    done = draws - _to_compute(segments)
     report = progress and lead and (lambda *a: dispatch.report(controller.name, *a))
+    done = draws - _to_compute(segments)  # loaded from the store
     call_times = _run_calls(dispatch, calls, chunk_store, done, draws, layout, config, report)
     wall = time.perf_counter() - start_time
     result = _result(segments, chunk_store, dispatch.computed, batch, keep, mesh, call_times)
-    status, per_draw, kept, computed_draws, compile_time = result
+    return _monte_carlo_result(controller.name, result, wall, layout, len(calls), draws)
+
+
+def _check_run(controller, gains, scenario, draws, seed, device_batch, keep, member):
+    """:func:`run`'s checks of its arguments, before anything runs; returns the member
+    (:func:`check_member`)."""
+    if hasattr(controller, "check_gains"):
+        controller.check_gains(gains)
+    check_run_arguments(draws, seed, device_batch)
+    if _not_integer(keep, 0):
+        raise ValueError(f"keep must be an integer >= 0 (0: no trajectories), got {keep!r}")
+    return check_member(scenario, member)
+
+
+def _monte_carlo_result(name, result, wall, layout, calls, draws) -> MonteCarloResult:
+    """The :class:`MonteCarloResult` of :func:`_result`'s ``result`` for ``calls`` calls."""
+    status, per_draw, kept, computed, compile_time = result
     return MonteCarloResult(
-        controller=controller.name,
+        controller=name,
         status=status.astype(np.int32),
         per_draw=per_draw,
         trajectories=unflatten_snapshot(kept) if kept else None,
         wall_time=wall,
         compile_time=compile_time,
-        layout={
-            **layout,
-            "calls": len(calls),
-            "computed": computed_draws,
-            "loaded": draws - computed_draws,
-        },
+        layout={**layout, "calls": calls, "computed": computed, "loaded": draws - computed},
     )
 
 
