@@ -195,6 +195,9 @@ def test_yield_against_a_count_by_hand():
     valid[0] = False
     again = rq.evaluate(YIELD_SET, metrics, valid=valid)
     assert again.passed == 2 and again.failures == (4, 3, 2)
+    assert result.describe().endswith("most failed: rmse (3 draws)")
+    one = rq.evaluate(YIELD_SET, {k: v[:2] for k, v in metrics.items()})
+    assert one.describe().endswith("most failed: rmse (1 draw)")
 
 
 def test_missing_metric_is_an_error():

@@ -248,7 +248,7 @@ def main(argv=None) -> int:
     written = summary["files"] + [f"{name} (+ .pdf)" for name in summary.get("figures", [])]
     print(f"wrote {out}/: {', '.join(written)}")
     if study.keep == 0:
-        print("no trajectories kept (--keep 0): no trajectories.npz and no figures")
+        print("no trajectories kept (--keep 0): no trajectories.npz and no trajectory figures")
     return 0
 
 

@@ -109,7 +109,7 @@ class YieldResult:
         )
         if self.most_failed is not None:
             worst = max(self.failures)
-            text += f"; most failed: {self.most_failed} ({worst} draws)"
+            text += f"; most failed: {self.most_failed} ({worst} draw{'' if worst == 1 else 's'})"
         return text
 
 
