@@ -53,10 +53,13 @@ requirement set, objective effort) went from 0/64 to 63/64 held-out draws. Hence
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
@@ -243,30 +246,46 @@ def minimize(
     requirements: int,
     validate: Callable | None = None,
     progress: bool = False,
+    checkpoint: Path | None = None,
+    fingerprint: dict | None = None,
 ) -> ConstrainedResult:
     """The augmented-Lagrangian loop around ``step`` (:func:`make_alm_step`) on the fixed
     sample ``data`` of ``n`` draws. ``validate(params) -> dict`` with ``passed``,
     ``failures`` (name -> count) and ``objective`` (lower is better) scores the start and
     each outer iterate; the best by ``passed``, then fewer failures, then ``objective``,
-    is returned (without ``validate``: the last)."""
+    is returned (without ``validate``: the last).
+
+    checkpoint: a file written (atomically) after every outer iteration; when it exists
+    the loop continues from it, with the result an uninterrupted run gives (each outer
+    iteration starts a fresh inner optimiser, so its state is the iterate, ``lam``,
+    ``rho`` and the selection). fingerprint: JSON-ready settings the checkpoint must
+    have been written with (a ``ValueError`` names the ones that differ)."""
     start = time.perf_counter()
-    lam = jnp.zeros(requirements)
-    rho = float(config.penalty)
-    # Every number passed as an array of the default float: one compilation of ``step``.
-    _, _, f0, _, _ = step(params, data, n, jnp.asarray(1.0), lam, jnp.asarray(rho))
-    scale = float(f0) if float(f0) > 1e-12 else 1.0
+    resumed = _load_checkpoint(checkpoint, params, fingerprint) if checkpoint else None
+    if resumed is not None:
+        state, params, best_params, lam = resumed
+        rho, scale, previous = state["rho"], state["scale"], state["previous"]
+        best, initial, history = state["best"], state["initial"], state["history"]
+        start -= state["elapsed_s"]
+    else:
+        lam = jnp.zeros(requirements)
+        rho = float(config.penalty)
+        # Every number passed as an array of the default float: one compilation of ``step``.
+        _, _, f0, _, _ = step(params, data, n, jnp.asarray(1.0), lam, jnp.asarray(rho))
+        scale = float(f0) if float(f0) > 1e-12 else 1.0
     inner = _inner_loop(step, data, n, scale, config)
 
     def score(p):
         return validate(p) if validate is not None else None
 
-    best_params, best = params, score(params)
-    if best is not None:
-        best = {**best, "outer_step": 0}
-    initial = best
-    history = []
-    previous = math.inf
-    for outer in range(1, config.outer_steps + 1):
+    if resumed is None:
+        best_params, best = params, score(params)
+        if best is not None:
+            best = {**best, "outer_step": 0}
+        initial = best
+        history = []
+        previous = math.inf
+    for outer in range(len(history) + 1, config.outer_steps + 1):
         params, (loss, f, c, valid) = inner(params, lam, jnp.asarray(rho))
         c = np.asarray(c, np.float64)
         lam = jnp.maximum(0.0, lam + rho * jnp.asarray(c, lam.dtype))
@@ -292,6 +311,11 @@ def minimize(
         else:
             best_params = params
         history.append(row)
+        if checkpoint is not None:
+            state = {"rho": rho, "scale": scale, "previous": previous, "best": best}
+            state.update(initial=initial, history=history, fingerprint=fingerprint)
+            state["elapsed_s"] = time.perf_counter() - start
+            _save_checkpoint(checkpoint, state, params, best_params, lam)
         if progress:
             _print_outer(row, config.outer_steps, worst, scored)
     return ConstrainedResult(
@@ -304,6 +328,58 @@ def minimize(
         params,
         initial,
     )
+
+
+def _save_checkpoint(path: Path, state: dict, params, best_params, lam) -> None:
+    """:func:`minimize`'s state after an outer iteration, written atomically."""
+    arrays = {f"params_{i}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(params))}
+    arrays.update({f"best_{i}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(best_params))})
+    arrays.update(lam=np.asarray(lam), state=np.asarray(json.dumps(state, default=_plain)))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.stem}.partial.npz")
+    np.savez(temporary, **arrays)
+    os.replace(temporary, path)
+
+
+def _plain(value):
+    """JSON for NumPy scalars and arrays (the history's validation counts)."""
+    return value.tolist() if hasattr(value, "tolist") else str(value)
+
+
+def _load_checkpoint(path: Path, like, fingerprint: dict | None):
+    """``(state, params, best_params, lam)`` of the checkpoint ``path`` (``params``
+    shaped as ``like``), or None when there is none."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    with np.load(path) as stored:
+        state = json.loads(str(stored["state"]))
+        treedef = jax.tree.structure(like)
+        leaves = [jnp.asarray(stored[f"params_{i}"]) for i in range(treedef.num_leaves)]
+        best = [jnp.asarray(stored[f"best_{i}"]) for i in range(treedef.num_leaves)]
+        lam = jnp.asarray(stored["lam"])
+    _check_fingerprint(path, state.get("fingerprint"), fingerprint)
+    return state, jax.tree.unflatten(treedef, leaves), jax.tree.unflatten(treedef, best), lam
+
+
+def check_checkpoint(path: Path, fingerprint: dict | None) -> None:
+    """``ValueError`` naming the settings that differ when the checkpoint ``path`` (of
+    :func:`minimize`) was written with another ``fingerprint``."""
+    with np.load(path) as stored:
+        saved = json.loads(str(stored["state"])).get("fingerprint")
+    _check_fingerprint(path, saved, fingerprint)
+
+
+def _check_fingerprint(path, saved: dict | None, fingerprint: dict | None) -> None:
+    saved = saved or {}
+    now = json.loads(json.dumps(fingerprint or {}, default=_plain))
+    differing = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
+    if differing:
+        raise ValueError(
+            f"{path} was written by a run with other settings ({', '.join(differing)}); "
+            "rerun with the original options, or choose another --out"
+        )
 
 
 def _inner_loop(step: Callable, data: Any, n: int, scale: float, config: ConstrainedConfig):
@@ -519,12 +595,15 @@ def tune_to_requirements(
     config: ConstrainedConfig = ConstrainedConfig(),
     init_params: Any = None,
     progress: bool = False,
+    checkpoint: Path | None = None,
+    fingerprint: dict | None = None,
 ) -> ConstrainedResult:
     """Minimise ``problem``'s objective subject to its requirements (module docstring)
     from ``init_params`` (default the base gains), on the problem's tuning draws
     (minibatch 0, ``spec.draws`` draws), validated on ``config.validation_draws``
     validation draws. The result's ``params`` are the best validated by yield, then
-    objective; ``problem.gains(result.params)`` are the gains."""
+    objective; ``problem.gains(result.params)`` are the gains. ``checkpoint``,
+    ``fingerprint``: as :func:`minimize`'s (continue an interrupted run)."""
     params = problem.initial_params() if init_params is None else init_params
     step = make_alm_step(problem.per_draw, config)
     keys = problem.tuning_keys()
@@ -544,4 +623,6 @@ def tune_to_requirements(
         len(problem.requirements),
         validate if validation is not None else None,
         progress,
+        checkpoint,
+        fingerprint,
     )

@@ -111,7 +111,7 @@ def test_missing_file_and_bad_rotor_limit(tmp_path, capsys, tiny):
         (["--position-weight", "2"], "--position-weight applies to the weighted-sum tuner only"),
         (["--steps", "3"], "--steps applies to the weighted-sum tuner only"),
         (["--cvar-fraction", "0.2"], "--cvar-fraction applies to the weighted-sum tuner"),
-        (["--resume"], "--resume applies to the weighted-sum tuner only"),
+        (["--resume"], "nothing to resume"),
         (["--objective", "mean"], "--objective mean is the weighted-sum tuner's"),
         (["--method", "cma-es", "--inner-steps", "3"], "--inner-steps applies to the gradient"),
         (["--method", "cma-es", "--learning-rate", "0.1"], "--learning-rate applies to the"),
@@ -187,6 +187,37 @@ def test_tune_to_requirements_writes_gains_and_heldout_yield(tuned, tiny):
         assert entry["draws"] == 4
         assert entry["interval"] == pytest.approx(list(rq.clopper_pearson(entry["passed"], 4)))
         assert set(entry["failures"]) == {"tilt", "rotor limits", "overshoot"}
+
+
+def test_tune_to_requirements_resumes_to_the_uninterrupted_gains(tmp_path, tuned, tiny, capsys):
+    """One outer step, then --resume with two: the gains of the two-step run in one go
+    (the ``tuned`` fixture), and the checkpoint refuses what does not match."""
+    out = tmp_path / "r"
+
+    def argv(outer, *extra, folder=out):
+        return [
+            "tune", *BASE_TUNE, "--requirements", str(tiny), "--draws", "2", "--outer-steps",
+            str(outer), "--inner-steps", "2", "--validation-draws", "4", "--eval-draws", "4",
+            "--quiet", "--out", str(folder), *extra,
+        ]  # fmt: skip
+
+    assert cli.main(argv(1)) == 0
+    assert "holds the checkpoint of an earlier run" in _exit_2(capsys, cli.main, argv(2))
+    assert cli.main(argv(2, "--resume")) == 0
+    got = json.loads((out / "gains.json").read_text())
+    want = json.loads((tuned / "gains.json").read_text())
+    assert got["gains"] == want["gains"]
+    assert got["metadata"]["selected"] == want["metadata"]["selected"]
+    history = (out / "history.csv").read_text().splitlines()
+    assert len(history) == 3
+    assert len(json.loads((out / "run.json").read_text())["sessions"]) == 2
+    changed = _exit_2(capsys, cli.main, argv(2, "--resume", "--margin", "0.1"))
+    assert "other settings (tuner)" in changed
+    missing = _exit_2(capsys, cli.main, argv(1, "--resume", folder=tmp_path / "none"))
+    assert "nothing to resume" in missing
+    cma = [*BASE_TUNE, "--requirements", str(tiny), "--method", "cma-es", "--resume"]
+    message = _exit_2(capsys, cli.main, ["tune", *cma, "--out", str(out)])
+    assert "--resume applies to the gradient tuner" in message
 
 
 def test_simulate_requirements_yield_matches_per_draw_metrics(tmp_path, tiny, tuned, capsys):

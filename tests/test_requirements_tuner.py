@@ -129,3 +129,43 @@ def test_cma_es_baseline_on_the_same_constraints(simulator_run):
     assert co._rank(out["selected"]) >= co._rank(start)
     assert out["selected"]["draws"] == start["draws"]
     problem.gains(out["params"])  # maps onto feasible gains
+
+
+def test_an_interrupted_run_resumes_to_the_uninterrupted_result(toy, tmp_path):
+    data, n, _ = toy
+
+    def run(outer_steps, checkpoint=None, fingerprint=None):
+        config = co.ConstrainedConfig(outer_steps=outer_steps, inner_steps=10, validation_draws=0)
+
+        def validate(x):  # counts by hand on the tuning draws: passed and failures
+            ok = np.stack(
+                [1 + 0.1 * np.asarray(data[0]) <= x[0], 0.5 + 0.1 * np.asarray(data[1]) <= x[1]]
+            )
+            failures = {"a": int(np.sum(~ok[0])), "b": int(np.sum(~ok[1]))}
+            return {
+                "passed": int(np.sum(ok.all(0))),
+                "failures": failures,
+                "objective": float(x @ x),
+            }
+
+        step = co.make_alm_step(_toy, config)
+        return co.minimize(
+            step, jnp.zeros(2), data, n, config, 2, validate,
+            checkpoint=checkpoint, fingerprint=fingerprint,
+        )  # fmt: skip
+
+    whole = run(4)
+    path = tmp_path / "checkpoint.npz"
+    first = run(2, path, {"run": 1})
+    assert len(first.history) == 2 and path.is_file()
+    resumed = run(4, path, {"run": 1})
+    np.testing.assert_array_equal(resumed.params, whole.params)
+    np.testing.assert_array_equal(resumed.final_params, whole.final_params)
+    np.testing.assert_array_equal(resumed.multipliers, whole.multipliers)
+    assert resumed.penalty == whole.penalty
+    assert resumed.selected == whole.selected and resumed.initial == whole.initial
+    strip = [{k: v for k, v in row.items() if k != "wall_time_s"} for row in whole.history]
+    again = [{k: v for k, v in row.items() if k != "wall_time_s"} for row in resumed.history]
+    assert again == strip
+    with pytest.raises(ValueError, match="other settings \\(run\\)"):
+        run(4, path, {"run": 2})

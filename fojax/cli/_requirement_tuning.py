@@ -22,7 +22,10 @@ from pathlib import Path
 from fojax.cli import _tuning
 from fojax.cli.output import provenance, write_csv, write_json
 
-__all__ = ["PreparedRequirementRun", "prepare_tune", "tune_main"]
+__all__ = ["CHECKPOINT", "PreparedRequirementRun", "prepare_tune", "tune_main"]
+
+CHECKPOINT = "checkpoint_requirements.npz"
+"""The gradient tuner's state after its last outer iteration (``--resume`` continues it)."""
 
 
 @dataclasses.dataclass
@@ -78,7 +81,21 @@ def prepare_tune(parser, args) -> PreparedRequirementRun:
         )
     except ValueError as error:
         parser.error(str(error))
-    return PreparedRequirementRun(built, config, reqs, limit, gains, label, args.out)
+    checkpoint = Path(args.out) / CHECKPOINT
+    if args.method != "cma-es" and checkpoint.exists() and not args.resume:
+        parser.error(
+            f"{args.out} holds the checkpoint of an earlier run ({checkpoint}); pass --resume "
+            "to continue it, or choose another --out"
+        )
+    if args.resume and not checkpoint.exists():
+        parser.error(f"nothing to resume: {checkpoint} does not exist")
+    run = PreparedRequirementRun(built, config, reqs, limit, gains, label, args.out)
+    if args.resume:
+        try:
+            co.check_checkpoint(checkpoint, _fingerprint(run, args))
+        except ValueError as error:
+            parser.error(str(error))
+    return run
 
 
 def _takes_switching(controller: str) -> bool:
@@ -136,7 +153,13 @@ def _tune(run: PreparedRequirementRun, args, lead: bool) -> dict:
             "history": outcome["history"],
             "draw_steps": outcome["draw_steps"],
         }
-    result = co.tune_to_requirements(problem, config, progress=not args.quiet and lead)
+    result = co.tune_to_requirements(
+        problem,
+        config,
+        progress=not args.quiet and lead,
+        checkpoint=_checkpoint(run, lead),
+        fingerprint=_fingerprint(run, args),
+    )
     evaluations = 1 + config.outer_steps * (config.inner_steps + 1)
     return {
         "params": result.params,
@@ -145,6 +168,30 @@ def _tune(run: PreparedRequirementRun, args, lead: bool) -> dict:
         "history": _history_rows(result.history, run.requirements.names),
         "draw_steps": evaluations * spec.draws * spec.steps,
     }
+
+
+def _checkpoint(run: PreparedRequirementRun, lead: bool) -> Path:
+    """The checkpoint file; other processes than 0 write a private copy (process 0
+    writes the outputs)."""
+    checkpoint = Path(run.out) / CHECKPOINT
+    if lead:
+        return checkpoint
+    import shutil
+    import tempfile
+
+    private = Path(tempfile.mkdtemp(prefix="fojax-tune-")) / CHECKPOINT
+    if checkpoint.is_file():
+        shutil.copy2(checkpoint, private)
+    return private
+
+
+def _fingerprint(run: PreparedRequirementRun, args) -> dict:
+    """What a checkpoint must have been written with: the settings but the number of
+    outer steps (a resumed run may go on for longer)."""
+    settings = _settings(run, args)
+    settings["tuner"] = {k: v for k, v in settings["tuner"].items() if k != "outer_steps"}
+    settings["init_gains"] = _tuning.init_record(run.init_gains, run.init_label)
+    return json.loads(json.dumps(settings, default=_plain))
 
 
 def tune_main(run: PreparedRequirementRun, args, runtime: dict, argv) -> int:
@@ -157,7 +204,10 @@ def tune_main(run: PreparedRequirementRun, args, runtime: dict, argv) -> int:
     if lead:
         out.mkdir(parents=True, exist_ok=True)
         record = {"controller": spec.controller, "init": run.init_label, "init_gains": init}
-        write_json(out / "run.json", {**record, **settings, "sessions": [session]})
+        sessions = [session]
+        if args.resume and (out / "run.json").is_file():
+            sessions = json.loads((out / "run.json").read_text()).get("sessions", []) + sessions
+        write_json(out / "run.json", {**record, **settings, "sessions": sessions})
     if not args.quiet and lead:
         print(
             f"tuning {spec.controller} to {len(reqs)} requirements ({', '.join(reqs.names)}) "

@@ -81,13 +81,19 @@ _WEIGHTED_ONLY = {
     "checkpoint_every": "the weighted-sum tuner's checkpoints",
     "validate_every": "the weighted-sum tuner's validation interval (with --requirements "
     "every outer step is validated)",
-    "resume": "the weighted-sum tuner's checkpoints",
     "device_batch": "the weighted-sum tuner's sharded minibatch",
     "eval_horizon": "the weighted-sum tuner's held-out horizon (with --requirements the "
     "held-out draws run the tuning horizon, which the bounds refer to)",
 }
 _REQUIREMENTS_ONLY = ("rotor_limit", "outer_steps", "inner_steps", "margin", "formulation")
-_GRADIENT_ONLY = ("outer_steps", "inner_steps", "formulation", "learning_rate", "clip_norm")
+_GRADIENT_ONLY = (
+    "outer_steps",
+    "inner_steps",
+    "formulation",
+    "learning_rate",
+    "clip_norm",
+    "resume",
+)
 
 
 # ------------------------------------------------------------------ argument types
