@@ -29,10 +29,10 @@ import argparse
 import dataclasses
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
+from experiments import _common
 from fojax.cli import arguments, output
 
 __all__ = ["main", "table"]
@@ -43,15 +43,14 @@ TERMS = ("position", "attitude", "effort", "chattering")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m experiments.fair_comparison")
+    parser = _common.parser("fair_comparison")
     parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
-    parser.add_argument(
-        "--horizon", type=arguments.positive_float, default=10.0, help="tuning horizon (s)"
+    _common.add_numbers(
+        parser,
+        horizon=(10.0, "tuning horizon (s)"),
+        draws=(16, "draws per gradient step"),
+        steps=(50, "gradient steps"),
     )
-    parser.add_argument(
-        "--draws", type=arguments.positive_int, default=16, help="draws per gradient step"
-    )
-    parser.add_argument("--steps", type=arguments.positive_int, default=50, help="gradient steps")
     parser.add_argument(
         "--method",
         choices=("lbfgs", "adam"),
@@ -59,32 +58,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="the gradient tuner's method (lbfgs: quasi-Newton on one fixed sample of --draws "
         "draws; adam: fresh minibatches)",
     )
-    parser.add_argument(
-        "--learning-rate",
-        type=arguments.positive_float,
-        help="Adam's step (0.1; --method adam only)",
-    )
+    _common.add_numbers(parser, learning_rate=(None, "Adam's step (0.1; --method adam only)"))
     parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument("--controllers", help="comma-separated names (default: all registered)")
-    parser.add_argument("--eval-draws", type=arguments.positive_int, default=64)
+    _common.add_numbers(parser, eval_draws=64)
     parser.add_argument(
         "--eval-scenarios",
         type=arguments.scenario_ids,
         default=(1, 2, 3),
         help="comma-separated scenario ids for the evaluation (default 1,2,3)",
     )
-    parser.add_argument(
-        "--eval-horizon", type=arguments.positive_float, help="s (default: each scenario's)"
-    )
+    _common.add_numbers(parser, eval_horizon=(None, "s (default: each scenario's)"))
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--out", type=Path, default=Path("results/fair_comparison"))
-    parser.add_argument(
-        "--update-doc",
-        type=Path,
-        help="markdown file whose <!-- fair-comparison:begin/end --> block to replace",
-    )
-    parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
-    parser.add_argument("--quiet", action="store_true")
+    block = "markdown file whose <!-- fair-comparison:begin/end --> block to replace"
+    _common.add_outputs(parser, "fair_comparison", update_doc=block)
     return parser
 
 
@@ -105,7 +92,7 @@ def parse_args(argv) -> argparse.Namespace:
     if args.controllers is None:
         args.controllers = tuple(known)
     else:
-        names = tuple(n.strip() for n in args.controllers.split(",") if n.strip())
+        names = _common.listed(args.controllers)
         unknown = [n for n in names if n not in known]
         if unknown or not names:
             parser.error(
@@ -125,107 +112,130 @@ def parse_args(argv) -> argparse.Namespace:
     return args
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    if args.dtype == "float64":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
+def tune(args, config, index: int, name: str):
+    """Tune ``name`` from its default gains (resuming its checkpoint); its problem, its
+    default and tuned gains, and the tuning's record."""
     import jax.numpy as jnp
 
-    from fojax import scenarios, statistics
-    from fojax.controllers import gains_io, registry
+    from fojax.controllers import registry
     from fojax.optimize import params as params_lib
     from fojax.optimize import problem as problem_lib
     from fojax.optimize import tuner as tuner_lib
 
+    spec = problem_lib.ProblemSpec(
+        controller=name,
+        scenario=args.scenario,
+        horizon=args.horizon,
+        draws=args.draws,
+        seed=args.seed,
+        dtype=args.dtype,
+    )
+    defaults = registry.get_controller_class(name).default_gains(jnp.dtype(args.dtype))
+    run_dir = args.out / "tuning" / name
+    resume = (run_dir / tuner_lib.CHECKPOINT).exists()
+    run = tuner_lib.prepare(spec, config, defaults, "default", run_dir, resume=resume)
+    output.log(
+        args.quiet,
+        f"[{index}/{len(args.controllers)}] tuning {name}: {config.steps} steps x "
+        f"{spec.draws} draws x {spec.horizon:g} s" + (" (resumed)" if resume else ""),
+    )
+    t0 = time.perf_counter()
+    result = tuner_lib.tune(run, progress=not args.quiet)
+    last = result.history[-1]
+    record = {
+        "draw_steps": last["draw_steps"],
+        "tuning_wall_time_s": last["wall_time_s"],
+        "this_invocation_s": round(time.perf_counter() - t0, 1),
+        "first_objective": result.history[0]["objective"],
+        "final_objective": last["objective"],
+        "returned_step": result.best_step,
+        "validation": result.validation,
+        "parameters": params_lib.make_parameter_map(name, spec.fields, spec.share).size,
+    }
+    return spec, {"default": defaults, "tuned": result.gains}, record
+
+
+def _compare(by_gains: dict, base) -> dict:
+    """One controller's held-out costs (default and tuned gains), the tuning's gain and,
+    against the baseline's tuned costs ``base`` (None: the baseline), the differences."""
+    from fojax import statistics
+
+    record = {}
+    for which, c in by_gains.items():
+        terms = np.where(c.diverged[:, None], np.nan, c.terms)
+        record[which] = {
+            "cost": statistics.mean_ci(c.cost),
+            "terms_mean": dict(zip(TERMS, np.nanmean(terms, 0).tolist(), strict=True)),
+            "diverged": int(np.sum(c.diverged)),
+        }
+    tuned = by_gains["tuned"]
+    record["tuned_minus_default"] = statistics.paired_difference(
+        tuned.cost, by_gains["default"].cost
+    )
+    if base is not None:
+        record["tuned_minus_baseline"] = statistics.paired_difference(tuned.cost, base.cost)
+        record["baseline_better_fraction"] = float(np.mean(base.cost < tuned.cost))
+        record["position_term_minus_baseline"] = statistics.paired_difference(
+            tuned.terms[:, 0], base.terms[:, 0]
+        )
+    return record
+
+
+def evaluate(args, specs: dict, gain_sets: dict, scenario, keys) -> dict:
+    """Every controller's default and tuned gains on the held-out draws ``keys`` of
+    ``scenario``, compared with the tuned baseline's."""
+    from fojax.optimize import problem as problem_lib
+
+    horizon = args.eval_horizon or scenario.horizon
+    costs = {
+        name: {
+            which: problem_lib.evaluate(
+                specs[name], gains, keys, horizon=horizon, scenario=scenario
+            )
+            for which, gains in gain_sets[name].items()
+        }
+        for name in args.controllers
+    }
+    base = costs[BASELINE]["tuned"]
+    controllers = {n: _compare(c, None if n == BASELINE else base) for n, c in costs.items()}
+    return {"horizon_s": horizon, "draws": args.eval_draws, "controllers": controllers}
+
+
+def _doc_head(argv, results: dict) -> str:
+    context = output.run_context(["python", "-m", "experiments.fair_comparison", *(argv or [])])
+    return (
+        f"Run: `{context['command']}`; commit {output.commit_label(context)}, "
+        f"{context.get('cpu_model')}, load average {context['load_average'][0]} at the end; "
+        f"{results['total_wall_time_s']:.0f} s in all (tuning resumed from checkpoints "
+        "counts only the steps this invocation ran)."
+    )
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    _common.enable_float64(args.dtype == "float64")
+    from fojax import scenarios
+    from fojax.controllers import gains_io
+    from fojax.optimize import tuner as tuner_lib
+
     start_all = time.perf_counter()
-    dtype = jnp.dtype(args.dtype)
     config = tuner_lib.TunerConfig(
         steps=args.steps, method=args.method, learning_rate=args.learning_rate
     )
-    settings = {f"scenario {k}": scenarios.get_scenario(k) for k in args.eval_scenarios}
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-
+    args.out.mkdir(parents=True, exist_ok=True)
     # -- tuning: the same problem, budget and settings for every controller --------------
     specs, gain_sets, tuning = {}, {}, {}
     for index, name in enumerate(args.controllers, 1):
-        spec = problem_lib.ProblemSpec(
-            controller=name,
-            scenario=args.scenario,
-            horizon=args.horizon,
-            draws=args.draws,
-            seed=args.seed,
-            dtype=args.dtype,
-        )
-        defaults = registry.get_controller_class(name).default_gains(dtype)
-        run_dir = out / "tuning" / name
-        resume = (run_dir / tuner_lib.CHECKPOINT).exists()
-        run = tuner_lib.prepare(spec, config, defaults, "default", run_dir, resume=resume)
-        output.log(
-            args.quiet,
-            f"[{index}/{len(args.controllers)}] tuning {name}: {config.steps} steps x "
-            f"{spec.draws} draws x {spec.horizon:g} s" + (" (resumed)" if resume else ""),
-        )
-        t0 = time.perf_counter()
-        result = tuner_lib.tune(run, progress=not args.quiet)
-        specs[name] = spec
-        gain_sets[name] = {"default": defaults, "tuned": result.gains}
-        last = result.history[-1]
-        tuning[name] = {
-            "draw_steps": last["draw_steps"],
-            "tuning_wall_time_s": last["wall_time_s"],
-            "this_invocation_s": round(time.perf_counter() - t0, 1),
-            "first_objective": result.history[0]["objective"],
-            "final_objective": last["objective"],
-            "returned_step": result.best_step,
-            "validation": result.validation,
-            "parameters": params_lib.make_parameter_map(name, spec.fields, spec.share).size,
-        }
-
+        specs[name], gain_sets[name], tuning[name] = tune(args, config, index, name)
     # -- evaluation on the same held-out draws ----------------------------------------
-    keys = np.asarray(
-        scenarios.draw_keys(args.seed, problem_lib.HELDOUT_OFFSET + np.arange(args.eval_draws))
-    )
+    keys = _common.heldout_keys(args.seed, args.eval_draws)
     evaluation = {}
-    for label, scenario in settings.items():
-        horizon = args.eval_horizon or scenario.horizon
+    for k in args.eval_scenarios:
         t0 = time.perf_counter()
-        costs = {
-            name: {
-                which: problem_lib.evaluate(
-                    specs[name], gains, keys, horizon=horizon, scenario=scenario
-                )
-                for which, gains in gain_sets[name].items()
-            }
-            for name in args.controllers
-        }
-        base = costs[BASELINE]["tuned"]
-        entry = {"horizon_s": horizon, "draws": args.eval_draws, "controllers": {}}
-        for name, by_gains in costs.items():
-            record = {}
-            for which, c in by_gains.items():
-                terms = np.where(c.diverged[:, None], np.nan, c.terms)
-                record[which] = {
-                    "cost": statistics.mean_ci(c.cost),
-                    "terms_mean": dict(zip(TERMS, np.nanmean(terms, 0).tolist(), strict=True)),
-                    "diverged": int(np.sum(c.diverged)),
-                }
-            tuned = by_gains["tuned"]
-            record["tuned_minus_default"] = statistics.paired_difference(
-                tuned.cost, by_gains["default"].cost
-            )
-            if name != BASELINE:
-                record["tuned_minus_baseline"] = statistics.paired_difference(tuned.cost, base.cost)
-                record["baseline_better_fraction"] = float(np.mean(base.cost < tuned.cost))
-                record["position_term_minus_baseline"] = statistics.paired_difference(
-                    tuned.terms[:, 0], base.terms[:, 0]
-                )
-            entry["controllers"][name] = record
-        evaluation[label] = entry
-        output.log(args.quiet, f"evaluated {label} ({time.perf_counter() - t0:.0f} s)")
-
+        evaluation[f"scenario {k}"] = evaluate(
+            args, specs, gain_sets, scenarios.get_scenario(k), keys
+        )
+        output.log(args.quiet, f"evaluated scenario {k} ({time.perf_counter() - t0:.0f} s)")
     results = {
         "problem": {
             "scenario": args.scenario,
@@ -246,30 +256,12 @@ def main(argv=None) -> int:
         },
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
     }
-    output.write_json(out / "results.json", results)
     text = table(results)
-    (out / "table.md").write_text(text + "\n")
-    if args.update_doc is not None:
-        context = output.run_context(["python", "-m", "experiments.fair_comparison", *(argv or [])])
-        head = (
-            f"Run: `{context['command']}`; commit {output.commit_label(context)}, "
-            f"{context.get('cpu_model')}, load average {context['load_average'][0]} at the end; "
-            f"{results['total_wall_time_s']:.0f} s in all (tuning resumed from checkpoints "
-            "counts only the steps this invocation ran)."
-        )
-        output.splice(args.update_doc, head + "\n\n" + text, name="fair-comparison")
-    print(text)
-    print(f"wrote {out}/results.json, table.md ({results['total_wall_time_s']:.0f} s in all)")
-    return 0
-
-
-def _mean_ci(entry: dict) -> str:
-    cost = entry["cost"]
-    if cost["mean"] is None:
-        return "n/a"
-    half = "" if not cost["ci95"] else f" ± {(cost['ci95'][1] - cost['ci95'][0]) / 2:.2g}"
-    diverged = f" ({entry['diverged']} diverged)" if entry["diverged"] else ""
-    return f"{cost['mean']:.4g}{half}{diverged}"
+    doc_text = None if args.update_doc is None else _doc_head(argv, results) + "\n\n" + text
+    wrote = f" ({results['total_wall_time_s']:.0f} s in all)"
+    return _common.finish(
+        args.out, results, text, args.update_doc, "fair-comparison", doc_text, wrote
+    )
 
 
 def _difference(diff: dict, fraction: float | None = None) -> str:
@@ -292,43 +284,32 @@ def table(results: dict) -> str:
     evaluation = results["evaluation"]
     labels = list(evaluation)
     names = list(next(iter(evaluation.values()))["controllers"])
-    lines = [
-        "| controller | gains | "
-        + " | ".join(f"{label} ({evaluation[label]['horizon_s']:g} s)" for label in labels)
-        + " |",
-        "|" + "---|" * (len(labels) + 2),
-    ]
+    columns = [f"{label} ({evaluation[label]['horizon_s']:g} s)" for label in labels]
+    lines = _common.table_head("controller | gains | " + " | ".join(columns))
     for name in names:
         for which in ("default", "tuned"):
-            cells = [_mean_ci(evaluation[label]["controllers"][name][which]) for label in labels]
+            cells = [
+                _common.mean_cell(evaluation[label]["controllers"][name][which], "diverged")
+                for label in labels
+            ]
             lines.append(f"| {name} | {which} | " + " | ".join(cells) + " |")
+    total = f"Tuned cost minus the tuned {BASELINE}'s on the same draw (mean [95 % CI]):"
+    position = "Position term alone (ISE of the position error, m^2 s), tuned minus the tuned "
     paired = (
-        (
-            f"Tuned cost minus the tuned {BASELINE}'s on the same draw (mean [95 % CI]):",
-            "tuned_minus_baseline",
-            "baseline_better_fraction",
-        ),
-        (
-            "Position term alone (ISE of the position error, m^2 s), tuned minus the tuned "
-            f"{BASELINE}'s:",
-            "position_term_minus_baseline",
-            None,
-        ),
+        (total, "tuned_minus_baseline", "baseline_better_fraction"),
+        (f"{position}{BASELINE}'s:", "position_term_minus_baseline", None),
     )
     for title, key, fraction in paired:
-        lines += ["", title, "", "| controller | " + " | ".join(labels) + " |"]
-        lines.append("|" + "---|" * (len(labels) + 1))
+        lines += ["", title, "", *_common.table_head("controller | " + " | ".join(labels))]
         for name in names[1:]:
             records = [evaluation[label]["controllers"][name] for label in labels]
             cells = [_difference(r[key], r[fraction] if fraction else None) for r in records]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     tuning = results["tuning"]
-    lines += [
-        "",
-        "| controller | tuned parameters | tuning draw-steps | tuning wall time (s) | "
-        "objective, first -> last step | returned step: validation cost, start -> returned |",
-        "|---|---|---|---|---|---|",
-    ]
+    lines += [""] + _common.table_head(
+        "controller | tuned parameters | tuning draw-steps | tuning wall time (s) | "
+        "objective, first -> last step | returned step: validation cost, start -> returned"
+    )
     for name in names:
         t = tuning[name]
         v = t.get("validation")

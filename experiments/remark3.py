@@ -35,10 +35,10 @@ import argparse
 import dataclasses
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
+from experiments import _common
 from fojax.cli import output
 
 __all__ = ["main"]
@@ -48,16 +48,10 @@ STEPS_ALONG = (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fojax.cli import arguments
-
-    parser = argparse.ArgumentParser(prog="python -m experiments.remark3")
-    parser.add_argument("--horizon", type=arguments.positive_float, default=80.0)
-    parser.add_argument("--iterations", type=arguments.positive_int, default=40)
+    parser = _common.parser("remark3")
+    _common.add_numbers(parser, horizon=80.0, iterations=40)
     parser.add_argument("--switching", choices=("sat", "tanh"), default="sat")
-    parser.add_argument("--out", type=Path, default=Path("results/remark3"))
-    parser.add_argument("--update-doc", type=Path, help="markdown file to update")
-    parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
-    parser.add_argument("--quiet", action="store_true")
+    _common.add_outputs(parser, "remark3")
     return parser
 
 
@@ -68,157 +62,171 @@ def nominal_scenario_1():
     return dataclasses.replace(scenarios.get_scenario(1), drag_variation=0.0)
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.tiny:
-        args.horizon, args.iterations = 0.3, 3
-    import jax
+class _Objective:
+    """``J = P + A`` of the nominal run of scenario 1 against the tuner's unconstrained
+    parameters (compiled, with its gradient), and every cost term of a gain set."""
 
-    jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp
-    from scipy import optimize as scipy_optimize
+    def __init__(self, args):
+        import jax
+        import jax.numpy as jnp
 
-    from fojax import plant, scenarios, simulator
-    from fojax.controllers import gains_io, registry
-    from fojax.controllers.afonftsmc import paper_gains
-    from fojax.optimize import cost as cost_lib
-    from fojax.optimize import params as params_lib
-    from fojax.optimize import problem as problem_lib
+        from fojax import scenarios, simulator
+        from fojax.controllers import registry
+        from fojax.controllers.afonftsmc import paper_gains
+        from fojax.optimize import cost as cost_lib
+        from fojax.optimize import params as params_lib
+        from fojax.optimize import problem as problem_lib
 
-    start_all = time.perf_counter()
-    dtype = jnp.float64
-    scenario = nominal_scenario_1()
-    steps = int(round(args.horizon / 1e-3))
-    config = simulator.SimulationConfig(
-        dt=1e-3, horizon=args.horizon, save_every=problem_lib.checkpoint_interval(steps)
-    )
-    tracking = cost_lib.CostConfig(effort_weight=0.0, chattering_weight=0.0)
-    every_term = cost_lib.CostConfig()
-    param_map = params_lib.make_parameter_map("afonftsmc", None, "paper")
-    paper = paper_gains(dtype)
-    naive = params_lib.naive_gains("afonftsmc", dtype)
-    key = scenarios.draw_keys(0, [0])[0]  # the run is deterministic: no random process
-    del plant
-
-    def controller(switching):
-        return registry.make_controller(
-            "afonftsmc", dt=1e-3, horizon=args.horizon, switching=switching
+        scenario = nominal_scenario_1()
+        steps = int(round(args.horizon / 1e-3))
+        config = simulator.SimulationConfig(
+            dt=1e-3, horizon=args.horizon, save_every=problem_lib.checkpoint_interval(steps)
         )
+        tracking = cost_lib.CostConfig(effort_weight=0.0, chattering_weight=0.0)
+        self.param_map = params_lib.make_parameter_map("afonftsmc", None, "paper")
+        self.paper = paper_gains(jnp.float64)
+        self.naive = params_lib.naive_gains("afonftsmc", jnp.float64)
+        self.key = scenarios.draw_keys(0, [0])[0]  # the run is deterministic: no random process
 
-    draw_cost = cost_lib.make_draw_cost(controller(args.switching), scenario, config, tracking)
-    _, unravel = param_map.ravel(param_map.to_params(paper, dtype))
+        def draw_cost(switching, weights):
+            law = registry.make_controller(
+                "afonftsmc", dt=1e-3, horizon=args.horizon, switching=switching
+            )
+            return cost_lib.make_draw_cost(law, scenario, config, weights)
 
-    def objective(vector):
-        gains = param_map.to_gains(unravel(vector), paper)
-        j, terms, status = draw_cost(gains, key)
-        bad = ((status & cost_lib.DIVERGED) != 0) | ~jnp.isfinite(j)
-        return j, bad
+        tracking_cost = draw_cost(args.switching, tracking)
+        _, self.unravel = self.param_map.ravel(self.param_map.to_params(self.paper, jnp.float64))
 
-    value_and_grad = jax.jit(jax.value_and_grad(objective, has_aux=True))
-    value = jax.jit(objective)
-    term_costs = {
-        switching: jax.jit(
-            cost_lib.make_draw_cost(controller(switching), scenario, config, every_term)
-        )
-        for switching in ("sat", "sign")
-    }
+        def objective(vector):
+            gains = self.param_map.to_gains(self.unravel(vector), self.paper)
+            j, terms, status = tracking_cost(gains, self.key)
+            bad = ((status & cost_lib.DIVERGED) != 0) | ~jnp.isfinite(j)
+            return j, bad
 
-    def vector_of(gains):
-        return np.asarray(param_map.ravel(param_map.to_params(gains, dtype))[0])
+        self.value_and_grad = jax.jit(jax.value_and_grad(objective, has_aux=True))
+        self.value = jax.jit(objective)
+        every_term = cost_lib.CostConfig()
+        self.term_costs = {s: jax.jit(draw_cost(s, every_term)) for s in ("sat", "sign")}
 
-    def gains_of(vector):
-        return param_map.to_gains(unravel(jnp.asarray(vector)), paper)
+    def vector_of(self, gains):
+        import jax.numpy as jnp
 
-    def describe(gains) -> dict:
+        return np.asarray(self.param_map.ravel(self.param_map.to_params(gains, jnp.float64))[0])
+
+    def gains_of(self, vector):
+        import jax.numpy as jnp
+
+        return self.param_map.to_gains(self.unravel(jnp.asarray(vector)), self.paper)
+
+    def describe(self, gains) -> dict:
+        """``J`` and each term of the cost of ``gains`` under ``sat`` and ``sign``."""
+        from fojax.optimize import cost as cost_lib
+
         out = {}
-        for switching, fn in term_costs.items():
-            _, terms, status = fn(gains, key)
+        for switching, fn in self.term_costs.items():
+            _, terms, status = fn(gains, self.key)
             terms = np.asarray(terms, np.float64).tolist()
-            out[switching] = {
-                "J": terms[0] + terms[1],
-                "position": terms[0],
-                "attitude": terms[1],
-                "effort": terms[2],
-                "chattering": terms[3],
-                "diverged": bool(int(status) & cost_lib.DIVERGED),
-            }
+            named = dict(zip(("position", "attitude", "effort", "chattering"), terms, strict=True))
+            diverged = bool(int(status) & cost_lib.DIVERGED)
+            out[switching] = {"J": terms[0] + terms[1], **named, "diverged": diverged}
         return out
 
-    # -- 1. the paper's gains -----------------------------------------------------------
+
+def paper_point(obj: _Objective, quiet: bool):
+    """``J`` and its gradient at the paper's gains, a central finite difference along
+    it, and ``J`` along the negative gradient; with the compile and gradient times."""
+    import jax.numpy as jnp
+
     t0 = time.perf_counter()
-    x_paper = vector_of(paper)
-    (j_paper, _), grad = value_and_grad(jnp.asarray(x_paper))
+    x_paper = obj.vector_of(obj.paper)
+    (j_paper, _), grad = obj.value_and_grad(jnp.asarray(x_paper))
     grad = np.asarray(grad)
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    value_and_grad(jnp.asarray(x_paper))[1].block_until_ready()
+    obj.value_and_grad(jnp.asarray(x_paper))[1].block_until_ready()
     gradient_s = time.perf_counter() - t0
     norm = float(np.linalg.norm(grad))
     direction = -grad / norm
-    output.log(
-        args.quiet, f"paper: J = {float(j_paper):.6g}, |grad| = {norm:.4g} ({gradient_s:.1f} s)"
-    )
+    output.log(quiet, f"paper: J = {float(j_paper):.6g}, |grad| = {norm:.4g} ({gradient_s:.1f} s)")
     h = 1e-5
-    plus = float(value(jnp.asarray(x_paper + h * direction))[0])
-    minus = float(value(jnp.asarray(x_paper - h * direction))[0])
+    plus = float(obj.value(jnp.asarray(x_paper + h * direction))[0])
+    minus = float(obj.value(jnp.asarray(x_paper - h * direction))[0])
     along = []
     for t in STEPS_ALONG:
-        j, bad = value(jnp.asarray(x_paper + t * direction))
+        j, bad = obj.value(jnp.asarray(x_paper + t * direction))
         along.append({"step": t, "J": float(j), "diverged": bool(bad)})
-    labels = param_map.labels()
+    labels = obj.param_map.labels()
     per_field = sorted(
         ({"parameter": label, "dJ_du": float(g)} for label, g in zip(labels, grad, strict=True)),
         key=lambda entry: -abs(entry["dJ_du"]),
     )
-
-    # -- 2. L-BFGS from the naive start and from the paper's gains ------------------------
-    def lbfgs(start_vector, label):
-        trace = []
-        calls = {"n": 0}
-        t_start = time.perf_counter()
-
-        def fun(x):
-            (j, bad), g = value_and_grad(jnp.asarray(x))
-            calls["n"] += 1
-            if bool(bad) or not np.all(np.isfinite(np.asarray(g))):
-                return 1e6, np.zeros_like(x)
-            return float(j), np.asarray(g, np.float64)
-
-        def callback(xk):
-            j = float(value(jnp.asarray(xk))[0])
-            trace.append(
-                {
-                    "iteration": len(trace) + 1,
-                    "evaluations": calls["n"],
-                    "J": j,
-                    "wall_time_s": round(time.perf_counter() - t_start, 1),
-                }
-            )
-            output.log(args.quiet, f"  {label}: iteration {len(trace)}, J = {j:.6g}")
-
-        bound = params_lib.U_MAX
-        result = scipy_optimize.minimize(
-            fun,
-            start_vector,
-            jac=True,
-            method="L-BFGS-B",
-            bounds=[(-bound, bound)] * len(start_vector),
-            callback=callback,
-            options={"maxiter": args.iterations, "maxfun": 3 * args.iterations},
-        )
-        return np.asarray(result.x), trace, str(result.message)
-
-    output.log(args.quiet, f"L-BFGS from the naive start ({args.iterations} iterations)")
-    x_from_naive, trace_naive, message_naive = lbfgs(vector_of(naive), "naive")
-    output.log(args.quiet, f"L-BFGS from the paper's gains ({args.iterations} iterations)")
-    x_from_paper, trace_paper, message_paper = lbfgs(x_paper, "paper")
-
-    gain_sets = {
-        "naive": naive,
-        "paper": paper,
-        "tuned from naive": gains_of(x_from_naive),
-        "tuned from paper": gains_of(x_from_paper),
+    point = {
+        "J": float(j_paper),
+        "gradient_norm": norm,
+        "directional_derivative": -norm,
+        "finite_difference": (plus - minus) / (2 * h),
+        "along_negative_gradient": along,
+        "gradient_by_parameter": per_field,
     }
+    return point, compile_s, gradient_s
+
+
+def lbfgs(obj: _Objective, start_vector, label: str, args):
+    """SciPy's L-BFGS-B from ``start_vector`` for ``--iterations`` iterations: the
+    answer, the trace of ``J`` per iteration and SciPy's message."""
+    import jax.numpy as jnp
+    from scipy import optimize as scipy_optimize
+
+    from fojax.optimize import params as params_lib
+
+    trace = []
+    calls = {"n": 0}
+    t_start = time.perf_counter()
+
+    def fun(x):
+        (j, bad), g = obj.value_and_grad(jnp.asarray(x))
+        calls["n"] += 1
+        if bool(bad) or not np.all(np.isfinite(np.asarray(g))):
+            return 1e6, np.zeros_like(x)
+        return float(j), np.asarray(g, np.float64)
+
+    def callback(xk):
+        j = float(obj.value(jnp.asarray(xk))[0])
+        wall = round(time.perf_counter() - t_start, 1)
+        trace.append(
+            {"iteration": len(trace) + 1, "evaluations": calls["n"], "J": j, "wall_time_s": wall}
+        )
+        output.log(args.quiet, f"  {label}: iteration {len(trace)}, J = {j:.6g}")
+
+    bound = params_lib.U_MAX
+    result = scipy_optimize.minimize(
+        fun,
+        start_vector,
+        jac=True,
+        method="L-BFGS-B",
+        bounds=[(-bound, bound)] * len(start_vector),
+        callback=callback,
+        options={"maxiter": args.iterations, "maxfun": 3 * args.iterations},
+    )
+    return np.asarray(result.x), trace, str(result.message)
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.tiny:
+        args.horizon, args.iterations = 0.3, 3
+    _common.enable_float64()
+    from fojax.controllers import gains_io
+
+    start_all = time.perf_counter()
+    obj = _Objective(args)
+    point, compile_s, gradient_s = paper_point(obj, args.quiet)
+    gain_sets, traces = {"naive": obj.naive, "paper": obj.paper}, {}
+    for start, origin in (("naive", "the naive start"), ("paper", "the paper's gains")):
+        output.log(args.quiet, f"L-BFGS from {origin} ({args.iterations} iterations)")
+        x, trace, message = lbfgs(obj, obj.vector_of(gain_sets[start]), start, args)
+        traces[f"from {start}"] = {"trace": trace, "message": message}
+        gain_sets[f"tuned from {start}"] = obj.gains_of(x)
     results = {
         "objective": {
             "J": "P + A: ISE of position (m^2 s) and attitude (rad^2 s) errors",
@@ -226,37 +234,21 @@ def main(argv=None) -> int:
             "horizon_s": args.horizon,
             "switching": args.switching,
             "dtype": "float64",
-            "parameters": param_map.size,
+            "parameters": obj.param_map.size,
         },
-        "paper_point": {
-            "J": float(j_paper),
-            "gradient_norm": norm,
-            "directional_derivative": -norm,
-            "finite_difference": (plus - minus) / (2 * h),
-            "along_negative_gradient": along,
-            "gradient_by_parameter": per_field,
-        },
-        "lbfgs": {
-            "from naive": {"trace": trace_naive, "message": message_naive},
-            "from paper": {"trace": trace_paper, "message": message_paper},
-        },
-        "costs": {name: describe(g) for name, g in gain_sets.items()},
+        "paper_point": point,
+        "lbfgs": traces,
+        "costs": {name: obj.describe(g) for name, g in gain_sets.items()},
         "gains": {name: gains_io.gains_to_dict(g) for name, g in gain_sets.items()},
         "compile_time_s": round(compile_s, 1),
         "gradient_time_s": round(gradient_s, 2),
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
         "git_commit": output.git_commit().get("commit"),
     }
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    output.write_json(out / "results.json", results)
+    args.out.mkdir(parents=True, exist_ok=True)
+    wrote = f" ({results['total_wall_time_s']:.0f} s in all)"
     text = table(results)
-    (out / "table.md").write_text(text + "\n")
-    if args.update_doc is not None:
-        output.splice(args.update_doc, text, name="remark3")
-    print(text)
-    print(f"wrote {out}/results.json, table.md ({results['total_wall_time_s']:.0f} s in all)")
-    return 0
+    return _common.finish(args.out, results, text, args.update_doc, "remark3", None, wrote)
 
 
 FIELD_ROWS = (
@@ -306,7 +298,7 @@ def table(results: dict) -> str:
     ]
     gains = results["gains"]
     names = list(gains)
-    lines += ["| field | axes | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    lines += _common.table_head("field | axes | " + " | ".join(names))
     for field, symbol, per_axis in FIELD_ROWS:
         for axes, index in AXIS_GROUPS if per_axis else (("all", 0),):
             cells = [f"{np.asarray(gains[n][field])[index]:.4g}" for n in names]
@@ -316,14 +308,10 @@ def table(results: dict) -> str:
             cells = [f"{np.asarray(gains[n]['adaptation'])[index][k]:.3g}" for n in names]
             lines.append(f"| {symbol} | {axes} | " + " | ".join(cells) + " |")
     costs = results["costs"]
+    terms = ("J", "position", "attitude", "effort", "chattering")
+    labels = dict(zip(terms, ("J = P + A", *"PAEC"), strict=True))
     for switching in ("sat", "sign"):
-        for term, label in (
-            ("J", "J = P + A"),
-            ("position", "P"),
-            ("attitude", "A"),
-            ("effort", "E"),
-            ("chattering", "C"),
-        ):
+        for term, label in labels.items():
             cells = []
             for n in names:
                 entry = costs[n][switching]

@@ -28,12 +28,15 @@ is a new key: the cache names carry a digest of the settings). Writes
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
+import itertools
 import json
 import sys
 import time
 from pathlib import Path
 
+from experiments import _common
 from fojax.cli import arguments, output
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -45,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     from fojax.cli import requirements as requirements_cli
     from fojax.controllers import registry
 
-    parser = argparse.ArgumentParser(prog="python -m experiments.requirements_study")
+    parser = _common.parser("requirements_study")
     parser.add_argument(
         "--out", type=arguments.output_directory, default=Path("results/requirements_study")
     )
@@ -56,13 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--controllers", default=",".join(registry.PAPER_CONTROLLERS))
     parser.add_argument("--scenarios", type=arguments.scenario_ids, default=(1, 2, 3))
     parser.add_argument("--switching", default="sign,sat")
-    parser.add_argument("--draws", type=arguments.positive_int, default=1024)
+    _common.add_numbers(parser, draws=1024)
     parser.add_argument("--tune-scenario", type=int, choices=(1, 2, 3), default=2)
-    parser.add_argument("--horizon", type=arguments.positive_float, default=10.0)
-    parser.add_argument("--tune-draws", type=arguments.positive_int, default=8)
-    parser.add_argument("--outer-steps", type=arguments.positive_int, default=10)
-    parser.add_argument("--inner-steps", type=arguments.positive_int, default=10)
-    parser.add_argument("--validation-draws", type=arguments.positive_int, default=32)
+    _common.add_numbers(parser, horizon=10.0, tune_draws=8, outer_steps=10, inner_steps=10)
+    _common.add_numbers(parser, validation_draws=32)
     parser.add_argument("--seed", type=arguments.seed, default=0)
     parser.add_argument("--update-doc", action="store_true")
     return parser
@@ -130,7 +130,6 @@ def evaluate_one(name: str, gains_dict: dict | None, scenario_id: int, switching
     from fojax import requirements as rq
     from fojax import scenarios
     from fojax.controllers import gains_io, registry
-    from fojax.optimize.problem import HELDOUT_OFFSET
 
     options = {"dt": 1e-3, "horizon": args.horizon}
     if switching is not None:
@@ -142,7 +141,7 @@ def evaluate_one(name: str, gains_dict: dict | None, scenario_id: int, switching
         gains = gains_io.gains_from_dict(name, gains_dict, "study")
     config = rq.simulation_config(reqs, args.horizon)
     scenario = scenarios.get_scenario(scenario_id)
-    keys = np.asarray(scenarios.draw_keys(args.seed, HELDOUT_OFFSET + np.arange(args.draws)))
+    keys = _common.heldout_keys(args.seed, args.draws)
     start = time.perf_counter()
     metrics, status = rq.measure(controller, gains, scenario, reqs, keys, config)
     valid = (status & rq.DIVERGED) == 0
@@ -174,60 +173,70 @@ def table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def _budget(args, reqs) -> dict:
+    """What the tuned gains depend on: the requirements and the tuning budget."""
+    names = "tune_scenario horizon tune_draws outer_steps inner_steps validation_draws seed"
+    return {"requirements": reqs.to_dict(), **{k: getattr(args, k) for k in names.split()}}
+
+
+def _rows(name: str, record: dict, switchings, budget: dict, reqs, args) -> list[dict]:
+    """The default and the tuned gains of ``name`` on each scenario and switching (one
+    row per evaluation, cached)."""
+    from fojax.controllers import registry
+
+    rows = []
+    takes = "switching" in registry.controller_options(name)
+    gain_sets = (("default", None), ("tuned", record["gains"]))
+    cases = itertools.product(args.scenarios, switchings if takes else [None], gain_sets)
+    for scenario_id, switching, (label, gains) in cases:
+        ident = _digest(
+            [budget if gains else reqs.to_dict(), name, label, scenario_id, switching,
+             args.draws, args.horizon]
+        )  # fmt: skip
+        path = args.out / "yield" / f"{name}-{label}-s{scenario_id}-{switching}-{ident}.json"
+        evaluate = functools.partial(evaluate_one, name, gains, scenario_id, switching, reqs, args)
+        row = _cached(path, evaluate)
+        where = {"scenario": scenario_id, "switching": switching or "-"}
+        rows.append({"controller": name, "gains": label, **where, **row})
+        print(f"{name} {label} scenario {scenario_id} {switching or '-'}: "
+              f"{row['passed']}/{row['draws']}", flush=True)  # fmt: skip
+    return rows
+
+
+def _doc_head(args, results: dict, tuned_records: dict) -> str:
+    walls = ", ".join(
+        f"{n} {r['wall_time_s']:.0f} s (selected outer step {r['selected'].get('outer_step')})"
+        for n, r in tuned_records.items()
+    )
+    return (
+        f"Run: `{' '.join(results['command'])}`. Budget per controller: "
+        f"{args.outer_steps} outer x {args.inner_steps} inner Adam steps on "
+        f"{args.tune_draws} draws x {args.horizon:g} s of scenario {args.tune_scenario}, "
+        f"{args.validation_draws} validation draws; held-out: {args.draws} draws per "
+        f"row at {args.horizon:g} s. Tuning wall time: {walls} (2 shared cores, load "
+        f"average at the end {results['load_average']})."
+    )
+
+
 def main(argv=None) -> int:
     from fojax import requirements as rq
     from fojax.controllers import registry
 
     args = build_parser().parse_args(argv)
+    args.out = Path(args.out)
     reqs = args.requirements or rq.load(EXAMPLE)
-    controllers = [c.strip() for c in args.controllers.split(",") if c.strip()]
+    controllers = _common.listed(args.controllers)
     for name in controllers:
         registry.get_controller_class(name)
-    switchings = [s.strip() for s in args.switching.split(",") if s.strip()]
-    out = Path(args.out)
-    budget = {
-        "requirements": reqs.to_dict(),
-        "tune_scenario": args.tune_scenario,
-        "horizon": args.horizon,
-        "tune_draws": args.tune_draws,
-        "outer_steps": args.outer_steps,
-        "inner_steps": args.inner_steps,
-        "validation_draws": args.validation_draws,
-        "seed": args.seed,
-    }
+    budget = _budget(args, reqs)
     key = _digest(budget)
     rows, tuned_records = [], {}
     for name in controllers:
         record = _cached(
-            out / "tuned" / f"{name}-{key}.json", lambda n=name: tune_one(n, reqs, args)
+            args.out / "tuned" / f"{name}-{key}.json", lambda n=name: tune_one(n, reqs, args)
         )
         tuned_records[name] = record
-        takes = "switching" in registry.controller_options(name)
-        for scenario_id in args.scenarios:
-            for switching in switchings if takes else [None]:
-                for label, gains in (("default", None), ("tuned", record["gains"])):
-                    ident = _digest(
-                        [budget if gains else reqs.to_dict(), name, label, scenario_id,
-                         switching, args.draws, args.horizon]
-                    )  # fmt: skip
-                    path = out / "yield" / f"{name}-{label}-s{scenario_id}-{switching}-{ident}.json"
-                    row = _cached(
-                        path,
-                        lambda n=name, g=gains, s=scenario_id, w=switching: evaluate_one(
-                            n, g, s, w, reqs, args
-                        ),
-                    )
-                    rows.append(
-                        {
-                            "controller": name,
-                            "gains": label,
-                            "scenario": scenario_id,
-                            "switching": switching or "-",
-                            **row,
-                        }
-                    )
-                    print(f"{name} {label} scenario {scenario_id} {switching or '-'}: "
-                          f"{row['passed']}/{row['draws']}", flush=True)  # fmt: skip
+        rows += _rows(name, record, _common.listed(args.switching), budget, reqs, args)
     results = {
         "budget": budget,
         "held_out_draws": args.draws,
@@ -238,25 +247,10 @@ def main(argv=None) -> int:
         "command": ["python", "-m", "experiments.requirements_study", *(argv or sys.argv[1:])],
         "load_average": output.load_average(),
     }
-    output.write_json(out / "results.json", results)
     text = table(results)
-    (out / "table.md").write_text(text + "\n")
-    print(text)
-    if args.update_doc:
-        walls = ", ".join(
-            f"{n} {r['wall_time_s']:.0f} s (selected outer step {r['selected'].get('outer_step')})"
-            for n, r in tuned_records.items()
-        )
-        head = (
-            f"Run: `{' '.join(results['command'])}`. Budget per controller: "
-            f"{args.outer_steps} outer x {args.inner_steps} inner Adam steps on "
-            f"{args.tune_draws} draws x {args.horizon:g} s of scenario {args.tune_scenario}, "
-            f"{args.validation_draws} validation draws; held-out: {args.draws} draws per "
-            f"row at {args.horizon:g} s. Tuning wall time: {walls} (2 shared cores, load "
-            f"average at the end {results['load_average']})."
-        )
-        output.splice(DOC, head + "\n\n" + text, name="requirements-study")
-    return 0
+    doc_text = _doc_head(args, results, tuned_records) + "\n\n" + text if args.update_doc else None
+    doc = DOC if args.update_doc else None
+    return _common.finish(args.out, results, text, doc, "requirements-study", doc_text)
 
 
 if __name__ == "__main__":

@@ -59,6 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import _common
 from experiments.sensitivity_plan import (  # noqa: F401  (the study's names)
     SCENARIO_IDS,
     SETTING_KEYS,
@@ -69,8 +70,6 @@ from experiments.sensitivity_plan import (  # noqa: F401  (the study's names)
     Plan,
     Run,
     Setting,
-    _has_tuned,
-    _plain,
     assign_lanes,
     gains_for,
     load_tuned,
@@ -168,15 +167,13 @@ def run_lane(plan: Plan, job_indices: list, out: Path, tuned_path: Path, progres
     tuned = load_tuned(tuned_path) if tuned_path.exists() else None
     jobs = [plan.jobs[i] for i in job_indices]
 
-    def pending(job, tuned):
-        todo = []
-        for run in job.runs:
-            if run.gains == "tuned" and tuned is None:
-                todo.append(run)
-                continue
-            if not _run_path(out, run_key(run, tuned, plan.seed)).exists():
-                todo.append(run)
-        return todo
+    def pending(job, tuned):  # a run waiting for the tuned gains, or not on disk
+        return [
+            run
+            for run in job.runs
+            if (run.gains == "tuned" and tuned is None)
+            or not _run_path(out, run_key(run, tuned, plan.seed)).exists()
+        ]
 
     work = [(job, pending(job, tuned)) for job in jobs]
     work = [(job, runs) for job, runs in work if runs]
@@ -312,8 +309,8 @@ def evaluate(plan: Plan, results: dict) -> dict:
 def build_parser() -> argparse.ArgumentParser:
     from fojax.cli import arguments
 
-    parser = argparse.ArgumentParser(
-        prog="python -m experiments.sensitivity",
+    parser = _common.parser(
+        "sensitivity",
         description="The Section V verdicts with each open modelling choice moved in turn.",
     )
     parser.add_argument("--out", type=Path, default=Path("results/sensitivity"), metavar="DIR")
@@ -321,15 +318,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--doc", type=Path, default=Path("docs/sensitivity.md"), help="document to (re)write"
     )
     parser.add_argument("--no-doc", action="store_true", help="write OUT/report.* only")
-    parser.add_argument("--draws", type=arguments.positive_int, default=32)
-    parser.add_argument(
-        "--dt-draws",
-        type=arguments.positive_int,
-        default=16,
-        help="draws of the 0.1 ms step (10x the work per simulated second)",
-    )
-    parser.add_argument(
-        "--horizon", type=arguments.positive_float, default=30.0, help="s, every scenario"
+    _common.add_numbers(
+        parser,
+        draws=32,
+        dt_draws=(16, "draws of the 0.1 ms step (10x the work per simulated second)"),
+        horizon=(30.0, "s, every scenario"),
     )
     parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument(
@@ -340,17 +333,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--controllers",
         help="comma-separated subset of the paper's five, with afonftsmc (quick checks)",
     )
-    parser.add_argument(
-        "--workers", type=arguments.positive_int, default=2, help="float32 worker processes"
-    )
+    _common.add_numbers(parser, workers=(2, "float32 worker processes"))
     parser.add_argument(
         "--tuned-gains",
         type=Path,
         help="results.json of an earlier experiments.fair_comparison run (default: tune here)",
     )
-    parser.add_argument("--tune-steps", type=arguments.positive_int, default=20)
-    parser.add_argument("--tune-draws", type=arguments.positive_int, default=8)
-    parser.add_argument("--tune-horizon", type=arguments.positive_float, default=5.0)
+    _common.add_numbers(parser, tune_steps=20, tune_draws=8, tune_horizon=5.0)
     parser.add_argument("--quiet", action="store_true")
     parser.add_argument("--lane", help=argparse.SUPPRESS)
     return parser
@@ -362,7 +351,7 @@ def parse_args(argv):
     if args.settings is None:
         args.selected = SETTINGS
     else:
-        keys = [k.strip() for k in args.settings.split(",") if k.strip()]
+        keys = _common.listed(args.settings)
         unknown = [k for k in keys if k not in SETTING_KEYS]
         if unknown or not keys:
             parser.error(f"--settings must be among {', '.join(SETTING_KEYS)}, got {unknown}")
@@ -377,7 +366,7 @@ def parse_args(argv):
     if args.controllers is None:
         args.controllers = paper
     else:
-        names = [n.strip() for n in args.controllers.split(",") if n.strip()]
+        names = _common.listed(args.controllers)
         if not names or set(names) - set(paper) or claims_module.BASELINE not in names:
             parser.error(
                 f"--controllers must be among {', '.join(paper)} and include "
@@ -397,116 +386,52 @@ def parse_args(argv):
 
 def _tuning_command(args, directory: Path) -> list:
     return [
-        sys.executable,
-        "-m",
-        "experiments.fair_comparison",
-        "--out",
-        str(directory),
-        "--steps",
-        str(args.tune_steps),
-        "--draws",
-        str(args.tune_draws),
-        "--horizon",
-        f"{args.tune_horizon:g}",
-        "--seed",
-        str(args.seed),
-        "--eval-draws",
-        "1",
-        "--eval-scenarios",
-        "2",
-        "--eval-horizon",
-        "0.1",
-        "--quiet",
-    ]
+        sys.executable, "-m", "experiments.fair_comparison", "--out", str(directory),
+        "--steps", str(args.tune_steps), "--draws", str(args.tune_draws),
+        "--horizon", f"{args.tune_horizon:g}", "--seed", str(args.seed), "--eval-draws", "1",
+        "--eval-scenarios", "2", "--eval-horizon", "0.1", "--quiet",
+    ]  # fmt: skip
 
 
 def _lane_command(argv: list, lane: str) -> list:
     return [sys.executable, "-m", "experiments.sensitivity", *argv, "--lane", lane]
 
 
-def main(argv=None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    args = parse_args(argv)
-    if args.lane == "f64":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    plan = make_plan(
-        args.selected, args.horizon, args.draws, args.dt_draws, args.seed, args.controllers
+def _start_tuning(args, directory: Path, log) -> subprocess.Popen:
+    """The gain tuning (``experiments.fair_comparison``) in a process of its own."""
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "FAILED").unlink(missing_ok=True)
+    log("tuning the five controllers: " + " ".join(_tuning_command(args, directory)[1:]))
+    return subprocess.Popen(
+        _tuning_command(args, directory),
+        stdout=subprocess.DEVNULL,
+        stderr=open(directory / "stderr.log", "w"),  # noqa: SIM115
     )
-    lanes = assign_lanes(plan, args.workers)
-    tuned_path = args.tuned_gains or (out / "tuning" / "results.json")
-    if args.lane is not None:
-        run_lane(plan, lanes.get(args.lane, []), out, tuned_path, not args.quiet)
-        return 0
 
-    start = time.perf_counter()
-    load_start = os.getloadavg()
-    before = set((out / "runs").glob("*.npz"))
-    log = _logger(not args.quiet)
-    log(
-        f"{len(plan.settings)} settings, {len(plan.jobs)} programs, {len(plan.runs)} runs; "
-        f"lanes {', '.join(f'{k}: {len(v)} programs' for k, v in lanes.items())}"
-    )
-    processes = {}
-    tuning = None
-    needs_tuning = any(s.gains == "tuned" for s in plan.settings)
-    tuning_wall = None
-    if needs_tuning and not tuned_path.exists():
-        directory = tuned_path.parent
-        directory.mkdir(parents=True, exist_ok=True)
-        (directory / "FAILED").unlink(missing_ok=True)
-        log("tuning the five controllers: " + " ".join(_tuning_command(args, directory)[1:]))
-        tuning = subprocess.Popen(
-            _tuning_command(args, directory),
-            stdout=subprocess.DEVNULL,
-            stderr=open(directory / "stderr.log", "w"),  # noqa: SIM115
-        )
-        tuning_start = time.perf_counter()
-    lane_argv = [a for a in argv if a != "--quiet"] + (["--quiet"] if args.quiet else [])
-    for lane in lanes:
-        env = dict(os.environ, FOJAX_SENSITIVITY_LANE=lane)
-        processes[lane] = subprocess.Popen(_lane_command(lane_argv, lane), env=env)
-    failed = []
-    try:
-        if tuning is not None:
-            rc = tuning.wait()
-            tuning_wall = time.perf_counter() - tuning_start
-            if rc != 0 or not tuned_path.exists():
-                tail = (tuned_path.parent / "stderr.log").read_text()[-3000:]
-                (tuned_path.parent / "FAILED").write_text(f"exit status {rc}\n{tail}")
-                log(f"the gain tuning failed (exit status {rc}); see {tuned_path.parent}")
-            else:
-                log(f"tuned gains written in {tuning_wall:.0f} s")
-        for lane, process in processes.items():
-            if process.wait() != 0:
-                failed.append(lane)
-    except KeyboardInterrupt:
-        for process in [*processes.values(), tuning]:
-            if process is not None:
-                process.terminate()
-        print(
-            f"\ninterrupted: finished runs are kept under {out}/runs; run the same command "
-            "again to continue",
-            file=sys.stderr,
-        )
-        return 130
-    if failed:
-        log(f"lanes {failed} failed; the settings they left unfinished are marked missing")
-    tuned = load_tuned(tuned_path) if tuned_path.exists() else None
-    results = load_results(plan, out, tuned)
-    evaluated = evaluate(plan, results)
-    wall = time.perf_counter() - start
-    computed = len(set((out / "runs").glob("*.npz")) - before)
+
+def _wait_for_tuning(tuning, tuned_path: Path, started: float, log) -> float:
+    """Wait for the gain tuning; on failure, leave ``FAILED`` for the lanes that wait for
+    its gains. Its wall time (s)."""
+    rc = tuning.wait()
+    tuning_wall = time.perf_counter() - started
+    if rc != 0 or not tuned_path.exists():
+        tail = (tuned_path.parent / "stderr.log").read_text()[-3000:]
+        (tuned_path.parent / "FAILED").write_text(f"exit status {rc}\n{tail}")
+        log(f"the gain tuning failed (exit status {rc}); see {tuned_path.parent}")
+    else:
+        log(f"tuned gains written in {tuning_wall:.0f} s")
+    return tuning_wall
+
+
+def _record_invocation(out: Path, argv, wall, before, load_start, tuning_wall) -> list:
+    """``OUT/invocations.json`` with this invocation appended; the list."""
     history_path = out / "invocations.json"
     history = json.loads(history_path.read_text()) if history_path.exists() else []
     history.append(
         {
             "started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(time.time() - wall)),
             "wall_s": round(wall, 1),
-            "runs_computed": computed,
+            "runs_computed": len(set((out / "runs").glob("*.npz")) - before),
             "runs_on_disk_before": len(before),
             "tuning_s": None if tuning_wall is None else round(tuning_wall, 1),
             "load_average_start": [round(x, 2) for x in load_start],
@@ -515,9 +440,12 @@ def main(argv=None) -> int:
         }
     )
     output.write_json(history_path, history)
-    from experiments import sensitivity_report
+    return history
 
-    meta = {
+
+def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, history) -> dict:
+    """The report's account of the run: its size, settings, tuning and invocations."""
+    return {
         "draws": args.draws,
         "dt_draws": args.dt_draws,
         "horizon_s": args.horizon,
@@ -542,9 +470,67 @@ def main(argv=None) -> int:
         "command": "python -m experiments.sensitivity " + " ".join(argv),
         "invocations": history,
     }
-    report = sensitivity_report.write(
-        out, plan, evaluated, meta, None if args.no_doc else args.doc, results
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = parse_args(argv)
+    _common.enable_float64(args.lane == "f64")
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    plan = make_plan(
+        args.selected, args.horizon, args.draws, args.dt_draws, args.seed, args.controllers
     )
+    lanes = assign_lanes(plan, args.workers)
+    tuned_path = args.tuned_gains or (out / "tuning" / "results.json")
+    if args.lane is not None:
+        run_lane(plan, lanes.get(args.lane, []), out, tuned_path, not args.quiet)
+        return 0
+
+    start = time.perf_counter()
+    load_start = os.getloadavg()
+    before = set((out / "runs").glob("*.npz"))
+    log = _logger(not args.quiet)
+    log(
+        f"{len(plan.settings)} settings, {len(plan.jobs)} programs, {len(plan.runs)} runs; "
+        f"lanes {', '.join(f'{k}: {len(v)} programs' for k, v in lanes.items())}"
+    )
+    tuning, tuning_wall = None, None
+    if any(s.gains == "tuned" for s in plan.settings) and not tuned_path.exists():
+        tuning, tuning_start = _start_tuning(args, tuned_path.parent, log), time.perf_counter()
+    lane_argv = [a for a in argv if a != "--quiet"] + (["--quiet"] if args.quiet else [])
+    processes = {
+        lane: subprocess.Popen(
+            _lane_command(lane_argv, lane), env=dict(os.environ, FOJAX_SENSITIVITY_LANE=lane)
+        )
+        for lane in lanes
+    }
+    try:
+        if tuning is not None:
+            tuning_wall = _wait_for_tuning(tuning, tuned_path, tuning_start, log)
+        failed = [lane for lane, process in processes.items() if process.wait() != 0]
+    except KeyboardInterrupt:
+        for process in [*processes.values(), tuning]:
+            if process is not None:
+                process.terminate()
+        print(
+            f"\ninterrupted: finished runs are kept under {out}/runs; run the same command "
+            "again to continue",
+            file=sys.stderr,
+        )
+        return 130
+    if failed:
+        log(f"lanes {failed} failed; the settings they left unfinished are marked missing")
+    tuned = load_tuned(tuned_path) if tuned_path.exists() else None
+    results = load_results(plan, out, tuned)
+    evaluated = evaluate(plan, results)
+    wall = time.perf_counter() - start
+    history = _record_invocation(out, argv, wall, before, load_start, tuning_wall)
+    from experiments import sensitivity_report
+
+    meta = _meta(args, argv, plan, wall, load_start, tuning_wall, history)
+    doc = None if args.no_doc else args.doc
+    report = sensitivity_report.write(out, plan, evaluated, meta, doc, results)
     log(f"wrote {report} in {wall:.0f} s")
     return 1 if failed else 0
 

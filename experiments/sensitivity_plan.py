@@ -239,17 +239,8 @@ def make_plan(
                     job.runs.append(runs[identity])
                 job.draws = max(job.draws, n)
                 cells[(setting.key, scenario_id, name)] = (runs[identity], n)
-    return Plan(
-        tuple(settings),
-        list(jobs.values()),
-        list(runs.values()),
-        cells,
-        horizon,
-        draws,
-        dt_draws,
-        seed,
-        controllers,
-    )
+    jobs, runs = list(jobs.values()), list(runs.values())
+    return Plan(tuple(settings), jobs, runs, cells, horizon, draws, dt_draws, seed, controllers)
 
 
 def assign_lanes(plan: Plan, workers: int) -> dict:
@@ -345,16 +336,9 @@ def run_key(run: Run, tuned: dict | None, seed: int) -> str:
     from fojax import study
 
     job = run.job
-    settings = study.fingerprint(
-        job.controller,
-        gains_for(run, tuned, "float32"),
-        run.scenario,
-        job.config,
-        seed,
-        job.dtype,
-        metrics_config(job.config),
-        device_batch=job.draws,
-    )
+    gains, metrics = gains_for(run, tuned, "float32"), metrics_config(job.config)
+    fields = (job.controller, gains, run.scenario, job.config, seed, job.dtype, metrics)
+    settings = study.fingerprint(*fields, device_batch=job.draws)
     settings["union"] = _plain(job.members)
     settings["member"] = run.member
     settings["draws"] = job.draws

@@ -47,17 +47,13 @@ TRUST_FRACTION = 0.25
 fraction of the claims' margin, in every scenario and controller."""
 
 
-def _xyz(prefix: str) -> list[str]:
-    return [f"{prefix}_{a}" for a in ("x", "y", "z")]
-
-
 PRECISION_METRICS = (
     ["position_rmse", "attitude_rmse"]
-    + _xyz("rmse")
-    + _xyz("max_error")
-    + _xyz("overshoot")
-    + _xyz("settling_time")
-    + _xyz("itae")
+    + [
+        f"{m}_{a}"
+        for m in ("rmse", "max_error", "overshoot", "settling_time", "itae")
+        for a in "xyz"
+    ]
     + [f"chattering_{c}" for c in ("thrust", "tau_x", "tau_y", "tau_z")]
     + [f"control_effort_{c}" for c in ("thrust", "tau_x", "tau_y", "tau_z")]
     + [f"reaching_time_{a}" for a in ("x", "y", "z", "phi", "theta", "psi")]
@@ -236,14 +232,8 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     handles.append(
         Patch(facecolor="white", edgecolor="black", lw=2, label="differs from reference")
     )
-    ax.legend(
-        handles=handles,
-        loc="upper center",
-        bbox_to_anchor=(0.5, -0.32),
-        ncol=5,
-        fontsize=8,
-        frameon=False,
-    )
+    legend = {"loc": "upper center", "bbox_to_anchor": (0.5, -0.32), "ncol": 5, "fontsize": 8}
+    ax.legend(handles=handles, frameon=False, **legend)
     ax.set_title(
         f"Section V verdicts, each modelling choice moved in turn ({meta['draws']} draws, "
         f"{meta['horizon_s']:g} s per scenario; dt 0.1 ms: {meta['dt_draws']} draws)\n"
@@ -304,20 +294,8 @@ def _json_ready(evaluated: dict) -> dict:
                     r for r in claim["rows"] if r["controller"] == claims_module.BASELINE
                 ]
             if claim["id"] == "C-finite-time":
-                item["rows"] = [
-                    {
-                        k: r[k]
-                        for k in (
-                            "scenario",
-                            "axis",
-                            "band",
-                            "valid_draws",
-                            "reached",
-                            "kept_from_first_half",
-                        )
-                    }
-                    for r in claim["rows"]
-                ]
+                keys = "scenario axis band valid_draws reached kept_from_first_half".split()
+                item["rows"] = [{k: r[k] for k in keys} for r in claim["rows"]]
             claims.append(item)
         out[key] = {"draws": entry["draws"], "diverged": entry["diverged"], "claims": claims}
     return out

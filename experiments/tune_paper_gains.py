@@ -51,17 +51,21 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import functools
+import shutil
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from experiments import _common
 from fojax.cli import output
 
 __all__ = ["main", "unseen_reference"]
 
 VALIDATION_OFFSET = 100_000  # validation draws: held-out indices from here on
+METHODS = ("gradient", "cma-es", "nelder-mead")
 
 
 def unseen_reference(t):
@@ -85,45 +89,24 @@ def unseen_reference(t):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m experiments.tune_paper_gains")
-    parser.add_argument("--scenario", type=int, default=2)
-    parser.add_argument("--horizon", type=float, default=10.0, help="tuning horizon (s)")
-    parser.add_argument("--draws", type=int, default=16, help="draws per gradient step")
-    parser.add_argument("--steps", type=int, default=50, help="gradient steps")
+    parser = _common.parser("tune_paper_gains")
+    number = functools.partial(_common.add_numbers, parser, int, float)
+    number(scenario=2, horizon=(10.0, "tuning horizon (s)"), draws=(16, "draws per gradient step"))
+    number(steps=(50, "gradient steps"))
     parser.add_argument("--gradient-method", choices=("lbfgs", "adam"), default="lbfgs")
-    parser.add_argument("--learning-rate", type=float, default=0.1, help="Adam's")
-    parser.add_argument("--max-step", type=float, default=1.0, help="L-BFGS's")
-    parser.add_argument("--tuner-validation-draws", type=int, default=32)
-    parser.add_argument("--seed", type=int, default=0)
+    number(learning_rate=(0.1, "Adam's"), max_step=(1.0, "L-BFGS's"), tuner_validation_draws=32)
+    number(seed=0)
     parser.add_argument("--dtype", default="float32")
-    parser.add_argument("--df-budget-factor", type=float, default=3.0)
-    parser.add_argument("--cma-sigma", type=float, default=0.5)
-    parser.add_argument("--validation-draws", type=int, default=32)
-    parser.add_argument("--validate-every", type=int, default=5, help="gradient steps")
-    parser.add_argument("--eval-draws", type=int, default=64)
-    parser.add_argument("--eval-horizon", type=float, help="s (default: each scenario's)")
-    parser.add_argument("--out", type=Path, default=Path("results/tune_paper_gains"))
-    parser.add_argument("--update-doc", type=Path, help="markdown file to update")
-    parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
-    parser.add_argument("--quiet", action="store_true")
+    number(df_budget_factor=3.0, cma_sigma=0.5, validation_draws=32)
+    number(validate_every=(5, "gradient steps"), eval_draws=64)
+    number(eval_horizon=(None, "s (default: each scenario's)"))
+    _common.add_outputs(parser, "tune_paper_gains")
     # Cost weights (default: the fojax tune defaults).
-    parser.add_argument("--effort-weight", type=float)
-    parser.add_argument("--chattering-weight", type=float)
-    parser.add_argument("--attitude-weight", type=float)
+    number(effort_weight=None, chattering_weight=None, attitude_weight=None)
     return parser
 
 
-def _summary(values, baseline=None) -> dict:
-    from fojax import statistics
-
-    out = statistics.mean_ci(values)
-    if baseline is not None:
-        out["minus_paper"] = statistics.paired_difference(values, baseline)
-        out["better_than_paper_fraction"] = float(np.mean(np.asarray(values) < baseline))
-    return out
-
-
-def main(argv=None) -> int:
+def parse_args(argv) -> argparse.Namespace:
     args = build_parser().parse_args(argv)
     if args.tiny:
         # The small problem of the tests (shares their compiled code).
@@ -134,174 +117,167 @@ def main(argv=None) -> int:
         args.tuner_validation_draws = 2
         args.eval_horizon = args.eval_horizon or 0.3
         args.df_budget_factor = max(args.df_budget_factor, 40.0)
-    if args.dtype == "float64":
-        import jax
+    return args
 
-        jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp
 
+class _Study:
+    """The tuning problem, its validation draws (held-out, scored along the way), and
+    the tuners' curves: ``(method, draw-steps, wall time (s), validation cost)``."""
+
+    def __init__(self, args):
+        import jax.numpy as jnp
+
+        from fojax.controllers.afonftsmc import paper_gains
+        from fojax.optimize import cost as cost_lib
+        from fojax.optimize import params as params_lib
+        from fojax.optimize import problem as problem_lib
+
+        self.args = args
+        weights = ("effort_weight", "chattering_weight", "attitude_weight")
+        overrides = {k: getattr(args, k) for k in weights if getattr(args, k) is not None}
+        self.spec = problem_lib.ProblemSpec(
+            controller="afonftsmc",
+            scenario=args.scenario,
+            horizon=args.horizon,
+            draws=args.draws,
+            seed=args.seed,
+            cost=cost_lib.CostConfig(**overrides),
+            dtype=args.dtype,
+        )
+        self.config = _common.tuner_config(args, args.steps, args.tuner_validation_draws)
+        dtype = jnp.dtype(args.dtype)
+        self.naive = params_lib.naive_gains("afonftsmc", dtype)
+        self.paper = paper_gains(dtype)
+        self.problem = problem_lib.TuningProblem(self.spec, self.naive)
+        self.validation_keys = _common.heldout_keys(
+            self.spec.seed, args.validation_draws, VALIDATION_OFFSET
+        )
+        self.curves = []
+
+    def validate(self, gains) -> float:
+        from fojax.optimize import problem as problem_lib
+
+        return float(np.mean(problem_lib.evaluate(self.spec, gains, self.validation_keys).cost))
+
+    def compile(self) -> float:
+        """Compile the tuners' functions first, so that no tuner's wall time counts them;
+        the seconds it took."""
+        t0 = time.perf_counter()
+        problem, warm = self.problem, self.problem.initial_params()
+        problem.value_and_grad(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
+        problem.value(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
+        return time.perf_counter() - t0
+
+    def gradient(self):
+        """The gradient tuner from the naive start."""
+        from fojax.optimize import tuner as tuner_lib
+
+        def on_step(step, params, row):
+            # The tuner's answer so far: its best validated iterate (the start until a
+            # validated step beats it).
+            if row["validation_cost"] is None:
+                return
+            if row["best_step"] == step:
+                value = self.validate(self.problem.gains(params))
+            else:
+                value = [v for m, _, _, v in self.curves if m == "gradient"][-1]
+            self.curves.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
+
+        quiet, spec, steps = self.args.quiet, self.spec, self.config.steps
+        output.log(
+            quiet, f"gradient tuner: {steps} steps x {spec.draws} draws x {spec.horizon:g} s"
+        )
+        run = tuner_lib.prepare(spec, self.config, self.naive, "naive", None)
+        return tuner_lib.tune(run, progress=not quiet, callback=on_step, problem=self.problem)
+
+    def derivative_free(self, budget: int):
+        """CMA-ES and Nelder-Mead from the naive start with ``budget`` draw-steps each."""
+        from fojax.optimize import derivative_free
+
+        args = self.args
+
+        def recorder(method):
+            def callback(draw_steps, params, row):
+                value = self.validate(self.problem.gains(params))
+                self.curves.append((method, draw_steps, row["wall_time_s"], value))
+                best = row["best_objective"]
+                output.log(args.quiet, f"  {method}: {draw_steps} draw-steps, best {best:.4g}")
+
+            return callback
+
+        width = self.config.anneal_end
+        output.log(args.quiet, f"CMA-ES: budget {budget} draw-steps")
+        es = derivative_free.cma_es(
+            self.problem,
+            budget,
+            sigma0=args.cma_sigma,
+            seed=args.seed,
+            width_scale=width,
+            callback=recorder("cma-es"),
+        )
+        output.log(args.quiet, f"Nelder-Mead: budget {budget} draw-steps")
+        every, callback = max(1, _popsize(es)), recorder("nelder-mead")
+        nm = derivative_free.nelder_mead(
+            self.problem, budget, width_scale=width, callback=callback, callback_every=every
+        )
+        self.curves.append(("nelder-mead", nm.draw_steps, nm.wall_time_s, self.validate(nm.gains)))
+        return es, nm
+
+
+def _popsize(es) -> int:
+    return es.evaluations // max(len(es.history), 1)
+
+
+def _cost_entry(costs, baseline) -> dict:
+    """Held-out costs of one gain set: mean and 95 % interval, against the paper's
+    gains' ``baseline`` costs on the same draws (None: the paper's), mean terms."""
+    from fojax import statistics
+
+    cost = statistics.mean_ci(costs.cost)
+    if baseline is not None:
+        cost["minus_paper"] = statistics.paired_difference(costs.cost, baseline)
+        cost["better_than_paper_fraction"] = float(np.mean(np.asarray(costs.cost) < baseline))
+    terms = np.where(costs.diverged[:, None], np.nan, costs.terms)
+    return {
+        "cost": cost,
+        "terms_mean": np.mean(terms, 0).tolist(),
+        "diverged": int(np.sum(costs.diverged)),
+    }
+
+
+def evaluate(args, study: _Study, gain_sets: dict) -> dict:
+    """Every gain set on the held-out draws of the tuning scenario, of the unseen
+    reference and of scenario 3, each at its full horizon (or ``--eval-horizon``)."""
     from fojax import scenarios
-    from fojax.controllers import gains_io
-    from fojax.controllers.afonftsmc import paper_gains
-    from fojax.optimize import cost as cost_lib
-    from fojax.optimize import derivative_free
-    from fojax.optimize import params as params_lib
     from fojax.optimize import problem as problem_lib
-    from fojax.optimize import tuner as tuner_lib
 
-    start_all = time.perf_counter()
-    provenance = output.run_context(["python", "-m", "experiments.tune_paper_gains", *(argv or [])])
-    dtype = jnp.dtype(args.dtype)
-    overrides = {
-        k: v
-        for k, v in (
-            ("effort_weight", args.effort_weight),
-            ("chattering_weight", args.chattering_weight),
-            ("attitude_weight", args.attitude_weight),
-        )
-        if v is not None
-    }
-    cost_config = cost_lib.CostConfig(**overrides)
-    spec = problem_lib.ProblemSpec(
-        controller="afonftsmc",
-        scenario=args.scenario,
-        horizon=args.horizon,
-        draws=args.draws,
-        seed=args.seed,
-        cost=cost_config,
-        dtype=args.dtype,
-    )
-    config = tuner_lib.TunerConfig(
-        steps=args.steps,
-        method=args.gradient_method,
-        learning_rate=args.learning_rate,
-        max_step=args.max_step,
-        validation_draws=args.tuner_validation_draws,
-        validate_every=args.validate_every,
-    )
-    naive = params_lib.naive_gains("afonftsmc", dtype)
-    paper = paper_gains(dtype)
-    problem = problem_lib.TuningProblem(spec, naive)
-    validation_keys = np.asarray(
-        scenarios.draw_keys(
-            spec.seed,
-            problem_lib.HELDOUT_OFFSET + VALIDATION_OFFSET + np.arange(args.validation_draws),
-        )
-    )
-
-    def validate(gains) -> float:
-        return float(np.mean(problem_lib.evaluate(spec, gains, validation_keys).cost))
-
-    # Compile the tuners' functions first, so that no tuner's wall time counts them.
-    t0 = time.perf_counter()
-    warm = problem.initial_params()
-    problem.value_and_grad(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
-    problem.value(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
-    compile_s = time.perf_counter() - t0
-    output.log(args.quiet, f"compiled the tuning cost and its gradient ({compile_s:.0f} s)")
-
-    curves = []  # (method, draw_steps, wall_time_s, validation cost)
-    references = {"paper": validate(paper), "naive": validate(naive)}
-    output.log(
-        args.quiet,
-        f"validation cost: paper {references['paper']:.4g}, naive {references['naive']:.4g}",
-    )
-    for method in ("gradient", "cma-es", "nelder-mead"):
-        curves.append((method, 0, 0.0, references["naive"]))
-
-    # -- gradient tuner -----------------------------------------------------------------
-    def on_step(step, params, row):
-        # The tuner's answer so far: its best validated iterate (the start until a
-        # validated step beats it).
-        if row["validation_cost"] is None:
-            return
-        if row["best_step"] == step:
-            value = validate(problem.gains(params))
-        else:
-            value = [v for m, _, _, v in curves if m == "gradient"][-1]
-        curves.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
-
-    output.log(
-        args.quiet,
-        f"gradient tuner: {config.steps} steps x {spec.draws} draws x {spec.horizon:g} s",
-    )
-    run = tuner_lib.prepare(spec, config, naive, "naive", None)
-    gradient = tuner_lib.tune(run, progress=not args.quiet, callback=on_step, problem=problem)
-    gradient_steps = gradient.history[-1]["draw_steps"]
-    gradient_wall = gradient.history[-1]["wall_time_s"]
-    budget = int(args.df_budget_factor * gradient_steps)
-
-    # -- derivative-free tuners -----------------------------------------------------------
-    def recorder(method):
-        def callback(draw_steps, params, row):
-            curves.append((method, draw_steps, row["wall_time_s"], validate(problem.gains(params))))
-            output.log(
-                args.quiet, f"  {method}: {draw_steps} draw-steps, best {row['best_objective']:.4g}"
-            )
-
-        return callback
-
-    output.log(args.quiet, f"CMA-ES: budget {budget} draw-steps")
-    es = derivative_free.cma_es(
-        problem,
-        budget,
-        sigma0=args.cma_sigma,
-        seed=args.seed,
-        width_scale=config.anneal_end,
-        callback=recorder("cma-es"),
-    )
-    popsize = es.evaluations // max(len(es.history), 1)
-    output.log(args.quiet, f"Nelder-Mead: budget {budget} draw-steps")
-    nm = derivative_free.nelder_mead(
-        problem,
-        budget,
-        width_scale=config.anneal_end,
-        callback=recorder("nelder-mead"),
-        callback_every=max(1, popsize),
-    )
-    curves.append(("nelder-mead", nm.draw_steps, nm.wall_time_s, validate(nm.gains)))
-
-    # -- evaluation on held-out draws --------------------------------------------------
-    gain_sets = {
-        "paper": paper,
-        "naive": naive,
-        "gradient": gradient.gains,
-        "cma-es": es.gains,
-        "nelder-mead": nm.gains,
-    }
     tuned_scenario = scenarios.get_scenario(args.scenario)
     settings = {
         f"scenario {args.scenario}": tuned_scenario,
         "unseen reference": dataclasses.replace(tuned_scenario, reference=unseen_reference),
         "scenario 3": scenarios.get_scenario(3),
     }
-    eval_keys = problem.heldout_keys(args.eval_draws)
+    keys = study.problem.heldout_keys(args.eval_draws)
     evaluation = {}
     for label, scenario in settings.items():
         horizon = args.eval_horizon or scenario.horizon
         t0 = time.perf_counter()
         costs = {
-            name: problem_lib.evaluate(spec, gains, eval_keys, horizon=horizon, scenario=scenario)
+            name: problem_lib.evaluate(study.spec, gains, keys, horizon=horizon, scenario=scenario)
             for name, gains in gain_sets.items()
         }
         base = costs["paper"].cost
         evaluation[label] = {
             "horizon_s": horizon,
             "draws": args.eval_draws,
-            "gains": {
-                name: {
-                    "cost": _summary(c.cost, None if name == "paper" else base),
-                    "terms_mean": np.mean(
-                        np.where(c.diverged[:, None], np.nan, c.terms), 0
-                    ).tolist(),
-                    "diverged": int(np.sum(c.diverged)),
-                }
-                for name, c in costs.items()
-            },
+            "gains": {n: _cost_entry(c, None if n == "paper" else base) for n, c in costs.items()},
         }
         output.log(args.quiet, f"evaluated {label} ({time.perf_counter() - t0:.0f} s)")
+    return evaluation
 
-    # -- where the gradient tuner reaches the derivative-free tuners' best --------------
+
+def reaches(curves: list) -> dict:
+    """Where the gradient tuner first reaches each derivative-free tuner's best."""
     reach = {}
     gradient_curve = [(s, w, v) for m, s, w, v in curves if m == "gradient"]
     for method in ("cma-es", "nelder-mead"):
@@ -314,82 +290,103 @@ def main(argv=None) -> int:
             "gradient_draw_steps_to_reach": first[0] if first else None,
             "gradient_wall_time_to_reach_s": first[1] if first else None,
         }
+    return reach
 
-    results = {
-        "problem": spec.as_dict(),
-        "tuner": dataclasses.asdict(config),
-        "validation": {
-            "draws": args.validation_draws,
-            "horizon_s": spec.horizon,
-            "switching": "sat",
-            "paper": references["paper"],
-            "naive": references["naive"],
+
+def _tuners(config, gradient, es, nm) -> dict:
+    """What each tuner spent, and how the gradient tuner ended."""
+    last = gradient.history[-1]
+    return {
+        "gradient": {
+            "draw_steps": last["draw_steps"],
+            "wall_time_s": last["wall_time_s"],
+            "steps": config.steps,
+            "final_objective": last["objective"],
+            "method": config.method,
+            "returned_step": gradient.best_step,
+            "validation": gradient.validation,
         },
-        "tuners": {
-            "gradient": {
-                "draw_steps": gradient_steps,
-                "wall_time_s": gradient_wall,
-                "steps": config.steps,
-                "final_objective": gradient.history[-1]["objective"],
-                "method": config.method,
-                "returned_step": gradient.best_step,
-                "validation": gradient.validation,
-            },
-            "cma-es": {
-                "draw_steps": es.draw_steps,
-                "wall_time_s": round(es.wall_time_s, 3),
-                "evaluations": es.evaluations,
-                "generations": len(es.history),
-                "popsize": popsize,
-            },
-            "nelder-mead": {
-                "draw_steps": nm.draw_steps,
-                "wall_time_s": round(nm.wall_time_s, 3),
-                "evaluations": nm.evaluations,
-            },
+        "cma-es": {
+            "draw_steps": es.draw_steps,
+            "wall_time_s": round(es.wall_time_s, 3),
+            "evaluations": es.evaluations,
+            "generations": len(es.history),
+            "popsize": _popsize(es),
         },
-        "gradient_reaches": reach,
-        "evaluation": evaluation,
-        "gains": {name: gains_io.gains_to_dict(g) for name, g in gain_sets.items()},
-        "compile_time_s": round(compile_s, 1),
-        "total_wall_time_s": round(time.perf_counter() - start_all, 1),
-        "provenance": provenance,
-        "curves": [list(c) for c in curves],
+        "nelder-mead": {
+            "draw_steps": nm.draw_steps,
+            "wall_time_s": round(nm.wall_time_s, 3),
+            "evaluations": nm.evaluations,
+        },
     }
+
+
+def _write(args, results: dict, curves: list, references: dict) -> int:
+    """``results.json``, ``table.md``, ``curves.csv``, ``tuning.png``; the document's
+    block with ``--update-doc``."""
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    output.write_json(out / "results.json", results)
     with open(out / "curves.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["method", "draw_steps", "wall_time_s", "validation_cost"])
         writer.writerows(curves)
     results["provenance"]["load_average_end"] = output.load_average()
-    output.write_json(out / "results.json", results)
-    (out / "table.md").write_text(table(results) + "\n")
     plot(curves, references, out / "tuning.png")
+    doc_text = None
     if args.update_doc is not None:
-        import shutil
-
         shutil.copyfile(out / "tuning.png", args.update_doc.parent / "tuning.png")
-        output.splice(args.update_doc, report(results), name="tune-paper-gains")
-    print(table(results))
-    print(
-        f"wrote {out}/results.json, table.md, curves.csv, tuning.png "
-        f"({results['total_wall_time_s']:.0f} s in all)"
+        doc_text = report(results)
+    wrote = f", curves.csv, tuning.png ({results['total_wall_time_s']:.0f} s in all)"
+    text = table(results)
+    return _common.finish(out, results, text, args.update_doc, "tune-paper-gains", doc_text, wrote)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    _common.enable_float64(args.dtype == "float64")
+    from fojax.controllers import gains_io
+
+    start_all = time.perf_counter()
+    provenance = output.run_context(["python", "-m", "experiments.tune_paper_gains", *(argv or [])])
+    study = _Study(args)
+    compile_s = study.compile()
+    output.log(args.quiet, f"compiled the tuning cost and its gradient ({compile_s:.0f} s)")
+    references = {"paper": study.validate(study.paper), "naive": study.validate(study.naive)}
+    output.log(
+        args.quiet,
+        f"validation cost: paper {references['paper']:.4g}, naive {references['naive']:.4g}",
     )
-    return 0
+    study.curves += [(method, 0, 0.0, references["naive"]) for method in METHODS]
+    gradient = study.gradient()
+    es, nm = study.derivative_free(int(args.df_budget_factor * gradient.history[-1]["draw_steps"]))
+    gain_sets = {"paper": study.paper, "naive": study.naive, "gradient": gradient.gains}
+    gain_sets |= {"cma-es": es.gains, "nelder-mead": nm.gains}
+    evaluation = evaluate(args, study, gain_sets)
+    validation = {"draws": args.validation_draws, "horizon_s": study.spec.horizon}
+    results = {
+        "problem": study.spec.as_dict(),
+        "tuner": dataclasses.asdict(study.config),
+        "validation": validation | {"switching": "sat", **references},
+        "tuners": _tuners(study.config, gradient, es, nm),
+        "gradient_reaches": reaches(study.curves),
+        "evaluation": evaluation,
+        "gains": {name: gains_io.gains_to_dict(g) for name, g in gain_sets.items()},
+        "compile_time_s": round(compile_s, 1),
+        "total_wall_time_s": round(time.perf_counter() - start_all, 1),
+        "provenance": provenance,
+        "curves": [list(c) for c in study.curves],
+    }
+    return _write(args, results, study.curves, references)
 
 
-def _cell(entry: dict) -> str:
-    cost = entry["cost"]
-    if cost["mean"] is None:
+def _minus_paper(cost: dict) -> str:
+    diff, frac = cost["minus_paper"], cost["better_than_paper_fraction"]
+    if diff["mean"] is None:
         return "n/a"
-    text = f"{cost['mean']:.4g}"
-    if cost.get("ci95"):
-        text += f" ± {(cost['ci95'][1] - cost['ci95'][0]) / 2:.2g}"
-    if entry["diverged"]:
-        text += f" ({entry['diverged']} div.)"
-    return text
+    if not diff["ci95"]:
+        return f"{diff['mean']:+.3g}"
+    low, high = diff["ci95"]
+    return f"{diff['mean']:+.3g} [{low:+.3g}, {high:+.3g}], better on {100 * frac:.0f} %"
 
 
 def table(results: dict) -> str:
@@ -397,42 +394,21 @@ def table(results: dict) -> str:
     evaluation = results["evaluation"]
     labels = list(evaluation)
     names = list(next(iter(evaluation.values()))["gains"])
-    head = (
-        "| gains | "
-        + " | ".join(f"{label} ({evaluation[label]['horizon_s']:g} s)" for label in labels)
-        + " | tuning draw-steps | tuning wall time (s) |"
-    )
-    lines = [head, "|" + "---|" * (len(labels) + 3)]
+    columns = " | ".join(f"{label} ({evaluation[label]['horizon_s']:g} s)" for label in labels)
+    lines = _common.table_head(f"gains | {columns} | tuning draw-steps | tuning wall time (s)")
     tuners = results["tuners"]
     for name in names:
-        cells = [_cell(evaluation[label]["gains"][name]) for label in labels]
+        cells = [_common.mean_cell(evaluation[label]["gains"][name], "div.") for label in labels]
         spent = tuners.get(name, {})
         lines.append(
             f"| {name} | "
             + " | ".join(cells)
             + f" | {spent.get('draw_steps', '-')} | {spent.get('wall_time_s', '-')} |"
         )
-    lines.append("")
-    lines.append(
-        "| gains | " + " | ".join(f"{label}: minus paper (95 % CI)" for label in labels) + " |"
-    )
-    lines.append("|" + "---|" * (len(labels) + 1))
-    for name in names:
-        if name == "paper":
-            continue
-        cells = []
-        for label in labels:
-            diff = evaluation[label]["gains"][name]["cost"]["minus_paper"]
-            frac = evaluation[label]["gains"][name]["cost"]["better_than_paper_fraction"]
-            if diff["mean"] is None:
-                cells.append("n/a")
-            elif diff["ci95"]:
-                cells.append(
-                    f"{diff['mean']:+.3g} [{diff['ci95'][0]:+.3g}, {diff['ci95'][1]:+.3g}], "
-                    f"better on {100 * frac:.0f} %"
-                )
-            else:
-                cells.append(f"{diff['mean']:+.3g}")
+    columns = " | ".join(f"{label}: minus paper (95 % CI)" for label in labels)
+    lines += ["", *_common.table_head(f"gains | {columns}")]
+    for name in [n for n in names if n != "paper"]:
+        cells = [_minus_paper(evaluation[label]["gains"][name]["cost"]) for label in labels]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -497,9 +473,10 @@ def report(results: dict) -> str:
             f"{validation['horizon_s']:g} s, `sat`; paper {validation['paper']:.4g}, naive "
             f"{validation['naive']:.4g}):",
             "",
-            "| method | at half the gradient's draw-steps | at the gradient's draw-steps | at "
-            "the end | best point | at the gradient's wall time |",
-            "|---|---|---|---|---|---|",
+            *_common.table_head(
+                "method | at half the gradient's draw-steps | at the gradient's draw-steps | at "
+                "the end | best point | at the gradient's wall time"
+            ),
         ]
         for method, points in by_method.items():
             points.sort()
@@ -513,10 +490,7 @@ def report(results: dict) -> str:
             at = _curve_at(sorted(points, key=lambda q: q[1]), g["wall_time_s"], 1)
             cells.append("-" if at is None else f"{at[2]:.4g} ({at[1]:.0f} s)")
             lines.append(f"| {method} | " + " | ".join(cells) + " |")
-        lines += [
-            "",
-            "(draw-steps and tuning wall time, compilation excluded, in parentheses.)",
-        ]
+        lines += ["", "(draw-steps and tuning wall time, compilation excluded, in parentheses.)"]
     return "\n".join(lines)
 
 

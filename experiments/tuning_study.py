@@ -58,6 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import _common
 from experiments.tuning_study_report import METHODS, USER_MODES, plot, summarize, table
 from fojax.cli import arguments, output
 
@@ -65,30 +66,22 @@ __all__ = ["main", "summarize", "table"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m experiments.tuning_study")
+    parser = _common.parser("tuning_study")
     parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
-    parser.add_argument("--horizon", type=arguments.positive_float, default=10.0)
+    _common.add_numbers(parser, horizon=10.0)
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated (0,1,2)")
     parser.add_argument("--shares", default="paper,none", help="comma-separated (paper,none)")
     parser.add_argument("--starts", default="paper,naive", help="comma-separated (paper,naive)")
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--gradient-method", choices=("lbfgs", "adam"), default="lbfgs")
-    parser.add_argument("--gradient-steps", type=arguments.positive_int, default=30)
-    parser.add_argument("--gradient-draws", type=arguments.positive_int, default=16)
-    parser.add_argument("--learning-rate", type=arguments.positive_float, default=0.1)
-    parser.add_argument("--max-step", type=arguments.positive_float, default=1.0)
-    parser.add_argument("--validation-draws", type=arguments.positive_int, default=32)
-    parser.add_argument("--validate-every", type=arguments.positive_int, default=2)
-    parser.add_argument("--cma-generations", type=arguments.positive_int, default=20)
-    parser.add_argument("--cma-sigma", type=arguments.positive_float, default=0.5)
-    parser.add_argument("--df-draws", type=arguments.positive_int, default=16)
-    parser.add_argument("--heldout-draws", type=arguments.positive_int, default=64)
+    _common.add_numbers(parser, gradient_steps=30, gradient_draws=16, learning_rate=0.1)
+    _common.add_numbers(parser, max_step=1.0, validation_draws=32, validate_every=2)
+    _common.add_numbers(parser, cma_generations=20, cma_sigma=0.5, df_draws=16, heldout_draws=64)
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument(
         "--compile", choices=("optimized", "fast"), default="optimized", help="tuning functions"
     )
-    parser.add_argument("--out", type=Path, default=Path("results/tuning_study"))
-    parser.add_argument("--update-doc", type=Path, help="markdown file to update")
+    _common.add_outputs(parser, "tuning_study", smoke=False)
     parser.add_argument(
         "--report-only", action="store_true", help="summarise the stored runs, run nothing"
     )
@@ -108,9 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="also run `fojax tune --scenario 2 --init paper` N times per --compile mode, "
         "each in a fresh process (compilation included), stored in --out/user_view/",
     )
-    parser.add_argument("--user-steps", type=arguments.positive_int, default=6)
-    parser.add_argument("--tiny", action="store_true", help="a seconds-long smoke run")
-    parser.add_argument("--quiet", action="store_true")
+    _common.add_numbers(parser, user_steps=6)
+    _common.add_smoke(parser)
     return parser
 
 
@@ -121,9 +113,8 @@ def parse_args(argv) -> argparse.Namespace:
         args.seeds = tuple(int(s) for s in args.seeds.split(",") if s.strip())
     except ValueError:
         parser.error(f"--seeds must be comma-separated integers, got {args.seeds!r}")
-    args.shares = tuple(s.strip() for s in args.shares.split(",") if s.strip())
-    args.starts = tuple(s.strip() for s in args.starts.split(",") if s.strip())
-    args.methods = tuple(s.strip() for s in args.methods.split(",") if s.strip())
+    args.shares, args.starts = _common.listed(args.shares), _common.listed(args.starts)
+    args.methods = _common.listed(args.methods)
     for label, values, valid in (
         ("--shares", args.shares, ("paper", "none")),
         ("--starts", args.starts, ("paper", "naive")),
@@ -139,25 +130,39 @@ def parse_args(argv) -> argparse.Namespace:
     return args
 
 
+def _compile_time(fn, beside=None) -> float:
+    """The compile time of ``fn``: its first call (with ``beside`` run in a thread next
+    to it) less a second call."""
+    import threading
+
+    import jax
+
+    threads = [threading.Thread(target=beside)] if beside else []
+    t0 = time.perf_counter()
+    for thread in threads:
+        thread.start()
+    jax.block_until_ready(fn())
+    for thread in threads:
+        thread.join()
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    return max(first - (time.perf_counter() - t0), 0.0)
+
+
 class _Setup:
     """One parameter count: the problem, compiled once, and each method's compile time."""
 
     def __init__(self, args, share: str):
-        import jax
         import jax.numpy as jnp
 
-        from fojax import scenarios
         from fojax.optimize import cost as cost_lib
         from fojax.optimize import params as params_lib
         from fojax.optimize import problem as problem_lib
 
         self.args = args
-        if args.tiny:
-            cost = cost_lib.CostConfig(
-                effort_weight=1e-3, chattering_weight=1e-3, attitude_weight=2.0
-            )
-        else:
-            cost = cost_lib.CostConfig()
+        tiny = {"effort_weight": 1e-3, "chattering_weight": 1e-3, "attitude_weight": 2.0}
+        cost = cost_lib.CostConfig(**(tiny if args.tiny else {}))
         self.spec = problem_lib.ProblemSpec(
             controller="afonftsmc",
             scenario=args.scenario,
@@ -172,48 +177,29 @@ class _Setup:
         dtype = jnp.dtype(args.dtype)
         self.naive = params_lib.naive_gains("afonftsmc", dtype)
         self.problem = problem_lib.TuningProblem(self.spec, self.naive)
-        self.heldout_keys = np.asarray(
-            scenarios.draw_keys(0, problem_lib.HELDOUT_OFFSET + np.arange(args.heldout_draws))
-        )
+        self.heldout_keys = _common.heldout_keys(0, args.heldout_draws)
         self.compile_s: dict[str, float] = {}
-
-        def twice(fn) -> float:
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn())
-            first = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn())
-            return max(first - (time.perf_counter() - t0), 0.0)
 
         problem = self.problem
         params = problem.initial_params()
         grad_keys = problem.minibatch_keys(0, args.gradient_draws)
         df_keys = problem.minibatch_keys(0, args.df_draws)
         validation_keys = problem.validation_keys(args.validation_draws)
-        popsize = self.popsize
-        vectors = np.repeat(problem.vector(params)[None], popsize, axis=0)
+        vectors = np.repeat(problem.vector(params)[None], self.popsize, axis=0)
         if "gradient" in args.methods:
             # As the tuner does it: the validation run compiles in a thread beside the
             # gradient. Counted: that warm-up's wall time less one gradient evaluation
             # (the tuner's first step counts its own).
-            import threading
-
-            def validation():
-                return problem_lib.evaluate(self.spec, self.naive, validation_keys).cost
-
-            t0 = time.perf_counter()
-            thread = threading.Thread(target=validation)
-            thread.start()
-            jax.block_until_ready(problem.value_and_grad(params, 1.0, grad_keys).objective)
-            thread.join()
-            warm = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            jax.block_until_ready(problem.value_and_grad(params, 1.0, grad_keys).objective)
-            self.compile_s["gradient"] = max(warm - (time.perf_counter() - t0), 0.0)
+            self.compile_s["gradient"] = _compile_time(
+                lambda: problem.value_and_grad(params, 1.0, grad_keys).objective,
+                beside=lambda: problem_lib.evaluate(self.spec, self.naive, validation_keys).cost,
+            )
         if "cma-es" in args.methods:
-            self.compile_s["cma-es"] = twice(lambda: problem.batch_value(vectors, 1.0, df_keys)[0])
+            self.compile_s["cma-es"] = _compile_time(
+                lambda: problem.batch_value(vectors, 1.0, df_keys)[0]
+            )
         if "nelder-mead" in args.methods:
-            self.compile_s["nelder-mead"] = twice(
+            self.compile_s["nelder-mead"] = _compile_time(
                 lambda: problem.value(params, 1.0, df_keys).objective
             )
         self.heldout(self.naive)  # compiles the held-out evaluation (not counted)
@@ -321,15 +307,10 @@ def user_view(args, out: Path) -> list[dict]:
             with open(run_dir / "history.csv", newline="") as handle:
                 history = list(csv.DictReader(handle))
             initial = evaluation["initial"]["mean_cost"]
-            first_half = next(
-                (
-                    float(row["wall_time_s"])
-                    for row in history
-                    if row["validation_cost"]
-                    and float(row["validation_cost"]) <= 0.5 * gains["validation"]["initial"]
-                ),
-                None,
-            )
+            half = 0.5 * gains["validation"]["initial"]
+            validated = [row for row in history if row["validation_cost"]]
+            halved = [row for row in validated if float(row["validation_cost"]) <= half]
+            first_half = float(halved[0]["wall_time_s"]) if halved else None
             record = {
                 "mode": mode,
                 "run": index,
@@ -361,10 +342,6 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     import copy
     import dataclasses
 
-    from fojax.optimize import derivative_free
-    from fojax.optimize import tuner as tuner_lib
-
-    args = setup.args
     problem = copy.copy(setup.problem)  # the same compiled functions, another seed
     problem.spec = dataclasses.replace(setup.spec, seed=seed)
     init = setup.start(start)
@@ -373,72 +350,9 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     load_before = output.load_average()
     t0 = time.perf_counter()
     if method == "gradient":
-        config = tuner_lib.TunerConfig(
-            steps=args.gradient_steps,
-            method=args.gradient_method,
-            learning_rate=args.learning_rate,
-            max_step=args.max_step,
-            validation_draws=args.validation_draws,
-            validate_every=args.validate_every,
-            checkpoint_every=10**6,
-        )
-        run = tuner_lib.prepare(problem.spec, config, init, start, None)
-
-        def on_step(step, params, row):
-            if row["validation_cost"] is not None and row["best_step"] == step:
-                curve.append((row["draw_steps"], row["wall_time_s"], setup.heldout(
-                    problem.gains(params))))  # fmt: skip
-            elif row["validation_cost"] is not None:
-                curve.append((row["draw_steps"], row["wall_time_s"], curve[-1][2]))
-
-        result = tuner_lib.tune(run, progress=False, callback=on_step, problem=problem)
-        last = result.history[-1]
-        totals = {
-            "draw_steps": last["draw_steps"],
-            "wall_time_s": last["wall_time_s"],
-            "steps": result.completed,
-            "best_step": result.best_step,
-            "validation": result.validation,
-        }
-        gains = result.gains
+        totals, gains = _run_gradient(setup, problem, init, start, curve)
     else:
-        every = {"n": 0}
-
-        def record(draw_steps, params, row):
-            every["n"] += 1
-            if method == "nelder-mead" or every["n"] % 2 == 0:
-                curve.append((draw_steps, row["wall_time_s"], setup.heldout(problem.gains(params))))
-
-        per_evaluation = args.df_draws * problem.spec.steps
-        budget = args.cma_generations * setup.popsize * per_evaluation
-        if method == "nelder-mead":  # at least the initial simplex and one generation more
-            size = problem.param_map.size
-            budget = max(budget, (size + 1 + setup.popsize) * per_evaluation)
-        if method == "cma-es":
-            result = derivative_free.cma_es(
-                problem,
-                budget,
-                draws_per_candidate=args.df_draws,
-                sigma0=args.cma_sigma,
-                seed=seed,
-                callback=record,
-                x0=x0,
-            )
-        else:
-            result = derivative_free.nelder_mead(
-                problem,
-                budget,
-                draws=args.df_draws,
-                callback=record,
-                callback_every=setup.popsize,
-                x0=x0,
-            )
-        totals = {
-            "draw_steps": result.draw_steps,
-            "wall_time_s": round(result.wall_time_s, 3),
-            "evaluations": result.evaluations,
-        }
-        gains = result.gains
+        totals, gains = _run_derivative_free(setup, problem, method, seed, x0, curve)
     final = setup.heldout(gains)
     if curve[-1][0] != totals["draw_steps"] or curve[-1][2] != final:
         curve.append((totals["draw_steps"], totals["wall_time_s"], final))
@@ -460,61 +374,133 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     }
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    if args.dtype == "float64":
-        import jax
+def _run_gradient(setup: _Setup, problem, init, start: str, curve: list):
+    """The gradient tuner from ``init``; appends its answers' held-out costs to
+    ``curve``; returns its totals and gains."""
+    from fojax.optimize import tuner as tuner_lib
 
-        jax.config.update("jax_enable_x64", True)
+    args = setup.args
+    config = _common.tuner_config(
+        args, args.gradient_steps, args.validation_draws, checkpoint_every=10**6
+    )
+    run = tuner_lib.prepare(problem.spec, config, init, start, None)
+
+    def on_step(step, params, row):
+        if row["validation_cost"] is not None:
+            best = row["best_step"] == step
+            cost = setup.heldout(problem.gains(params)) if best else curve[-1][2]
+            curve.append((row["draw_steps"], row["wall_time_s"], cost))
+
+    result = tuner_lib.tune(run, progress=False, callback=on_step, problem=problem)
+    last = result.history[-1]
+    totals = {
+        "draw_steps": last["draw_steps"],
+        "wall_time_s": last["wall_time_s"],
+        "steps": result.completed,
+        "best_step": result.best_step,
+        "validation": result.validation,
+    }
+    return totals, result.gains
+
+
+def _run_derivative_free(setup: _Setup, problem, method: str, seed: int, x0, curve: list):
+    """CMA-ES or Nelder-Mead from ``x0`` with the study's budget of draw-steps; appends
+    its answers' held-out costs to ``curve``; returns its totals and gains."""
+    from fojax.optimize import derivative_free
+
+    args = setup.args
+    every = {"n": 0}
+
+    def record(draw_steps, params, row):
+        every["n"] += 1
+        if method == "nelder-mead" or every["n"] % 2 == 0:
+            curve.append((draw_steps, row["wall_time_s"], setup.heldout(problem.gains(params))))
+
+    per_evaluation = args.df_draws * problem.spec.steps
+    budget = args.cma_generations * setup.popsize * per_evaluation
+    if method == "cma-es":
+        result = derivative_free.cma_es(
+            problem,
+            budget,
+            draws_per_candidate=args.df_draws,
+            sigma0=args.cma_sigma,
+            seed=seed,
+            callback=record,
+            x0=x0,
+        )
+    else:  # at least the initial simplex and one generation more
+        budget = max(budget, (problem.param_map.size + 1 + setup.popsize) * per_evaluation)
+        result = derivative_free.nelder_mead(
+            problem,
+            budget,
+            draws=args.df_draws,
+            callback=record,
+            callback_every=setup.popsize,
+            x0=x0,
+        )
+    totals = {
+        "draw_steps": result.draw_steps,
+        "wall_time_s": round(result.wall_time_s, 3),
+        "evaluations": result.evaluations,
+    }
+    return totals, result.gains
+
+
+def _settings(args) -> dict:
+    """The arguments, JSON-ready (tuples as lists, paths as text)."""
+    plain = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()}
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in plain.items()}
+
+
+def run_share(args, share: str, settings: dict) -> None:
+    """The runs (and the bench) of one parameter count that are not stored yet."""
+    runs_dir = args.out / "runs"
+    pending = [
+        (start, seed, method)
+        for start in args.starts
+        for seed in args.seeds
+        for method in args.methods
+        if not (runs_dir / f"{share}_{start}_{seed}_{method}.json").exists()
+    ]
+    bench_path = args.out / f"bench_{share}.json"
+    if not pending and (not args.bench or bench_path.exists()):
+        return
+    t0 = time.perf_counter()
+    setup = _Setup(args, share)
+    output.log(
+        args.quiet,
+        f"share={share}: {setup.problem.param_map.size} parameters, compiled in "
+        f"{time.perf_counter() - t0:.0f} s ({setup.compile_s})",
+    )
+    if args.bench and not bench_path.exists():
+        bench = bench_batched(setup, args.bench)
+        output.write_json(bench_path, bench)
+        output.log(
+            args.quiet,
+            f"  batched generation {bench['median_batched_s']:.2f} s, one at a "
+            f"time {bench['median_one_at_a_time_s']:.2f} s (medians)",
+        )
+    for start, seed, method in pending:
+        record = run_one(setup, start, seed, method)
+        record["settings"] = settings
+        output.write_json(runs_dir / f"{share}_{start}_{seed}_{method}.json", record)
+        output.log(
+            args.quiet,
+            f"  {share} {start} seed {seed} {method}: held-out "
+            f"{record['initial_heldout']:.4g} -> {record['final_heldout']:.4g}, "
+            f"{record['wall_time_s']:.0f} s + {record['compile_s']:.0f} s compile, "
+            f"load {record['load_before']} -> {record['load_after']}",
+        )
+
+
+def report(args, settings: dict, start_all: float) -> int:
+    """``results.json``, ``table.md`` and the figures from the stored runs of the
+    selected shares, starts, seeds and methods; the document's block with ``--update-doc``."""
     out = args.out
-    runs_dir = out / "runs"
-    runs_dir.mkdir(parents=True, exist_ok=True)
-    start_all = time.perf_counter()
-    settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()}
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in settings.items()}
-    if not args.report_only:
-        for share in args.shares:
-            pending = [
-                (start, seed, method)
-                for start in args.starts
-                for seed in args.seeds
-                for method in args.methods
-                if not (runs_dir / f"{share}_{start}_{seed}_{method}.json").exists()
-            ]
-            bench_path = out / f"bench_{share}.json"
-            if not pending and (not args.bench or bench_path.exists()):
-                continue
-            t0 = time.perf_counter()
-            setup = _Setup(args, share)
-            output.log(
-                args.quiet,
-                f"share={share}: {setup.problem.param_map.size} parameters, compiled in "
-                f"{time.perf_counter() - t0:.0f} s ({setup.compile_s})",
-            )
-            if args.bench and not bench_path.exists():
-                bench = bench_batched(setup, args.bench)
-                output.write_json(bench_path, bench)
-                output.log(
-                    args.quiet,
-                    f"  batched generation {bench['median_batched_s']:.2f} s, one at a "
-                    f"time {bench['median_one_at_a_time_s']:.2f} s (medians)",
-                )
-            for start, seed, method in pending:
-                record = run_one(setup, start, seed, method)
-                record["settings"] = settings
-                path = runs_dir / f"{share}_{start}_{seed}_{method}.json"
-                output.write_json(path, record)
-                output.log(
-                    args.quiet,
-                    f"  {share} {start} seed {seed} {method}: held-out "
-                    f"{record['initial_heldout']:.4g} -> {record['final_heldout']:.4g}, "
-                    f"{record['wall_time_s']:.0f} s + {record['compile_s']:.0f} s compile, "
-                    f"load {record['load_before']} -> {record['load_after']}",
-                )
     users = user_view(args, out) if args.user_view and not args.report_only else []
     if not users and (out / "user_view").is_dir():
         users = [json.loads(p.read_text()) for p in sorted((out / "user_view").glob("*.json"))]
-    records = [json.loads(p.read_text()) for p in sorted(runs_dir.glob("*.json"))]
+    records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
     records = [
         r
         for r in records
@@ -523,36 +509,40 @@ def main(argv=None) -> int:
         and r["seed"] in args.seeds
         and r["method"] in args.methods
     ]
-    summary = summarize(records)
-    benches = [
-        json.loads((out / f"bench_{share}.json").read_text())
-        for share in args.shares
-        if (out / f"bench_{share}.json").exists()
-    ]
+    benches = [out / f"bench_{share}.json" for share in args.shares]
     results = {
         "user_view": users,
-        "bench": benches,
+        "bench": [json.loads(path.read_text()) for path in benches if path.exists()],
         "settings": settings,
-        "summary": summary,
+        "summary": summarize(records),
         "runs": records,
         "git_commit": output.commit_label(full=True),
         "this_invocation_s": round(time.perf_counter() - start_all, 1),
         "runs_elapsed_s": round(sum(r["elapsed_s"] for r in records), 1),
     }
-    output.write_json(out / "results.json", results)
     figures = [
         plot(records, out / "tuning_wall.png", "wall"),
         plot(records, out / "tuning_draw_steps.png", "draw_steps"),
     ]
-    text = table(results)
-    (out / "table.md").write_text(text + "\n")
     if args.update_doc is not None:
         for figure in figures:
             shutil.copyfile(figure, args.update_doc.parent / figure.name)
-        output.splice(args.update_doc, text, name="tuning-study")
-    print(text)
-    print(f"wrote {out}/results.json, table.md, tuning_wall.png, tuning_draw_steps.png")
-    return 0
+    wrote = ", tuning_wall.png, tuning_draw_steps.png"
+    return _common.finish(
+        out, results, table(results), args.update_doc, "tuning-study", None, wrote
+    )
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    _common.enable_float64(args.dtype == "float64")
+    (args.out / "runs").mkdir(parents=True, exist_ok=True)
+    start_all = time.perf_counter()
+    settings = _settings(args)
+    if not args.report_only:
+        for share in args.shares:
+            run_share(args, share, settings)
+    return report(args, settings, start_all)
 
 
 if __name__ == "__main__":

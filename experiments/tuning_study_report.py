@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import _common
+
 __all__ = ["METHODS", "plot", "summarize", "table", "user_table"]
 
 METHODS = ("gradient", "cma-es", "nelder-mead")
@@ -84,10 +86,77 @@ def _spread(values, fmt=".3g") -> str:
     return f"{median:{fmt}} [{min(values):{fmt}}, {max(values):{fmt}}]"
 
 
+def _entries(summary: dict):
+    """``(share, start, entry)`` per entry of :func:`summarize`'s summary."""
+    for key, entry in summary.items():
+        share, start = key.split("/")
+        yield share, start, entry
+
+
+def _number(value, fmt: str, missing: str = "-") -> str:
+    return missing if value is None else format(value, fmt)
+
+
+METHOD_COLUMNS = (
+    "parameters | start | method | held-out cost at the start | final held-out cost | "
+    "best held-out cost on the curve | wall time incl. compile (s) | compile (s) | draw-steps"
+)
+
+
+def _method_rows(summary: dict):
+    for share, start, entry in _entries(summary):
+        for m, label in ((entry["methods"].get(k), LABELS[k]) for k in METHODS):
+            if m is not None:
+                yield (
+                    f"| {m['parameters']} (`--share {share}`) | {start} | {label} | "
+                    f"{m['initial']:.4g} | {_spread(m['final'], '.4g')} | "
+                    f"{_spread(m['best'], '.4g')} | {_spread(m['wall_time_s'], '.0f')} | "
+                    f"{m['compile_s']:.0f} | {_spread(m['draw_steps'], '.3g')} |"
+                )
+
+
+TARGET_COLUMNS = (
+    "parameters | start | seed | CMA-ES best | CMA-ES wall time (s) (reached its best at) | "
+    "gradient reached it at (s) | ratio | met | ratio without compilation | gradient's best"
+)
+
+
+def _target_rows(summary: dict):
+    for _, start, entry in _entries(summary):
+        size = next(iter(entry["methods"].values()))["parameters"]
+        for t in entry["target"]:
+            reached = _number(t["gradient_reached_at_s"], ".0f", "not reached")
+            ratio = _number(t["ratio_to_cma_wall_time"], ".2f")
+            bare = _number(t.get("ratio_without_compilation"), ".2f")
+            yield (
+                f"| {size} | {start} | {t['seed']} | {t['cma_best']:.4g} | "
+                f"{t['cma_wall_time_s']:.0f} ({t['cma_reached_at_s']:.0f}) | {reached} | "
+                f"{ratio} | {'yes' if t['met'] else 'no'} | {bare} | {t['gradient_best']:.4g} |"
+            )
+
+
+def _bench_line(bench: dict) -> str:
+    return (
+        f"One CMA-ES generation, {bench['parameters']} parameters: {bench['population']} "
+        f"candidates x {bench['draws']} draws x {bench['horizon_s']:g} s in one batched "
+        f"call {bench['median_batched_s']:.2f} s, one call per candidate "
+        f"{bench['median_one_at_a_time_s']:.2f} s (medians of {len(bench['batched_s'])}, "
+        f"interleaved; {bench['median_one_at_a_time_s'] / bench['median_batched_s']:.1f}x); "
+        f"costs equal to {bench['largest_relative_difference']:.1g} relative (float32 "
+        "rounding depends on the batch)."
+    )
+
+
+SETTINGS = (
+    "gradient_method gradient_steps gradient_draws validation_draws validate_every "
+    "cma_generations df_draws heldout_draws horizon dtype"
+).split()
+"""The settings the table's last line states."""
+
+
 def table(results: dict) -> str:
     """Markdown: per parameter count and start, each method's held-out costs and times
     (median [min, max] over the seeds), and the target check per seed."""
-    summary = results["summary"]
     settings = results["settings"]
     runs = results["runs"]
     loads = [x for r in runs for x in (r["load_before"][:1] + r["load_after"][:1])]
@@ -97,88 +166,21 @@ def table(results: dict) -> str:
         + (f"{min(loads):.1f}-{max(loads):.1f}" if loads else "n/a")
         + " over the runs (2 cores).",
         "",
-        "| parameters | start | method | held-out cost at the start | final held-out cost | "
-        "best held-out cost on the curve | wall time incl. compile (s) | compile (s) | "
-        "draw-steps |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for key, entry in summary.items():
-        share, start = key.split("/")
-        for method in METHODS:
-            m = entry["methods"].get(method)
-            if m is None:
-                continue
-            lines.append(
-                f"| {m['parameters']} (`--share {share}`) | {start} | {LABELS[method]} | "
-                f"{m['initial']:.4g} | {_spread(m['final'], '.4g')} | "
-                f"{_spread(m['best'], '.4g')} | {_spread(m['wall_time_s'], '.0f')} | "
-                f"{m['compile_s']:.0f} | {_spread(m['draw_steps'], '.3g')} |"
-            )
-    lines += [
+        *_common.table_head(METHOD_COLUMNS),
+        *_method_rows(results["summary"]),
         "",
         "Target: the gradient tuner reaches CMA-ES's best held-out cost (over CMA-ES's whole "
         "budget) in at most half of CMA-ES's wall time (both with compilation):",
         "",
-        "| parameters | start | seed | CMA-ES best | CMA-ES wall time (s) (reached its best at) "
-        "| gradient reached it at (s) | ratio | met | ratio without compilation | "
-        "gradient's best |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        *_common.table_head(TARGET_COLUMNS),
+        *_target_rows(results["summary"]),
     ]
-    for key, entry in summary.items():
-        share, start = key.split("/")
-        size = next(iter(entry["methods"].values()))["parameters"]
-        for t in entry["target"]:
-            reached = (
-                "not reached"
-                if t["gradient_reached_at_s"] is None
-                else (f"{t['gradient_reached_at_s']:.0f}")
-            )
-            ratio = (
-                "-"
-                if t["ratio_to_cma_wall_time"] is None
-                else (f"{t['ratio_to_cma_wall_time']:.2f}")
-            )
-            bare = t.get("ratio_without_compilation")
-            bare = "-" if bare is None else f"{bare:.2f}"
-            lines.append(
-                f"| {size} | {start} | {t['seed']} | {t['cma_best']:.4g} | "
-                f"{t['cma_wall_time_s']:.0f} ({t['cma_reached_at_s']:.0f}) | {reached} | "
-                f"{ratio} | {'yes' if t['met'] else 'no'} | {bare} | {t['gradient_best']:.4g} |"
-            )
     for bench in results.get("bench", []):
-        lines += [
-            "",
-            f"One CMA-ES generation, {bench['parameters']} parameters: {bench['population']} "
-            f"candidates x {bench['draws']} draws x {bench['horizon_s']:g} s in one batched "
-            f"call {bench['median_batched_s']:.2f} s, one call per candidate "
-            f"{bench['median_one_at_a_time_s']:.2f} s (medians of {len(bench['batched_s'])}, "
-            f"interleaved; {bench['median_one_at_a_time_s'] / bench['median_batched_s']:.1f}x); "
-            f"costs equal to {bench['largest_relative_difference']:.1g} relative (float32 "
-            "rounding depends on the batch).",
-        ]
+        lines += ["", _bench_line(bench)]
     if results.get("user_view"):
         lines += ["", "The user's view, `fojax tune` from the paper's gains:", ""]
         lines.append(user_table(results["user_view"]))
-    lines += [
-        "",
-        "Settings: "
-        + ", ".join(
-            f"{k} {settings[k]}"
-            for k in (
-                "gradient_method",
-                "gradient_steps",
-                "gradient_draws",
-                "validation_draws",
-                "validate_every",
-                "cma_generations",
-                "df_draws",
-                "heldout_draws",
-                "horizon",
-                "dtype",
-            )
-        )
-        + ".",
-    ]
+    lines += ["", "Settings: " + ", ".join(f"{k} {settings[k]}" for k in SETTINGS) + "."]
     return "\n".join(lines)
 
 
@@ -232,12 +234,11 @@ def plot(records: list[dict], path: Path, axis: str) -> Path:
 
 
 def user_table(records: list[dict]) -> str:
-    lines = [
-        "| `--compile` | runs | command wall time (s), compilation included | tuning loop (s) "
+    lines = _common.table_head(
+        "`--compile` | runs | command wall time (s), compilation included | tuning loop (s) "
         "| validation cost first at half the start's, at (s of the loop) | held-out cost: "
-        "paper's -> returned | returned step | held-out halved |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
+        "paper's -> returned | returned step | held-out halved"
+    )
     for mode in USER_MODES:
         runs = [r for r in records if r["mode"] == mode]
         if not runs:
