@@ -4,7 +4,7 @@
                                       [--execute-up-to 10] [--out results/tune_memory]
 
 For each horizon, in a fresh subprocess: compile the gradient of the mean tuning cost
-(:meth:`fojax.optimize.problem.TuningProblem.value_and_grad`, float32, AFONFTSMC, the
+(:meth:`fojax.optimize.problem.TuningProblem.lower_gradient`, float32, AFONFTSMC, the
 paper's gains) and read XLA's ``memory_analysis()`` (temporary buffers = the peak
 working set the compiled program allocates besides its arguments and outputs); for
 horizons up to ``--execute-up-to`` s also run it once and record the process's peak
@@ -40,7 +40,7 @@ params = problem.initial_params()
 keys = problem.minibatch_keys(0)
 scale = jnp.asarray(1.0, jnp.float32)
 t0 = time.perf_counter()
-compiled = problem._value_and_grad.lower(params, scale, keys).compile()
+compiled = problem.lower_gradient(params, scale, keys).compile()
 compile_s = time.perf_counter() - t0
 m = compiled.memory_analysis()
 out = {"horizon_s": horizon, "draws": draws, "steps": spec.steps, "save_every": spec.block,

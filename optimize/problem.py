@@ -412,6 +412,13 @@ class TuningProblem:
     def value_and_grad(self, params, width_scale: float, keys: Array) -> Step:
         return self._value_and_grad(params, jnp.asarray(width_scale, self.spec.jnp_dtype), keys)
 
+    def lower_gradient(self, params, width_scale: float, keys: Array):
+        """The gradient's per-device program lowered (``jax.jit``'s ``Lowered``) for
+        ``keys`` as one block per device of the problem's mesh: ``.compile()`` then
+        ``memory_analysis()`` or ``cost_analysis()``."""
+        scale = jnp.asarray(width_scale, self.spec.jnp_dtype)
+        return self._value_and_grad.lower(params, scale, keys)
+
     def batch_value(self, vectors, width_scale: float, keys: Array):
         """Objectives ``(P,)`` and :class:`fojax.optimize.cost.DrawCosts` with ``(P, n, ...)``
         leaves of ``P`` candidates (rows of ``vectors``, :meth:`vector` order), each on
@@ -447,11 +454,12 @@ def _over_mesh(per_draw, reduce, mesh, device_batch=None, compiler_options=None,
     its batch: :mod:`fojax.study`). key: what ``per_draw`` closes over; given, its
     program is kept across processes (:func:`fojax.export_cache.reusable`)."""
     devices = int(mesh.devices.size)
-    run = sharding.sharded_batch(
+    program = sharding.sharded_batch(
         per_draw, mesh, batched=(False, False, True), compiler_options=compiler_options
     )
+    run = program
     if key is not None:
-        run = export_cache.reusable(run, "gradient", key, compiler_options)
+        run = export_cache.reusable(program, "gradient", key, compiler_options)
     several = any(d.process_index != jax.process_index() for d in mesh.devices.flat)
 
     def value_and_grad(params, width_scale, keys):
@@ -478,6 +486,15 @@ def _over_mesh(per_draw, reduce, mesh, device_batch=None, compiler_options=None,
         out = jax.tree.map(lambda *xs: jnp.asarray(np.concatenate(xs)[:n]), *parts)
         return reduce(out)
 
+    def lower(params, width_scale, keys):
+        """The per-device program lowered for ``keys`` as one block per device."""
+        return program.lower(
+            sharding.replicate(params, mesh),
+            sharding.replicate(width_scale, mesh),
+            sharding.shard_draws(np.asarray(keys), mesh),
+        )
+
+    value_and_grad.lower = lower
     return value_and_grad
 
 

@@ -5,6 +5,7 @@ import dataclasses
 import functools
 import os
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -194,6 +195,16 @@ def test_cost_gradient_matches_finite_differences():
     assert float(problem.value(params, scale, keys).objective) == pytest.approx(
         float(step.objective), rel=1e-13
     )
+
+
+def test_the_gradient_program_is_open_to_memory_analysis():
+    """experiments.tune_memory reads the compiled gradient's working set."""
+    problem = small_problem()
+    keys = problem.minibatch_keys(0)
+    compiled = problem.lower_gradient(problem.initial_params(), 2.0, keys).compile()
+    assert compiled.memory_analysis().temp_size_in_bytes > 0
+    leading = {leaf.shape[0] for leaf in jax.tree.leaves(compiled.out_info)}
+    assert leading == {keys.shape[0]}  # per-draw values, reduced by the caller
 
 
 def _run(tmp, steps, stop_after=None, resume=False, config_overrides=None):
