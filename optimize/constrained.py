@@ -53,9 +53,7 @@ requirement set, objective effort) went from 0/64 to 63/64 held-out draws. Hence
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 import sys
 import time
 from collections.abc import Callable
@@ -69,6 +67,7 @@ import optax
 
 from fojax import observers, plant, scenarios, simulator
 from fojax import requirements as rq
+from fojax.optimize import _alm_checkpoint
 from fojax.optimize import cost as cost_lib
 from fojax.optimize import problem as problem_lib
 from fojax.optimize.derivative_free import cma_es_requirements
@@ -237,6 +236,46 @@ class ConstrainedResult(NamedTuple):
     initial: dict | None = None
 
 
+@dataclasses.dataclass
+class _Loop:
+    """:func:`minimize`'s state between outer iterations (what a checkpoint holds)."""
+
+    params: Any
+    best_params: Any
+    lam: Any
+    rho: float
+    scale: float
+    previous: float
+    best: dict | None
+    initial: dict | None
+    history: list
+    start: float
+
+    def record(self) -> dict:
+        keep = ("rho", "scale", "previous", "best", "initial", "history")
+        return {k: getattr(self, k) for k in keep} | {"elapsed_s": time.perf_counter() - self.start}
+
+
+def _begin(step, params, data, n, config, requirements, score, checkpoint, fingerprint) -> _Loop:
+    """The loop's state: continued from ``checkpoint`` when it exists, else the start
+    (its objective ``f_0`` sets the scale, its validation the first best)."""
+    resumed = _alm_checkpoint.load(checkpoint, params, fingerprint) if checkpoint else None
+    if resumed is not None:
+        state, params, best_params, lam = resumed
+        state["start"] = time.perf_counter() - state.pop("elapsed_s")
+        return _Loop(params, best_params, lam, **state)
+    start = time.perf_counter()
+    lam = jnp.zeros(requirements)
+    rho = float(config.penalty)
+    # Every number passed as an array of the default float: one compilation of ``step``.
+    _, _, f0, _, _ = step(params, data, n, jnp.asarray(1.0), lam, jnp.asarray(rho))
+    scale = float(f0) if float(f0) > 1e-12 else 1.0
+    best = score(params)
+    if best is not None:
+        best = {**best, "outer_step": 0}
+    return _Loop(params, params, lam, rho, scale, math.inf, best, best, [], start)
+
+
 def minimize(
     step: Callable,
     params: Any,
@@ -260,126 +299,59 @@ def minimize(
     iteration starts a fresh inner optimiser, so its state is the iterate, ``lam``,
     ``rho`` and the selection). fingerprint: JSON-ready settings the checkpoint must
     have been written with (a ``ValueError`` names the ones that differ)."""
-    start = time.perf_counter()
-    resumed = _load_checkpoint(checkpoint, params, fingerprint) if checkpoint else None
-    if resumed is not None:
-        state, params, best_params, lam = resumed
-        rho, scale, previous = state["rho"], state["scale"], state["previous"]
-        best, initial, history = state["best"], state["initial"], state["history"]
-        start -= state["elapsed_s"]
-    else:
-        lam = jnp.zeros(requirements)
-        rho = float(config.penalty)
-        # Every number passed as an array of the default float: one compilation of ``step``.
-        _, _, f0, _, _ = step(params, data, n, jnp.asarray(1.0), lam, jnp.asarray(rho))
-        scale = float(f0) if float(f0) > 1e-12 else 1.0
-    inner = _inner_loop(step, data, n, scale, config)
 
     def score(p):
         return validate(p) if validate is not None else None
 
-    if resumed is None:
-        best_params, best = params, score(params)
-        if best is not None:
-            best = {**best, "outer_step": 0}
-        initial = best
-        history = []
-        previous = math.inf
-    for outer in range(len(history) + 1, config.outer_steps + 1):
-        params, (loss, f, c, valid) = inner(params, lam, jnp.asarray(rho))
+    loop = _begin(step, params, data, n, config, requirements, score, checkpoint, fingerprint)
+    inner = _inner_loop(step, data, n, loop.scale, config)
+    for outer in range(len(loop.history) + 1, config.outer_steps + 1):
+        loop.params, (loss, f, c, valid) = inner(loop.params, loop.lam, jnp.asarray(loop.rho))
         c = np.asarray(c, np.float64)
-        lam = jnp.maximum(0.0, lam + rho * jnp.asarray(c, lam.dtype))
+        loop.lam = jnp.maximum(0.0, loop.lam + loop.rho * jnp.asarray(c, loop.lam.dtype))
         worst = float(np.max(np.maximum(c, 0.0)))
-        if worst > 0.25 * previous:
-            rho = min(rho * config.penalty_growth, config.penalty_max)
-        previous = worst
+        if worst > 0.25 * loop.previous:
+            loop.rho = min(loop.rho * config.penalty_growth, config.penalty_max)
+        loop.previous = worst
         row = {
             "outer_step": outer,
             "loss": float(loss),
-            "objective": float(f) * scale,
+            "objective": float(f) * loop.scale,
             "constraints": c.tolist(),
-            "multipliers": np.asarray(lam).tolist(),
-            "penalty": rho,
+            "multipliers": np.asarray(loop.lam).tolist(),
+            "penalty": loop.rho,
             "valid_draws": int(np.sum(np.asarray(valid))),
-            "wall_time_s": round(time.perf_counter() - start, 3),
+            "wall_time_s": round(time.perf_counter() - loop.start, 3),
         }
-        scored = score(params)
+        scored = score(loop.params)
         if scored is not None:
             row["validation"] = scored
-            if _rank(scored) > _rank(best):
-                best, best_params = {**scored, "outer_step": outer}, params
+            if _rank(scored) > _rank(loop.best):
+                loop.best, loop.best_params = {**scored, "outer_step": outer}, loop.params
         else:
-            best_params = params
-        history.append(row)
+            loop.best_params = loop.params
+        loop.history.append(row)
         if checkpoint is not None:
-            state = {"rho": rho, "scale": scale, "previous": previous, "best": best}
-            state.update(initial=initial, history=history, fingerprint=fingerprint)
-            state["elapsed_s"] = time.perf_counter() - start
-            _save_checkpoint(checkpoint, state, params, best_params, lam)
+            record = loop.record() | {"fingerprint": fingerprint}
+            _alm_checkpoint.save(checkpoint, record, loop.params, loop.best_params, loop.lam)
         if progress:
             _print_outer(row, config.outer_steps, worst, scored)
     return ConstrainedResult(
-        best_params,
-        history,
-        best if best is not None else {"outer_step": config.outer_steps},
-        np.asarray(lam),
-        rho,
-        time.perf_counter() - start,
-        params,
-        initial,
+        loop.best_params,
+        loop.history,
+        loop.best if loop.best is not None else {"outer_step": config.outer_steps},
+        np.asarray(loop.lam),
+        loop.rho,
+        time.perf_counter() - loop.start,
+        loop.params,
+        loop.initial,
     )
-
-
-def _save_checkpoint(path: Path, state: dict, params, best_params, lam) -> None:
-    """:func:`minimize`'s state after an outer iteration, written atomically."""
-    arrays = {f"params_{i}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(params))}
-    arrays.update({f"best_{i}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(best_params))})
-    arrays.update(lam=np.asarray(lam), state=np.asarray(json.dumps(state, default=_plain)))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.stem}.partial.npz")
-    np.savez(temporary, **arrays)
-    os.replace(temporary, path)
-
-
-def _plain(value):
-    """JSON for NumPy scalars and arrays (the history's validation counts)."""
-    return value.tolist() if hasattr(value, "tolist") else str(value)
-
-
-def _load_checkpoint(path: Path, like, fingerprint: dict | None):
-    """``(state, params, best_params, lam)`` of the checkpoint ``path`` (``params``
-    shaped as ``like``), or None when there is none."""
-    path = Path(path)
-    if not path.is_file():
-        return None
-    with np.load(path) as stored:
-        state = json.loads(str(stored["state"]))
-        treedef = jax.tree.structure(like)
-        leaves = [jnp.asarray(stored[f"params_{i}"]) for i in range(treedef.num_leaves)]
-        best = [jnp.asarray(stored[f"best_{i}"]) for i in range(treedef.num_leaves)]
-        lam = jnp.asarray(stored["lam"])
-    _check_fingerprint(path, state.get("fingerprint"), fingerprint)
-    return state, jax.tree.unflatten(treedef, leaves), jax.tree.unflatten(treedef, best), lam
 
 
 def check_checkpoint(path: Path, fingerprint: dict | None) -> None:
     """``ValueError`` naming the settings that differ when the checkpoint ``path`` (of
     :func:`minimize`) was written with another ``fingerprint``."""
-    with np.load(path) as stored:
-        saved = json.loads(str(stored["state"])).get("fingerprint")
-    _check_fingerprint(path, saved, fingerprint)
-
-
-def _check_fingerprint(path, saved: dict | None, fingerprint: dict | None) -> None:
-    saved = saved or {}
-    now = json.loads(json.dumps(fingerprint or {}, default=_plain))
-    differing = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
-    if differing:
-        raise ValueError(
-            f"{path} was written by a run with other settings ({', '.join(differing)}); "
-            "rerun with the original options, or choose another --out"
-        )
+    _alm_checkpoint.check(path, fingerprint)
 
 
 def _inner_loop(step: Callable, data: Any, n: int, scale: float, config: ConstrainedConfig):
