@@ -318,6 +318,7 @@ def tune(
                 file=sys.stderr,
             )
         raise
+    loop._start_validation()  # a run resumed with no step left: its start is validated
     loop.join_start()
     if loop.step == loop.start_step:
         loop.save()  # nothing to do (a finished run resumed): rewrite the outputs
@@ -359,7 +360,8 @@ class _Loop:
         self.session_start = time.perf_counter()
         self.excluded = 0.0
         self.draw_steps = self.history[-1]["draw_steps"] if self.history else 0
-        self._start_validation()
+        self._start_params, self._start_result, self._thread = self.state[0], {}, None
+        self._start_pending = self.validating and self.best["initial"] is None
 
     def _restore(self) -> None:
         self.state = _load_state(self.checkpoint, self.state)
@@ -400,15 +402,16 @@ class _Loop:
         return cost
 
     def _start_validation(self) -> None:
-        """The start's validation (which compiles the validation run) in a thread beside
-        the first step (which compiles the gradient): XLA compiles each on one core, so
-        on two cores the validation's compilation costs no wall time."""
-        self._start_result: dict = {}
-        self._thread = None
-        if not self.validating or self.best["initial"] is not None:
+        """The start's validation (which compiles the validation run), once, in a thread
+        launched when the first step's gradient is done: XLA compiles a program on more
+        than one core (the gradient: 20 s of CPU in 12 s), so compiling the two side by
+        side delays the first step; beside the next steps' runs it costs little. Joined
+        when a validation is due (:meth:`join_start`)."""
+        if not self._start_pending:
             return
+        self._start_pending = False
 
-        def validate_start(params=self.state[0]):
+        def validate_start(params=self._start_params):
             try:
                 self._start_result["cost"] = self.validate(params)
             except BaseException as error:  # re-raised in the main thread
@@ -465,6 +468,7 @@ class _Loop:
             and (self.step % config.validate_every == 0 or self.step == config.steps)
         ):
             return None
+        self.join_start()
         validation = self.validate(self.state[0])
         if validation < best["cost"]:  # ties keep the earlier (the start's) gains
             best["cost"], best["step"] = validation, self.step
@@ -480,7 +484,7 @@ class _Loop:
         jax.block_until_ready(new_state)
         self.draw_steps += self.spec.draw_steps_per_minibatch
         self.state, self.step = new_state, self.step + 1
-        self.join_start()
+        self._start_validation()
         validation = self._validate_step()
         wall = self.wall_before + time.perf_counter() - self.session_start - self.excluded
         row = _row(self.step - 1, result, grad_norm, self.config, scale, self.draw_steps, wall)
