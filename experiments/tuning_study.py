@@ -516,7 +516,9 @@ def report(args, settings: dict, start_all: float) -> int:
         "settings": settings,
         "summary": summarize(records),
         "runs": records,
-        "git_commit": output.commit_label(full=True),
+        # The commit that ran the runs (a --report-only later may stand elsewhere).
+        "git_commit": ", ".join(sorted({r.get("git_commit", "unknown") for r in records}))
+        or output.commit_label(full=True),
         "this_invocation_s": round(time.perf_counter() - start_all, 1),
         "runs_elapsed_s": round(sum(r["elapsed_s"] for r in records), 1),
     }
