@@ -33,7 +33,7 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
 * Wall time, compilation included: each method's functions are compiled once per
   parameter count, before its first run, and that compile time (first call minus a
   second call of the same function; for the gradient tuner, its gradient and its
-  validation run compiled side by side in two threads, as the tuner does) is added to
+  validation compiled side by side in two threads) is added to
   every one of its curves. XLA's
   persistent compilation cache is off. One process, one XLA device, runs one after
   another; the load average is recorded before and after each run.

@@ -30,6 +30,9 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import numpy as np
+
+from fojax import _source
 
 __all__ = ["reusable", "source_digest"]
 
@@ -42,12 +45,8 @@ def source_digest() -> str:
     """A hash of the source of ``fojax`` and ``fojax.optimize`` (every ``*.py``)."""
     from fojax import optimize
 
-    digest = hashlib.sha256()
-    for root in sorted({Path(__file__).resolve().parent, Path(optimize.__file__).parent}):
-        for path in sorted(root.rglob("*.py")):
-            digest.update(path.relative_to(root.parent).as_posix().encode())
-            digest.update(path.read_bytes())
-    return digest.hexdigest()[:16]
+    roots = (Path(__file__).resolve().parent, Path(optimize.__file__).resolve().parent)
+    return "".join(_source.digest(root) for root in roots)
 
 
 def _folder() -> Path | None:
@@ -92,8 +91,12 @@ def _import(name: str) -> type:
 def _signature(args) -> tuple:
     leaves, treedef = jax.tree.flatten(args)
     return str(treedef), tuple(
-        (tuple(leaf.shape), str(leaf.dtype), str(getattr(leaf, "sharding", None)))
-        for leaf in map(jax.numpy.asarray, leaves)
+        (
+            np.shape(leaf),
+            str(getattr(leaf, "dtype", type(leaf).__name__)),
+            str(getattr(leaf, "sharding", None)),
+        )
+        for leaf in leaves
     )
 
 

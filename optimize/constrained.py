@@ -67,10 +67,11 @@ import optax
 
 from fojax import observers, plant, scenarios, simulator
 from fojax import requirements as rq
-from fojax.optimize import _alm_checkpoint
 from fojax.optimize import cost as cost_lib
 from fojax.optimize import problem as problem_lib
+from fojax.optimize.checkpoint import _load_state, _read_meta, _save_checkpoint
 from fojax.optimize.derivative_free import cma_es_requirements
+from fojax.study import describe_differences, fingerprint_differences
 
 Array = jax.Array
 
@@ -259,13 +260,14 @@ class _Loop:
 def _begin(step, params, data, n, config, requirements, score, checkpoint, fingerprint) -> _Loop:
     """The loop's state: continued from ``checkpoint`` when it exists, else the start
     (its objective ``f_0`` sets the scale, its validation the first best)."""
-    resumed = _alm_checkpoint.load(checkpoint, params, fingerprint) if checkpoint else None
-    if resumed is not None:
-        state, params, best_params, lam = resumed
+    lam = jnp.zeros(requirements)
+    if checkpoint is not None and Path(checkpoint).is_file():
+        check_checkpoint(checkpoint, fingerprint)
+        state = _read_meta(checkpoint)["loop"]
+        params, best_params, lam = _load_state(checkpoint, (params, params, lam))
         state["start"] = time.perf_counter() - state.pop("elapsed_s")
         return _Loop(params, best_params, lam, **state)
     start = time.perf_counter()
-    lam = jnp.zeros(requirements)
     rho = float(config.penalty)
     # Every number passed as an array of the default float: one compilation of ``step``.
     _, _, f0, _, _ = step(params, data, n, jnp.asarray(1.0), lam, jnp.asarray(rho))
@@ -332,8 +334,8 @@ def minimize(
             loop.best_params = loop.params
         loop.history.append(row)
         if checkpoint is not None:
-            record = loop.record() | {"fingerprint": fingerprint}
-            _alm_checkpoint.save(checkpoint, record, loop.params, loop.best_params, loop.lam)
+            meta = {"loop": loop.record(), "fingerprint": fingerprint}
+            _save_checkpoint(checkpoint, (loop.params, loop.best_params, loop.lam), meta)
         if progress:
             _print_outer(row, config.outer_steps, worst, scored)
     return ConstrainedResult(
@@ -351,7 +353,16 @@ def minimize(
 def check_checkpoint(path: Path, fingerprint: dict | None) -> None:
     """``ValueError`` naming the settings that differ when the checkpoint ``path`` (of
     :func:`minimize`) was written with another ``fingerprint``."""
-    _alm_checkpoint.check(path, fingerprint)
+    stored = _read_meta(path).get("fingerprint") or {}
+    differences = describe_differences(
+        fingerprint_differences(stored, fingerprint or {}), earlier="checkpoint"
+    )
+    if differences:
+        raise ValueError(
+            f"{path} was written by another configuration; it differs in:\n  "
+            + "\n  ".join(differences)
+            + "\nrerun with the original options, or choose another --out"
+        )
 
 
 def _inner_loop(step: Callable, data: Any, n: int, scale: float, config: ConstrainedConfig):
@@ -552,13 +563,13 @@ def _rank(scored: dict) -> tuple:
 def _validation_summary(evaluated: dict) -> dict:
     result = evaluated["yield"]
     return {
-        "passed": result.passed,
-        "draws": result.draws,
-        "yield": result.yield_,
-        "interval": list(result.interval),
+        "passed": int(result.passed),
+        "draws": int(result.draws),
+        "yield": float(result.yield_),
+        "interval": [float(x) for x in result.interval],
         "most_failed": result.most_failed,
-        "failures": dict(zip(result.names, result.failures, strict=True)),
-        "objective": evaluated["objective"],
+        "failures": {n: int(f) for n, f in zip(result.names, result.failures, strict=True)},
+        "objective": float(evaluated["objective"]),
     }
 
 

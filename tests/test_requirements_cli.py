@@ -212,7 +212,7 @@ def test_tune_to_requirements_resumes_to_the_uninterrupted_gains(tmp_path, tuned
     assert len(history) == 3
     assert len(json.loads((out / "run.json").read_text())["sessions"]) == 2
     changed = _exit_2(capsys, cli.main, argv(2, "--resume", "--margin", "0.1"))
-    assert "other settings (tuner)" in changed
+    assert "differs in:" in changed and "tuner.margin: checkpoint 0.05, now 0.1" in changed
     missing = _exit_2(capsys, cli.main, argv(1, "--resume", folder=tmp_path / "none"))
     assert "nothing to resume" in missing
     cma = [*BASE_TUNE, "--requirements", str(tiny), "--method", "cma-es", "--resume"]

@@ -167,5 +167,5 @@ def test_an_interrupted_run_resumes_to_the_uninterrupted_result(toy, tmp_path):
     strip = [{k: v for k, v in row.items() if k != "wall_time_s"} for row in whole.history]
     again = [{k: v for k, v in row.items() if k != "wall_time_s"} for row in resumed.history]
     assert again == strip
-    with pytest.raises(ValueError, match="other settings \\(run\\)"):
+    with pytest.raises(ValueError, match="differs in:\n  run: checkpoint 1, now 2"):
         run(4, path, {"run": 2})

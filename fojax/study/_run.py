@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import math
 import os
 import sys
@@ -45,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import metrics, plant, scenarios, sharding, simulator
+from fojax import _source, metrics, plant, scenarios, sharding, simulator
 from fojax.controllers.cascade import as_controller
 from fojax.study._dispatch import (
     DIVERGED,
@@ -290,12 +289,7 @@ def code_version() -> str:
     """A hash of the library's source (every ``fojax/**/*.py``): draws stored by other
     code are not reused, as a change of a default (a fractional operator's modes, a
     plant constant) changes the numbers without changing any setting."""
-    root = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
-        digest.update(path.relative_to(root).as_posix().encode())
-        digest.update(path.read_bytes())
-    return digest.hexdigest()[:16]
+    return _source.digest(Path(__file__).resolve().parents[1])
 
 
 def fingerprint(
