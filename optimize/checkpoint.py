@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fojax.controllers import gains_io
+from fojax.study import describe_differences, fingerprint_differences
 
 FORMAT = 2
 HISTORY_COLUMNS = (
@@ -125,3 +126,18 @@ def write_history(path: Path, history: list[dict]) -> None:
             }
         )
     _write_atomic_bytes(path, buffer.getvalue().encode())
+
+
+def check_checkpoint(path: Path, fingerprint: dict | None) -> None:
+    """``ValueError`` naming the settings that differ when the checkpoint ``path`` (of
+    :func:`fojax.optimize.constrained.minimize`) was written with another ``fingerprint``."""
+    stored = _read_meta(path).get("fingerprint") or {}
+    differences = describe_differences(
+        fingerprint_differences(stored, fingerprint or {}), earlier="checkpoint"
+    )
+    if differences:
+        raise ValueError(
+            f"{path} was written by another configuration; it differs in:\n  "
+            + "\n  ".join(differences)
+            + "\nrerun with the original options, or choose another --out"
+        )

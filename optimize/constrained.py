@@ -69,9 +69,8 @@ from fojax import observers, plant, scenarios, simulator
 from fojax import requirements as rq
 from fojax.optimize import cost as cost_lib
 from fojax.optimize import problem as problem_lib
-from fojax.optimize.checkpoint import _load_state, _read_meta, _save_checkpoint
+from fojax.optimize.checkpoint import _load_state, _read_meta, _save_checkpoint, check_checkpoint
 from fojax.optimize.derivative_free import cma_es_requirements
-from fojax.study import describe_differences, fingerprint_differences
 
 Array = jax.Array
 
@@ -350,21 +349,6 @@ def minimize(
     )
 
 
-def check_checkpoint(path: Path, fingerprint: dict | None) -> None:
-    """``ValueError`` naming the settings that differ when the checkpoint ``path`` (of
-    :func:`minimize`) was written with another ``fingerprint``."""
-    stored = _read_meta(path).get("fingerprint") or {}
-    differences = describe_differences(
-        fingerprint_differences(stored, fingerprint or {}), earlier="checkpoint"
-    )
-    if differences:
-        raise ValueError(
-            f"{path} was written by another configuration; it differs in:\n  "
-            + "\n  ".join(differences)
-            + "\nrerun with the original options, or choose another --out"
-        )
-
-
 def _inner_loop(step: Callable, data: Any, n: int, scale: float, config: ConstrainedConfig):
     """``run(params, lam, rho) -> (params, (L, f, c, valid))``: :func:`minimize`'s inner
     loop, ``config.inner_steps`` steps of ``config``'s optimizer on ``L(.; lam, rho)``
@@ -424,7 +408,9 @@ class RequirementProblem:
 
     Tuning runs the controller with ``tanh`` switching at the base boundary layer (the
     gradient needs a smooth law); validation and :meth:`evaluate` use ``switching``
-    (default ``sat``, the evaluation law)."""
+    (default ``sat``, the evaluation law). ``scenario``: a
+    :class:`fojax.scenarios.Scenario` simulated instead of ``spec.scenario``'s (e.g. with
+    its random drag switched off); the draws' keys still come from ``spec``."""
 
     def __init__(
         self,
@@ -434,6 +420,7 @@ class RequirementProblem:
         objective: str = "effort",
         rotor_limited: bool | None = None,
         switching: str = "sat",
+        scenario: scenarios.Scenario | None = None,
     ):
         if objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
@@ -453,7 +440,7 @@ class RequirementProblem:
         self.sim_config = dataclasses.replace(
             self.base.sim_config, rotor_speed_limit=limit if rotor_limited else None
         )
-        self.scenario = self.base.scenario
+        self.scenario = self.base.scenario if scenario is None else scenario
         self.dtype = spec.jnp_dtype
         self.observer = observers.Chain(
             requirements=rq.RequirementMetrics.for_requirements(requirements, self.sim_config),

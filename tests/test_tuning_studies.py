@@ -70,3 +70,55 @@ def test_remark3_tiny(tmp_path):
     assert costs["tuned from naive"]["sat"]["J"] < costs["naive"]["sat"]["J"]
     table = (out / "table.md").read_text()
     assert "| hbar1 | phi = theta = psi | 1 | 156.4 |" in table
+
+
+def test_cone_residual_constructed():
+    """The KKT residual of experiments.remark3_inverted on vectors with a known answer."""
+    from experiments.remark3_inverted import best_subsets, cone_residual
+
+    rng = np.random.default_rng(1)
+    a, b, c = np.linalg.qr(rng.standard_normal((8, 3)))[0].T  # orthonormal
+    # -g in the cone of {a, b}: stationary with multipliers (2, 3).
+    r, lam = cone_residual(-(2 * a + 3 * b), np.stack([a, 5 * b]))
+    assert r == pytest.approx(0.0, abs=1e-12)
+    np.testing.assert_allclose(lam, [2.0, 0.6], rtol=1e-10)
+    # A bound along the objective's own gradient never helps: r = 1, lam = 0.
+    r, lam = cone_residual(a, np.stack([a]))
+    assert r == pytest.approx(1.0) and lam[0] == 0.0
+    # Part of the gradient orthogonal to every bound remains: r = |c| / |g|.
+    g = -a + 2 * c
+    r, lam = cone_residual(g, np.stack([a, b]))
+    assert r == pytest.approx(2 / np.sqrt(5), rel=1e-12)
+    np.testing.assert_allclose(lam, [1.0, 0.0], atol=1e-12)
+    # No candidate, or only zero gradients: nothing helps.
+    assert cone_residual(g, np.zeros((0, 8)))[0] == 1.0
+    assert cone_residual(g, np.zeros((2, 8)))[0] == 1.0
+    with pytest.raises(ValueError, match="finite"):
+        cone_residual(g, np.stack([a * np.nan]))
+    # The best single bound and the best pair are found among four.
+    rows = best_subsets(-(a + b), np.stack([c, a, -b, b]), ["c", "a", "-b", "b"], max_size=2)
+    assert rows[0]["residual"] == pytest.approx(1 / np.sqrt(2))
+    assert rows[1]["residual"] == pytest.approx(0.0, abs=1e-12)
+    assert {n for n, w in rows[1]["set"].items() if w > 0} == {"a", "b"}
+    assert rows[-1]["size"] == "all" and set(rows[-1]["set"]) == {"a", "b"}
+
+
+@pytest.mark.slow
+def test_remark3_inverted_tiny(tmp_path):
+    from experiments import remark3_inverted
+
+    out = tmp_path / "inverted"
+    assert remark3_inverted.main(["--tiny", "--quiet", "--out", str(out)]) == 0
+    results = json.loads((out / "results.json").read_text())
+    # Every Jacobian row agrees with a central finite difference (surrogates excepted).
+    check = results["finite_difference_check"]
+    assert max(e["relative_error"] for e in check.values()) < 1e-4
+    # The requirement set found holds at the paper's gains (bounds at its own values).
+    assert results["requirement_tuning"]["naive"]["paper"]["passed"] == 1
+    for point in results["analysis"].values():
+        for objective in ("tracking", "effort"):
+            residuals = [e["residual"] for e in point[objective]["subsets"]]
+            assert all(0.0 <= r <= 1.0 + 1e-12 for r in residuals)
+            # More bounds can only lower the residual.
+            assert all(b <= a + 1e-9 for a, b in zip(residuals, residuals[1:], strict=False))
+    assert (out / "remark3_inverted.png").stat().st_size > 10_000

@@ -1,0 +1,600 @@
+"""Remark 3 inverted: which requirement set or effort weight makes the paper's AFONFTSMC
+gains (near) stationary, and does tuning from the naive start to it land near them?
+
+    python -m experiments.remark3_inverted [--out results/remark3_inverted]
+        [--scenario 1] [--horizon 20] [--rotor-limited] [--outer-steps 10]
+        [--inner-steps 10] [--learning-rate 0.1] [--update-doc] [--tiny]
+
+Setting: the nominal run of scenario ``--scenario`` (random drag off: one deterministic
+run), ``--horizon`` s, float64, ``tanh`` switching at the paper's boundary layers (the
+tuners' law), ideal actuators unless ``--rotor-limited``; the tuner's 33 unconstrained
+parameters ``u`` (log or logit of each gain, ``share="paper"``). Quantities: the cost
+terms ``P``, ``A``, ``E``, ``C`` (:mod:`fojax.optimize.cost`) and every metric of
+:data:`fojax.requirements.METRICS`, with their Jacobian in ``u`` (reverse mode, checked
+against a central finite difference).
+
+Stationarity. With bounds ``g_j <= b_j = g_j(x_p)`` (met with equality by the paper's
+gains ``x_p``), ``x_p`` is a KKT point of ``min f s.t. g_j <= b_j, j in S`` exactly
+when ``grad f + sum_j lam_j grad g_j = 0`` with ``lam_j >= 0`` (and the weighted sum
+``f + sum_j w_j g_j`` is stationary with ``w = lam``). :func:`cone_residual`::
+
+    r(S) = min_{lam >= 0} |grad f + sum_{j in S} lam_j grad g_j| / |grad f|
+
+is 0 where ``x_p`` is stationary, 1 where no bound in ``S`` opposes ``grad f``.
+Objectives: ``tracking`` (``P + A``; candidates ``E``, ``C`` and the metrics that are
+not functions of ``P`` or ``A``) and ``effort`` (``E``; every metric a candidate): the
+best set of each size up to 3 and all candidates together (its active set is the
+requirement set found); ``P + A + w_E E`` over ``w_E``; the same at the naive start and
+at the tuned gains (the reference of what a tuned point reaches).
+
+Tuning to the requirements found for ``effort`` (:func:`requirements_found`), objective
+effort, by :func:`fojax.optimize.constrained.tune_to_requirements` (``--outer-steps`` x
+``--inner-steps`` Adam steps, margin 0): from the naive start (does it land near the
+paper's gains, field by field?) and from the paper's gains (does the tuner stay there:
+a local minimum, or only a stationary point?).
+
+Writes ``results.json``, ``table.md`` and ``remark3_inverted.png`` to ``--out``;
+``--update-doc`` replaces the block ``remark3-inverted`` of docs/requirements.md and
+copies the figure to docs/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from experiments import _common
+from experiments import remark3 as remark3_study
+from fojax.cli import output
+
+__all__ = ["best_subsets", "cone_residual", "main"]
+
+ROOT = Path(__file__).resolve().parent.parent
+DOC = ROOT / "docs" / "requirements.md"
+EXAMPLE = ROOT / "examples" / "requirements" / "small_quadrotor.toml"
+COST_TERMS = ("P", "A", "E", "C")
+TRACKING_FUNCTIONS = ("P", "A", "position_rmse", "attitude_rmse")
+"""Quantities that are functions of ``P`` or ``A`` (not candidates for ``tracking``)."""
+WEIGHTS = np.logspace(-9, -2, 43)
+"""The effort weights ``w_E`` of the sweep."""
+ACTIVE = 1e-9
+"""A multiplier (on unit-norm gradients) above this counts as active."""
+BOUND_TOLERANCE = 1e-6
+"""Relative slack of a bound set at the paper's value: the evaluation program rounds
+the metric differently in the last digits."""
+SURROGATES = ("settling_time", "rotor_saturation")
+"""Piecewise-constant metrics whose derivative is a smooth surrogate's
+(:mod:`fojax.requirements`): their finite difference is 0 or a jump, not compared."""
+
+
+# ------------------------------------------------------------------ the cone residual
+
+
+def cone_residual(gradient, candidates) -> tuple[float, np.ndarray]:
+    """``(r, lam)``: ``r = min_{lam >= 0} |gradient + candidates.T lam| / |gradient|``
+    and the minimiser ``lam`` ``(k,)`` (``candidates`` ``(k, n)``: one gradient per
+    row; ``r = 1`` without candidates). Solved by non-negative least squares on
+    unit-norm rows; ``lam`` is scaled back to the rows as given."""
+    from scipy import optimize as scipy_optimize
+
+    gradient = np.asarray(gradient, np.float64)
+    candidates = np.asarray(candidates, np.float64).reshape(-1, gradient.size)
+    size = np.linalg.norm(gradient)
+    if size == 0:
+        return 0.0, np.zeros(len(candidates))
+    if not (np.all(np.isfinite(gradient)) and np.all(np.isfinite(candidates))):
+        raise ValueError("cone_residual: the gradients must be finite")
+    norms = np.linalg.norm(candidates, axis=1)
+    usable = norms > 0
+    if not np.any(usable):  # no candidate, or only zero gradients
+        return 1.0, np.zeros(len(candidates))
+    unit = candidates[usable] / norms[usable, None]
+    mu, residual = scipy_optimize.nnls(unit.T, -gradient / size)
+    lam = np.zeros(len(candidates))
+    lam[usable] = mu * size / norms[usable]
+    return float(residual), lam
+
+
+def best_subsets(gradient, candidates, names, max_size: int = 3) -> list[dict]:
+    """For every size ``1..max_size``, the subset of ``candidates`` (rows, named by
+    ``names``) with the smallest :func:`cone_residual`; then all candidates together
+    (``size`` ``"all"``, its active set the multipliers > 0)."""
+    rows = []
+    for size in range(1, min(max_size, len(names)) + 1):
+        best = None
+        for subset in itertools.combinations(range(len(names)), size):
+            r, lam = cone_residual(gradient, np.asarray(candidates)[list(subset)])
+            if best is None or r < best[0]:
+                best = (r, subset, lam)
+        r, subset, lam = best
+        rows.append(
+            {
+                "size": size,
+                "residual": r,
+                "set": {names[i]: float(w) for i, w in zip(subset, lam, strict=True)},
+            }
+        )
+    r, lam = cone_residual(gradient, candidates)
+    norms = np.linalg.norm(np.asarray(candidates, np.float64).reshape(len(names), -1), axis=1)
+    active = {n: float(w) for n, w, s in zip(names, lam, norms, strict=True) if w * s > ACTIVE}
+    rows.append({"size": "all", "residual": r, "set": active})
+    return rows
+
+
+# ------------------------------------------------------------------ the simulator side
+
+
+class _Quantities:
+    """The cost terms and metrics of one deterministic run as functions of ``u``
+    (compiled: values, Jacobian), with the problems the tuners use."""
+
+    def __init__(self, args):
+        import jax
+        import jax.numpy as jnp
+
+        from fojax import plant, scenarios, simulator
+        from fojax import requirements as rq
+        from fojax.controllers.afonftsmc import paper_gains
+        from fojax.optimize import constrained as co
+        from fojax.optimize import params as params_lib
+        from fojax.optimize.problem import ProblemSpec
+
+        self._co = co
+        reqs = rq.load(args.requirements)
+        settings = dataclasses.replace(reqs.settings, rotor_limited=args.rotor_limited)
+        self.base_requirements = dataclasses.replace(reqs, settings=settings)
+        self.spec = ProblemSpec(
+            "afonftsmc", args.scenario, args.horizon, draws=1, seed=args.seed, dtype="float64"
+        )
+        nominal = dataclasses.replace(scenarios.get_scenario(args.scenario), drag_variation=0.0)
+        self.scenario = nominal
+        self.paper = paper_gains(jnp.float64)
+        self.naive = params_lib.naive_gains("afonftsmc", jnp.float64)
+        problem = self.problem(self.base_requirements, "effort")
+        self.param_map, base = problem.param_map, problem.base_gains
+        _, self.unravel = self.param_map.ravel(self.param_map.to_params(self.paper, jnp.float64))
+        self.names = COST_TERMS + tuple(rq.METRICS)
+        controller, config, observer = problem.base.controller, problem.sim_config, problem.observer
+        model = plant.nominal_params(jnp.float64)
+        keys = problem.tuning_keys()
+        scenario, metrics = self.scenario, tuple(rq.METRICS)
+
+        def values(vector):
+            gains = self.param_map.to_gains(self.unravel(vector), base)
+            draws = scenarios.sample_draws(scenario, keys, config.dt, jnp.float64)
+            result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
+            measured = result.outputs["requirements"]
+            row = [result.outputs["cost"][:, 0]] + [measured[m][:1] for m in metrics]
+            return jnp.concatenate(row), result.status[0]
+
+        self.values = jax.jit(values)
+        self.jacobian = jax.jit(jax.jacrev(values, has_aux=True))
+
+    def problem(self, requirements, objective: str):
+        return self._co.RequirementProblem(
+            self.spec, self.paper, requirements, objective, switching="tanh",
+            scenario=self.scenario,
+        )  # fmt: skip
+
+    def vector_of(self, gains) -> np.ndarray:
+        import jax.numpy as jnp
+
+        return np.asarray(self.param_map.ravel(self.param_map.to_params(gains, jnp.float64))[0])
+
+    def point(self, gains) -> dict:
+        """Values ``(q,)`` and Jacobian ``(q, 33)`` at ``gains``, and its status."""
+        import jax.numpy as jnp
+
+        x = jnp.asarray(self.vector_of(gains))
+        values, status = self.values(x)
+        jacobian, _ = self.jacobian(x)
+        return {
+            "x": np.asarray(x),
+            "values": np.asarray(values, np.float64),
+            "jacobian": np.asarray(jacobian, np.float64),
+            "status": int(status),
+        }
+
+    def finite_difference_check(self, point: dict, h: float = 1e-6) -> dict:
+        """Central differences of every quantity along a random unit direction against
+        the Jacobian's product: the relative error per quantity."""
+        import jax.numpy as jnp
+
+        direction = np.random.default_rng(0).standard_normal(point["x"].size)
+        direction /= np.linalg.norm(direction)
+        plus = np.asarray(self.values(jnp.asarray(point["x"] + h * direction))[0])
+        minus = np.asarray(self.values(jnp.asarray(point["x"] - h * direction))[0])
+        fd = (plus - minus) / (2 * h)
+        ad = point["jacobian"] @ direction
+        scale = np.maximum(np.abs(ad), 1e-12 * np.maximum(np.abs(point["values"]), 1e-300))
+        return {
+            n: {"reverse": float(a), "central": float(f), "relative_error": float(abs(a - f) / s)}
+            for n, a, f, s in zip(self.names, ad, fd, scale, strict=True)
+            if n not in SURROGATES
+        }
+
+
+# ------------------------------------------------------------------ the analyses
+
+
+def objective_rows(point: dict, names: tuple[str, ...], objective: str):
+    """``(gradient of f, candidate names, candidate gradients)`` of ``objective``."""
+    jacobian = dict(zip(names, point["jacobian"], strict=True))
+    if objective == "tracking":
+        gradient = jacobian["P"] + jacobian["A"]
+        excluded = TRACKING_FUNCTIONS
+    else:
+        gradient = jacobian["E"]
+        excluded = ("E",) + COST_TERMS
+    candidates = [n for n in names if n not in excluded]
+    return gradient, candidates, np.stack([jacobian[n] for n in candidates])
+
+
+def analyse(point: dict, names: tuple[str, ...]) -> dict:
+    """Both objectives' subset residuals, the effort-weight sweep and fojax tune's
+    default weights, at one point."""
+    out = {}
+    for objective in ("tracking", "effort"):
+        gradient, candidates, rows = objective_rows(point, names, objective)
+        out[objective] = {
+            "gradient_norm": float(np.linalg.norm(gradient)),
+            "subsets": best_subsets(gradient, rows, candidates),
+        }
+    jacobian = dict(zip(names, point["jacobian"], strict=True))
+    tracking = jacobian["P"] + jacobian["A"]
+    norm = np.linalg.norm(tracking)
+    sweep = [float(np.linalg.norm(tracking + w * jacobian["E"]) / norm) for w in WEIGHTS]
+    r_ec, (w_e, w_c) = cone_residual(tracking, np.stack([jacobian["E"], jacobian["C"]]))
+    default = tracking + 1e-5 * (jacobian["E"] + jacobian["C"])
+    out["weights"] = {
+        "sweep_w_E": WEIGHTS.tolist(),
+        "sweep_residual": sweep,
+        "best": {"w_E": float(w_e), "w_C": float(w_c), "residual": r_ec},
+        "fojax_tune_default": {
+            "w_E": 1e-5, "w_C": 1e-5, "residual": float(np.linalg.norm(default) / norm)
+        },
+    }  # fmt: skip
+    return out
+
+
+def requirements_found(study: _Quantities, paper: dict, analysis: dict):
+    """The requirement set of the ``effort`` objective's active bounds, each at the
+    paper's value (its canonical unit)."""
+    from fojax import requirements as rq
+
+    values = dict(zip(study.names, paper["values"], strict=True))
+    active = analysis["effort"]["subsets"][-1]["set"]
+    made = []
+    for metric in active:
+        info = rq.METRICS[metric]
+        bound = float(values[metric]) * (1.0 + BOUND_TOLERANCE)
+        if info.share:
+            bound = min(max(bound, 0.0), 1.0)
+        made.append(rq.Requirement(metric, metric, "upper", max(bound, 0.0), info.unit))
+    if not made:
+        raise SystemExit("no bound opposes the effort's gradient at the paper's gains")
+    return rq.RequirementSet(
+        tuple(made), study.base_requirements.settings, "the paper's values, active bounds"
+    )
+
+
+def tune_requirements(study: _Quantities, reqs, start, args) -> dict:
+    """The augmented Lagrangian from the gains ``start`` to ``reqs``, objective effort."""
+    from fojax.controllers import gains_io
+    from fojax.optimize import constrained as co
+
+    problem = study.problem(reqs, "effort")
+    config = co.ConstrainedConfig(
+        outer_steps=args.outer_steps,
+        inner_steps=args.inner_steps,
+        learning_rate=args.learning_rate,
+        margin=0.0,
+        validation_draws=1,
+    )
+    began = time.perf_counter()
+    init = problem.param_map.to_params(start, problem.dtype)
+    result = co.tune_to_requirements(problem, config, init, progress=not args.quiet)
+    gains = problem.gains(result.params)
+    paper_check = co._validation_summary(problem.evaluate(study.paper, problem.validation_keys(1)))
+    return {
+        "gains": gains,
+        "record": {
+            "gains": gains_io.gains_to_dict(gains),
+            "selected": result.selected,
+            "initial": result.initial,
+            "paper": paper_check,
+            "wall_time_s": round(time.perf_counter() - began, 1),
+        },
+    }
+
+
+def distance(gains, paper) -> dict:
+    """Field by field: each tuned parameter's value (one per group of shared axes) and
+    ``log10(value / paper's)``, the median of its absolute value and how many lie
+    within a factor 2."""
+    from fojax.controllers import gains_io
+
+    ours, theirs = gains_io.gains_to_dict(gains), gains_io.gains_to_dict(paper)
+    values, logs = {}, {}
+    for field, symbol, _ in remark3_study.FIELD_ROWS + (("adaptation", None, None),):
+        for axes, index in remark3_study.AXIS_GROUPS:
+            mine, reference = np.asarray(ours[field])[index], np.asarray(theirs[field])[index]
+            symbols = remark3_study.ADAPTATION if symbol is None else (symbol,)
+            for k, name in enumerate(symbols):
+                label = f"{name} [{axes}]"
+                values[label] = float(mine if symbol else mine[k])
+                logs[label] = float(
+                    np.log10(values[label] / (reference if symbol else reference[k]))
+                )
+    size = np.abs(np.asarray(list(logs.values())))
+    return {
+        "values": values,
+        "log10_ratio": logs,
+        "median_abs_log10": float(np.median(size)),
+        "within_factor_2": int(np.sum(size <= np.log10(2.0))),
+        "parameters": len(logs),
+    }
+
+
+# ------------------------------------------------------------------ the command
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _common.parser("remark3_inverted")
+    parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=1)
+    _common.add_numbers(parser, horizon=20.0, outer_steps=10, inner_steps=10)
+    _common.add_numbers(parser, learning_rate=0.1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--requirements", type=Path, default=EXAMPLE,
+        help="the file whose [settings] (rotor limit, band) are used",
+    )  # fmt: skip
+    parser.add_argument(
+        "--rotor-limited", action="store_true",
+        help="simulate rotor-limited actuators (default: ideal, the paper's)",
+    )  # fmt: skip
+    parser.add_argument("--out", type=Path, default=Path("results/remark3_inverted"))
+    parser.add_argument(
+        "--update-doc", action="store_true",
+        help="replace the remark3-inverted block of docs/requirements.md",
+    )  # fmt: skip
+    _common.add_smoke(parser)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.tiny:
+        args.horizon, args.outer_steps, args.inner_steps = 0.3, 1, 2
+    _common.enable_float64()
+    start_all = time.perf_counter()
+    study = _Quantities(args)
+    t0 = time.perf_counter()
+    points = {"paper": study.point(study.paper)}
+    first_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    points["naive"] = study.point(study.naive)
+    jacobian_s = time.perf_counter() - t0
+    output.log(args.quiet, f"Jacobians: first {first_s:.0f} s (compile), then {jacobian_s:.1f} s")
+    check = study.finite_difference_check(points["paper"])
+    analysis = {k: analyse(p, study.names) for k, p in points.items()}
+    reqs = requirements_found(study, points["paper"], analysis["paper"])
+    output.log(args.quiet, "tuning from the naive start to: " + ", ".join(reqs.names))
+    tuned = {
+        start: tune_requirements(study, reqs, getattr(study, start), args)
+        for start in ("naive", "paper")
+    }
+    gain_sets = {
+        "naive": study.naive,
+        "paper": study.paper,
+        "tuned from naive": tuned["naive"]["gains"],
+        "tuned from paper": tuned["paper"]["gains"],
+    }
+    for label in list(gain_sets)[2:]:
+        points[label] = study.point(gain_sets[label])
+        analysis[label] = analyse(points[label], study.names)
+    results = _results(args, study, points, analysis, check, reqs, tuned, gain_sets)
+    results["times_s"] = {
+        "first_jacobian_with_compile": round(first_s, 1),
+        "jacobian": round(jacobian_s, 1),
+        "total": round(time.perf_counter() - start_all, 1),
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    figure(results, args.out / "remark3_inverted.png")
+    text = table(results)
+    if args.update_doc:
+        shutil.copyfile(args.out / "remark3_inverted.png", DOC.parent / "remark3_inverted.png")
+    doc = DOC if args.update_doc else None
+    wrote = f", remark3_inverted.png ({results['times_s']['total']:.0f} s in all)"
+    return _common.finish(args.out, results, text, doc, "remark3-inverted", None, wrote)
+
+
+def _results(args, study, points, analysis, check, reqs, tuned, gain_sets) -> dict:
+    from fojax.controllers import gains_io
+
+    return {
+        "setting": {
+            "scenario": args.scenario,
+            "drag": "nominal (random variation off)",
+            "horizon_s": args.horizon,
+            "switching": "tanh at the paper's boundary layers",
+            "actuators": "rotor-limited" if args.rotor_limited else "ideal",
+            "dtype": "float64",
+            "parameters": study.param_map.size,
+        },
+        "quantities": list(study.names),
+        "values": {k: p["values"].tolist() for k, p in points.items()},
+        "status": {k: p["status"] for k, p in points.items()},
+        "finite_difference_check": check,
+        "analysis": analysis,
+        "requirements_found": reqs.to_dict(),
+        "requirement_tuning": {k: t["record"] for k, t in tuned.items()},
+        "gains": {k: gains_io.gains_to_dict(g) for k, g in gain_sets.items()},
+        "distance_to_paper": {k: distance(g, study.paper) for k, g in gain_sets.items()},
+        "command": ["python", "-m", "experiments.remark3_inverted", *sys.argv[1:]],
+        "load_average": output.load_average(),
+        "git_commit": output.git_commit().get("commit"),
+    }
+
+
+def _fmt_set(entry: dict) -> str:
+    return ", ".join(f"{n} ({w:.3g})" for n, w in entry["set"].items() if w > 0) or "-"
+
+
+def table(results: dict) -> str:
+    """Markdown: the residuals per point and objective, the weights, the requirement set
+    found, the tuned gains against the paper's field by field, the quantities."""
+    s = results["setting"]
+    worst = max(results["finite_difference_check"].items(), key=lambda i: i[1]["relative_error"])
+    lines = [
+        f"Setting: scenario {s['scenario']}, {s['drag']}, {s['horizon_s']:g} s, {s['switching']}, "
+        f"{s['actuators']} actuators, {s['dtype']}, {s['parameters']} parameters `u`. "
+        f"Jacobian of {len(results['quantities'])} quantities against a central finite "
+        "difference along a random direction: largest relative error "
+        f"{worst[1]['relative_error']:.1g} "
+        f"(`{worst[0]}`; {' and '.join(SURROGATES)} carry a smooth surrogate's derivative, "
+        "not compared).",
+        "",
+        "Residual `r` (0: stationary, 1: no bound helps) of the best requirement set of each "
+        "size, multipliers in brackets:",
+        "",
+    ]
+    lines += _common.table_head(
+        "gains | objective | 1 bound | 2 bounds | 3 bounds | every candidate"
+    )
+    for point, analysis in results["analysis"].items():
+        for objective in ("tracking", "effort"):
+            cells = [
+                f"{e['residual']:.3f}" + (f": {_fmt_set(e)}" if point == "paper" else "")
+                for e in analysis[objective]["subsets"]
+            ]
+            lines.append(f"| {point} | {objective} | " + " | ".join(cells) + " |")
+    lines += ["", "Weighted sum `P + A + w_E E + w_C C`: residual at `w = 0` is 1.", ""]
+    lines += _common.table_head(
+        "gains | fojax tune's weights (1e-5, 1e-5) | best `(w_E, w_C)` | its residual"
+    )
+    for point, analysis in results["analysis"].items():
+        w = analysis["weights"]
+        lines.append(
+            f"| {point} | {w['fojax_tune_default']['residual']:.3f} | ({w['best']['w_E']:.3g}, "
+            f"{w['best']['w_C']:.3g}) | {w['best']['residual']:.3f} |"
+        )
+    names = list(results["gains"])
+    values = {
+        k: dict(zip(results["quantities"], v, strict=True)) for k, v in results["values"].items()
+    }
+    found = results["requirements_found"]["requirements"]
+    lines += [
+        "",
+        "Quantities of each gain set (the requirement set found: bounds at the paper's values):",
+        "",
+    ]
+    lines += _common.table_head("quantity | bound | " + " | ".join(names))
+    bounds = {r["metric"]: r["max"] for r in found}
+    for q in results["quantities"]:
+        bound = f"<= {bounds[q]:.4g}" if q in bounds else ""
+        cells = [f"{values[n][q]:.4g}" for n in names]
+        lines.append(f"| {q} | {bound} | " + " | ".join(cells) + " |")
+    lines += ["", "Gains field by field (`log10(gain / paper)` in brackets):", ""]
+    lines += _common.table_head("parameter | " + " | ".join(names))
+    distances = results["distance_to_paper"]
+    for label in distances["paper"]["values"]:
+        cells = [
+            f"{distances[n]['values'][label]:.4g}"
+            + ("" if n == "paper" else f" ({distances[n]['log10_ratio'][label]:+.2f})")
+            for n in names
+        ]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines.append(
+        "| **median abs log10** | "
+        + " | ".join(f"{distances[n]['median_abs_log10']:.2f}" for n in names)
+        + " |"
+    )
+    lines.append(
+        "| **within a factor 2** | "
+        + " | ".join(
+            f"{distances[n]['within_factor_2']}/{distances[n]['parameters']}" for n in names
+        )
+        + " |"
+    )
+    tuning = results["requirement_tuning"]
+    t = results["times_s"]
+    runs = "; ".join(
+        f"from {start}: selected outer step {r['selected'].get('outer_step')}, meets "
+        f"{r['selected'].get('passed', '?')}/1 ({r['wall_time_s']:.0f} s)"
+        for start, r in tuning.items()
+    )
+    lines += [
+        "",
+        f"Requirement tuning (objective effort): {runs}; the paper's gains meet "
+        f"{tuning['paper']['paper']['passed']}/1. Jacobian: {t['jacobian']:.1f} s (first, "
+        f"with compilation, {t['first_jacobian_with_compile']:.0f} s); {t['total']:.0f} s in "
+        f"all, load average at the end {results['load_average']}.",
+    ]
+    return "\n".join(lines)
+
+
+def figure(results: dict, path: Path) -> None:
+    """(a) The best residual by number of bounds, per gain set and objective; (b) the
+    residual of ``P + A + w_E E`` over ``w_E``; (c) ``log10(gain / paper)`` per
+    parameter of the other gain sets."""
+    from fojax.cli import style
+
+    plt = style.pyplot()
+    fig, (sizes, sweep, fields) = plt.subplots(
+        1, 3, figsize=(15, 4.8), gridspec_kw={"width_ratios": [1, 1, 1.9]}
+    )
+    colors = {name: f"C{i}" for i, name in enumerate(results["analysis"])}
+    for name, analysis in results["analysis"].items():
+        for objective, style_ in (("effort", "-o"), ("tracking", "--s")):
+            rows = analysis[objective]["subsets"]
+            sizes.plot(
+                range(1, len(rows) + 1), [e["residual"] for e in rows], style_, ms=4,
+                color=colors[name], label=f"{name}, {objective}",
+            )  # fmt: skip
+        w = analysis["weights"]
+        sweep.loglog(w["sweep_w_E"], w["sweep_residual"], color=colors[name], label=name)
+    count = len(results["analysis"]["paper"]["effort"]["subsets"])
+    sizes.set_xticks(range(1, count + 1), [*map(str, range(1, count)), "all"])
+    sizes.set_xlabel("bounds (the best set of each size)")
+    sizes.set_ylabel("residual r (0: stationary, 1: no bound helps)")
+    sizes.set_ylim(0, 1.02)
+    sizes.set_title("(a) min objective s.t. bounds at these gains' values", fontsize=10)
+    sizes.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.16))
+    sweep.axhline(1, color="0.5", lw=0.8)
+    sweep.axvline(1e-5, color="0.5", ls=":", lw=1)
+    where = sweep.get_xaxis_transform()
+    sweep.text(1e-5, 0.97, " fojax tune's w_E", transform=where, va="top", color="0.4", fontsize=8)
+    sweep.set_xlabel("effort weight w_E")
+    sweep.set_ylabel("r = |grad(P + A + w_E E)| / |grad(P + A)|")
+    sweep.set_title("(b) the weighted sum P + A + w_E E", fontsize=10)
+    sweep.legend(fontsize=8)
+    distances = results["distance_to_paper"]
+    labels = list(distances["paper"]["log10_ratio"])
+    xs = np.arange(len(labels))
+    fields.axhspan(-np.log10(2), np.log10(2), color="0.88", zorder=0, label="within a factor 2")
+    fields.axhline(0, color="k", lw=0.8)
+    for name, entry in distances.items():
+        if name == "paper":
+            continue
+        ys = [entry["log10_ratio"][label] for label in labels]
+        text = f"{name} (median |.| {entry['median_abs_log10']:.2f})"
+        fields.plot(xs, ys, "o", ms=4, color=colors[name], label=text)
+    fields.set_xticks(xs, labels, rotation=90, fontsize=7)
+    fields.set_ylabel("log10(gain / paper's gain)")
+    fields.set_title("(c) each gain set against the paper's, field by field", fontsize=10)
+    fields.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
