@@ -386,17 +386,10 @@ def main(argv=None) -> int:
     check = study.finite_difference_check(points["paper"])
     analysis = {k: analyse(p, study.names) for k, p in points.items()}
     reqs = requirements_found(study, points["paper"], analysis["paper"])
-    output.log(args.quiet, "tuning from the naive start to: " + ", ".join(reqs.names))
-    tuned = {
-        start: tune_requirements(study, reqs, getattr(study, start), args)
-        for start in ("naive", "paper")
-    }
-    gain_sets = {
-        "naive": study.naive,
-        "paper": study.paper,
-        "tuned from naive": tuned["naive"]["gains"],
-        "tuned from paper": tuned["paper"]["gains"],
-    }
+    output.log(args.quiet, "tuning from naive, then paper, to: " + ", ".join(reqs.names))
+    tuned = {k: tune_requirements(study, reqs, getattr(study, k), args) for k in ("naive", "paper")}
+    gain_sets = {"naive": study.naive, "paper": study.paper}
+    gain_sets |= {f"tuned from {k}": t["gains"] for k, t in tuned.items()}
     for label in list(gain_sets)[2:]:
         points[label] = study.point(gain_sets[label])
         analysis[label] = analyse(points[label], study.names)
@@ -408,12 +401,11 @@ def main(argv=None) -> int:
     }
     args.out.mkdir(parents=True, exist_ok=True)
     figure(results, args.out / "remark3_inverted.png")
-    text = table(results)
     if args.update_doc:
         shutil.copyfile(args.out / "remark3_inverted.png", DOC.parent / "remark3_inverted.png")
     doc = DOC if args.update_doc else None
     wrote = f", remark3_inverted.png ({results['times_s']['total']:.0f} s in all)"
-    return _common.finish(args.out, results, text, doc, "remark3-inverted", None, wrote)
+    return _common.finish(args.out, results, table(results), doc, "remark3-inverted", None, wrote)
 
 
 def _results(args, study, points, analysis, check, reqs, tuned, gain_sets) -> dict:
@@ -444,24 +436,13 @@ def _results(args, study, points, analysis, check, reqs, tuned, gain_sets) -> di
     }
 
 
-def _fmt_set(entry: dict) -> str:
+def _fmt_set(entry: dict) -> str:  # the bounds with a multiplier > 0
     return ", ".join(f"{n} ({w:.3g})" for n, w in entry["set"].items() if w > 0) or "-"
 
 
-def table(results: dict) -> str:
-    """Markdown: the residuals per point and objective, the weights, the requirement set
-    found, the tuned gains against the paper's field by field, the quantities."""
-    s = results["setting"]
-    worst = max(results["finite_difference_check"].items(), key=lambda i: i[1]["relative_error"])
+def _residual_lines(results: dict) -> list[str]:
+    """The residuals by requirement set (size, objective, gain set) and weighted sum."""
     lines = [
-        f"Setting: scenario {s['scenario']}, {s['drag']}, {s['horizon_s']:g} s, {s['switching']}, "
-        f"{s['actuators']} actuators, {s['dtype']}, {s['parameters']} parameters `u`. "
-        f"Jacobian of {len(results['quantities'])} quantities against a central finite "
-        "difference along a random direction: largest relative error "
-        f"{worst[1]['relative_error']:.1g} "
-        f"(`{worst[0]}`; {' and '.join(SURROGATES)} carry a smooth surrogate's derivative, "
-        "not compared).",
-        "",
         "Residual `r` (0: stationary, 1: no bound helps) of the best requirement set of each "
         "size, multipliers in brackets:",
         "",
@@ -486,6 +467,25 @@ def table(results: dict) -> str:
             f"| {point} | {w['fojax_tune_default']['residual']:.3f} | ({w['best']['w_E']:.3g}, "
             f"{w['best']['w_C']:.3g}) | {w['best']['residual']:.3f} |"
         )
+    return lines
+
+
+def table(results: dict) -> str:
+    """Markdown: the residuals per point and objective, the weights, the requirement set
+    found, the tuned gains against the paper's field by field, the quantities."""
+    s = results["setting"]
+    worst = max(results["finite_difference_check"].items(), key=lambda i: i[1]["relative_error"])
+    lines = [
+        f"Setting: scenario {s['scenario']}, {s['drag']}, {s['horizon_s']:g} s, {s['switching']}, "
+        f"{s['actuators']} actuators, {s['dtype']}, {s['parameters']} parameters `u`. "
+        f"Jacobian of {len(results['quantities'])} quantities against a central finite "
+        "difference along a random direction: largest relative error "
+        f"{worst[1]['relative_error']:.1g} "
+        f"(`{worst[0]}`; {' and '.join(SURROGATES)} carry a smooth surrogate's derivative, "
+        "not compared).",
+        "",
+        *_residual_lines(results),
+    ]
     names = list(results["gains"])
     values = {
         k: dict(zip(results["quantities"], v, strict=True)) for k, v in results["values"].items()
