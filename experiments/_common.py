@@ -5,6 +5,9 @@ files every study ends with (``results.json``, ``table.md``, a document's block)
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -105,3 +108,37 @@ def mean_cell(entry: dict, diverged: str) -> str:
 def table_head(columns: str) -> list[str]:
     """A Markdown table's header row (``columns``: ``"a | b | c"``) and the line below."""
     return [f"| {columns} |", "|" + "---|" * (columns.count("|") + 1)]
+
+
+def digest(document) -> str:
+    """10 hex digits naming a JSON-ready ``document`` (keys sorted)."""
+    text = json.dumps(document, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:10]
+
+
+def stored(folder: Path, stem: str, fingerprint) -> dict | None:
+    """The record :func:`cached` keeps for ``stem`` and ``fingerprint``, or ``None``."""
+    from fojax.study import fingerprint_differences
+
+    path = Path(folder) / f"{stem}-{digest(fingerprint)}.json"
+    if not path.is_file():
+        return None
+    record = json.loads(path.read_text())
+    kept = record.pop("fingerprint", None)
+    return record if kept is None or not fingerprint_differences(kept, fingerprint) else None
+
+
+def cached(folder: Path, stem: str, fingerprint, compute: Callable[[], dict]) -> dict:
+    """One run of a study, computed once: ``folder/<stem>-<digest of fingerprint>.json``
+    holds the record ``compute()`` returned, with ``fingerprint`` (JSON-ready: every
+    setting the run depends on, and nothing else) beside it. A later call with the same
+    fingerprint reads the record back; other settings are another file, so runs of
+    several settings share a folder and none is reused for settings it was not made
+    with. Written atomically: an interrupted study loses only the run in progress."""
+    record = stored(folder, stem, fingerprint)
+    if record is None:
+        record = compute()
+        path = Path(folder) / f"{stem}-{digest(fingerprint)}.json"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        output.write_json(path, {**record, "fingerprint": fingerprint})
+    return record

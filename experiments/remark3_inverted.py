@@ -33,7 +33,8 @@ effort, by :func:`fojax.optimize.constrained.tune_to_requirements` (``--outer-st
 paper's gains, field by field?) and from the paper's gains (does the tuner stay there:
 a local minimum, or only a stationary point?).
 
-Writes ``results.json``, ``table.md`` and ``remark3_inverted.png`` to ``--out``;
+The tunings are kept in ``--out/tuned`` (a run started again reuses them). Writes
+``results.json``, ``table.md`` and ``remark3_inverted.png`` to ``--out``;
 ``--update-doc`` replaces the block ``remark3-inverted`` of docs/requirements.md and
 copies the figure to docs/.
 """
@@ -272,12 +273,12 @@ def requirements_found(study: _Quantities, paper: dict, analysis: dict):
     values = dict(zip(study.names, paper["values"], strict=True))
     active = analysis["effort"]["subsets"][-1]["set"]
     made = []
-    for metric in active:
-        info = rq.METRICS[metric]
-        bound = float(values[metric]) * (1.0 + BOUND_TOLERANCE)
-        if info.share:
-            bound = min(max(bound, 0.0), 1.0)
-        made.append(rq.Requirement(metric, metric, "upper", max(bound, 0.0), info.unit))
+    for metric in active:  # metrics are >= 0 (shares <= 1): the bound stays valid
+        bound = min(
+            float(values[metric]) * (1.0 + BOUND_TOLERANCE),
+            1.0 if rq.METRICS[metric].share else np.inf,
+        )
+        made.append(rq.Requirement(metric, metric, "upper", bound, rq.METRICS[metric].unit))
     if not made:
         raise SystemExit("no bound opposes the effort's gradient at the paper's gains")
     return rq.RequirementSet(
@@ -285,8 +286,9 @@ def requirements_found(study: _Quantities, paper: dict, analysis: dict):
     )
 
 
-def tune_requirements(study: _Quantities, reqs, start, args) -> dict:
-    """The augmented Lagrangian from the gains ``start`` to ``reqs``, objective effort."""
+def tune_requirements(study: _Quantities, reqs, start: str, args) -> dict:
+    """The augmented Lagrangian from the gains ``start`` (``"naive"`` or ``"paper"``) to
+    ``reqs``, objective effort: its record (cached in ``--out/tuned``) and gains."""
     from fojax.controllers import gains_io
     from fojax.optimize import constrained as co
 
@@ -298,21 +300,24 @@ def tune_requirements(study: _Quantities, reqs, start, args) -> dict:
         margin=0.0,
         validation_draws=1,
     )
-    began = time.perf_counter()
-    init = problem.param_map.to_params(start, problem.dtype)
-    result = co.tune_to_requirements(problem, config, init, progress=not args.quiet)
-    gains = problem.gains(result.params)
-    paper_check = co._validation_summary(problem.evaluate(study.paper, problem.validation_keys(1)))
-    return {
-        "gains": gains,
-        "record": {
-            "gains": gains_io.gains_to_dict(gains),
+
+    def run() -> dict:
+        began = time.perf_counter()
+        init = problem.param_map.to_params(getattr(study, start), problem.dtype)
+        result = co.tune_to_requirements(problem, config, init, progress=not args.quiet)
+        paper = problem.evaluate(study.paper, problem.validation_keys(1))
+        return {
+            "gains": gains_io.gains_to_dict(problem.gains(result.params)),
             "selected": result.selected,
             "initial": result.initial,
-            "paper": paper_check,
+            "paper": co._validation_summary(paper),
             "wall_time_s": round(time.perf_counter() - began, 1),
-        },
-    }
+        }
+
+    settings = dict(vars(args), out=None, update_doc=None, quiet=None, requirements=None)
+    fingerprint = {"settings": settings, "requirements": reqs.to_dict(), "start": start}
+    record = _common.cached(args.out / "tuned", start, fingerprint, run)
+    return {"record": record, "gains": gains_io.gains_from_dict("afonftsmc", record["gains"])}
 
 
 def distance(gains, paper) -> dict:
@@ -352,19 +357,10 @@ def build_parser() -> argparse.ArgumentParser:
     _common.add_numbers(parser, horizon=20.0, outer_steps=10, inner_steps=10)
     _common.add_numbers(parser, learning_rate=0.1)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
-        "--requirements", type=Path, default=EXAMPLE,
-        help="the file whose [settings] (rotor limit, band) are used",
-    )  # fmt: skip
-    parser.add_argument(
-        "--rotor-limited", action="store_true",
-        help="simulate rotor-limited actuators (default: ideal, the paper's)",
-    )  # fmt: skip
+    parser.add_argument("--requirements", type=Path, default=EXAMPLE, help="its [settings]")
+    parser.add_argument("--rotor-limited", action="store_true", help="default: ideal rotors")
     parser.add_argument("--out", type=Path, default=Path("results/remark3_inverted"))
-    parser.add_argument(
-        "--update-doc", action="store_true",
-        help="replace the remark3-inverted block of docs/requirements.md",
-    )  # fmt: skip
+    parser.add_argument("--update-doc", action="store_true", help="docs/requirements.md")
     _common.add_smoke(parser)
     return parser
 
@@ -387,7 +383,7 @@ def main(argv=None) -> int:
     analysis = {k: analyse(p, study.names) for k, p in points.items()}
     reqs = requirements_found(study, points["paper"], analysis["paper"])
     output.log(args.quiet, "tuning from naive, then paper, to: " + ", ".join(reqs.names))
-    tuned = {k: tune_requirements(study, reqs, getattr(study, k), args) for k in ("naive", "paper")}
+    tuned = {k: tune_requirements(study, reqs, k, args) for k in ("naive", "paper")}
     gain_sets = {"naive": study.naive, "paper": study.paper}
     gain_sets |= {f"tuned from {k}": t["gains"] for k, t in tuned.items()}
     for label in list(gain_sets)[2:]:

@@ -29,9 +29,7 @@ from __future__ import annotations
 
 import argparse
 import functools
-import hashlib
 import itertools
-import json
 import sys
 import time
 from pathlib import Path
@@ -66,20 +64,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=arguments.seed, default=0)
     parser.add_argument("--update-doc", action="store_true")
     return parser
-
-
-def _digest(document) -> str:
-    text = json.dumps(document, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:10]
-
-
-def _cached(path: Path, compute):
-    if path.is_file():
-        return json.loads(path.read_text())
-    value = compute()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    output.write_json(path, value)
-    return value
 
 
 def tune_one(name: str, reqs, args) -> dict:
@@ -189,13 +173,11 @@ def _rows(name: str, record: dict, switchings, budget: dict, reqs, args) -> list
     gain_sets = (("default", None), ("tuned", record["gains"]))
     cases = itertools.product(args.scenarios, switchings if takes else [None], gain_sets)
     for scenario_id, switching, (label, gains) in cases:
-        ident = _digest(
-            [budget if gains else reqs.to_dict(), name, label, scenario_id, switching,
-             args.draws, args.horizon]
-        )  # fmt: skip
-        path = args.out / "yield" / f"{name}-{label}-s{scenario_id}-{switching}-{ident}.json"
+        fingerprint = [budget if gains else reqs.to_dict(), name, label, scenario_id,
+                       switching, args.draws, args.horizon]  # fmt: skip
+        stem = f"{name}-{label}-s{scenario_id}-{switching}"
         evaluate = functools.partial(evaluate_one, name, gains, scenario_id, switching, reqs, args)
-        row = _cached(path, evaluate)
+        row = _common.cached(args.out / "yield", stem, fingerprint, evaluate)
         where = {"scenario": scenario_id, "switching": switching or "-"}
         rows.append({"controller": name, "gains": label, **where, **row})
         print(f"{name} {label} scenario {scenario_id} {switching or '-'}: "
@@ -229,11 +211,10 @@ def main(argv=None) -> int:
     for name in controllers:
         registry.get_controller_class(name)
     budget = _budget(args, reqs)
-    key = _digest(budget)
     rows, tuned_records = [], {}
     for name in controllers:
-        record = _cached(
-            args.out / "tuned" / f"{name}-{key}.json", lambda n=name: tune_one(n, reqs, args)
+        record = _common.cached(
+            args.out / "tuned", name, budget, lambda n=name: tune_one(n, reqs, args)
         )
         tuned_records[name] = record
         rows += _rows(name, record, _common.listed(args.switching), budget, reqs, args)

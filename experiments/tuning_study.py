@@ -38,8 +38,11 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
   persistent compilation cache is off. One process, one XLA device, runs one after
   another; the load average is recorded before and after each run.
 
-Each finished run is stored in ``--out/runs/`` (an interrupted study continues where it
-stopped); ``results.json``, ``table.md`` and the figures ``tuning_wall.png`` and
+Each finished run is kept in ``--out/runs/`` under its fingerprint, the settings it
+depends on (:data:`BY_METHOD`; :func:`experiments._common.cached`): an interrupted study
+continues where it stopped, a run is never reused for other settings, and variants of
+one tuner share the other tuners' runs in one ``--out`` (``--gradient-draws 64`` reuses
+the CMA-ES runs). ``results.json``, ``table.md`` and the figures ``tuning_wall.png`` and
 ``tuning_draw_steps.png`` summarise them. ``--update-doc FILE`` replaces the block
 between ``<!-- tuning-study:begin -->`` and ``<!-- tuning-study:end -->`` of FILE and
 copies the figures beside it.
@@ -48,6 +51,8 @@ copies the figures beside it.
 from __future__ import annotations
 
 import argparse
+import functools
+import itertools
 import json
 import os
 import shutil
@@ -91,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=0,
         metavar="N",
         help="also time N generations of CMA-ES evaluated in one batched call against one "
-        "call per candidate (interleaved; medians), stored in --out/bench_<share>.json",
+        "call per candidate (interleaved; medians), kept in --out/bench_<share>-*.json",
     )
     parser.add_argument(
         "--user-view",
@@ -274,66 +279,72 @@ def user_command(args, mode: str, out: Path) -> list[str]:
     return command
 
 
+def _user_fingerprint(args, mode: str, index: int) -> dict:
+    """What one user-view run depends on: its command (``DIR`` for the output folder)."""
+    return {"command": user_command(args, mode, Path("DIR")), "run": index}
+
+
 def user_view(args, out: Path) -> list[dict]:
     """Run the user's ``fojax tune`` ``args.user_view`` times per compile mode, each in
     a fresh process (no persistent compilation cache), interleaving the modes; time
-    the whole command and read its outputs."""
-    import csv
-
+    the whole command and read its outputs (each run kept under its fingerprint)."""
     records = []
-    folder = out / "user_view"
     for index in range(args.user_view):
         for mode in USER_MODES:
-            path = folder / f"{mode}_{index}.json"
-            if path.exists():
-                records.append(json.loads(path.read_text()))
-                continue
-            run_dir = folder / f"{mode}_{index}"
-            if run_dir.exists():
-                shutil.rmtree(run_dir)
-            command = user_command(args, mode, run_dir)
-            env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-            load = output.load_average()
-            t0 = time.perf_counter()
-            subprocess.run(
-                [sys.executable, "-m", "fojax.cli", *command[1:], "--quiet"],
-                check=True,
-                env=env,
-                stdout=subprocess.DEVNULL,
-            )
-            total = time.perf_counter() - t0
-            evaluation = json.loads((run_dir / "evaluation.json").read_text())
-            gains = json.loads((run_dir / "gains.json").read_text())["metadata"]
-            with open(run_dir / "history.csv", newline="") as handle:
-                history = list(csv.DictReader(handle))
-            initial = evaluation["initial"]["mean_cost"]
-            half = 0.5 * gains["validation"]["initial"]
-            validated = [row for row in history if row["validation_cost"]]
-            halved = [row for row in validated if float(row["validation_cost"]) <= half]
-            first_half = float(halved[0]["wall_time_s"]) if halved else None
-            record = {
-                "mode": mode,
-                "run": index,
-                "command": " ".join(command),
-                "total_s": round(total, 1),
-                "tuning_s": float(history[-1]["wall_time_s"]),
-                "validation_halved_at_s": first_half,
-                "heldout_initial": initial,
-                "heldout_tuned": evaluation["tuned"]["mean_cost"],
-                "heldout_draws": evaluation["draws"],
-                "selected_step": gains["selected_step"],
-                "validation": gains["validation"],
-                "load_before": load,
-                "load_after": output.load_average(),
-            }
-            output.write_json(path, record)
-            records.append(record)
-            output.log(
-                args.quiet,
-                f"  user view ({mode}, run {index}): {total:.0f} s in all, held-out "
-                f"{initial:.4g} -> {record['heldout_tuned']:.4g}",
-            )
+            fingerprint = _user_fingerprint(args, mode, index)
+            run = functools.partial(_user_run, args, out / "user_view", mode, index)
+            records.append(_common.cached(out / "user_view", f"{mode}_{index}", fingerprint, run))
     return records
+
+
+def _user_run(args, folder: Path, mode: str, index: int) -> dict:
+    """One user-view run: the command in a fresh process, timed, and what it wrote."""
+    import csv
+
+    run_dir = folder / f"{mode}_{index}"
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    command = user_command(args, mode, run_dir)
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    load = output.load_average()
+    t0 = time.perf_counter()
+    subprocess.run(
+        [sys.executable, "-m", "fojax.cli", *command[1:], "--quiet"],
+        check=True,
+        env=env,
+        stdout=subprocess.DEVNULL,
+    )
+    total = time.perf_counter() - t0
+    evaluation = json.loads((run_dir / "evaluation.json").read_text())
+    gains = json.loads((run_dir / "gains.json").read_text())["metadata"]
+    with open(run_dir / "history.csv", newline="") as handle:
+        history = list(csv.DictReader(handle))
+    initial = evaluation["initial"]["mean_cost"]
+    half = 0.5 * gains["validation"]["initial"]
+    validated = [row for row in history if row["validation_cost"]]
+    halved = [row for row in validated if float(row["validation_cost"]) <= half]
+    first_half = float(halved[0]["wall_time_s"]) if halved else None
+    record = {
+        "mode": mode,
+        "run": index,
+        "command": " ".join(command),
+        "total_s": round(total, 1),
+        "tuning_s": float(history[-1]["wall_time_s"]),
+        "validation_halved_at_s": first_half,
+        "heldout_initial": initial,
+        "heldout_tuned": evaluation["tuned"]["mean_cost"],
+        "heldout_draws": evaluation["draws"],
+        "selected_step": gains["selected_step"],
+        "validation": gains["validation"],
+        "load_before": load,
+        "load_after": output.load_average(),
+    }
+    output.log(
+        args.quiet,
+        f"  user view ({mode}, run {index}): {total:.0f} s in all, held-out "
+        f"{initial:.4g} -> {record['heldout_tuned']:.4g}",
+    )
+    return record
 
 
 def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
@@ -452,18 +463,34 @@ def _settings(args) -> dict:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in plain.items()}
 
 
+COMMON = ("scenario", "horizon", "dtype", "tiny", "heldout_draws", "validation_draws")
+BY_METHOD = {
+    "gradient": ("gradient_method", "gradient_steps", "gradient_draws", "learning_rate",
+                 "max_step", "validate_every", "compile"),
+    "cma-es": ("cma_generations", "cma_sigma", "df_draws"),
+    "nelder-mead": ("cma_generations", "df_draws"),
+}  # fmt: skip
+"""The settings a run depends on (its fingerprint), besides its share, start and seed."""
+
+
+def run_fingerprint(args, share: str, start: str, seed: int, method: str) -> dict:
+    names = COMMON + BY_METHOD[method]
+    return {k: getattr(args, k) for k in names} | dict(share=share, start=start, seed=seed)
+
+
+def _stored_run(args, share, start, seed, method) -> dict | None:
+    fingerprint = run_fingerprint(args, share, start, seed, method)
+    return _common.stored(args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint)
+
+
 def run_share(args, share: str, settings: dict) -> None:
-    """The runs (and the bench) of one parameter count that are not stored yet."""
-    runs_dir = args.out / "runs"
-    pending = [
-        (start, seed, method)
-        for start in args.starts
-        for seed in args.seeds
-        for method in args.methods
-        if not (runs_dir / f"{share}_{start}_{seed}_{method}.json").exists()
-    ]
-    bench_path = args.out / f"bench_{share}.json"
-    if not pending and (not args.bench or bench_path.exists()):
+    """The runs (and the bench) of one parameter count that are not stored yet (each
+    kept under its fingerprint: :func:`experiments._common.cached`)."""
+    cases = itertools.product(args.starts, args.seeds, args.methods)
+    pending = [case for case in cases if _stored_run(args, share, *case) is None]
+    bench_fingerprint = run_fingerprint(args, share, "paper", 0, "cma-es") | {"bench": args.bench}
+    bench_done = _common.stored(args.out, f"bench_{share}", bench_fingerprint) is not None
+    if not pending and (not args.bench or bench_done):
         return
     t0 = time.perf_counter()
     setup = _Setup(args, share)
@@ -472,18 +499,21 @@ def run_share(args, share: str, settings: dict) -> None:
         f"share={share}: {setup.problem.param_map.size} parameters, compiled in "
         f"{time.perf_counter() - t0:.0f} s ({setup.compile_s})",
     )
-    if args.bench and not bench_path.exists():
-        bench = bench_batched(setup, args.bench)
-        output.write_json(bench_path, bench)
+    if args.bench and not bench_done:
+        bench = _common.cached(
+            args.out, f"bench_{share}", bench_fingerprint, lambda: bench_batched(setup, args.bench)
+        )
         output.log(
             args.quiet,
             f"  batched generation {bench['median_batched_s']:.2f} s, one at a "
             f"time {bench['median_one_at_a_time_s']:.2f} s (medians)",
         )
     for start, seed, method in pending:
-        record = run_one(setup, start, seed, method)
-        record["settings"] = settings
-        output.write_json(runs_dir / f"{share}_{start}_{seed}_{method}.json", record)
+        fingerprint = run_fingerprint(args, share, start, seed, method)
+        record = _common.cached(
+            args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint,
+            lambda case=(start, seed, method): run_one(setup, *case) | {"settings": settings},
+        )  # fmt: skip
         output.log(
             args.quiet,
             f"  {share} {start} seed {seed} {method}: held-out "
@@ -498,21 +528,23 @@ def report(args, settings: dict, start_all: float) -> int:
     selected shares, starts, seeds and methods; the document's block with ``--update-doc``."""
     out = args.out
     users = user_view(args, out) if args.user_view and not args.report_only else []
-    if not users and (out / "user_view").is_dir():
-        users = [json.loads(p.read_text()) for p in sorted((out / "user_view").glob("*.json"))]
-    records = [json.loads(p.read_text()) for p in sorted((out / "runs").glob("*.json"))]
-    records = [
-        r
-        for r in records
-        if r["share"] in args.shares
-        and r["start"] in args.starts
-        and r["seed"] in args.seeds
-        and r["method"] in args.methods
-    ]
-    benches = [out / f"bench_{share}.json" for share in args.shares]
+    if not users:  # the stored runs of these settings
+        kept = [json.loads(p.read_text()) for p in sorted((out / "user_view").glob("*.json"))]
+        users = [
+            {k: v for k, v in r.items() if k != "fingerprint"}
+            for r in kept
+            if r.get("fingerprint") == _user_fingerprint(args, r["mode"], r["run"])
+        ]
+    cases = itertools.product(args.shares, args.starts, args.seeds, args.methods)
+    records = [r for r in (_stored_run(args, *case) for case in cases) if r is not None]
+    benches = [
+        _common.stored(out, f"bench_{share}", run_fingerprint(args, share, "paper", 0, "cma-es")
+                       | {"bench": args.bench})
+        for share in args.shares
+    ]  # fmt: skip
     results = {
         "user_view": users,
-        "bench": [json.loads(path.read_text()) for path in benches if path.exists()],
+        "bench": [bench for bench in benches if bench is not None],
         "settings": settings,
         "summary": summarize(records),
         "runs": records,

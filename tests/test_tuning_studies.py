@@ -53,6 +53,11 @@ def test_tuning_study_tiny(tmp_path):
     assert text.startswith("head\n") and text.endswith("tail\n") and "old" not in text
     assert table.strip() in text
     assert (tmp_path / "tuning_wall.png").exists()
+    # Runs are kept under their fingerprints: other gradient settings find the CMA-ES
+    # runs but not the gradient ones.
+    other = tuning_study.parse_args(argv + ["--learning-rate", "0.2"])
+    assert tuning_study._stored_run(other, "paper", "paper", 0, "cma-es") is not None
+    assert tuning_study._stored_run(other, "paper", "paper", 0, "gradient") is None
 
 
 @pytest.mark.slow
@@ -70,6 +75,30 @@ def test_remark3_tiny(tmp_path):
     assert costs["tuned from naive"]["sat"]["J"] < costs["naive"]["sat"]["J"]
     table = (out / "table.md").read_text()
     assert "| hbar1 | phi = theta = psi | 1 | 156.4 |" in table
+
+
+def test_cached_runs(tmp_path):
+    """experiments._common.cached: computed once per fingerprint, kept atomically, never
+    reused for other settings."""
+    from experiments import _common
+
+    calls = []
+
+    def compute(value):
+        calls.append(value)
+        return {"value": value}
+
+    assert _common.cached(tmp_path, "run", {"a": 1}, lambda: compute(1)) == {"value": 1}
+    assert _common.cached(tmp_path, "run", {"a": 1}, lambda: compute(9)) == {"value": 1}
+    assert _common.cached(tmp_path, "run", {"a": 2}, lambda: compute(2)) == {"value": 2}
+    assert calls == [1, 2] and len(list(tmp_path.glob("run-*.json"))) == 2
+    assert _common.stored(tmp_path, "run", {"a": 3}) is None
+    # A file whose stored fingerprint is not the one asked for is computed again.
+    path = tmp_path / f"run-{_common.digest({'a': 1})}.json"
+    path.write_text(json.dumps({"value": 1, "fingerprint": {"a": 5}}))
+    assert _common.cached(tmp_path, "run", {"a": 1}, lambda: compute(3)) == {"value": 3}
+    assert json.loads(path.read_text())["fingerprint"] == {"a": 1}
+    assert not list(tmp_path.glob(".*tmp"))
 
 
 def test_cone_residual_constructed():
