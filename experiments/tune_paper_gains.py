@@ -32,7 +32,9 @@ Protocol (every number in ``docs/tuning.md`` comes from this script):
    scenario 3 (other disturbances, 30 % mass/inertia uncertainty, reference (57)).
    Paired differences against the paper's gains use the same draws (95 % Student-t).
 
-Writes ``results.json`` (with the run's provenance: commit, versions, CPU, load),
+Each tuner's run is kept in ``--out/runs`` under its settings (a study started again
+reuses the tuners that finished). Writes ``results.json`` (with the run's provenance:
+commit, versions, CPU, load),
 ``table.md``, ``curves.csv`` and ``tuning.png`` to ``--out``; ``--update-doc FILE``
 replaces the block between ``<!-- tune-paper-gains:begin -->`` and
 ``<!-- tune-paper-gains:end -->`` of FILE with the tables and copies the figure beside
@@ -168,9 +170,11 @@ class _Study:
         problem.value(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
         return time.perf_counter() - t0
 
-    def gradient(self):
-        """The gradient tuner from the naive start."""
+    def gradient(self) -> dict:
+        """The gradient tuner from the naive start: its record (:func:`_record`)."""
         from fojax.optimize import tuner as tuner_lib
+
+        curve = []
 
         def on_step(step, params, row):
             # The tuner's answer so far: its best validated iterate (the start until a
@@ -180,52 +184,110 @@ class _Study:
             if row["best_step"] == step:
                 value = self.validate(self.problem.gains(params))
             else:
-                value = [v for m, _, _, v in self.curves if m == "gradient"][-1]
-            self.curves.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
+                value = curve[-1][3] if curve else self.validate(self.naive)
+            curve.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
 
-        quiet, spec, steps = self.args.quiet, self.spec, self.config.steps
+        quiet, spec, config = self.args.quiet, self.spec, self.config
         output.log(
-            quiet, f"gradient tuner: {steps} steps x {spec.draws} draws x {spec.horizon:g} s"
+            quiet, f"gradient tuner: {config.steps} steps x {spec.draws} draws x {spec.horizon:g} s"
         )
-        run = tuner_lib.prepare(spec, self.config, self.naive, "naive", None)
-        return tuner_lib.tune(run, progress=not quiet, callback=on_step, problem=self.problem)
+        run = tuner_lib.prepare(spec, config, self.naive, "naive", None)
+        result = tuner_lib.tune(run, progress=not quiet, callback=on_step, problem=self.problem)
+        last = result.history[-1]
+        summary = {
+            "draw_steps": last["draw_steps"],
+            "wall_time_s": last["wall_time_s"],
+            "steps": config.steps,
+            "final_objective": last["objective"],
+            "method": config.method,
+            "returned_step": result.best_step,
+            "validation": result.validation,
+        }
+        return _record(result.gains, curve, summary)
 
-    def derivative_free(self, budget: int):
-        """CMA-ES and Nelder-Mead from the naive start with ``budget`` draw-steps each."""
+    def _recorder(self, method: str, curve: list):
+        def callback(draw_steps, params, row):
+            value = self.validate(self.problem.gains(params))
+            curve.append((method, draw_steps, row["wall_time_s"], value))
+            best = row["best_objective"]
+            output.log(self.args.quiet, f"  {method}: {draw_steps} draw-steps, best {best:.4g}")
+
+        return callback
+
+    def cma_es(self, budget: int) -> dict:
+        """CMA-ES from the naive start with ``budget`` draw-steps: its record."""
         from fojax.optimize import derivative_free
 
-        args = self.args
-
-        def recorder(method):
-            def callback(draw_steps, params, row):
-                value = self.validate(self.problem.gains(params))
-                self.curves.append((method, draw_steps, row["wall_time_s"], value))
-                best = row["best_objective"]
-                output.log(args.quiet, f"  {method}: {draw_steps} draw-steps, best {best:.4g}")
-
-            return callback
-
-        width = self.config.anneal_end
-        output.log(args.quiet, f"CMA-ES: budget {budget} draw-steps")
+        curve = []
+        output.log(self.args.quiet, f"CMA-ES: budget {budget} draw-steps")
         es = derivative_free.cma_es(
             self.problem,
             budget,
-            sigma0=args.cma_sigma,
-            seed=args.seed,
-            width_scale=width,
-            callback=recorder("cma-es"),
+            sigma0=self.args.cma_sigma,
+            seed=self.args.seed,
+            width_scale=self.config.anneal_end,
+            callback=self._recorder("cma-es", curve),
         )
-        output.log(args.quiet, f"Nelder-Mead: budget {budget} draw-steps")
-        every, callback = max(1, _popsize(es)), recorder("nelder-mead")
+        summary = {
+            "draw_steps": es.draw_steps,
+            "wall_time_s": round(es.wall_time_s, 3),
+            "evaluations": es.evaluations,
+            "generations": len(es.history),
+            "popsize": es.evaluations // max(len(es.history), 1),
+        }
+        return _record(es.gains, curve, summary)
+
+    def nelder_mead(self, budget: int, every: int) -> dict:
+        """Nelder-Mead from the naive start with ``budget`` draw-steps, scored every
+        ``every`` evaluations (CMA-ES's population): its record."""
+        from fojax.optimize import derivative_free
+
+        curve = []
+        output.log(self.args.quiet, f"Nelder-Mead: budget {budget} draw-steps")
         nm = derivative_free.nelder_mead(
-            self.problem, budget, width_scale=width, callback=callback, callback_every=every
+            self.problem,
+            budget,
+            width_scale=self.config.anneal_end,
+            callback=self._recorder("nelder-mead", curve),
+            callback_every=every,
         )
-        self.curves.append(("nelder-mead", nm.draw_steps, nm.wall_time_s, self.validate(nm.gains)))
-        return es, nm
+        curve.append(("nelder-mead", nm.draw_steps, nm.wall_time_s, self.validate(nm.gains)))
+        summary = {
+            "draw_steps": nm.draw_steps,
+            "wall_time_s": round(nm.wall_time_s, 3),
+            "evaluations": nm.evaluations,
+        }
+        return _record(nm.gains, curve, summary)
 
 
-def _popsize(es) -> int:
-    return es.evaluations // max(len(es.history), 1)
+def _record(gains, curve: list, summary: dict) -> dict:
+    """A tuner's run as JSON: its gains, its curve points ``(method, draw-steps, wall
+    time, validation cost)`` and what it spent (``summary``)."""
+    from fojax.controllers import gains_io
+
+    return {"gains": gains_io.gains_to_dict(gains), "curve": [list(c) for c in curve],
+            "summary": summary}  # fmt: skip
+
+
+def run_tuners(args, study: _Study) -> dict:
+    """Each tuner's record, kept under its fingerprint in ``--out/runs`` (a study started
+    again reuses the tuners that finished): the gradient tuner, then CMA-ES and
+    Nelder-Mead with ``--df-budget-factor`` times its draw-steps."""
+    skip = ("out", "update_doc", "quiet")
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    settings = {k: v for k, v in settings.items() if k not in skip}
+    folder = args.out / "runs"
+    gradient = _common.cached(folder, "gradient", settings, study.gradient)
+    budget = int(args.df_budget_factor * gradient["summary"]["draw_steps"])
+    es = _common.cached(
+        folder, "cma-es", settings | {"budget": budget}, lambda: study.cma_es(budget)
+    )
+    every = max(1, es["summary"]["popsize"])
+    nm = _common.cached(
+        folder, "nelder-mead", settings | {"budget": budget, "every": every},
+        lambda: study.nelder_mead(budget, every),
+    )  # fmt: skip
+    return {"gradient": gradient, "cma-es": es, "nelder-mead": nm}
 
 
 def _cost_entry(costs, baseline) -> dict:
@@ -293,34 +355,6 @@ def reaches(curves: list) -> dict:
     return reach
 
 
-def _tuners(config, gradient, es, nm) -> dict:
-    """What each tuner spent, and how the gradient tuner ended."""
-    last = gradient.history[-1]
-    return {
-        "gradient": {
-            "draw_steps": last["draw_steps"],
-            "wall_time_s": last["wall_time_s"],
-            "steps": config.steps,
-            "final_objective": last["objective"],
-            "method": config.method,
-            "returned_step": gradient.best_step,
-            "validation": gradient.validation,
-        },
-        "cma-es": {
-            "draw_steps": es.draw_steps,
-            "wall_time_s": round(es.wall_time_s, 3),
-            "evaluations": es.evaluations,
-            "generations": len(es.history),
-            "popsize": _popsize(es),
-        },
-        "nelder-mead": {
-            "draw_steps": nm.draw_steps,
-            "wall_time_s": round(nm.wall_time_s, 3),
-            "evaluations": nm.evaluations,
-        },
-    }
-
-
 def _write(args, results: dict, curves: list, references: dict) -> int:
     """``results.json``, ``table.md``, ``curves.csv``, ``tuning.png``; the document's
     block with ``--update-doc``."""
@@ -356,18 +390,22 @@ def main(argv=None) -> int:
         args.quiet,
         f"validation cost: paper {references['paper']:.4g}, naive {references['naive']:.4g}",
     )
+    records = run_tuners(args, study)
     study.curves += [(method, 0, 0.0, references["naive"]) for method in METHODS]
-    gradient = study.gradient()
-    es, nm = study.derivative_free(int(args.df_budget_factor * gradient.history[-1]["draw_steps"]))
-    gain_sets = {"paper": study.paper, "naive": study.naive, "gradient": gradient.gains}
-    gain_sets |= {"cma-es": es.gains, "nelder-mead": nm.gains}
+    study.curves += [tuple(c) for r in records.values() for c in r["curve"]]
+    dtype = study.spec.jnp_dtype
+    gain_sets = {"paper": study.paper, "naive": study.naive}
+    gain_sets |= {
+        name: gains_io.gains_from_dict("afonftsmc", r["gains"], name, dtype)
+        for name, r in records.items()
+    }
     evaluation = evaluate(args, study, gain_sets)
     validation = {"draws": args.validation_draws, "horizon_s": study.spec.horizon}
     results = {
         "problem": study.spec.as_dict(),
         "tuner": dataclasses.asdict(study.config),
         "validation": validation | {"switching": "sat", **references},
-        "tuners": _tuners(study.config, gradient, es, nm),
+        "tuners": {name: r["summary"] for name, r in records.items()},
         "gradient_reaches": reaches(study.curves),
         "evaluation": evaluation,
         "gains": {name: gains_io.gains_to_dict(g) for name, g in gain_sets.items()},

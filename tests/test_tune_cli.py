@@ -183,3 +183,9 @@ def test_tuning_study_smoke(tmp_path):
         for gains, value in setting["gains"].items():
             again_value = rerun["evaluation"][name]["gains"][gains]
             assert json.dumps(again_value) == json.dumps(value), (name, gains)  # NaN == NaN
+    # Started again in the same folder, the study reuses its tuners' runs (their wall
+    # times are the stored ones) and gives the same table.
+    assert tune_paper_gains.main(["--tiny", "--quiet", "--out", str(out)]) == 0
+    reused = json.loads((out / "results.json").read_text())
+    assert reused["tuners"] == results["tuners"] and reused["curves"] == results["curves"]
+    assert json.dumps(reused["evaluation"]) == json.dumps(results["evaluation"])
