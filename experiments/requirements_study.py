@@ -10,7 +10,8 @@ scenario, ``sign`` (the paper's ``sgn``) and ``sat`` switching.
 
 Every controller starts from its default gains (the paper's for the AFONFTSMC) and is
 tuned by ``tune_to_requirements`` (mean hinge, Adam at learning rate 0.1, the ``fojax
-tune --requirements`` defaults) on scenario ``--tune-scenario``, minimising effort,
+tune --requirements`` defaults) on scenario ``--tune-scenario`` (several: their union,
+draw ``i`` of member ``i % members``), minimising effort,
 with the requirement file's rotor limit; then the default and the tuned gains are
 measured on ``--draws`` held-out draws (indices from 2**31, never used in tuning or
 validation) of each scenario at the tuning horizon, with each switching function (the
@@ -22,7 +23,8 @@ tuner's record) and ``yield/<label>.json`` (one evaluation); a run started again
 reuses them and computes only what is missing (a changed budget or requirement file
 is a new key: the cache names carry a digest of the settings). Writes
 ``results.json`` and ``table.md``; ``--update-doc`` replaces the block
-``requirements-study`` of docs/requirements.md.
+``requirements-study`` of docs/requirements.md (``requirements-study-union`` when tuned
+on several scenarios).
 """
 
 from __future__ import annotations
@@ -58,7 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--scenarios", type=arguments.scenario_ids, default=(1, 2, 3))
     parser.add_argument("--switching", default="sign,sat")
     _common.add_numbers(parser, draws=1024)
-    parser.add_argument("--tune-scenario", type=int, choices=(1, 2, 3), default=2)
+    parser.add_argument(
+        "--tune-scenario", type=arguments.scenario_ids, default=(2,),
+        help="the scenario tuned on, or several (2,3: their union, draws alternating)",
+    )  # fmt: skip
     _common.add_numbers(parser, horizon=10.0, tune_draws=8, outer_steps=10, inner_steps=10)
     _common.add_numbers(parser, validation_draws=32)
     parser.add_argument("--seed", type=arguments.seed, default=0)
@@ -69,19 +74,23 @@ def build_parser() -> argparse.ArgumentParser:
 def tune_one(name: str, reqs, args) -> dict:
     """Tune ``name`` to ``reqs`` (the study's budget); the gains and the record."""
     from fojax import requirements as rq  # noqa: F401 - the set is rq's
+    from fojax import scenarios
     from fojax.controllers import gains_io, registry
     from fojax.optimize import constrained as co
     from fojax.optimize.problem import ProblemSpec
 
+    ids = args.tune_scenario if isinstance(args.tune_scenario, list) else [args.tune_scenario]
+    members = [scenarios.get_scenario(i) for i in ids]
     spec = ProblemSpec(
         controller=name,
-        scenario=args.tune_scenario,
+        scenario=ids[0],
         horizon=args.horizon,
         draws=args.tune_draws,
         seed=args.seed,
     )
     gains = registry.get_controller_class(name).default_gains()
-    problem = co.RequirementProblem(spec, gains, reqs, objective="effort")
+    union = scenarios.union(*members) if len(members) > 1 else None
+    problem = co.RequirementProblem(spec, gains, reqs, objective="effort", scenario=union)
     config = co.ConstrainedConfig(
         outer_steps=args.outer_steps,
         inner_steps=args.inner_steps,
@@ -185,6 +194,13 @@ def _rows(name: str, record: dict, switchings, budget: dict, reqs, args) -> list
     return rows
 
 
+def _tuned_on(args) -> str:
+    ids = args.tune_scenario
+    if not isinstance(ids, list):
+        return f"scenario {ids}"
+    return f"scenarios {' and '.join(map(str, ids))} (their union, draws alternating)"
+
+
 def _doc_head(args, results: dict, tuned_records: dict) -> str:
     walls = ", ".join(
         f"{n} {r['wall_time_s']:.0f} s (selected outer step {r['selected'].get('outer_step')})"
@@ -193,7 +209,7 @@ def _doc_head(args, results: dict, tuned_records: dict) -> str:
     return (
         f"Run: `{' '.join(results['command'])}`. Budget per controller: "
         f"{args.outer_steps} outer x {args.inner_steps} inner Adam steps on "
-        f"{args.tune_draws} draws x {args.horizon:g} s of scenario {args.tune_scenario}, "
+        f"{args.tune_draws} draws x {args.horizon:g} s of {_tuned_on(args)}, "
         f"{args.validation_draws} validation draws; held-out: {args.draws} draws per "
         f"row at {args.horizon:g} s. Tuning wall time: {walls} (2 shared cores, load "
         f"average at the end {results['load_average']})."
@@ -206,6 +222,9 @@ def main(argv=None) -> int:
 
     args = build_parser().parse_args(argv)
     args.out = Path(args.out)
+    # One scenario stays a number (the cache keys of earlier runs); several, a list.
+    ids = args.tune_scenario
+    args.tune_scenario = ids[0] if len(ids) == 1 else list(ids)
     reqs = args.requirements or rq.load(EXAMPLE)
     controllers = _common.listed(args.controllers)
     for name in controllers:
@@ -231,7 +250,8 @@ def main(argv=None) -> int:
     text = table(results)
     doc_text = _doc_head(args, results, tuned_records) + "\n\n" + text if args.update_doc else None
     doc = DOC if args.update_doc else None
-    return _common.finish(args.out, results, text, doc, "requirements-study", doc_text)
+    block = "requirements-study" + ("-union" if isinstance(args.tune_scenario, list) else "")
+    return _common.finish(args.out, results, text, doc, block, doc_text)
 
 
 if __name__ == "__main__":

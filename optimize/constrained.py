@@ -410,7 +410,8 @@ class RequirementProblem:
     gradient needs a smooth law); validation and :meth:`evaluate` use ``switching``
     (default ``sat``, the evaluation law). ``scenario``: a
     :class:`fojax.scenarios.Scenario` simulated instead of ``spec.scenario``'s (e.g. with
-    its random drag switched off); the draws' keys still come from ``spec``."""
+    its random drag switched off), or a union (:func:`fojax.scenarios.union`: draw ``i``
+    of a batch is of member ``i % members``); the draws' keys still come from ``spec``."""
 
     def __init__(
         self,
@@ -478,10 +479,11 @@ class RequirementProblem:
         )
         model = plant.nominal_params(dtype)
         weights = jnp.asarray(self.spec.cost.weights, dtype)
-        objective = self.objective
+        objective, count = self.objective, len(scenario.members)
 
         def simulate(gains, keys):
-            draws = scenarios.sample_draws(scenario, keys, config.dt, dtype)
+            member = jnp.arange(keys.shape[0]) % count if count else 0  # draw i: i % count
+            draws = scenarios.sample_draws(scenario, keys, config.dt, dtype, member)
             result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
             terms = result.outputs["cost"]  # (4, n): P, A, E, C
             if objective == "effort":

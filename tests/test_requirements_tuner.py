@@ -169,3 +169,32 @@ def test_an_interrupted_run_resumes_to_the_uninterrupted_result(toy, tmp_path):
     assert again == strip
     with pytest.raises(ValueError, match="differs in:\n  run: checkpoint 1, now 2"):
         run(4, path, {"run": 2})
+
+
+def test_union_problem_alternates_members():
+    """A requirement problem on a union of scenarios: draw i is draw i of member
+    i % members run alone (the same metrics, float32 within the union's rounding)."""
+    from fojax import scenarios
+    from fojax.controllers import registry
+    from fojax.optimize.problem import ProblemSpec
+
+    reqs = rq.parse(
+        {"requirements": [{"name": "t", "metric": "max_tilt", "max": 30, "unit": "deg"}]}
+    )
+    spec = ProblemSpec(controller="fl", scenario=2, horizon=0.05, draws=4, dtype="float32")
+    base = registry.get_controller_class("fl").default_gains()
+    union = scenarios.union(scenarios.get_scenario(2), scenarios.get_scenario(3))
+    keys = scenarios.draw_keys(0, np.arange(4))
+    together = co.RequirementProblem(spec, base, reqs, scenario=union).evaluate(base, keys)
+    for member, scenario_id in enumerate((2, 3)):
+        alone = co.RequirementProblem(
+            spec, base, reqs, scenario=scenarios.get_scenario(scenario_id)
+        ).evaluate(base, keys)
+        for name in ("max_tilt", "position_rmse", "torque_effort"):
+            np.testing.assert_allclose(
+                together["metrics"][name][member::2],
+                alone["metrics"][name][member::2],
+                rtol=1e-4, atol=1e-6, err_msg=name,
+            )  # fmt: skip
+    # The members differ (scenario 3's reference and disturbances are other ones).
+    assert not np.allclose(together["metrics"]["position_rmse"], alone["metrics"]["position_rmse"])
