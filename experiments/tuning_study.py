@@ -537,6 +537,12 @@ def report(args, settings: dict, start_all: float) -> int:
         ]
     cases = itertools.product(args.shares, args.starts, args.seeds, args.methods)
     records = [r for r in (_stored_run(args, *case) for case in cases) if r is not None]
+    if not records:
+        raise SystemExit(
+            f"{out / 'runs'} holds no run made with these settings (runs are kept under the "
+            "settings they depend on); run without --report-only, or give the settings "
+            "the runs were made with"
+        )
     benches = [
         _common.stored(out, f"bench_{share}", run_fingerprint(args, share, "paper", 0, "cma-es")
                        | {"bench": args.bench})

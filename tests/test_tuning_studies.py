@@ -101,6 +101,14 @@ def test_cached_runs(tmp_path):
     assert not list(tmp_path.glob(".*tmp"))
 
 
+def test_tuning_study_report_without_runs_says_so(tmp_path):
+    from experiments import tuning_study
+
+    with pytest.raises(SystemExit, match="no run made with these settings"):
+        tuning_study.main(["--tiny", "--quiet", "--report-only", "--out", str(tmp_path)])
+    assert not (tmp_path / "results.json").exists()
+
+
 def test_cone_residual_constructed():
     """The KKT residual of experiments.remark3_inverted on vectors with a known answer."""
     from experiments.remark3_inverted import best_subsets, cone_residual
