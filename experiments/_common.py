@@ -110,6 +110,14 @@ def table_head(columns: str) -> list[str]:
     return [f"| {columns} |", "|" + "---|" * (columns.count("|") + 1)]
 
 
+def settings(args, leave_out=()) -> dict:
+    """The arguments, JSON-ready (tuples as lists, paths as text), but ``leave_out``."""
+    plain = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()}
+    return {
+        k: (str(v) if isinstance(v, Path) else v) for k, v in plain.items() if k not in leave_out
+    }
+
+
 def digest(document) -> str:
     """10 hex digits naming a JSON-ready ``document`` (keys sorted)."""
     text = json.dumps(document, sort_keys=True, default=str)

@@ -140,8 +140,8 @@ class _Quantities:
         import jax
         import jax.numpy as jnp
 
-        from fojax import plant, scenarios, simulator
         from fojax import requirements as rq
+        from fojax import scenarios
         from fojax.controllers.afonftsmc import paper_gains
         from fojax.optimize import constrained as co
         from fojax.optimize import params as params_lib
@@ -154,26 +154,20 @@ class _Quantities:
         self.spec = ProblemSpec(
             "afonftsmc", args.scenario, args.horizon, draws=1, seed=args.seed, dtype="float64"
         )
-        nominal = dataclasses.replace(scenarios.get_scenario(args.scenario), drag_variation=0.0)
-        self.scenario = nominal
+        self.scenario = dataclasses.replace(scenarios.get_scenario(args.scenario), drag_variation=0)
         self.paper = paper_gains(jnp.float64)
         self.naive = params_lib.naive_gains("afonftsmc", jnp.float64)
         problem = self.problem(self.base_requirements, "effort")
         self.param_map, base = problem.param_map, problem.base_gains
         _, self.unravel = self.param_map.ravel(self.param_map.to_params(self.paper, jnp.float64))
         self.names = COST_TERMS + tuple(rq.METRICS)
-        controller, config, observer = problem.base.controller, problem.sim_config, problem.observer
-        model = plant.nominal_params(jnp.float64)
         keys = problem.tuning_keys()
-        scenario, metrics = self.scenario, tuple(rq.METRICS)
 
-        def values(vector):
+        def values(vector):  # the tuning law's (tanh) run
             gains = self.param_map.to_gains(self.unravel(vector), base)
-            draws = scenarios.sample_draws(scenario, keys, config.dt, jnp.float64)
-            result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
-            measured = result.outputs["requirements"]
-            row = [result.outputs["cost"][:, 0]] + [measured[m][:1] for m in metrics]
-            return jnp.concatenate(row), result.status[0]
+            terms, measured, status = problem.outputs(problem.base.controller, gains, keys)
+            row = [terms[:, 0]] + [measured[m][:1] for m in rq.METRICS]
+            return jnp.concatenate(row), status[0]
 
         self.values = jax.jit(values)
         self.jacobian = jax.jit(jax.jacrev(values, has_aux=True))
@@ -314,7 +308,7 @@ def tune_requirements(study: _Quantities, reqs, start: str, args) -> dict:
             "wall_time_s": round(time.perf_counter() - began, 1),
         }
 
-    settings = dict(vars(args), out=None, update_doc=None, quiet=None, requirements=None)
+    settings = _common.settings(args, ("out", "update_doc", "quiet", "requirements"))
     fingerprint = {"settings": settings, "requirements": reqs.to_dict(), "start": start}
     record = _common.cached(args.out / "tuned", start, fingerprint, run)
     return {"record": record, "gains": gains_io.gains_from_dict("afonftsmc", record["gains"])}

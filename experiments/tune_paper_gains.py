@@ -170,8 +170,9 @@ class _Study:
         problem.value(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
         return time.perf_counter() - t0
 
-    def gradient(self) -> dict:
-        """The gradient tuner from the naive start: its record (:func:`_record`)."""
+    def gradient(self, start_cost: float) -> dict:
+        """The gradient tuner from the naive start (validation cost ``start_cost``): its
+        record (:func:`_record`)."""
         from fojax.optimize import tuner as tuner_lib
 
         curve = []
@@ -184,7 +185,7 @@ class _Study:
             if row["best_step"] == step:
                 value = self.validate(self.problem.gains(params))
             else:
-                value = curve[-1][3] if curve else self.validate(self.naive)
+                value = curve[-1][3] if curve else start_cost
             curve.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
 
         quiet, spec, config = self.args.quiet, self.spec, self.config
@@ -269,15 +270,13 @@ def _record(gains, curve: list, summary: dict) -> dict:
             "summary": summary}  # fmt: skip
 
 
-def run_tuners(args, study: _Study) -> dict:
+def run_tuners(args, study: _Study, start_cost: float) -> dict:
     """Each tuner's record, kept under its fingerprint in ``--out/runs`` (a study started
     again reuses the tuners that finished): the gradient tuner, then CMA-ES and
     Nelder-Mead with ``--df-budget-factor`` times its draw-steps."""
-    skip = ("out", "update_doc", "quiet")
-    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
-    settings = {k: v for k, v in settings.items() if k not in skip}
+    settings = _common.settings(args, leave_out=("out", "update_doc", "quiet"))
     folder = args.out / "runs"
-    gradient = _common.cached(folder, "gradient", settings, study.gradient)
+    gradient = _common.cached(folder, "gradient", settings, lambda: study.gradient(start_cost))
     budget = int(args.df_budget_factor * gradient["summary"]["draw_steps"])
     es = _common.cached(
         folder, "cma-es", settings | {"budget": budget}, lambda: study.cma_es(budget)
@@ -390,7 +389,7 @@ def main(argv=None) -> int:
         args.quiet,
         f"validation cost: paper {references['paper']:.4g}, naive {references['naive']:.4g}",
     )
-    records = run_tuners(args, study)
+    records = run_tuners(args, study, references["naive"])
     study.curves += [(method, 0, 0.0, references["naive"]) for method in METHODS]
     study.curves += [tuple(c) for r in records.values() for c in r["curve"]]
     dtype = study.spec.jnp_dtype

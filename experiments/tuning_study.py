@@ -457,16 +457,10 @@ def _run_derivative_free(setup: _Setup, problem, method: str, seed: int, x0, cur
     return totals, result.gains
 
 
-def _settings(args) -> dict:
-    """The arguments, JSON-ready (tuples as lists, paths as text)."""
-    plain = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items()}
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in plain.items()}
-
-
-COMMON = ("scenario", "horizon", "dtype", "tiny", "heldout_draws", "validation_draws")
+COMMON = ("scenario", "horizon", "dtype", "compile", "tiny", "heldout_draws", "validation_draws")
 BY_METHOD = {
     "gradient": ("gradient_method", "gradient_steps", "gradient_draws", "learning_rate",
-                 "max_step", "validate_every", "compile"),
+                 "max_step", "validate_every"),
     "cma-es": ("cma_generations", "cma_sigma", "df_draws"),
     "nelder-mead": ("cma_generations", "df_draws"),
 }  # fmt: skip
@@ -476,6 +470,11 @@ BY_METHOD = {
 def run_fingerprint(args, share: str, start: str, seed: int, method: str) -> dict:
     names = COMMON + BY_METHOD[method]
     return {k: getattr(args, k) for k in names} | dict(share=share, start=start, seed=seed)
+
+
+def _bench_fingerprint(args, share: str) -> dict:
+    """What the batched-generation bench depends on (not how many generations it times)."""
+    return {k: getattr(args, k) for k in COMMON + BY_METHOD["cma-es"]} | {"share": share}
 
 
 def _stored_run(args, share, start, seed, method) -> dict | None:
@@ -488,7 +487,7 @@ def run_share(args, share: str, settings: dict) -> None:
     kept under its fingerprint: :func:`experiments._common.cached`)."""
     cases = itertools.product(args.starts, args.seeds, args.methods)
     pending = [case for case in cases if _stored_run(args, share, *case) is None]
-    bench_fingerprint = run_fingerprint(args, share, "paper", 0, "cma-es") | {"bench": args.bench}
+    bench_fingerprint = _bench_fingerprint(args, share)
     bench_done = _common.stored(args.out, f"bench_{share}", bench_fingerprint) is not None
     if not pending and (not args.bench or bench_done):
         return
@@ -543,11 +542,7 @@ def report(args, settings: dict, start_all: float) -> int:
             "settings they depend on); run without --report-only, or give the settings "
             "the runs were made with"
         )
-    benches = [
-        _common.stored(out, f"bench_{share}", run_fingerprint(args, share, "paper", 0, "cma-es")
-                       | {"bench": args.bench})
-        for share in args.shares
-    ]  # fmt: skip
+    benches = [_common.stored(out, f"bench_{s}", _bench_fingerprint(args, s)) for s in args.shares]
     results = {
         "user_view": users,
         "bench": [bench for bench in benches if bench is not None],
@@ -578,7 +573,7 @@ def main(argv=None) -> int:
     _common.enable_float64(args.dtype == "float64")
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
     start_all = time.perf_counter()
-    settings = _settings(args)
+    settings = _common.settings(args)
     if not args.report_only:
         for share in args.shares:
             run_share(args, share, settings)

@@ -470,29 +470,29 @@ class RequirementProblem:
 
         self._batch_value = batch_value
 
-    def _simulate_fn(self, controller):
-        scenario, config, observer, dtype = (
-            self.scenario,
-            self.sim_config,
-            self.observer,
-            self.dtype,
-        )
+    def outputs(self, controller, gains, keys):
+        """``(terms (4, n): P, A, E, C; metrics: name -> (n,); status (n,))`` of
+        ``controller`` with ``gains`` on the draws ``keys`` (a union's draw ``i`` of
+        member ``i % members``), on the problem's actuators."""
+        scenario, config, dtype = self.scenario, self.sim_config, self.dtype
+        member = jnp.arange(keys.shape[0]) % len(scenario.members) if scenario.members else 0
+        draws = scenarios.sample_draws(scenario, keys, config.dt, dtype, member)
         model = plant.nominal_params(dtype)
-        weights = jnp.asarray(self.spec.cost.weights, dtype)
-        objective, count = self.objective, len(scenario.members)
+        result = simulator.rollout(controller, gains, model, scenario, draws, config, self.observer)
+        return result.outputs["cost"], result.outputs["requirements"], result.status
+
+    def _simulate_fn(self, controller):
+        weights = jnp.asarray(self.spec.cost.weights, self.dtype)
 
         def simulate(gains, keys):
-            member = jnp.arange(keys.shape[0]) % count if count else 0  # draw i: i % count
-            draws = scenarios.sample_draws(scenario, keys, config.dt, dtype, member)
-            result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
-            terms = result.outputs["cost"]  # (4, n): P, A, E, C
-            if objective == "effort":
+            terms, metrics, status = self.outputs(controller, gains, keys)
+            if self.objective == "effort":
                 value = terms[2]
-            elif objective == "tracking":
+            elif self.objective == "tracking":
                 value = terms[0] + terms[1]
             else:
                 value = jnp.sum(weights[:, None] * terms, 0)
-            return value, result.outputs["requirements"], result.status
+            return value, metrics, status
 
         return simulate
 
