@@ -57,7 +57,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from fojax._arrays import unstack
+from fojax._arrays import reverse_pass_boundary, unstack
 
 Array = jax.Array
 
@@ -474,7 +474,9 @@ def rk4_step_parts(
     The closed-loop simulator carries the state and the trig of its attitude entry by
     entry (see :func:`_derivative_parts`), the trig computed once per step; the stages'
     trig follows from it by :func:`_rotate` (the attitude moves by at most ``dt`` times
-    the rates in a stage), so a step evaluates no sine or cosine itself.
+    the rates in a stage), so a step evaluates no sine or cosine itself. Each stage's
+    state, trig and derivative is a boundary of the reverse pass
+    (:func:`fojax._arrays.reverse_pass_boundary`).
     """
     dtype = state[0].dtype
     omega_r = _rotor_speed_sum_parts(params, *inputs)  # the inputs are held over the step
@@ -487,10 +489,11 @@ def rk4_step_parts(
 
     def stage(h, k):
         """The derivative at the state ``x + h k``."""
-        x = tuple(xi + h * ki for xi, ki in zip(state, k, strict=True))
-        return f(x, _rotate(trig, tuple(h * ki for ki in k[3:6])))
+        x = reverse_pass_boundary(tuple(xi + h * ki for xi, ki in zip(state, k, strict=True)))
+        x_trig = reverse_pass_boundary(_rotate(trig, tuple(h * ki for ki in k[3:6])))
+        return reverse_pass_boundary(f(x, x_trig))
 
-    k1 = f(state, trig)
+    k1 = reverse_pass_boundary(f(state, trig))
     k2 = stage(0.5 * dt, k1)
     k3 = stage(0.5 * dt, k2)
     k4 = stage(dt, k3)

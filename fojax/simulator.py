@@ -43,7 +43,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from fojax import observers, plant, scenarios
-from fojax._arrays import unstack
+from fojax._arrays import KEPT, unstack
 from fojax.controllers.base import ControlInfo, Observation
 from fojax.controllers.cascade import as_controller, broadcast_batch
 
@@ -432,13 +432,16 @@ _EXPENSIVE = frozenset(
 """Primitives whose outputs the reverse pass keeps (:func:`_save_expensive`)."""
 
 
-def _save_expensive(primitive, *_, **__) -> bool:
+def _save_expensive(primitive, *_, **params) -> bool:
     """The checkpoint policy of one step under ``grad``: keep the outputs of the
     operations XLA's CPU backend treats as expensive (transcendentals, divisions,
-    products, the fractional memory's step), recompute everything else in the reverse
-    pass, where XLA fuses the recomputation into the kernels that need it. Keeping every
-    intermediate instead costs one memory write per value and step (measured slower,
-    docs/performance.md)."""
+    products, the fractional memory's step) and the values marked by
+    :func:`fojax._arrays.reverse_pass_boundary` (the RK4 stages), recompute everything
+    else in the reverse pass, where XLA fuses the recomputation into the kernels that
+    need it. Keeping every intermediate instead costs one memory write per value and
+    step (measured slower, docs/performance.md)."""
+    if primitive.name == "name":
+        return params.get("name") == KEPT
     return primitive.name in _EXPENSIVE
 
 

@@ -253,3 +253,39 @@ def test_rotor_limited_inputs():
     # The upper limit: every rotor at w_max gives 4 rho_b w_max^2 of thrust.
     top = plant.saturate_inputs(params, (1e3, 0.0, 0.0, 0.0), 20.0)
     assert float(top[0]) == pytest.approx(4 * 3e-3 * 400.0, rel=1e-12)
+
+
+def test_rk4_stages_are_reverse_pass_boundaries(capsys):
+    """Every RK4 stage's state, trig and derivative is kept by the simulator's
+    checkpoint policy, and the boundary changes no value or derivative (reverse and
+    forward mode, against central finite differences)."""
+    from fojax import simulator
+    from fojax._arrays import KEPT, reverse_pass_boundary
+
+    values = (jnp.arange(3.0), {"b": jnp.ones((2, 2))})
+    assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.all(a == b)), values,
+                                     reverse_pass_boundary(values)))  # fmt: skip
+
+    p = plant.nominal_params()
+    state = plant.make_state((0.1, -0.2, 1.0), (0.1, -0.05, 0.3), (0.5, 0.2, -0.3), (1.0, 0.8, 0.6))
+    inputs = jnp.array([M * G * 1.1, 0.01, 0.008, 0.005])
+    dist = jnp.array([0.1, -0.1, 0.05, 0.3, 0.2, 0.1])
+
+    def step(x):
+        return plant.rk4_step(p, x, inputs, dist, 0.01)
+
+    checkpointed = jax.checkpoint(step, policy=simulator._save_expensive)
+    reverse = jax.jacrev(checkpointed)(state)
+    forward = jax.jacfwd(step)(state)
+    np.testing.assert_allclose(reverse, forward, rtol=1e-12, atol=1e-14)
+    eye = np.eye(12)
+    central = np.stack(
+        [(step(state + 1e-6 * e) - step(state - 1e-6 * e)) / 2e-6 for e in eye], axis=1
+    )
+    np.testing.assert_allclose(reverse, central, rtol=1e-7, atol=1e-9)
+
+    jax.ad_checkpoint.print_saved_residuals(lambda x: jnp.sum(checkpointed(x)), state)
+    kept = capsys.readouterr().out.count(f"named '{KEPT}'")
+    # Of the 4 derivatives, 3 stage states and 3 stage trigs, the entries the reverse
+    # pass reads (at least one stage's worth) and each only once.
+    assert 12 <= kept <= 4 * 12 + 3 * 12 + 3 * 6, kept
