@@ -58,6 +58,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -280,13 +281,15 @@ def user_command(args, mode: str, out: Path) -> list[str]:
 
 
 def _user_fingerprint(args, mode: str, index: int) -> dict:
-    """What one user-view run depends on: its command (``DIR`` for the output folder)."""
-    return {"command": user_command(args, mode, Path("DIR")), "run": index}
+    """What one user-view run depends on: its command (``DIR`` for the output folder)
+    and the empty compilation cache it starts from."""
+    return {"command": user_command(args, mode, Path("DIR")), "run": index, "cache": "empty"}
 
 
 def user_view(args, out: Path) -> list[dict]:
     """Run the user's ``fojax tune`` ``args.user_view`` times per compile mode, each in
-    a fresh process (no persistent compilation cache), interleaving the modes; time
+    a fresh process with an empty compilation cache (its own ``XDG_CACHE_HOME``, the
+    folder of ``fojax``'s persistent and export caches), interleaving the modes; time
     the whole command and read its outputs (each run kept under its fingerprint)."""
     records = []
     for index in range(args.user_view):
@@ -305,16 +308,21 @@ def _user_run(args, folder: Path, mode: str, index: int) -> dict:
     if run_dir.exists():
         shutil.rmtree(run_dir)
     command = user_command(args, mode, run_dir)
+    cache = tempfile.mkdtemp(prefix="fojax-user-view-cache-")
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = cache
     load = output.load_average()
     t0 = time.perf_counter()
-    subprocess.run(
-        [sys.executable, "-m", "fojax.cli", *command[1:], "--quiet"],
-        check=True,
-        env=env,
-        stdout=subprocess.DEVNULL,
-    )
-    total = time.perf_counter() - t0
+    try:
+        subprocess.run(
+            [sys.executable, "-m", "fojax.cli", *command[1:], "--quiet"],
+            check=True,
+            env=env,
+            stdout=subprocess.DEVNULL,
+        )
+    finally:
+        total = time.perf_counter() - t0
+        shutil.rmtree(cache, ignore_errors=True)
     evaluation = json.loads((run_dir / "evaluation.json").read_text())
     gains = json.loads((run_dir / "gains.json").read_text())["metadata"]
     with open(run_dir / "history.csv", newline="") as handle:
