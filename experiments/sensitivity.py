@@ -36,9 +36,11 @@ loaded 2-core machine, running 32 draws x 30 s takes a few seconds), so:
   gain tuning of ``experiments/fair_comparison.py`` (``--tune-*``, or ``--tuned-gains``
   to take the gains of an earlier fair-comparison run).
 
-Every run (one controller, one scenario, one set of gains, one program) is saved to
-``OUT/runs/<key>.npz`` as soon as it finishes, keyed by everything its numbers depend
-on: an interrupted study started again with the same command continues there.
+Every run (one controller, one scenario, one set of gains, one program) is a
+:func:`fojax.study.run` of the program's union member, stored as soon as it finishes
+in ``OUT/runs/<key>/`` (a :class:`fojax.study.ChunkStore`), keyed by everything its
+numbers depend on: an interrupted study started again with the same command continues
+there.
 
 Outputs: ``OUT/report.json`` (every setting's claims with their comparisons' outcomes,
 the float32/float64 table), ``--doc`` (default ``docs/sensitivity.md``: the verdict
@@ -96,58 +98,46 @@ __all__ = [
 ]
 
 
-def _run_path(out: Path, key: str) -> Path:
-    return out / "runs" / f"{key}.npz"
+def _run_store(out: Path, run: Run, tuned: dict | None, seed: int) -> Path:
+    return out / "runs" / run_key(run, tuned, seed)
+
+
+def _finished(out: Path, run: Run, tuned: dict | None, seed: int) -> bool:
+    from fojax import study
+
+    store = study.ChunkStore.existing(_run_store(out, run, tuned, seed))
+    return store is not None and store.read(run.job.draws) is not None
 
 
 def compile_job(job: Job):
-    """The job's program: ``(gains, keys (n, 2), members (n,)) -> (status, metrics)``,
-    compiled for ``job.draws`` draws."""
-    import jax
+    """The job's program (:func:`fojax.study.compile_chunk_runner` for the union of its
+    scenarios, ``job.draws`` draws a call) and its compile time (s)."""
     import jax.numpy as jnp
 
-    from fojax import metrics, plant, scenarios, simulator
+    from fojax import study
 
     dtype = jnp.dtype(job.dtype)
-    union = job.union()
-    config = job.config
-    model = plant.nominal_params(dtype)
-    observer = metrics.Metrics(metrics_config(config))
-    controller = job.controller
-
-    def one(gains, key, member):
-        draw = scenarios.sample_draw(union, key, config.dt, dtype, member=member)
-        result = simulator.rollout(controller, gains, model, union, draw, config, observer)
-        return result.status, result.outputs
-
-    function = jax.jit(jax.vmap(one, in_axes=(None, 0, 0)))
-    gains = controller.default_gains(dtype)
-    keys = scenarios.draw_keys(0, np.arange(job.draws))
-    members = jnp.zeros((job.draws,), jnp.int32)
     start = time.perf_counter()
-    compiled = function.lower(gains, keys, members).compile()
+    compiled = study.compile_chunk_runner(
+        job.controller, job.controller.default_gains(dtype), job.union(), job.config,
+        job.draws, metrics_config(job.config), dtype,
+    )  # fmt: skip
     return compiled, time.perf_counter() - start
 
 
-def execute(compiled, run: Run, gains, seed: int, path: Path) -> float:
-    """Run the batch and save ``status`` and every metric to ``path``; the seconds."""
-    import jax.numpy as jnp
-
-    from fojax import scenarios
+def execute(compiled, run: Run, gains, seed: int, store: Path) -> float:
+    """Draws ``0 ... job.draws - 1`` of the run (:func:`fojax.study.run` of its union
+    member, one call of the compiled program), stored in ``store``; the seconds."""
+    from fojax import study
 
     job = run.job
-    keys = scenarios.draw_keys(seed, np.arange(job.draws))
-    members = jnp.full((job.draws,), run.member, jnp.int32)
-    start = time.perf_counter()
-    status, values = compiled(gains, keys, members)
-    arrays = {"status": np.asarray(status)}
-    arrays.update({f"m.{k}": np.asarray(v) for k, v in values.items()})
-    seconds = time.perf_counter() - start
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
-    return seconds
+    result = study.run(
+        job.controller, gains, job.union(), job.config, job.draws, seed,
+        device_batch=job.draws, keep=0, progress=False, dtype=job.dtype,
+        metrics_config=metrics_config(job.config), store=store, runner=compiled,
+        member=run.member,
+    )  # fmt: skip
+    return result.wall_time
 
 
 def _describe(run: Run) -> str:
@@ -171,8 +161,7 @@ def run_lane(plan: Plan, job_indices: list, out: Path, tuned_path: Path, progres
         return [
             run
             for run in job.runs
-            if (run.gains == "tuned" and tuned is None)
-            or not _run_path(out, run_key(run, tuned, plan.seed)).exists()
+            if (run.gains == "tuned" and tuned is None) or not _finished(out, run, tuned, plan.seed)
         ]
 
     work = [(job, pending(job, tuned)) for job in jobs]
@@ -198,13 +187,13 @@ def run_lane(plan: Plan, job_indices: list, out: Path, tuned_path: Path, progres
         log("waiting for the tuned gains ...")
         tuned = _wait_for_tuned(tuned_path)
         for compiled, run in deferred:
-            if not _run_path(out, run_key(run, tuned, plan.seed)).exists():
+            if not _finished(out, run, tuned, plan.seed):
                 _run_and_log(compiled, run, tuned, plan, out, log)
 
 
 def _run_and_log(compiled, run, tuned, plan, out, log) -> None:
-    path = _run_path(out, run_key(run, tuned, plan.seed))
-    seconds = execute(compiled, run, gains_for(run, tuned), plan.seed, path)
+    store = _run_store(out, run, tuned, plan.seed)
+    seconds = execute(compiled, run, gains_for(run, tuned), plan.seed, store)
     log(f"ran {_describe(run)}: {run.job.draws} draws in {seconds:.1f} s")
 
 
@@ -245,14 +234,11 @@ def load_results(plan: Plan, out: Path, tuned: dict | None) -> dict:
             continue
         key = run_key(run, tuned, plan.seed)
         if key not in loaded:
-            path = _run_path(out, key)
-            if not path.exists():
+            store = study.ChunkStore.existing(out / "runs" / key)
+            stored = store and store.read(run.job.draws)
+            if not stored:
                 continue
-            with np.load(path) as data:
-                loaded[key] = (
-                    data["status"],
-                    {k[2:]: data[k] for k in data.files if k.startswith("m.")},
-                )
+            loaded[key] = stored
         status, per_draw = loaded[key]
         results[cell] = study.MonteCarloResult(
             controller=run.job.controller.name,
@@ -431,7 +417,7 @@ def _record_invocation(out: Path, argv, wall, before, load_start, tuning_wall) -
         {
             "started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(time.time() - wall)),
             "wall_s": round(wall, 1),
-            "runs_computed": len(set((out / "runs").glob("*.npz")) - before),
+            "runs_computed": len(_finished_files(out) - before),
             "runs_on_disk_before": len(before),
             "tuning_s": None if tuning_wall is None else round(tuning_wall, 1),
             "load_average_start": [round(x, 2) for x in load_start],
@@ -441,6 +427,10 @@ def _record_invocation(out: Path, argv, wall, before, load_start, tuning_wall) -
     )
     output.write_json(history_path, history)
     return history
+
+
+def _finished_files(out: Path) -> set:
+    return set((out / "runs").glob("*/draws_*.npz"))
 
 
 def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, history) -> dict:
@@ -489,7 +479,7 @@ def main(argv=None) -> int:
 
     start = time.perf_counter()
     load_start = os.getloadavg()
-    before = set((out / "runs").glob("*.npz"))
+    before = _finished_files(out)
     log = _logger(not args.quiet)
     log(
         f"{len(plan.settings)} settings, {len(plan.jobs)} programs, {len(plan.runs)} runs; "

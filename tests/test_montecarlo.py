@@ -205,6 +205,15 @@ def test_a_longer_run_extends_the_stored_draws(tmp_path):
     assert calls == [] and shorter.layout["computed"] == 0
     _assert_same_draws(shorter, scratch, 7)
     assert shorter.trajectories.state.shape[0] == 1
+    # The store read as it is, under its own manifest (as a study reads its runs).
+    assert study.ChunkStore.existing(tmp_path / "none") is None
+    found = study.ChunkStore.existing(store)
+    assert found.key == study.ChunkStore(store, found.fingerprint, writable=False).key
+    assert found.read(41) is None
+    status, per_draw = found.read(40)
+    np.testing.assert_array_equal(status, scratch.status)
+    for name, values in scratch.per_draw.items():
+        np.testing.assert_array_equal(per_draw[name], values, err_msg=name)
 
 
 def test_store_plan_reads_what_is_there_and_computes_the_rest():

@@ -154,11 +154,8 @@ def test_union_runner_equals_study_run_float64():
     from pathlib import Path
 
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "run.npz"
-        sensitivity.execute(compiled, run, gains, 0, path)
-        with np.load(path) as data:
-            mine = {k[2:]: data[k] for k in data.files if k.startswith("m.")}
-            status = data["status"]
+        sensitivity.execute(compiled, run, gains, 0, Path(tmp))
+        status, mine = study.ChunkStore.existing(tmp).read(3)
     alone = study.run(
         controller,
         gains,
@@ -333,13 +330,13 @@ def test_tiny_study_end_to_end_and_resumed(tmp_path):
     # The tuned gains are the defaults here: the same numbers, the same verdicts.
     assert verdicts["tuned"] == verdicts["default"]
     assert report["precision"] and (doc.parent / "sensitivity.png").stat().st_size > 0
-    files = sorted(p.name for p in (out / "runs").glob("*.npz"))
+    files = sorted((out / "runs").glob("*/draws_*.npz"))
     # default 6 (afonftsmc and FL, 3 scenarios), sat 3 (the FL's are the default's),
     # float64 6; the tuned runs equal the default's gains, hence the default's keys.
     assert len(files) == 15
-    stamps = {p.name: p.stat().st_mtime_ns for p in (out / "runs").glob("*.npz")}
+    stamps = {p: p.stat().st_mtime_ns for p in files}
     assert sensitivity.main(argv) == 0  # resumed: nothing is run again
-    assert {p.name: p.stat().st_mtime_ns for p in (out / "runs").glob("*.npz")} == stamps
+    assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/draws_*.npz")} == stamps
     assert "sat switching" in doc.read_text()
 
 

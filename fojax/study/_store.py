@@ -159,6 +159,26 @@ class ChunkStore:
             tmp.write_text(json.dumps(document, indent=1) + "\n")
             os.replace(tmp, manifest)
 
+    @classmethod
+    def existing(cls, directory: str | os.PathLike) -> ChunkStore | None:
+        """The store in ``directory`` as it is, read only, under its manifest's own
+        fingerprint; None where there is no store yet."""
+        try:
+            stored = json.loads((Path(directory) / "manifest.json").read_text())
+        except (OSError, ValueError):
+            return None
+        return cls(directory, stored.get("fingerprint", {}), writable=False)
+
+    def read(self, draws: int) -> tuple[np.ndarray, dict[str, np.ndarray]] | None:
+        """``(status (draws,), per-draw metrics)`` of draws ``[0, draws)`` where the
+        store holds them all; None where any is missing."""
+        segments = plan(self.ranges(), draws, keep=0)
+        if any(kind != "load" for kind, *_ in segments):
+            return None
+        parts = [self.load(item, first, stop)[:2] for _, first, stop, item in segments]
+        status = np.concatenate([s for s, _ in parts])
+        return status, {k: np.concatenate([m[k] for _, m in parts]) for k in parts[0][1]}
+
     # ---------------------------------------------------------------------- reading
     def ranges(self) -> list[StoredRange]:
         """The finished ranges, sorted by their first draw."""
