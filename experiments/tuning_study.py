@@ -52,21 +52,15 @@ copies the figures beside it.
 from __future__ import annotations
 
 import argparse
-import functools
 import itertools
-import json
-import os
 import shutil
-import subprocess
 import sys
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
-from experiments import _common
-from experiments.tuning_study_report import METHODS, USER_MODES, plot, summarize, table
+from experiments import _common, tuning_study_user
+from experiments.tuning_study_report import METHODS, plot, summarize, table
 from fojax.cli import arguments, output
 
 __all__ = ["main", "summarize", "table"]
@@ -284,94 +278,6 @@ def bench_batched(setup: _Setup, repeats: int) -> dict:
     }
 
 
-def user_command(args, mode: str, out: Path) -> list[str]:
-    """The ``fojax tune`` command of the user's view (scenario 2, the paper's gains,
-    the default cost and tuner)."""
-    command = [
-        "fojax", "tune", "--scenario", str(args.scenario), "--controller", "afonftsmc",
-        "--draws", str(args.gradient_draws), "--steps", str(args.user_steps),
-        "--validate-every", "2", "--init", "paper", "--compile", mode, "--out", str(out),
-    ]  # fmt: skip
-    if args.tiny:
-        command += ["--horizon", str(args.horizon), "--dtype", "float64"]
-    return command
-
-
-def _user_fingerprint(args, mode: str, index: int) -> dict:
-    """What one user-view run depends on: its command (``DIR`` for the output folder)
-    and the empty compilation cache it starts from."""
-    return {"command": user_command(args, mode, Path("DIR")), "run": index, "cache": "empty"}
-
-
-def user_view(args, out: Path) -> list[dict]:
-    """Run the user's ``fojax tune`` ``args.user_view`` times per compile mode, each in
-    a fresh process with an empty compilation cache (its own ``XDG_CACHE_HOME``, the
-    folder of ``fojax``'s persistent and export caches), interleaving the modes; time
-    the whole command and read its outputs (each run kept under its fingerprint)."""
-    records = []
-    for index in range(args.user_view):
-        for mode in USER_MODES:
-            fingerprint = _user_fingerprint(args, mode, index)
-            run = functools.partial(_user_run, args, out / "user_view", mode, index)
-            records.append(_common.cached(out / "user_view", f"{mode}_{index}", fingerprint, run))
-    return records
-
-
-def _user_run(args, folder: Path, mode: str, index: int) -> dict:
-    """One user-view run: the command in a fresh process, timed, and what it wrote."""
-    import csv
-
-    run_dir = folder / f"{mode}_{index}"
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
-    command = user_command(args, mode, run_dir)
-    cache = tempfile.mkdtemp(prefix="fojax-user-view-cache-")
-    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-    env["XDG_CACHE_HOME"] = cache
-    load = output.load_average()
-    t0 = time.perf_counter()
-    try:
-        subprocess.run(
-            [sys.executable, "-m", "fojax.cli", *command[1:], "--quiet"],
-            check=True,
-            env=env,
-            stdout=subprocess.DEVNULL,
-        )
-    finally:
-        total = time.perf_counter() - t0
-        shutil.rmtree(cache, ignore_errors=True)
-    evaluation = json.loads((run_dir / "evaluation.json").read_text())
-    gains = json.loads((run_dir / "gains.json").read_text())["metadata"]
-    with open(run_dir / "history.csv", newline="") as handle:
-        history = list(csv.DictReader(handle))
-    initial = evaluation["initial"]["mean_cost"]
-    half = 0.5 * gains["validation"]["initial"]
-    validated = [row for row in history if row["validation_cost"]]
-    halved = [row for row in validated if float(row["validation_cost"]) <= half]
-    first_half = float(halved[0]["wall_time_s"]) if halved else None
-    record = {
-        "mode": mode,
-        "run": index,
-        "command": " ".join(command),
-        "total_s": round(total, 1),
-        "tuning_s": float(history[-1]["wall_time_s"]),
-        "validation_halved_at_s": first_half,
-        "heldout_initial": initial,
-        "heldout_tuned": evaluation["tuned"]["mean_cost"],
-        "heldout_draws": evaluation["draws"],
-        "selected_step": gains["selected_step"],
-        "validation": gains["validation"],
-        "load_before": load,
-        "load_after": output.load_average(),
-    }
-    output.log(
-        args.quiet,
-        f"  user view ({mode}, run {index}): {total:.0f} s in all, held-out "
-        f"{initial:.4g} -> {record['heldout_tuned']:.4g}",
-    )
-    return record
-
-
 def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     """One tuning run; returns its curve (draw-steps, wall time without compilation,
     held-out cost of the current answer) and totals."""
@@ -559,14 +465,7 @@ def report(args, settings: dict, start_all: float) -> int:
     """``results.json``, ``table.md`` and the figures from the stored runs of the
     selected shares, starts, seeds and methods; the document's block with ``--update-doc``."""
     out = args.out
-    users = user_view(args, out) if args.user_view and not args.report_only else []
-    if not users:  # the stored runs of these settings
-        kept = [json.loads(p.read_text()) for p in sorted((out / "user_view").glob("*.json"))]
-        users = [
-            {k: v for k, v in r.items() if k != "fingerprint"}
-            for r in kept
-            if r.get("fingerprint") == _user_fingerprint(args, r["mode"], r["run"])
-        ]
+    users = tuning_study_user.records(args, out, run=not args.report_only)
     cases = itertools.product(args.shares, args.starts, args.seeds, args.methods)
     records = [r for r in (_stored_run(args, *case) for case in cases) if r is not None]
     if not records:
