@@ -210,6 +210,8 @@ def test_a_longer_run_extends_the_stored_draws(tmp_path):
     found = study.ChunkStore.existing(store)
     assert found.key == study.ChunkStore(store, found.fingerprint, writable=False).key
     assert found.read(41) is None
+    with pytest.raises(ValueError, match="draws must be an integer >= 1"):
+        found.read(0)
     status, per_draw = found.read(40)
     np.testing.assert_array_equal(status, scratch.status)
     for name, values in scratch.per_draw.items():

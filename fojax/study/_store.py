@@ -172,6 +172,8 @@ class ChunkStore:
     def read(self, draws: int) -> tuple[np.ndarray, dict[str, np.ndarray]] | None:
         """``(status (draws,), per-draw metrics)`` of draws ``[0, draws)`` where the
         store holds them all; None where any is missing."""
+        if not isinstance(draws, int) or draws < 1:
+            raise ValueError(f"draws must be an integer >= 1, got {draws!r}")
         segments = plan(self.ranges(), draws, keep=0)
         if any(kind != "load" for kind, *_ in segments):
             return None
