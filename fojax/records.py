@@ -1,0 +1,240 @@
+"""Run records: how every result, checkpoint and cache of fojax is written and keyed.
+
+* :func:`atomic_write`: a file written whole or not at all (a temporary file beside it,
+  flushed, then ``os.replace``): a run stopped while writing leaves the old file or the
+  new one, never half of one. :func:`write_json`, :func:`write_npz`, :func:`write_csv`,
+  :func:`write_arrays` are it for JSON, compressed NumPy archives, CSV rows, and arrays
+  with a JSON header.
+* :func:`digest`: hex digits of SHA-256 naming a JSON-ready document or bytes;
+  :func:`source_digest`: the same over a package's ``*.py`` files (caches that must not
+  outlive the code that filled them).
+* A *fingerprint* is a JSON-ready dict of every setting a result depends on, and nothing
+  else. :func:`differences` lists the fields in which two differ (dotted paths),
+  :func:`describe` says them one per line, :func:`check` raises a ``ValueError`` that
+  names them.
+* :func:`cached`: a record computed once and kept under its fingerprint
+  (``folder/<stem>-<digest>.json``); :func:`stored` reads it back.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "ABSENT",
+    "atomic_write",
+    "cached",
+    "canonical",
+    "check",
+    "describe",
+    "differences",
+    "digest",
+    "read_arrays",
+    "source_digest",
+    "stored",
+    "write_arrays",
+    "write_csv",
+    "write_json",
+    "write_npz",
+]
+
+ABSENT = "<absent>"
+"""What :func:`differences` reports for a field that one side does not have."""
+
+
+# ------------------------------------------------------------------------- writing
+
+
+def atomic_write(path: str | os.PathLike, data: bytes | str) -> Path:
+    """``path`` holding ``data`` (text is UTF-8), written atomically; parents created."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as handle:
+        handle.write(data.encode() if isinstance(data, str) else data)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(tmp, path)
+    return path
+
+
+def write_json(path: str | os.PathLike, document: Any, default=str, indent: int = 1) -> Path:
+    """``path`` holding ``document`` (indented JSON and a newline), atomically;
+    ``default``: what stands for a value JSON has no type for (``str(value)``)."""
+    return atomic_write(path, json.dumps(document, indent=indent, default=default) + "\n")
+
+
+def write_npz(path: str | os.PathLike, arrays: dict) -> Path:
+    """``path`` holding ``arrays`` (a compressed ``.npz``), atomically."""
+    import numpy as np
+
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    return atomic_write(path, buffer.getvalue())
+
+
+def write_csv(path: str | os.PathLike, rows: list[dict], columns=None) -> Path:
+    """``path`` holding ``rows`` under a header (``columns``, default the first row's
+    keys; a float as its ``repr``, ``None`` as an empty cell), atomically."""
+    import csv
+
+    buffer = io.StringIO()
+    columns = list(columns if columns is not None else (rows[0] if rows else []))
+    writer = csv.DictWriter(buffer, fieldnames=columns, lineterminator="\n")
+    if columns:
+        writer.writeheader()
+    for row in rows:
+        writer.writerow(
+            {k: "" if v is None else repr(v) if isinstance(v, float) else v for k, v in row.items()}
+        )
+    return atomic_write(path, buffer.getvalue())
+
+
+def write_arrays(path: str | os.PathLike, arrays: list, header: dict) -> Path:
+    """``path`` (``.npz``) holding the arrays ``arrays`` in order and the JSON-ready
+    ``header``, atomically (:func:`read_arrays` reads them back, exactly)."""
+    import numpy as np
+
+    named = {f"a{i:05d}": np.asarray(a) for i, a in enumerate(arrays)}
+    buffer = io.BytesIO()
+    np.savez(buffer, header=np.asarray(json.dumps(header)), **named)
+    return atomic_write(path, buffer.getvalue())
+
+
+def read_arrays(path: str | os.PathLike) -> tuple[list, dict]:
+    """``(arrays, header)`` of a file of :func:`write_arrays`; ``ValueError`` when
+    ``path`` is not one."""
+    import numpy as np
+
+    try:
+        with np.load(path) as data:
+            header = json.loads(str(data["header"]))
+            arrays = [data[k] for k in sorted(k for k in data.files if k != "header")]
+    except (OSError, KeyError, ValueError) as error:
+        raise ValueError(f"{path} cannot be read back ({error})") from None
+    return arrays, header
+
+
+# ------------------------------------------------------------------------- naming
+
+
+def canonical(document: Any) -> Any:
+    """``document`` JSON-normalised: tuples as lists, keys sorted, NumPy scalars and
+    other values as JSON has them (``str`` where it has no type)."""
+    return json.loads(json.dumps(document, sort_keys=True, default=str))
+
+
+def digest(document: Any, length: int = 16) -> str:
+    """``length`` hex digits of SHA-256 of ``document``: bytes as they are, anything
+    else as its canonical JSON (:func:`canonical`, keys sorted)."""
+    if not isinstance(document, bytes | bytearray):
+        document = json.dumps(canonical(document), sort_keys=True).encode()
+    return hashlib.sha256(document).hexdigest()[:length]
+
+
+def source_digest(*roots: str | os.PathLike) -> str:
+    """16 hex digits of SHA-256 over every ``*.py`` below each of ``roots`` (its name,
+    the relative paths and the contents, in sorted order)."""
+    hashed = hashlib.sha256()
+    for root in map(Path, roots):
+        hashed.update(root.name.encode())
+        for path in sorted(root.rglob("*.py")):
+            hashed.update(path.relative_to(root).as_posix().encode())
+            hashed.update(path.read_bytes())
+    return hashed.hexdigest()[:16]
+
+
+# -------------------------------------------------------------------- fingerprints
+
+
+def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(value, dict):
+        out: dict[str, Any] = {}
+        for key in value:
+            out.update(_flatten(value[key], f"{prefix}.{key}" if prefix else str(key)))
+        return out
+    return {prefix: value}
+
+
+def differences(stored: dict, current: dict) -> list[tuple[str, Any, Any]]:
+    """``[(field, stored value, current value)]`` for every leaf that differs (dotted
+    paths; :data:`ABSENT` where a field exists on one side only), sorted by field."""
+    old, new = _flatten(canonical(stored)), _flatten(canonical(current))
+    return [
+        (field, old.get(field, ABSENT), new.get(field, ABSENT))
+        for field in sorted(set(old) | set(new))
+        if old.get(field, ABSENT) != new.get(field, ABSENT)
+    ]
+
+
+def _short(value: Any, width: int = 60) -> str:
+    text = json.dumps(value, default=str)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def describe(
+    found: list[tuple[str, Any, Any]], hint=lambda field: "", earlier: str = "earlier"
+) -> list[str]:
+    """One line per difference: ``field (hint): earlier X, now Y`` (``earlier``: what
+    the stored side is called; ``hint(field)``: e.g. the option that sets it)."""
+    lines = []
+    for field, old, new in found:
+        extra = hint(field)
+        lines.append(
+            f"{field}{f' ({extra})' if extra else ''}: {earlier} {_short(old)}, now {_short(new)}"
+        )
+    return lines
+
+
+def check(
+    stored: dict,
+    current: dict,
+    what: str,
+    advice: str = "rerun with the original options, or choose another --out",
+    earlier: str = "earlier",
+) -> None:
+    """``ValueError`` naming every field in which ``stored`` differs from ``current``:
+    ``"<what> was written by another configuration; it differs in: ..."``."""
+    found = differences(stored, current)
+    if found:
+        raise ValueError(
+            f"{what} was written by another configuration; it differs in:\n  "
+            + "\n  ".join(describe(found, earlier=earlier))
+            + f"\n{advice}"
+        )
+
+
+# ------------------------------------------------------------------------- records
+
+
+def _record_path(folder: str | os.PathLike, stem: str, fingerprint: Any) -> Path:
+    return Path(folder) / f"{stem}-{digest(fingerprint, 10)}.json"
+
+
+def stored(folder: str | os.PathLike, stem: str, fingerprint: Any) -> dict | None:
+    """The record :func:`cached` keeps for ``stem`` and ``fingerprint``, or ``None``."""
+    path = _record_path(folder, stem, fingerprint)
+    if not path.is_file():
+        return None
+    record = json.loads(path.read_text())
+    kept = record.pop("fingerprint", None)
+    return record if kept is None or not differences(kept, fingerprint) else None
+
+
+def cached(folder: str | os.PathLike, stem: str, fingerprint: Any, compute: Callable[[], dict]):
+    """A run computed once: ``folder/<stem>-<digest of fingerprint>.json`` holds the
+    record ``compute()`` returned, with ``fingerprint`` beside it. A later call with the
+    same fingerprint reads it back; other settings are another file, so runs of several
+    settings share a folder and none is reused for settings it was not made with.
+    Written atomically: an interrupted study loses only the run in progress."""
+    record = stored(folder, stem, fingerprint)
+    if record is None:
+        record = compute()
+        write_json(_record_path(folder, stem, fingerprint), {**record, "fingerprint": fingerprint})
+    return record
