@@ -5,7 +5,7 @@ fojax simulate ...           Monte Carlo study of a scenario (see fojax simulate
 fojax reproduce --out DIR    the paper's Section V with Monte Carlo (report, JSON, figures)
 fojax tune ...               gradient-based gain tuning (see fojax tune --help)
 fojax bench [--json FILE]    throughput, compile time and gradient cost
-fojax --version              the fojax, JAX and jaxlib versions
+fojax --version              the versions of fojax, Python, jax, jaxlib, optax, numpy
 
 ``simulate``, ``reproduce`` and ``tune`` keep compiled programs in a persistent
 cache (``~/.cache/fojax/jax``; ``--no-compile-cache`` or ``FOJAX_COMPILE_CACHE=0``
@@ -66,6 +66,11 @@ def main(argv=None) -> int:
         choices=sorted(COMMANDS),
         help=", ".join(f"{name}: {text}" for name, (_, text) in sorted(COMMANDS.items())),
     )
+    parser.add_argument(
+        "--version",
+        action="store_true",
+        help="print fojax's version and those of Python, jax, jaxlib, optax and numpy",
+    )
     if not argv or argv[0] in ("-h", "--help"):
         parser.print_help()
         return 0 if argv else 2
@@ -114,12 +119,10 @@ def _describe(error: OSError) -> str:
 
 
 def _versions() -> str:
-    from importlib import metadata
+    """``fojax 0.1.0 (Python 3.11.7, jax 0.4.38, jaxlib 0.4.38, optax 0.2.4, numpy 2.2.1)``:
+    what :func:`fojax.cli.output.versions` records with every run."""
+    from fojax.cli import output
 
-    def version(name):
-        try:
-            return metadata.version(name)
-        except metadata.PackageNotFoundError:
-            return "not installed"
-
-    return " ".join(f"{name} {version(name)}" for name in ("fojax", "jax", "jaxlib"))
+    named = {"Python" if k == "python" else k: v for k, v in output.versions().items()}
+    others = ", ".join(f"{name} {value or 'not installed'}" for name, value in named.items())
+    return f"fojax {output._version('fojax') or 'not installed'} ({others})"

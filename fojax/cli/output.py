@@ -7,8 +7,9 @@ generated blocks of the docs.
   files (a run stopped while writing leaves the old file or the new one, never half of
   one).
 * :func:`git_commit`, :func:`commit_label`: the checkout's commit and whether it has
-  uncommitted changes; :func:`provenance`: what a result needs to be rerun exactly;
-  :func:`run_context`: that, with the CPU model and the load average (the studies').
+  uncommitted changes; :func:`versions`: Python's and the key packages' versions;
+  :func:`provenance`: what a result needs to be rerun exactly; :func:`run_context`:
+  that, with the CPU model and the load average (the studies').
 * :func:`splice`: replace a generated block of a Markdown document, either between
   ``<!-- name:begin -->`` and ``<!-- name:end -->`` or everything below a marker line.
 """
@@ -34,6 +35,7 @@ __all__ = [
     "provenance",
     "run_context",
     "splice",
+    "versions",
     "write_csv",
     "write_json",
     "write_npz",
@@ -133,6 +135,17 @@ def _version(package: str) -> str | None:
         return None
 
 
+VERSIONED = ("jax", "jaxlib", "optax", "numpy")
+"""The packages whose versions every record names (with Python's): the compiled
+programs, and so the float32 numbers, depend on them."""
+
+
+def versions() -> dict[str, str | None]:
+    """``{"python", "jax", "jaxlib", "optax", "numpy"}``: the versions installed
+    (``None``: not installed), read without importing the packages."""
+    return {"python": platform.python_version()} | {name: _version(name) for name in VERSIONED}
+
+
 def provenance(command: list[str] | None = None, gains: dict | None = None) -> dict:
     """What a result needs to be rerun exactly.
 
@@ -140,13 +153,12 @@ def provenance(command: list[str] | None = None, gains: dict | None = None) -> d
     ``sys.argv``). gains: optional, recorded as given
     (:func:`fojax.cli.study.gains_record`). Returns the command (quoted for a shell)
     and the folder it ran in, the fojax version and git commit (:func:`git_commit`),
-    the Python, JAX, jaxlib and NumPy versions, the backend, the device and process
-    counts and devices (the draws are split over the devices, and a draw's float32
-    rounding depends on the batch it runs in), ``jax_enable_x64``, ``XLA_FLAGS``, the
-    platform and the time (UTC).
+    the Python, JAX, jaxlib, Optax and NumPy versions (:func:`versions`), the backend,
+    the device and process counts and devices (the draws are split over the devices,
+    and a draw's float32 rounding depends on the batch it runs in), ``jax_enable_x64``,
+    ``XLA_FLAGS``, the platform and the time (UTC).
     """
     import jax
-    import numpy as np
 
     import fojax
 
@@ -156,10 +168,7 @@ def provenance(command: list[str] | None = None, gains: dict | None = None) -> d
         "working_directory": os.getcwd(),
         "fojax_version": _version("fojax") or getattr(fojax, "__version__", None),
         "fojax_git": git_commit() or None,
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "jaxlib": _version("jaxlib"),
-        "numpy": np.__version__,
+        **versions(),
         "backend": jax.default_backend(),
         "device_count": jax.device_count(),
         "local_device_count": jax.local_device_count(),
