@@ -2,7 +2,9 @@
 
 The default tier runs in minutes; ``--slow`` adds the slow tier (tests marked
 ``@pytest.mark.slow``: end-to-end studies, multi-process runs, full horizons and the
-optimised-compile layout check)."""
+optimised-compile layout check) and the cases of ``SLOW_CASES``; an entry there that
+matches no test of a file collected whole stops the run (a rename would otherwise move
+its case into the default tier unnoticed)."""
 
 import os
 import pathlib
@@ -15,6 +17,7 @@ if "xla_backend_optimization_level" not in _flags:
     os.environ["XLA_FLAGS"] = f"{_flags} --xla_backend_optimization_level=0".strip()
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 _cache = os.environ.get(
@@ -79,7 +82,33 @@ def _is_slow(item) -> bool:
     return "slow" in item.keywords or item.nodeid.removeprefix("tests/").startswith(SLOW_CASES)
 
 
-def pytest_collection_modifyitems(config, items):
+def dead_slow_cases(nodeids, partial_files=()) -> list[str]:
+    """The :data:`SLOW_CASES` entries that start no collected test id of ``nodeids``
+    (``tests/``-relative or not), judged only for test files that were collected whole
+    (a file of ``partial_files``, selected by test id, is not)."""
+    ids = [nodeid.removeprefix("tests/") for nodeid in nodeids]
+    whole = {nodeid.split("::", 1)[0] for nodeid in ids} - set(partial_files)
+    return [
+        entry
+        for entry in SLOW_CASES
+        if entry.split("::", 1)[0] in whole and not any(i.startswith(entry) for i in ids)
+    ]
+
+
+@pytest.hookimpl(tryfirst=True)  # before -k and -m deselect: judge every collected test
+def pytest_collection_modifyitems(session, config, items):
+    partial = {pathlib.Path(arg.split("::", 1)[0]).name for arg in config.args if "::" in str(arg)}
+    dead = dead_slow_cases([item.nodeid for item in items], partial)
+    if dead:
+        message = (
+            "tests/conftest.py: SLOW_CASES entries that match no collected test (renamed or "
+            "removed? a case would run in the default tier unnoticed): " + ", ".join(dead)
+        )
+        if hasattr(config, "workerinput"):  # an xdist worker: the controller stops the run
+            session.shouldfail = message
+            items[:] = []
+            return
+        raise pytest.UsageError(message)
     if config.getoption("--slow"):
         return
     slow = [item for item in items if _is_slow(item)]
