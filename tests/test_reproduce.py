@@ -1,5 +1,6 @@
 """``fojax reproduce``: input checks, the verdict rule, one tiny end-to-end run."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -9,6 +10,8 @@ from scipy import stats
 from fojax import cli
 from fojax.cli import reproduce
 from fojax.cli.reproduce import figures as paper_figures
+from fojax.controllers import registry
+from fojax.controllers.afonftsmc import AFONFTSMC
 
 
 def _error(capsys, argv):
@@ -29,6 +32,9 @@ def _error(capsys, argv):
         (["--horizon", "1.0005"], "whole number of steps"),
         (["--switching", "signum"], "invalid choice"),
         (["--fractional", "crone"], "invalid choice"),
+        (["--compare", "afonftsmc"], "afonftsmc is the baseline"),
+        (["--compare", "fl,flx"], "unknown controller 'flx'"),
+        (["--compare", "fl,fl"], "names a controller twice"),
     ],
 )
 def test_bad_arguments_fail_before_compiling(capsys, tmp_path, argv, message):
@@ -215,6 +221,41 @@ def test_reproduce_end_to_end_tiny(tmp_path):
 
     assert numbers(again) == numbers(report)
     assert [c["verdict"] for c in again["claims"]] == [c["verdict"] for c in report["claims"]]
+
+
+@dataclasses.dataclass(frozen=True)
+class _AfonftsmcAgain(AFONFTSMC):
+    """The AFONFTSMC under another name: compared with itself, every per-draw
+    difference is exactly 0."""
+
+    name = "afonftsmc-again"
+
+
+def test_a_controller_compared_with_itself_is_equivalent_end_to_end(tmp_path, monkeypatch):
+    # A verdict known by construction, through the whole command: the same law on the same
+    # draws (common random numbers) differs by exactly 0 in every metric, so every
+    # comparison is equivalent and every scenario claim is "equivalent within the margin".
+    # A broken pairing of draws, a comparison against the wrong data or a changed rule
+    # for an exact tie fails it. The settings of test_reproduce_end_to_end_tiny (the
+    # AFONFTSMC's program is the same).
+    monkeypatch.setattr(registry, "_LAWS", dict(registry._LAWS))  # registered for this test
+    registry.register(_AfonftsmcAgain)
+    out = tmp_path / "run"
+    argv = ["reproduce", "--out", str(out), "--draws", "3", "--device-batch", "2", "--keep", "2"]
+    argv += ["--horizon", "0.2", "--seed", "4", "--quiet", "--no-figures"]
+    assert cli.main([*argv, "--compare", "afonftsmc-again"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["settings"]["controllers"] == ["afonftsmc", "afonftsmc-again"]
+    scenario_claims = {c["id"]: c for c in report["claims"] if c["scenario"] is not None}
+    assert list(scenario_claims) == [c["id"] for c in reproduce.CLAIMS]
+    for claim_id, claim in scenario_claims.items():
+        assert claim["verdict"] == "equivalent within the margin", claim_id
+        assert len(claim["comparisons"]) == len(claim["metrics"]), claim_id
+        for comparison in claim["comparisons"]:
+            assert comparison["controller"] == "afonftsmc-again"
+            assert comparison["difference"]["mean"] == 0.0, (claim_id, comparison["metric"])
+            assert comparison["difference"]["n"] == 3
+            assert comparison["outcome"] == "equivalent", (claim_id, comparison["metric"])
 
 
 def test_regeneration_replaces_only_what_follows_the_marker(tmp_path):

@@ -2,10 +2,12 @@
 
     fojax reproduce --out DIR [--draws N] [--seed S] [--switching sign|sat|tanh]
                     [--fractional soe|oustaloup|gl] [--scenarios 1,2,3] [--horizon T]
-                    [--device-batch N] [--keep N] [--dtype float32|float64] [--quiet]
+                    [--compare NAMES] [--device-batch N] [--keep N]
+                    [--dtype float32|float64] [--quiet]
 
-All three scenarios, every registered controller (the AFONFTSMC and the four it is
-compared with: ANFTSMC, FOBSMC, BSMC, FL), the same draws for every controller
+All three scenarios, the AFONFTSMC and the four it is compared with (ANFTSMC, FOBSMC,
+BSMC, FL; ``--compare`` names others, a control law of your own included, as
+``package.module:Class``), the same draws for every controller
 (common random numbers: draw ``i`` of seed ``S`` is the same disturbance, drag and
 mass/inertia sample for all of them). Writes to ``DIR``:
 

@@ -136,6 +136,26 @@ def _without_devices(result):
 
 # ----------------------------------------------------------------------- arguments
 
+COMPARED = ("anftsmc", "fobsmc", "bsmc", "fl")
+"""The controllers the AFONFTSMC is compared with by default: the paper's four."""
+
+
+def _compared(parser, text: str) -> tuple[str, ...]:
+    """The controllers of ``--compare`` by their registered names; exits on bad input."""
+    from fojax.controllers import registry
+
+    names = []
+    for part in text.split(","):
+        try:  # a registered name, 'package.module:Class' or an entry point
+            names.append(registry.get_controller_class(part.strip()).name)
+        except (TypeError, ValueError) as error:
+            parser.error(f"--compare: {error}")
+    if BASELINE in names:
+        parser.error(f"--compare: {BASELINE} is the baseline, always run; list the others")
+    if len(set(names)) < len(names):
+        parser.error(f"--compare names a controller twice: {text}")
+    return tuple(names)
+
 
 def build_parser() -> argparse.ArgumentParser:
     from fojax import fractional
@@ -161,6 +181,10 @@ def build_parser() -> argparse.ArgumentParser:
                               "operator method (default soe; oustaloup is the paper's CRONE)")),
         ("--scenarios", dict(type=arguments.scenario_ids, default=(1, 2, 3),
                              help="subset, e.g. 1,3")),
+        ("--compare", dict(default=",".join(COMPARED), metavar="NAMES", help="the "
+                           "controllers the AFONFTSMC is compared with, separated by commas: "
+                           "registered names or 'package.module:Class' for a control law of "
+                           f"your own (default {','.join(COMPARED)}, the paper's)")),
         ("--horizon", dict(type=arguments.positive_float, help="simulated time (s) for every "
                            "scenario (default: each scenario's, 80/80/50 s)")),
         ("--dt", dict(type=arguments.positive_float, default=1e-3, help="step, s")),
@@ -176,11 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
 def parse_args(argv) -> tuple[list, argparse.Namespace]:
     """One validated :class:`fojax.cli.simulate.Study` per scenario; exits on bad input."""
     from fojax import scenarios
-    from fojax.controllers import registry
 
     parser = build_parser()
     args = parser.parse_args(argv)
-    names = registry.PAPER_CONTROLLERS
+    compared = _compared(parser, args.compare)
     arguments.enable_dtype(args.dtype)
     band = claims_module.reaching_band(args.dt)
     studies = []
@@ -191,7 +214,7 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
         studies.append(
             _make_study(
                 scenario_id=scenario_id,
-                controllers=(BASELINE,) + tuple(n for n in names if n != BASELINE),
+                controllers=(BASELINE, *compared),
                 draws=args.draws,
                 seed=args.seed,
                 horizon=float(horizon),
