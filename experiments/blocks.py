@@ -1,0 +1,282 @@
+"""Every generated block of README.md and docs/: the command that regenerates it, the
+source paths its numbers depend on, and the checks of its label.
+
+A generator writes its block with :func:`fojax.cli.output.splice`, which starts it with
+a label (:func:`fojax.cli.output.block_label`: command, commit, machine, load,
+versions). :data:`BLOCKS` lists the blocks in the order ``python -m
+experiments.regenerate_docs`` runs their commands (a later one may reuse an earlier
+one's results). :func:`problems` says what is wrong with one block's label (none, made
+with uncommitted changes, a commit not in the history, sources changed since);
+:func:`check_docs` checks every block and that the docs hold no block this registry
+does not list.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import subprocess
+from pathlib import Path
+
+from experiments import regenerate_reproduction, sensitivity_report
+from fojax.cli import output
+
+__all__ = ["BLOCKS", "ROOT", "Block", "block_text", "check_docs", "problems", "read_label"]
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@dataclasses.dataclass(frozen=True)
+class Block:
+    """One generated block: ``name``, the ``document`` holding it (relative to the
+    repository root), the ``command`` that regenerates it (run from the root), the
+    ``sources`` (files or folders) its numbers depend on, and ``marker``: for a block
+    that is everything below a marker line, that line (otherwise the block is between
+    ``<!-- name:begin -->`` and ``<!-- name:end -->``)."""
+
+    name: str
+    document: str
+    command: tuple[str, ...]
+    sources: tuple[str, ...]
+    marker: str | None = None
+
+
+# What the numbers depend on: the pinned versions and the closed loop; Monte Carlo
+# studies add the study layer, tuning studies the tuner.
+_CLOSED_LOOP = (
+    "constraints.txt",
+    "fojax/_arrays.py",
+    "fojax/controllers",
+    "fojax/draws.py",
+    "fojax/fractional",
+    "fojax/metrics.py",
+    "fojax/observers.py",
+    "fojax/plant.py",
+    "fojax/scenarios.py",
+    "fojax/simulator.py",
+    "fojax/statistics.py",
+)
+_MONTE_CARLO = (
+    *_CLOSED_LOOP,
+    "fojax/sharding.py",
+    "fojax/study",
+    "fojax/cli/simulate.py",
+    "fojax/cli/study.py",
+    "fojax/cli/study_files.py",
+)
+_TUNING = (*_CLOSED_LOOP, "optimize", "experiments/_common.py")
+_REQUIREMENTS = (*_TUNING, "fojax/requirements", "fojax/cli/requirements.py")
+_REQUIREMENTS_STUDY = (
+    *_REQUIREMENTS,
+    "fojax/cli/_requirement_tuning.py",
+    "experiments/requirements_study.py",
+)
+
+
+def _study(module: str, *options: str) -> tuple[str, ...]:
+    return ("python", "-m", f"experiments.{module}", *options)
+
+
+BLOCKS: dict[str, Block] = {
+    block.name: block
+    for block in (
+        Block(
+            "reproduction",
+            "docs/reproduction.md",
+            _study("regenerate_reproduction", "--only", "sign"),
+            (*_MONTE_CARLO, "fojax/cli/reproduce", "experiments/regenerate_reproduction.py"),
+            regenerate_reproduction.MARKER,
+        ),
+        Block(
+            "reproduction-sat",
+            "docs/reproduction_sat.md",
+            _study("regenerate_reproduction", "--only", "sat"),
+            (*_MONTE_CARLO, "fojax/cli/reproduce", "experiments/regenerate_reproduction.py"),
+            regenerate_reproduction.MARKER,
+        ),
+        Block(
+            "sensitivity",
+            "docs/sensitivity.md",
+            _study("sensitivity"),
+            (
+                *_MONTE_CARLO,
+                "optimize",
+                "fojax/requirements",
+                "fojax/cli/reproduce/claims.py",
+                "experiments/fair_comparison.py",
+                "experiments/sensitivity.py",
+                "experiments/sensitivity_plan.py",
+                "experiments/sensitivity_report.py",
+            ),
+            sensitivity_report.MARKER,
+        ),
+        Block(  # reuses the tuning of the sensitivity study (its --out)
+            "fair-comparison",
+            "docs/tuning.md",
+            _study(
+                "fair_comparison",
+                *("--out", "results/sensitivity/tuning", "--steps", "20", "--draws", "8"),
+                *("--horizon", "5", "--update-doc", "docs/tuning.md"),
+            ),
+            (*_TUNING, "experiments/fair_comparison.py"),
+        ),
+        Block(
+            "tuning-study",
+            "docs/tuning.md",
+            _study(
+                "tuning_study",
+                *("--out", "results/tuning_study", "--bench", "5", "--user-view", "2"),
+                *("--update-doc", "docs/tuning.md"),
+            ),
+            (
+                *_TUNING,
+                "fojax/cli/tune.py",
+                "fojax/cli/_tuning.py",
+                "experiments/tuning_study.py",
+                "experiments/tuning_study_report.py",
+                "experiments/tuning_study_user.py",
+            ),
+        ),
+        Block(
+            "tune-paper-gains",
+            "docs/tuning.md",
+            _study("tune_paper_gains", "--out", "results/tune_paper_gains", "--update-doc")
+            + ("docs/tuning.md",),
+            (*_TUNING, "experiments/tune_paper_gains.py"),
+        ),
+        Block(
+            "remark3",
+            "docs/tuning.md",
+            _study("remark3", "--out", "results/remark3", "--update-doc", "docs/tuning.md"),
+            (*_TUNING, "experiments/remark3.py"),
+        ),
+        Block(
+            "requirements-study",
+            "docs/requirements.md",
+            _study("requirements_study", "--update-doc"),
+            _REQUIREMENTS_STUDY,
+        ),
+        Block(
+            "requirements-study-union",
+            "docs/requirements.md",
+            _study(
+                "requirements_study",
+                *("--tune-scenario", "2,3", "--controllers", "afonftsmc,fobsmc,bsmc,fl"),
+                *("--out", "results/requirements_union", "--update-doc"),
+            ),
+            _REQUIREMENTS_STUDY,
+        ),
+        Block(
+            "remark3-inverted",
+            "docs/requirements.md",
+            _study("remark3_inverted", "--update-doc"),
+            (*_REQUIREMENTS, "experiments/remark3.py", "experiments/remark3_inverted.py"),
+        ),
+    )
+}
+
+
+# ------------------------------------------------------------------------ reading
+
+
+def block_text(content: str, block: Block) -> str | None:
+    """The text of ``block`` in a document's ``content`` (between its begin and end
+    lines, or below its marker line), or ``None`` where the document has no such block."""
+    if block.marker is not None:
+        head, found, rest = content.partition(block.marker)
+        return rest if found else None
+    begin, end = f"<!-- {block.name}:begin -->", f"<!-- {block.name}:end -->"
+    if begin not in content:
+        return None
+    inner, found, _ = content.split(begin, 1)[1].partition(end)
+    return inner if found else None
+
+
+def read_label(text: str) -> dict | None:
+    """The label record at the top of a block's ``text`` (its first non-blank line,
+    written by :func:`fojax.cli.output.block_label`), or ``None`` where there is none."""
+    first = text.lstrip().split("\n", 1)[0]
+    if not (first.startswith(output.LABEL_PREFIX) and first.endswith(" -->")):
+        return None
+    try:
+        record = json.loads(first[len(output.LABEL_PREFIX) : -len(" -->")])
+    except ValueError:
+        return None
+    return record if isinstance(record, dict) else None
+
+
+# ----------------------------------------------------------------------- checking
+
+
+def _git(root: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True)
+
+
+def problems(block: Block, root: Path | None = None) -> list[str]:
+    """What is wrong with ``block`` in the checkout ``root``: missing from its document,
+    no label, generated with uncommitted changes, a commit that is not in the history
+    of ``HEAD``, or a commit older than the last commit that changed its sources (git
+    log). ``root``: default :data:`ROOT`. ``[]`` when it is current."""
+    root = ROOT if root is None else Path(root)
+    path = root / block.document
+    text = block_text(path.read_text(), block) if path.is_file() else None
+    if text is None:
+        return [f"{block.name}: {block.document} has no such block"]
+    again = f"regenerate it: {' '.join(block.command)}"
+    label = read_label(text)
+    if label is None:
+        return [f"{block.name} ({block.document}): no label; {again}"]
+    commit = str(label.get("commit") or "")
+    found = []
+    if label.get("dirty") is not False:
+        found.append(f"{block.name}: generated with uncommitted changes ({again})")
+    if not commit or _git(root, "cat-file", "-e", f"{commit}^{{commit}}").returncode != 0:
+        return [*found, f"{block.name}: its commit {commit or '(none)'} is not in this repository"]
+    if _git(root, "merge-base", "--is-ancestor", commit, "HEAD").returncode != 0:
+        return [*found, f"{block.name}: its commit {commit[:7]} is not in the history of HEAD"]
+    changed = _git(root, "log", "--format=%h %s", f"{commit}..HEAD", "--", *block.sources)
+    later = changed.stdout.splitlines()
+    if later:
+        found.append(
+            f"{block.name}: stale: {len(later)} commit(s) since {commit[:7]} changed its "
+            f"sources, the last {later[0]}; {again}"
+        )
+    return found
+
+
+_BEGIN = re.compile(r"^<!-- ([\w.-]+):begin -->$", re.MULTILINE)
+
+
+def check_docs(
+    root: Path | None = None, blocks: dict[str, Block] | None = None, labels: bool = True
+) -> list[str]:
+    """Every problem of the generated blocks in ``root``: the :func:`problems` of each
+    block of ``blocks`` (default :data:`BLOCKS`; with ``labels=False`` only whether its
+    document holds it), and every block in README.md or docs/*.md that ``blocks`` does
+    not list. ``root``: default :data:`ROOT`. ``[]`` when all are labelled and current
+    (a test once every block is regenerated: ``assert check_docs() == []``)."""
+    root = ROOT if root is None else Path(root)
+    blocks = BLOCKS if blocks is None else blocks
+    found = []
+    for block in blocks.values():
+        if labels:
+            found += problems(block, root)
+        else:
+            path = root / block.document
+            if not path.is_file() or block_text(path.read_text(), block) is None:
+                found.append(f"{block.name}: {block.document} has no such block")
+    listed = {(b.document, b.name) for b in blocks.values() if b.marker is None}
+    markers = {(b.document, b.marker) for b in blocks.values() if b.marker is not None}
+    for path in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        if not path.is_file():
+            continue
+        document, content = path.relative_to(root).as_posix(), path.read_text()
+        for name in _BEGIN.findall(content):
+            if (document, name) not in listed:
+                found.append(f"{document}: block {name!r} is not listed in experiments/blocks.py")
+        for line in content.splitlines():
+            replaced = "everything below is replaced on regeneration" in line
+            if replaced and line.startswith("<!--") and (document, line) not in markers:
+                found.append(f"{document}: marker {line!r} is not listed in experiments/blocks.py")
+    return found
