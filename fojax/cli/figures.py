@@ -284,141 +284,98 @@ def plot_convergence(
     history_csv: Path,
     path: Path,
     evaluation: dict | None = None,
-    clip_norm: float | None = None,
     title: str = "fojax tune: convergence",
     validation_start: float | None = None,
 ) -> Path:
-    """The run's progress from ``history.csv``: the objective (and, when it is not the
-    mean, the minibatch mean) with the worst draw's cost, and the gradient norm, against
-    step (left) and wall time (right); the held-out cost of the initial and the tuned
-    gains where ``evaluation`` has it. Steps with diverged draws are marked."""
+    """A tuning run's progress from ``history.csv`` (:mod:`fojax.optimize.driver`'s
+    columns, any method): top, the loss of each step's best point, the sample's mean
+    and worst target, and the validation score (cost, or yield on a right axis) with the
+    start as step 0; bottom, the gradient norm (gradient steps) or CMA-ES's step size;
+    against step (left) and wall time (right). Steps with diverged draws are marked; the
+    held-out score of the initial and the tuned gains is drawn where ``evaluation`` has
+    it."""
     from matplotlib.lines import Line2D
 
-    history = _read_history(history_csv)
-    if not history.get("step"):
+    h = _read_history(history_csv)
+    if not h.get("step"):
         raise ValueError(f"{history_csv} holds no step")
-    series = _convergence_series(history, validation_start)
+    step, wall = np.asarray(h["step"]), np.asarray(h["wall_time_s"])
+    validation = np.asarray(h.get("validation", [math.nan] * len(step)))
+    yields = evaluation is not None and "yield" in evaluation.get("initial", {})
+    if validation_start is not None:
+        yields = yields or (np.nanmax(validation, initial=0) <= 1 and validation_start <= 1)
     plt = style.pyplot()
     fig = plt.figure(figsize=(11, 7), layout="constrained")
-    axes = fig.subplots(2, 2, sharey="row")
-    handles = _draw_progress(axes, series, clip_norm)
-    if evaluation and "initial" in evaluation and "tuned" in evaluation:
-        handles.append(_draw_heldout(axes, series, evaluation))
-    if clip_norm is not None:
-        handles.append(Line2D([], [], color="0.5", ls="--", lw=0.9, label="gradient clip norm"))
-    costs = np.concatenate([series["objective"], series["worst"], series["validation_costs"]])
-    for row, values in enumerate((costs, series["grad_norm"])):
-        values = np.asarray(values, dtype=float)
-        values = values[np.isfinite(values)]
-        if values.size and np.all(values > 0) and values.max() > 10 * values.min():
-            axes[row, 0].set_yscale("log")
+    axes = fig.subplots(2, 2, sharex="col", sharey="row")
+    dark, blue, red, orange, green = "#333333", "#0072B2", "#D55E00", "#E69F00", "#009E73"
+    lower = [k for k in ("grad_norm", "sigma") if np.isfinite(h.get(k, [math.nan])).any()]
+    show_mean = not np.allclose(h["loss"], h["mean_target"], rtol=1e-6, equal_nan=True)
+    diverged = np.asarray(h.get("diverged", [0] * len(step))) > 0
+    for col, x in enumerate((step, wall)):
+        top = axes[0, col]
+        top.plot(x, h["loss"], color=dark, lw=1.4, marker="o", ms=2.5, zorder=4)
+        if show_mean:
+            top.plot(x, h["mean_target"], color=blue, lw=0.9)
+        top.plot(x, h["max_target"], color=blue, lw=0.8, ls=":")
+        if diverged.any():
+            top.scatter(
+                x[diverged], np.asarray(h["loss"])[diverged], marker="x", color=red, zorder=5
+            )
+        right = top.twinx() if yields else top
+        known = np.isfinite(validation)
+        vx, vy = x[known], validation[known]
+        if validation_start is not None:
+            vx, vy = np.concatenate([[0.0], vx]), np.concatenate([[validation_start], vy])
+        if vy.size:
+            right.plot(vx, vy, color=orange, lw=1.2, marker="s", ms=4, zorder=5,
+                       drawstyle="steps-post" if col else "default")  # fmt: skip
+        if evaluation and "initial" in evaluation:
+            held = [_held_number(evaluation[k]) for k in ("initial", "tuned")]
+            where = [0, x[-1]] if col == 0 else [x[-1]]
+            right.plot(where, held if col == 0 else held[1:], ls="none", marker="D", ms=7,
+                       mfc="white", mec=green, mew=2, zorder=6)  # fmt: skip
+        if yields:
+            right.set_ylim(-0.02, 1.02)
+            right.set_ylabel("yield (validation, held-out)" if col else "")
+        for key, color in zip(lower, (dark, green), strict=False):
+            axes[1, col].plot(x, h[key], color=color, lw=1.2, marker="o", ms=2.5)
+    handles = [
+        Line2D([], [], color=dark, lw=1.4, marker="o", ms=2.5, label="loss (best point)"),
+        *([Line2D([], [], color=blue, lw=0.9, label="sample mean target")] if show_mean else []),
+        Line2D([], [], color=blue, lw=0.8, ls=":", label="sample worst target"),
+        Line2D([], [], color=orange, lw=1.2, marker="s", ms=4,
+               label=f"validation {'yield' if yields else 'cost'} (returned: step "
+               f"{h.get('best_step', [math.nan])[-1]:.0f})"),
+    ]  # fmt: skip
+    if diverged.any():
+        handles.append(Line2D([], [], ls="none", marker="x", color=red, label="diverged draws"))
+    if evaluation and "initial" in evaluation:
+        label = (f"held-out, initial and tuned ({evaluation['draws']} draws, "
+                 f"{evaluation['switching']}, {evaluation['horizon_s']:g} s)")  # fmt: skip
+        handles.append(Line2D([], [], ls="none", marker="D", ms=7, mfc="white", mec=green,
+                              mew=2, label=label))  # fmt: skip
     for ax in axes.flat:
         ax.grid(alpha=0.3, which="both")
-    axes[0, 0].set_ylabel("cost")
-    axes[1, 0].set_ylabel("gradient norm (before clipping)")
+    loss = np.asarray(h["loss"])
+    loss = loss[np.isfinite(loss)]
+    if loss.size and np.all(loss > 0) and loss.max() > 10 * loss.min():
+        axes[0, 0].set_yscale("log")
+    axes[0, 0].set_ylabel("loss, cost")
+    names = {"grad_norm": "gradient norm", "sigma": "CMA-ES step size"}
+    for key, color in zip(lower, (dark, green), strict=False):
+        handles.append(Line2D([], [], color=color, lw=1.2, marker="o", ms=2.5, label=names[key]))
+    if lower and max(np.nanmax(h[k]) for k in lower) > 30 * min(np.nanmin(h[k]) for k in lower):
+        axes[1, 0].set_yscale("log")
+    axes[1, 0].set_ylabel(" and ".join(names[k] for k in lower))
     axes[1, 0].set_xlabel("step")
-    first = series["wall"][1] if series["with_start"] else series["wall"][0]
-    axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {first:.1f} s, compilation included")
+    axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {wall[0]:.1f} s, compilation included")
     fig.suptitle(title, fontsize=10)
-    style.legend_below(fig, handles, ncol=2 if len(handles) > 4 else len(handles))
+    style.legend_below(fig, handles, ncol=3)
     return style.save(fig, path)
 
 
-def _convergence_series(history: dict, validation_start: float | None) -> dict:
-    """The columns :func:`plot_convergence` draws, as arrays; with ``validation_start``
-    (the start's validation cost) and validated steps, the start as a step 0 first."""
-    step = np.asarray(history["step"])
-    wall = np.asarray(history["wall_time_s"])
-    objective = np.asarray(history["objective"])
-    mean_cost = np.asarray(history["mean_cost"])
-    worst = np.asarray(history["max_cost"])
-    grad_norm = history["grad_norm"]
-    diverged = np.asarray(history.get("diverged", [0] * len(step))) > 0
-    validation = np.asarray(history.get("validation_cost", [math.nan] * len(step)))
-    with_start = validation_start is not None and np.isfinite(validation).any()
-    if with_start:  # the start, validated at step 0
-        step, wall = np.concatenate([[0.0], step]), np.concatenate([[0.0], wall])
-        pad = np.asarray([math.nan])
-        objective, mean_cost, worst = (
-            np.concatenate([pad, a]) for a in (objective, mean_cost, worst)
-        )
-        diverged = np.concatenate([[False], diverged])
-        validation = np.concatenate([[validation_start], validation])
-        grad_norm = np.concatenate([pad, grad_norm])
-    validated = np.isfinite(validation)
-    return {
-        "step": step,
-        "wall": wall,
-        "objective": objective,
-        "mean_cost": mean_cost,
-        "worst": worst,
-        "grad_norm": grad_norm,
-        "diverged": diverged,
-        "validation": validation,
-        "validated": validated,
-        "validation_costs": validation[validated],
-        "best_step": history.get("best_step", [math.nan])[-1],
-        "with_start": with_start,
-    }
-
-
-def _draw_progress(axes, series: dict, clip_norm: float | None) -> list:
-    """The objective, the minibatch costs, the validation costs and the gradient norm
-    against step and wall time; returns their legend handles."""
-    from matplotlib.lines import Line2D
-
-    objective, diverged, validated = series["objective"], series["diverged"], series["validated"]
-    show_mean = not np.allclose(objective, series["mean_cost"], rtol=1e-6, equal_nan=True)
-    dark, blue, red, orange = "#333333", "#0072B2", "#D55E00", "#E69F00"
-    handles = [Line2D([], [], color=dark, lw=1.4, marker="o", ms=2.5, label="objective")]
-    if show_mean:
-        handles.append(Line2D([], [], color=blue, lw=0.9, label="minibatch mean cost"))
-    handles.append(Line2D([], [], color=blue, lw=0.8, ls=":", label="minibatch worst cost"))
-    for col, x in enumerate((series["step"], series["wall"])):
-        ax = axes[0, col]
-        ax.plot(x, objective, color=dark, lw=1.4, marker="o", ms=2.5, zorder=4)
-        if show_mean:
-            ax.plot(x, series["mean_cost"], color=blue, lw=0.9, zorder=3)
-        ax.plot(x, series["worst"], color=blue, lw=0.8, ls=":", zorder=3)
-        if np.any(diverged):
-            ax.scatter(x[diverged], objective[diverged], marker="x", color=red, zorder=5)
-        axes[1, col].plot(x, series["grad_norm"], color=dark, lw=1.2, marker="o", ms=2.5)
-        if validated.any():
-            # Against wall time as steps: the start's gains stand until the next
-            # validation (the start is validated while the gradient compiles).
-            ax.plot(x[validated], series["validation_costs"], color=orange, lw=1.2, marker="s",
-                    ms=4, zorder=5, drawstyle="steps-post" if col else "default")  # fmt: skip
-        if clip_norm is not None:
-            axes[1, col].axhline(clip_norm, color="0.5", ls="--", lw=0.9)
-    if np.any(diverged):
-        handles.append(
-            Line2D([], [], ls="none", marker="x", color=red, label="step with diverged draws")
-        )
-    if validated.any():
-        handles.append(
-            Line2D([], [], color=orange, lw=1.2, marker="s", ms=4,
-                   label=f"validation cost (returned: step {series['best_step']:.0f})")
-        )  # fmt: skip
-    return handles
-
-
-def _draw_heldout(axes, series: dict, evaluation: dict):
-    """The held-out mean cost of the initial (at step 0) and the tuned gains; its handle."""
-    from matplotlib.lines import Line2D
-
-    held_out = dict(ls="none", marker="D", ms=7, mfc="white", mec="#009E73", mew=2, zorder=6)
-    initial = evaluation["initial"]["mean_cost"]
-    tuned = evaluation["tuned"]["mean_cost"]
-    axes[0, 0].plot([0, series["step"][-1]], [initial, tuned], **held_out)
-    axes[0, 1].plot([series["wall"][-1]], [tuned], **held_out)
-    return Line2D(
-        [],
-        [],
-        **held_out,
-        label=f"held-out mean cost of the initial (step 0) and tuned gains "
-        f"({evaluation['draws']} draws, {evaluation['switching']}, "
-        f"{evaluation['horizon_s']:g} s)",
-    )
+def _held_number(summary: dict) -> float:
+    return summary["yield"] if "yield" in summary else summary["mean_cost"]
 
 
 def plot_yield(results: dict, path: Path, title: str) -> Path:

@@ -10,13 +10,9 @@ failures per requirement and the one failing most often: printed, in ``summary.j
 ["requirements"]``: :meth:`fojax.requirements.YieldResult.to_dict`), the per-draw metrics
 in ``requirements.npz`` and the figure ``requirements.png``.
 
-``fojax tune --requirements FILE`` tunes to the requirements
-(:func:`fojax.optimize.constrained.tune_to_requirements`: an augmented Lagrangian on the
-mean hinge violation, Adam; ``--method cma-es``: the derivative-free baseline,
-:func:`fojax.optimize.constrained.cma_es_requirements`), writes ``gains.json`` (what
-``fojax simulate --gains`` reads), ``history.csv``, ``evaluation.json`` (the held-out
-yield of the initial and the tuned gains on ``--eval-draws`` draws, with intervals) and
-``run.json``.
+``fojax tune --requirements FILE`` (:mod:`fojax.cli.tune`) shares the two option types
+(:func:`requirements_file`, :func:`thrust_to_weight`) and how the file and
+``--rotor-limit`` resolve into actuators (:func:`resolve_requirements`).
 
 Actuators are rotor-limited (squared rotor speeds clipped to ``[0, w_max^2]``) when the
 file's ``[settings]`` ask for it, or with ``--rotor-limit T`` (thrust-to-weight ratio at
@@ -33,68 +29,16 @@ import time
 from pathlib import Path
 
 from fojax.cli import arguments
-from fojax.cli._requirement_tuning import PreparedRequirementRun, prepare_tune, tune_main
 
 __all__ = [
-    "PreparedRequirementRun",
+    "actuators_record",
     "add_simulate_options",
-    "add_tune_options",
-    "check_tune_options",
     "configure_study",
-    "prepare_tune",
     "report_simulate",
     "requirements_file",
+    "resolve_requirements",
     "thrust_to_weight",
-    "tune_main",
 ]
-
-# Defaults of ``fojax tune --requirements`` (docs/requirements.md: the AFONFTSMC from the
-# paper's gains to the example set, 8 tuning draws, 10 outer x 10 inner Adam steps at
-# learning rate 0.1, mean hinge, 32 validation draws).
-TUNE_DEFAULTS = {
-    "draws": 8,
-    "outer_steps": 10,
-    "inner_steps": 10,
-    "learning_rate": 0.1,
-    "margin": 0.05,
-    "formulation": "mean",
-    "eval_draws": 128,
-    "objective": "effort",
-    "generations": 24,
-}
-REQUIREMENT_OBJECTIVES = ("effort", "tracking")
-
-# Options of the weighted-sum tuner (optimize/tuner.py) that do nothing with
-# --requirements, and the other way round (dest -> why).
-_WEIGHTED_ONLY = {
-    "cvar_fraction": "the weighted-sum objective's CVaR",
-    "error": "the weighted-sum cost's error measure",
-    "position_weight": "a weight of the weighted-sum cost",
-    "attitude_weight": "a weight of the weighted-sum cost",
-    "effort_weight": "a weight of the weighted-sum cost",
-    "chattering_weight": "a weight of the weighted-sum cost",
-    "steps": "the weighted-sum tuner's step count (with --requirements: --outer-steps, "
-    "--inner-steps)",
-    "max_step": "the weighted-sum L-BFGS's step limit",
-    "anneal_start": "the weighted-sum tuner's boundary-layer annealing",
-    "anneal_end": "the weighted-sum tuner's boundary-layer annealing",
-    "checkpoint_every": "the weighted-sum tuner's checkpoints",
-    "validate_every": "the weighted-sum tuner's validation interval (with --requirements "
-    "every outer step is validated)",
-    "device_batch": "the weighted-sum tuner's sharded minibatch",
-    "eval_horizon": "the weighted-sum tuner's held-out horizon (with --requirements the "
-    "held-out draws run the tuning horizon, which the bounds refer to)",
-}
-_REQUIREMENTS_ONLY = ("rotor_limit", "outer_steps", "inner_steps", "margin", "formulation")
-_GRADIENT_ONLY = (
-    "outer_steps",
-    "inner_steps",
-    "formulation",
-    "learning_rate",
-    "clip_norm",
-    "resume",
-)
-
 
 # ------------------------------------------------------------------ argument types
 
@@ -308,135 +252,3 @@ def _print_yields(reqs, results: dict) -> None:
                 f"  {'':<{width}} failures: "
                 + ", ".join(f"{n} {f}/{result.draws}" for n, f in failing)
             )
-
-
-# ---------------------------------------------------------------------------- tune
-
-
-def add_tune_options(parser: argparse.ArgumentParser) -> None:
-    """``fojax tune``'s options of the requirement tuner; ``--objective`` and
-    ``--method`` take its choices too (checked by :func:`check_tune_options`)."""
-    from fojax.optimize import cost
-
-    _add_common(parser)
-    group = parser.add_argument_group(
-        "tuning to requirements (--requirements FILE; docs/requirements.md)"
-    )
-    d, count = TUNE_DEFAULTS, arguments.positive_int
-    arguments.add_options(
-        group,
-        ("--outer-steps", dict(type=count, help="augmented-Lagrangian multiplier updates, each "
-                               f"validated ({d['outer_steps']})")),
-        ("--inner-steps", dict(type=count, help="optimiser steps per outer step "
-                               f"({d['inner_steps']})")),
-        ("--formulation", dict(choices=("mean", "chance"), help="constraint per requirement: "
-                               "mean (the mean hinge violation over the draws, every draw must "
-                               "meet it; default) or chance (a smooth share of draws violating, "
-                               "at most 5 %%)")),
-        ("--margin", dict(type=arguments.nonnegative_float, help="a draw must beat each bound by "
-                          f"this share of its scale ({d['margin']})")),
-        ("--generations", dict(type=count, help="CMA-ES generations (--method cma-es only; "
-                               f"{d['generations']})")),
-    )  # fmt: skip
-    for action in parser._actions:
-        if action.dest == "objective":
-            action.choices = tuple(cost.OBJECTIVES) + REQUIREMENT_OBJECTIVES
-            action.default = None
-            action.help = (
-                f"{', '.join(cost.OBJECTIVES)}: of the weighted-sum cost "
-                f"({cost.CostConfig().objective}); "
-                f"with --requirements, what is minimised subject to them: effort (the "
-                f"commanded accelerations squared; default) or tracking (P + A)"
-            )
-        elif action.dest == "method":
-            action.choices = tuple(action.choices) + ("cma-es",)
-            action.default = None
-            action.help = (
-                f"{action.help}; with --requirements: adam (default) or lbfgs for the "
-                "augmented Lagrangian, or cma-es (the derivative-free baseline)"
-            )
-
-
-def _given(parser: argparse.ArgumentParser, argv) -> set[str]:
-    """The ``dest`` of every option given on the command line (abbreviations and
-    ``--flag=value`` included): ``argv`` parsed again with every default suppressed."""
-    saved = [(action, action.default) for action in parser._actions]
-    try:
-        for action, _ in saved:
-            action.default = argparse.SUPPRESS
-        namespace, _ = parser.parse_known_args(argv)
-    finally:
-        for action, default in saved:
-            action.default = default
-    return set(vars(namespace))
-
-
-def _flag(parser, dest: str) -> str:
-    for action in parser._actions:
-        if action.dest == dest and action.option_strings:
-            return action.option_strings[0]
-    return dest
-
-
-def check_tune_options(parser, args, argv) -> None:
-    """Errors (exit 2, one line naming the option) for an option of the other tuner;
-    fills the defaults of the options left out (None until here)."""
-    from fojax.optimize import cost, tuner
-
-    given = _given(parser, argv)
-    args.given = given
-    if args.requirements is None:
-        for dest in _REQUIREMENTS_ONLY + ("generations",):
-            if dest in given:
-                parser.error(
-                    f"{_flag(parser, dest)} applies with --requirements FILE only (tuning "
-                    "to requirements); leave it out or add --requirements"
-                )
-        if args.objective in REQUIREMENT_OBJECTIVES:
-            parser.error(
-                f"--objective {args.objective} applies with --requirements FILE only; the "
-                f"weighted-sum tuner takes {' or '.join(cost.OBJECTIVES)}"
-            )
-        if args.method == "cma-es":
-            parser.error(
-                "--method cma-es applies with --requirements FILE only (the weighted-sum "
-                "tuner takes adam or lbfgs)"
-            )
-        if args.objective is None:
-            args.objective = cost.CostConfig().objective
-        if args.method is None:
-            args.method = tuner.TunerConfig().method
-        return
-    for dest, why in _WEIGHTED_ONLY.items():
-        if dest in given:
-            parser.error(
-                f"{_flag(parser, dest)} applies to the weighted-sum tuner only ({why}), not "
-                "with --requirements; leave it out"
-            )
-    if args.objective in cost.OBJECTIVES:
-        parser.error(
-            f"--objective {args.objective} is the weighted-sum tuner's; with --requirements "
-            f"choose {' or '.join(REQUIREMENT_OBJECTIVES)}"
-        )
-    if args.method is None:
-        args.method = "adam"
-    if args.method == "cma-es":
-        for dest in _GRADIENT_ONLY:
-            if dest in given:
-                parser.error(
-                    f"{_flag(parser, dest)} applies to the gradient tuner (--method adam or "
-                    "lbfgs), not to --method cma-es; leave it out"
-                )
-    elif "generations" in given:
-        parser.error(
-            f"--generations applies to --method cma-es only, not to --method {args.method}"
-        )
-    if args.method == "lbfgs":
-        for dest in ("learning_rate", "clip_norm"):
-            if dest in given:
-                parser.error(f"{_flag(parser, dest)} applies to --method adam only; leave it out")
-    for dest, value in TUNE_DEFAULTS.items():
-        if dest not in given:
-            setattr(args, dest, value)
-    if args.clip_norm is None:
-        args.clip_norm = 1.0

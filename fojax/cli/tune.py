@@ -1,257 +1,237 @@
-"""``fojax tune``: gradient-based gain tuning through the batched simulator.
+"""``fojax tune``: tune a controller's gains over Monte Carlo draws of a scenario.
 
-    fojax tune --scenario {1,2,3} --controller NAME [--draws N] [--steps K]
-               [--horizon T] [--init paper|naive|FILE] [--objective mean|cvar]
-               [--resume] --out DIR      (fojax tune --help lists every option)
+    fojax tune --scenario {1,2,3} --controller NAME [--init paper|naive|FILE]
+               [--objective mean|cvar] [--requirements FILE [--objective effort|tracking]]
+               [--method auto|adam|lbfgs|cma-es|nelder-mead] [--resume] --out DIR
 
-Each step draws a fresh minibatch of ``N`` Monte Carlo draws of the scenario (seed
-``--seed``), simulates ``T`` seconds (default 10 s, a tuning horizon; the scenario's
-own horizon is 80 s or 50 s) with the controller's switching smoothed to ``tanh``
-(annealed towards the evaluation boundary layer), and takes one clipped Adam step on
-the gradient of the mean (or CVaR) cost. Writes to ``DIR``:
+The objective (the weighted-sum cost's mean or CVaR, or a requirement set with what is
+minimised under it) and the method are independent choices; every method runs on the
+one engine (:mod:`fojax.optimize`): the objective (:class:`fojax.optimize.Objective`), a
+strategy (:mod:`fojax.optimize.strategies`; with ``--requirements`` inside the
+augmented Lagrangian) and the driver (:func:`fojax.optimize.run`). ``--method auto``,
+the default, is CMA-ES on fresh draws for ``--switch`` generations, its mean then handed
+to L-BFGS on the fixed sample, the gradient compiled beside the first generations.
 
-* ``gains.json``: the tuned gains, the format ``fojax simulate --gains`` reads: the
-  best of the start and the validated steps on ``--validation-draws`` validation draws
-  (disjoint from the tuning and the held-out draws), with ``--eval-switching``; its
-  metadata name the step they come from (``selected_step``, 0: the start) and the
-  validation costs, so a run never returns gains worse than its start on them;
-* ``history.csv``: one row per step (objective, gradient norm, learning rate,
-  boundary-layer scale, diverged draws, simulated draw-steps, wall time, validation
-  cost where validated, best step so far);
-* ``checkpoint.npz``: the state every ``--checkpoint-every`` steps. After an
-  interruption, the same command with ``--resume`` continues and gives the result the
-  uninterrupted run would have given;
-* ``evaluation.json``: the cost of the initial and the tuned gains on
-  ``--eval-draws`` held-out draws (never used in tuning), with ``--eval-switching``;
-* ``convergence.png`` (and ``.pdf``): the objective, the held-out costs and the
-  gradient norm against step and against wall time, drawn from ``history.csv``;
-* ``run.json``: what the run needs to be redone exactly: the initial gains' values and
-  their source, and per session (a first run, then each ``--resume``) the command
-  line, versions, backend and device counts (:func:`fojax.cli.study.provenance`);
-  ``gains.json`` carries the same in its metadata.
+Writes to ``DIR``: ``gains.json`` (what ``fojax simulate --gains`` reads: the best
+validated gains, the start's on a tie, with the run's settings, the step they come from
+and the validation scores), ``history.csv`` (one row per step), ``checkpoint.npz`` (an
+interrupted run continues with the same command and ``--resume``, to the result the
+uninterrupted run gives), ``evaluation.json`` (the initial and the tuned gains on
+``--eval-draws`` held-out draws: cost, or yield with its interval), ``convergence.png``
+(and ``.pdf``) and ``run.json`` (the initial gains and, per session, the command line,
+versions, backend and devices).
 
-Every input is checked before anything is compiled or written; an existing
-checkpoint is never overwritten. An option that would change nothing is an error
-naming what it applies to: ``--learning-rate``, ``--clip-norm`` and ``--anneal-start``
-with L-BFGS, ``--max-step`` with Adam, ``--cvar-fraction`` with ``--objective mean``,
-``--validate-every`` without validation draws, ``--eval-horizon`` without held-out
-draws, ``--fractional`` for a controller without fractional operators,
-``--eval-switching`` for one without a switching function (the FL), ``--anneal-*``
-for one without a boundary layer. The results are written before the figure; a
-figure that cannot be drawn is a warning.
+Each option is declared once, below, with its default and what it applies to; argv is
+parsed once and every option is checked before anything is compiled or written. An
+option that would change nothing (another method's, the other objective's, validation
+or held-out settings without draws, a law's option for a controller without it) is an
+error naming what it applies to.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import shutil
 import sys
+import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, NamedTuple
 
-from fojax.cli import _tuning, arguments, figures, style
+from fojax import records
+from fojax.cli import arguments, figures, output, style
 from fojax.cli import requirements as requirements_cli
-from fojax.cli import study as study_layer
 
-__all__ = ["build_parser", "main", "parse_args"]
+__all__ = ["METHODS", "OPTIONS", "Run", "build_parser", "main", "parse_args"]
 
-_TERMS = ("position", "attitude", "effort", "chattering")
-"""The weighted-sum cost's terms (``--<term>-weight``; ``mean_terms`` in ``evaluation.json``)."""
+METHODS = ("auto", "adam", "lbfgs", "cma-es", "nelder-mead")
+WEIGHTED, CONSTRAINED = ("mean", "cvar"), ("effort", "tracking")
+TERMS = ("position", "attitude", "effort", "chattering")
+GRADIENT = ("auto", "adam", "lbfgs")
+BUILT_IN_INIT = {"paper": "defaults", "naive": "naive"}
+
+
+class Option(NamedTuple):
+    """One option: its flag, argparse keywords (no default: ``None`` means not given),
+    its default (a value, or a function of the parsed arguments) and what it applies to
+    (``applies(args)``: ``None``, or why it changes nothing)."""
+
+    flag: str
+    kwargs: dict
+    default: Any = None
+    applies: Callable | None = None
+
+    @property
+    def dest(self) -> str:
+        return self.flag[2:].replace("-", "_")
+
+
+def _methods(*names) -> Callable:
+    def applies(a):
+        if a.method not in names:
+            return f"applies to --method {' or '.join(names)} only, not to --method {a.method}"
+
+    return applies
+
+
+def _requirements(a):
+    if a.requirements is None:
+        return "applies with --requirements FILE only (tuning to requirements)"
+
+
+def _weighted(a):
+    if a.requirements is not None or a.objective not in (None, *WEIGHTED):
+        return "applies to the weighted-sum objective only (not with --requirements)"
+
+
+def _every(*checks) -> Callable:
+    return lambda a: next((r for r in (c(a) for c in checks) if r), None)
+
+
+def _law(option: str, name: str) -> Callable:
+    def applies(a):
+        from fojax.controllers import registry
+
+        if name not in registry.controller_options(a.controller):
+            return f"does not apply to {a.controller}, which takes no {option}"
+
+    return applies
+
+
+def _smoothing(a):
+    from fojax.controllers import registry
+
+    if not registry.get_controller_class(a.controller).GAINS.with_role("smoothing"):
+        return f"does not apply to {a.controller}, which has no boundary layer to anneal"
+
+
+_STEPS = {"auto": 30, "adam": 6, "lbfgs": 6, "cma-es": 20, "nelder-mead": 300}
+"""``--steps`` by method: auto, Adam, L-BFGS steps; CMA-ES generations; Nelder-Mead steps."""
+
+count, real, whole = arguments.positive_int, arguments.positive_float, arguments.nonnegative_int
+OPTIONS = (
+    # what is tuned, on which draws
+    Option("--scenario", dict(type=int, required=True, choices=(1, 2, 3))),
+    Option("--controller", dict(required=True, help="a registered controller")),
+    Option("--init", dict(metavar="paper|naive|FILE", help="initial gains: the controller's "
+           "defaults, a knowledge-free guess (positive gains 1, p/q 1.5, orders 0.5), or a "
+           "gains file (paper)"), "paper"),
+    Option("--draws", dict(type=count, help="draws per sample (16; 8 with --requirements)"),
+           lambda a: 8 if a.requirements else 16),
+    Option("--horizon", dict(type=real, help="tuning horizon, s (10)"), 10.0),
+    Option("--dt", dict(type=real, help="step, s (1e-3)"), 1e-3),
+    Option("--seed", dict(type=arguments.seed, help="the draws' seed (0)"), 0),
+    Option("--fields", dict(help="comma-separated gain fields; 'default' (every bounded design "
+           "gain); 'all'"), "default"),
+    Option("--share", dict(choices=("paper", "none"), help="axis sharing (paper)"), "paper"),
+    # the objective
+    Option("--objective", dict(choices=WEIGHTED + CONSTRAINED, help="mean or cvar of the "
+           "weighted-sum cost (mean); with --requirements what is minimised under them: "
+           "effort (default) or tracking"), lambda a: "effort" if a.requirements else "mean"),
+    Option("--cvar-fraction", dict(type=real, help="worst share averaged by cvar (0.25)"), 0.25,
+           lambda a: None if a.objective == "cvar" else "applies to --objective cvar only"),
+    Option("--error", dict(choices=("ise", "itae"), help="tracking error measure (ise)"), "ise",
+           _weighted),
+    *(Option(f"--{t}-weight", dict(type=arguments.nonnegative_float, help=f"({w:g})"), w, _weighted)
+      for t, w in zip(TERMS, (1.0, 1.0, 1e-5, 1e-5), strict=True)),
+    Option("--requirements", dict(type=requirements_cli.requirements_file, metavar="FILE",
+           help="requirement file (TOML or JSON, docs/requirements.md)")),
+    Option("--rotor-limit", dict(type=requirements_cli.thrust_to_weight, metavar="T",
+           help="rotor-limited actuators at thrust-to-weight T (replaces the file's)"),
+           None, _requirements),
+    Option("--outer-steps", dict(type=count, help="multiplier updates (10)"), 10, _requirements),
+    Option("--inner-steps", dict(type=count, help="method steps per multiplier update (10)"), 10,
+           _requirements),
+    Option("--formulation", dict(choices=("mean", "chance"), help="constraint per requirement: "
+           "mean hinge (every draw) or chance (at most 5 %% violating) (mean)"), "mean",
+           _requirements),
+    Option("--margin", dict(type=arguments.nonnegative_float, help="share of each bound a "
+           "draw must beat it by (0.05)"), 0.05, _requirements),
+    # the method
+    Option("--method", dict(choices=METHODS, help="auto: CMA-ES then L-BFGS (default)"), "auto"),
+    Option("--steps", dict(type=count, help="steps (generations for cma-es): auto 30, adam 6, "
+           "lbfgs 6, cma-es 20, nelder-mead 300"), lambda a: _STEPS[a.method],
+           lambda a: "is set by --outer-steps and --inner-steps with --requirements"
+           if a.requirements else None),
+    Option("--seconds", dict(type=real, help="stop after this wall time (none)")),
+    Option("--switch", dict(type=count, help="CMA-ES generations before L-BFGS (8)"), 8,
+           _methods("auto")),
+    Option("--sigma", dict(type=real, help="CMA-ES's initial step (0.5)"), 0.5,
+           _methods("auto", "cma-es")),
+    Option("--popsize", dict(type=count, help="CMA-ES's candidates (4 + 3 ln d)"), None,
+           _methods("auto", "cma-es")),
+    Option("--learning-rate", dict(type=real, help="Adam's step (0.05; 0.1 with "
+           "--requirements)"), lambda a: 0.1 if a.requirements else 0.05, _methods("adam")),
+    Option("--clip-norm", dict(type=real, help="Adam's gradient clip (1)"), 1.0, _methods("adam")),
+    Option("--anneal-start", dict(type=real, help="Adam's first width scale (4)"), 4.0,
+           _every(_methods("adam"), _smoothing)),
+    Option("--anneal-end", dict(type=real, help="the gradient's (last) width scale (1)"), 1.0,
+           _every(_methods("auto", "adam", "lbfgs"), _smoothing)),
+    Option("--max-step", dict(type=real, help="L-BFGS's largest change of a parameter (1)"),
+           1.0, _methods("auto", "lbfgs")),
+    # validation, held-out draws
+    Option("--validation-draws", dict(type=whole, help="draws scoring the answer; the best "
+           "validated gains are returned (32; 0: the last)"), 32),
+    Option("--validate-every", dict(type=count, help="steps between validations (5; with "
+           "--requirements every multiplier update)"),
+           lambda a: a.inner_steps + 1 if a.requirements else 5,
+           lambda a: "applies with validation draws only" if a.validation_draws == 0 else None),
+    Option("--eval-draws", dict(type=whole, help="held-out draws (32; 128 with --requirements; "
+           "0: none)"), lambda a: 128 if a.requirements else 32),
+    Option("--eval-horizon", dict(type=real, help="s (the tuning horizon)"), None,
+           lambda a: "applies with held-out draws only (--eval-draws is 0)"
+           if a.eval_draws == 0 else _weighted(a)),
+    Option("--eval-switching", dict(choices=("sat", "tanh", "sign"), help="the evaluation law "
+           "(sat)"), "sat", _law("switching function", "switching")),
+    # how it computes, where it writes
+    Option("--fractional", dict(choices=("soe", "oustaloup", "gl"), help="fractional method "
+           "(soe)"), "soe", _law("fractional operator", "fractional_method")),
+    Option("--dtype", dict(choices=("float32", "float64"), help="(float32)"), "float32"),
+    Option("--compile", dict(choices=("optimized", "fast"), help="the gradient without LLVM's "
+           "optimisation passes: faster to compile, slower to run (optimized)"), "optimized",
+           _methods(*GRADIENT)),
+    Option("--device-batch", dict(type=count, metavar="N", help="draws per device and call of "
+           "the gradient (the sample)"), None, _methods(*GRADIENT)),
+    Option("--checkpoint-every", dict(type=count, help="steps between checkpoints (10)"), 10),
+    Option("--out", dict(type=arguments.output_directory, required=True, metavar="DIR")),
+)  # fmt: skip
+FLAGS = ("--resume", "--quiet")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="fojax tune",
-        description="Tune a controller's gains by gradient over Monte Carlo draws of a scenario.",
+        prog="fojax tune", description="Tune a controller's gains over Monte Carlo draws."
     )
-    arguments.add_options(parser, *_problem_options(), *_tuner_options(), *_run_options())
-    requirements_cli.add_tune_options(parser)  # --requirements, --rotor-limit, ...
+    for option in OPTIONS:
+        parser.add_argument(option.flag, **option.kwargs)
+    parser.add_argument("--resume", action="store_true", help="continue the run in DIR")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
     arguments.add_runtime_options(parser)
     return parser
 
 
-# fmt: off
-def _problem_options() -> tuple:
-    """What is tuned, on which draws, to which cost."""
-    from fojax import scenarios
+@dataclasses.dataclass
+class Run:
+    """``fojax tune``'s arguments, checked: the objective, the strategy, the budget, the
+    start, the run's fingerprint and what it writes."""
+
+    args: argparse.Namespace
+    objective: Any
+    strategy: Any
+    budget: Any
+    x0: Any
+    init_label: str
+    init_gains: Any
+    fingerprint: dict
+
+
+def parse_args(argv) -> Run:
+    """Parse and check; every error exits with status 2 before anything is compiled or
+    written."""
     from fojax.controllers import registry
-    from fojax.optimize import cost, params
-
-    defaults, count, real = cost.CostConfig(), arguments.positive_int, arguments.positive_float
-    weights = (
-        (f"--{name}-weight", dict(type=arguments.nonnegative_float, default=value,
-                                  help=f"({value:g})"))
-        for name in _TERMS
-        for value in [getattr(defaults, f"{name}_weight")]
-    )
-    return (
-        ("--scenario", dict(type=int, required=True, choices=scenarios.SCENARIO_IDS)),
-        ("--controller", dict(required=True,
-                              help=f"one of {', '.join(registry.controller_names())}")),
-        ("--draws", dict(type=count, default=16,
-                         help="draws per step (16: with --method lbfgs one fixed sample)")),
-        ("--steps", dict(type=count, default=6, help="optimisation steps (6)")),
-        ("--horizon", dict(type=real, default=10.0, help="tuning horizon, s (10)")),
-        ("--dt", arguments.STEP),
-        ("--init", dict(default="paper", metavar="paper|naive|FILE",
-                        help="initial gains: the controller's defaults (paper), a knowledge-free "
-                        "guess (naive: positive gains 1, p/q = 1.5, orders 0.5), or a gains file "
-                        "(paper)")),
-        ("--objective", dict(choices=cost.OBJECTIVES, default=defaults.objective)),
-        ("--cvar-fraction", dict(type=real, help="worst fraction of draws averaged by "
-                                 f"--objective cvar ({defaults.cvar_fraction}; an error with "
-                                 "--objective mean)")),
-        ("--error", dict(choices=cost.ERRORS, default=defaults.error)),
-        *weights,
-        ("--seed", dict(type=arguments.seed, default=0, help="draws' seed (0)")),
-        ("--fields", dict(default="default", help="comma-separated gain fields to tune; "
-                          "'default': every bounded field except the constant and smoothing "
-                          "ones (mu, boundary_layer); 'all': every field")),
-        ("--share", dict(choices=tuple(params.SHARING), default="paper")),
-    )
-
-
-def _tuner_options() -> tuple:
-    """The optimiser: its method and step, annealing, checkpoints and validation."""
-    from fojax.optimize.tuner import TunerConfig
-
-    tuner, real = TunerConfig(), arguments.positive_float
-    return (
-        ("--method", dict(choices=("adam", "lbfgs"), default=tuner.method,
-                          help="adam: fresh minibatches each step; lbfgs: quasi-Newton on one "
-                          f"fixed sample of --draws draws ({tuner.method})")),
-        ("--learning-rate", dict(type=real, help=f"Adam's step ({tuner.learning_rate}; "
-                                 "--method adam only)")),
-        ("--max-step", dict(type=real, help="L-BFGS's largest change of a parameter per step "
-                            f"({tuner.max_step}; --method lbfgs only)")),
-        ("--clip-norm", dict(type=real, help=f"Adam's gradient-norm clip ({tuner.clip_norm}; "
-                             "--method adam only)")),
-        ("--anneal-start", dict(type=real, help="boundary-layer scale of the first step "
-                                f"({tuner.anneal_start}; --method adam only, L-BFGS keeps "
-                                "--anneal-end; controllers with a boundary layer only)")),
-        ("--anneal-end", dict(type=real, help="boundary-layer scale of the last step "
-                              f"({tuner.anneal_end}; controllers with a boundary layer only)")),
-        ("--checkpoint-every", dict(type=arguments.positive_int,
-                                    default=tuner.checkpoint_every)),
-        ("--validation-draws", dict(type=arguments.nonnegative_int,
-                                    default=tuner.validation_draws,
-                                    help="validation draws scoring the start and every "
-                                    "--validate-every steps; the best validated gains are "
-                                    f"returned ({tuner.validation_draws}; 0: no validation, "
-                                    "the last step's gains are returned)")),
-        ("--validate-every", dict(type=arguments.positive_int, help="steps between validations "
-                                  f"({tuner.validate_every}; the last step is always "
-                                  "validated; an error with --validation-draws 0)")),
-    )
-
-
-def _run_options() -> tuple:
-    """How the run computes (operators, dtype, compilation, devices), its held-out
-    evaluation and its output folder."""
-    from fojax import fractional
-    from fojax.controllers import SWITCHING_FUNCTIONS
-
-    return (
-        ("--fractional", dict(choices=fractional.METHODS, help="fractional operator method "
-                              "(soe; controllers with fractional operators only: afonftsmc, "
-                              "fobsmc)")),
-        ("--dtype", dict(choices=("float32", "float64"), default="float32")),
-        ("--compile", dict(choices=("optimized", "fast"), default="optimized",
-                           help="fast: compile the gradient without LLVM's optimisation passes "
-                           "(about 3x faster to compile, about 2x slower per step: for short "
-                           "runs); optimized (default)")),
-        ("--eval-draws", dict(type=arguments.nonnegative_int, default=32,
-                              help="held-out draws (32; 0: none)")),
-        ("--eval-horizon", dict(type=arguments.positive_float, help="s (default: the tuning "
-                                "horizon; an error with --eval-draws 0)")),
-        ("--eval-switching", dict(choices=SWITCHING_FUNCTIONS, help="switching function of "
-                                  "the validation and held-out runs (sat; controllers with a "
-                                  "switching function only: all but fl)")),
-        ("--resume", dict(action="store_true", help="continue the run in DIR")),
-        ("--quiet", dict(action="store_true", help="no progress display")),
-        ("--out", arguments.OUTPUT_FOLDER),
-        ("--device-batch", dict(type=arguments.positive_int, metavar="N",
-                                help="draws of a minibatch each device differentiates in one "
-                                "call (default: the whole minibatch). The steps depend on it "
-                                "(rounding), not on the devices or processes: over P devices, "
-                                "--device-batch DRAWS/P splits each minibatch")),
-    )
-# fmt: on
-
-
-def _options_that_do_not_apply(args) -> str | None:
-    """What is wrong when an option given on the command line would change nothing:
-    one of the other method, the other objective, validation or held-out draws that
-    are not run, or an option the controller's law does not take (None: all apply)."""
-    from fojax.controllers import registry
-
-    method = f"--method {args.method}"
-    given = {
-        "--learning-rate": args.learning_rate,
-        "--clip-norm": args.clip_norm,
-        "--anneal-start": args.anneal_start,
-    }
-    for flag, value in given.items():
-        if value is not None and args.method != "adam":
-            also = " (L-BFGS keeps the boundary-layer scale at --anneal-end)"
-            return (
-                f"{flag} applies to --method adam only, not to {method}"
-                f"{also if flag == '--anneal-start' else ''}; leave it out or add --method adam"
-            )
-    if args.max_step is not None and args.method != "lbfgs":
-        return (
-            f"--max-step applies to --method lbfgs only, not to {method} (Adam's step is "
-            "--learning-rate); leave it out"
-        )
-    if args.cvar_fraction is not None and args.objective != "cvar":
-        return (
-            f"--cvar-fraction applies to --objective cvar only, not to --objective "
-            f"{args.objective}; leave it out or add --objective cvar"
-        )
-    if args.validate_every is not None and args.validation_draws == 0:
-        return "--validate-every applies with validation draws only (--validation-draws is 0)"
-    if args.eval_horizon is not None and args.eval_draws == 0:
-        return "--eval-horizon applies with held-out draws only (--eval-draws is 0)"
-    try:
-        _tuning.check_law_options(args)
-    except ValueError as error:
-        return str(error)
-    cls = registry.get_controller_class(args.controller)
-    if not cls.GAINS.with_role("smoothing"):
-        for flag in ("--anneal-start", "--anneal-end"):
-            if getattr(args, flag[2:].replace("-", "_")) is not None:
-                return (
-                    f"{flag} does not apply to {args.controller}, which has no boundary layer "
-                    "(no gain of role 'smoothing') to anneal; leave it out"
-                )
-    return None
-
-
-def _defaults(args) -> None:
-    """The defaults of the options left out (None in ``args`` until checked)."""
-    from fojax.optimize import cost, tuner
-
-    defaults, config = cost.CostConfig(), tuner.TunerConfig()
-    for name, value in (
-        ("cvar_fraction", defaults.cvar_fraction),
-        ("learning_rate", config.learning_rate),
-        ("max_step", config.max_step),
-        ("clip_norm", config.clip_norm),
-        ("anneal_start", config.anneal_start),
-        ("anneal_end", config.anneal_end),
-        ("validate_every", config.validate_every),
-        ("fractional", "soe"),
-        ("eval_switching", config.validation_switching),
-    ):
-        if getattr(args, name) is None:
-            setattr(args, name, value)
-
-
-def parse_args(argv):
-    """Parse and validate; returns ``(PreparedRun, args)``. Raises ``SystemExit`` with
-    a message on bad input, before anything is compiled or written."""
-    from fojax.controllers import registry
-    from fojax.optimize import params, tuner
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -259,243 +239,399 @@ def parse_args(argv):
         args.controller = registry.get_controller_class(args.controller).name
     except (TypeError, ValueError) as error:
         parser.error(str(error))
-    requirements_cli.check_tune_options(parser, args, argv)  # the other tuner's options
-    if args.requirements is not None:
-        return requirements_cli.prepare_tune(parser, args), args
-    problem_text = _options_that_do_not_apply(args)
-    if problem_text:
-        parser.error(problem_text)
-    _defaults(args)
-    dtype, fields = _tuning.dtype_and_fields(args)
+    if args.method is None:
+        args.method = "auto"
+    if args.requirements is None and args.objective in CONSTRAINED:
+        parser.error(f"--objective {args.objective} applies with --requirements FILE only")
+    if args.requirements is not None and args.objective in WEIGHTED:
+        parser.error(
+            f"--objective {args.objective} is the weighted-sum objective's; with "
+            f"--requirements choose {' or '.join(CONSTRAINED)}"
+        )
+    given = {o.dest for o in OPTIONS if getattr(args, o.dest) is not None}
+    for option in OPTIONS:  # defaults first: an option's check may read another's value
+        if option.dest not in given:
+            default = option.default
+            setattr(args, option.dest, default(args) if callable(default) else default)
+    for option in OPTIONS:
+        reason = option.applies(args) if option.applies and option.dest in given else None
+        if reason:
+            parser.error(f"{option.flag} {reason}; leave it out")
     try:
-        spec, config = _problem_and_tuner(args, fields)
-        params.make_parameter_map(args.controller, fields, args.share)
+        return _build(parser, args)
     except ValueError as error:
         parser.error(str(error))
-    gains, label = _tuning.initial_gains(parser, args, dtype)
-    try:
-        run = tuner.prepare(spec, config, gains, label, args.out, resume=args.resume)
-    except ValueError as error:
-        parser.error(str(error))
-    return run, args
 
 
-def _problem_and_tuner(args, fields):
-    """``(ProblemSpec, TunerConfig)`` of the options; ``ValueError`` on a bad setting."""
-    from fojax.optimize import cost, tuner
+def _build(parser, args) -> Run:
+    """The objective, strategy, budget and fingerprint of checked arguments."""
+    from fojax import optimize
+    from fojax.optimize import strategies as st
 
-    def take(*names) -> dict:
-        return {name: getattr(args, name) for name in names}
-
-    weights = (f"{term}_weight" for term in _TERMS)
-    cost_config = cost.CostConfig(**take("error", *weights, "objective", "cvar_fraction"))
-    spec = _tuning.problem_spec(args, fields, cost=cost_config)
-    config = tuner.TunerConfig(
-        **take("steps", "method", "learning_rate", "max_step", "clip_norm", "anneal_start"),
-        **take("anneal_end", "checkpoint_every", "validation_draws", "validate_every"),
-        validation_switching=args.eval_switching,
+    dtype = _dtype(args)
+    fields = _fields(args)
+    weights = {f"{t}_weight": getattr(args, f"{t}_weight") for t in TERMS}
+    cost = optimize.CostConfig(
+        error=args.error,
+        objective=args.objective if args.objective in WEIGHTED else "mean",
+        cvar_fraction=args.cvar_fraction,
+        **weights,
+    )
+    spec = optimize.ProblemSpec(
+        controller=args.controller,
+        scenario=args.scenario,
+        horizon=args.horizon,
+        dt=args.dt,
+        draws=args.draws,
+        seed=args.seed,
+        cost=cost,
+        fields=fields,
+        share=args.share,
+        fractional=args.fractional,
+        dtype=args.dtype,
+        compile=args.compile,
     )
     if args.eval_horizon is not None:
-        steps = args.eval_horizon / args.dt
-        if abs(steps - round(steps)) > 1e-6 * steps:
-            raise ValueError(
-                f"--eval-horizon ({args.eval_horizon} s) must be a whole number of steps "
-                f"of {args.dt} s"
-            )
-    return spec, config
-
-
-def _evaluate(run, result, args) -> dict:
-    """The held-out cost of the initial and the tuned gains (``evaluation.json``)."""
-    import numpy as np
-
-    from fojax.optimize import problem as problem_lib
-
-    horizon = args.eval_horizon or run.spec.horizon
-    keys = result.problem.heldout_keys(args.eval_draws)
-
-    def score(gains) -> dict:
-        costs = problem_lib.evaluate(
-            run.spec, gains, keys, horizon=horizon, switching=args.eval_switching
+        optimize.ProblemSpec(
+            **{**dataclasses.asdict(spec), "cost": cost, "horizon": args.eval_horizon}
         )
-        terms = np.mean(costs.terms, 0).tolist()
-        return {
-            "mean_cost": float(np.mean(costs.cost)),
-            "std_cost": float(np.std(costs.cost, ddof=1)) if args.eval_draws > 1 else None,
-            "mean_terms": dict(zip(_TERMS, terms, strict=True)),
-            "diverged": int(np.sum(costs.diverged)),
-        }
-
-    gains = {"initial": run.init_gains, "tuned": result.gains}
-    before = {"tuned_gains_from_step": result.best_step}
-    return _tuning.heldout_evaluation(
-        args.eval_draws, horizon, args.eval_switching, score, gains, before
+    gains, label = _initial_gains(parser, args, dtype)
+    reqs, limit = requirements_cli.resolve_requirements(args)
+    args.requirement_set, args.rotor_speed_limit = reqs, limit
+    objective = optimize.Objective(
+        spec,
+        gains,
+        requirements=reqs,
+        target=args.objective if reqs is not None else "cost",
+        rotor_speed_limit=limit,
+        switching=args.eval_switching,
+        mesh=_mesh(),
+        device_batch=args.device_batch,
     )
-
-
-def _record_session(run, command: list[str], device_batch: int | None = None) -> dict:
-    """``run.json``: the initial gains and one provenance entry per session."""
-    path = run.out / "run.json"
-    record = {}
-    if run.resume and path.is_file():
-        try:
-            record = json.loads(path.read_text())
-        except (OSError, ValueError):
-            record = {}
-    record.update(
-        {
-            "controller": run.spec.controller,
-            "init": run.init_label,
-            "init_gains": _tuning.init_record(run.init_gains, run.init_label),
-            "problem": run.fingerprint["problem"],
-            "tuner": run.fingerprint["tuner"],
-        }
-    )
-    session = study_layer.provenance(command)
-    session["device_batch"] = device_batch or run.spec.draws  # draws per device and call
-    record["sessions"] = list(record.get("sessions", [])) + [session]
-    run.out.mkdir(parents=True, exist_ok=True)
-    study_layer.write_json(path, record)
-    return record
-
-
-def _finished_before(run) -> bool:
-    """Whether this is a ``--resume`` of a run whose steps were all done."""
-    meta = run.checkpoint_meta or {}
-    return bool(run.resume) and int(meta.get("step", -1)) >= run.config.steps
-
-
-def _save_tuned_gains(run, record: dict, earlier: str | None) -> None:
-    """Add the run's record to ``gains.json``'s metadata (fojax simulate reads it); a
-    finished run resumed keeps its file as it was (``earlier``)."""
-    path = run.out / "gains.json"
-    if not path.is_file():
-        return
-    if earlier is not None:
-        text = earlier
+    x0 = objective.vector(gains)
+    strategy = _strategy(args, objective.size)
+    if reqs is not None:
+        strategy = st.AugmentedLagrangian(
+            strategy,
+            len(reqs),
+            outer_steps=args.outer_steps,
+            inner_steps=args.inner_steps,
+            formulation=args.formulation,
+            margin=args.margin,
+            allowed_share=0.05 if args.formulation == "chance" else 0.0,
+        )
+        budget = optimize.Budget(steps=strategy.requests, seconds=args.seconds)
     else:
-        document = json.loads(path.read_text())
-        document.setdefault("metadata", {}).update(
-            init_gains=record["init_gains"], provenance=record["sessions"][-1]
-        )
-        text = json.dumps(document, indent=2) + "\n"
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+        budget = optimize.Budget(steps=args.steps, seconds=args.seconds)
+    fingerprint = optimize.describe(
+        objective, strategy, budget, x0, args.validation_draws, args.validate_every
+    )
+    fingerprint["init"] = label
+    optimize.check_resume(args.out, records.canonical(fingerprint), args.resume)
+    return Run(args, objective, strategy, budget, x0, label, gains, fingerprint)
 
 
-def _tuning_problem(run, device_batch=None):
-    """The problem with its draws over every device of every process: per-draw
-    gradients computed where the draws are, gathered, reduced the same way on each
-    process (:class:`fojax.optimize.problem.TuningProblem`'s ``mesh``), so that a run over
-    several processes takes the steps a one-process run takes."""
+def _dtype(args):
+    import jax.numpy as jnp
+
+    arguments.enable_dtype(args.dtype)
+    return jnp.dtype(args.dtype)
+
+
+def _fields(args):
+    from fojax.controllers import registry
+
+    if args.fields == "default":
+        return None
+    if args.fields == "all":
+        return registry.get_controller_class(args.controller).GAINS.names
+    return tuple(f.strip() for f in args.fields.split(",") if f.strip())
+
+
+def _mesh():
     import jax
 
     from fojax import sharding
-    from fojax.optimize import problem
 
-    mesh = sharding.draw_mesh(jax.devices())
-    return problem.TuningProblem(run.spec, run.init_gains, mesh=mesh, device_batch=device_batch)
+    return sharding.draw_mesh(jax.devices())
 
 
-def _private_copy(run):
-    """For processes other than 0: the run writing into a private temporary folder
-    (process 0 writes the outputs), holding a copy of the checkpoint to resume from."""
-    import shutil
-    import tempfile
+def _strategy(args, size: int):
+    """The method's strategy (the inner one with ``--requirements``)."""
+    from fojax.optimize import strategies as st
 
-    from fojax.optimize import tuner
+    width = args.anneal_end
+    lbfgs = st.LBFGS(max_step=args.max_step, width=width)
+    cma = st.CMAES(sigma0=args.sigma, popsize=args.popsize, seed=args.seed)
+    steps = args.inner_steps * args.outer_steps if args.requirements else args.steps
+    if args.method == "adam":
+        anneal = (args.anneal_start, width)
+        sample = "fixed" if args.requirements else "fresh"
+        return st.adam(
+            steps,
+            args.learning_rate,
+            1.0 if args.requirements else 0.1,
+            args.clip_norm,
+            anneal,
+            sample,
+        )
+    return {
+        "auto": st.Chain(cma, lbfgs, args.switch),
+        "lbfgs": lbfgs,
+        "cma-es": cma,
+        "nelder-mead": st.NelderMead(),
+    }[args.method]
 
-    folder = Path(tempfile.mkdtemp(prefix="fojax-tune-"))
-    checkpoint = run.out / tuner.CHECKPOINT
-    if run.resume and checkpoint.is_file():
-        shutil.copy2(checkpoint, folder / tuner.CHECKPOINT)
-    import dataclasses
 
-    return dataclasses.replace(run, out=folder)
+def _initial_gains(parser, args, dtype):
+    """``(gains, label)`` of ``--init``; a bad file is a ``parser.error``."""
+    from fojax.controllers import gains_io, registry
+    from fojax.optimize import params
+
+    if args.init == "paper":
+        return registry.get_controller_class(args.controller).default_gains(dtype), "paper"
+    if args.init == "naive":
+        return params.naive_gains(args.controller, dtype), "naive"
+    try:
+        path = arguments.check_input_file(args.init, "gains file")
+        name, gains, _ = gains_io.load_gains(path, dtype)
+    except ValueError as error:
+        text = str(error)
+        parser.error(f"--init: {text}" if args.init in text else f"--init {args.init}: {text}")
+    if name != args.controller:
+        parser.error(f"--init {args.init} holds gains of {name!r}, not of {args.controller!r}")
+    return gains, str(Path(args.init).resolve())
+
+
+def init_record(gains, label: str) -> dict:
+    """The initial gains' values and their source (the file, ``defaults`` or ``naive``)."""
+    from fojax.cli import study as study_layer
+
+    record = study_layer.gains_record(gains, None if label in BUILT_IN_INIT else label)
+    if label in BUILT_IN_INIT:
+        record["source"] = BUILT_IN_INIT[label]
+    return record
+
+
+# ----------------------------------------------------------------------------- run
 
 
 def main(argv=None) -> int:
-    from fojax.optimize import tuner
+    from fojax import optimize
 
     argv = list(sys.argv[1:] if argv is None else argv)
     runtime = arguments.setup_runtime(argv, "fojax tune")
-    run, args = parse_args(argv)
-    if args.requirements is not None:
-        return requirements_cli.tune_main(run, args, runtime, argv)
+    run = parse_args(argv)
+    args, objective = run.args, run.objective
     lead = runtime["process_index"] == 0
-    if not lead:
-        run = _private_copy(run)
-    record = _record_session(run, ["fojax", "tune", *argv], args.device_batch) if lead else None
-    gains_file = run.out / "gains.json"
-    earlier = gains_file.read_text() if _finished_before(run) and gains_file.is_file() else None
+    out = Path(args.out) if lead else _private_copy(Path(args.out), args.resume)
+    session = output.provenance(["fojax", "tune", *argv])
+    session["device_batch"] = args.device_batch or args.draws
+    record = _record_session(run, out, session) if lead else None
+    earlier = _finished_gains(run, out)
+    if not args.quiet and lead:
+        print(_announce(run), file=sys.stderr, flush=True)
     start = time.perf_counter()
     try:
-        result = tuner.tune(
-            run, progress=not args.quiet and lead, problem=_tuning_problem(run, args.device_batch)
+        result = optimize.run(
+            objective,
+            run.strategy,
+            run.budget,
+            run.x0,
+            validation_draws=args.validation_draws,
+            validate_every=args.validate_every,
+            checkpoint_every=args.checkpoint_every,
+            out=out,
+            fingerprint=run.fingerprint,
+            resume=args.resume,
+            progress=not args.quiet and lead,
         )
     except KeyboardInterrupt:
         return 130
     if not lead:
-        import shutil
-
-        shutil.rmtree(run.out, ignore_errors=True)
+        shutil.rmtree(out, ignore_errors=True)
         return 0
-    _print_result(run, result, runtime, time.perf_counter() - start)
-    _save_tuned_gains(run, record, earlier)
+    print(_summary(run, result, time.perf_counter() - start))
+    _save_gains(run, result, record, earlier)
     files = ["gains.json", "history.csv", "run.json"]
     evaluation = None
     if args.eval_draws > 0:
-        evaluation = _evaluate(run, result, args)
-        evaluation["provenance"] = record["sessions"][-1]
-        study_layer.write_json(args.out / "evaluation.json", evaluation)
+        evaluation = _heldout(run, result, session)
+        output.write_json(out / "evaluation.json", evaluation)
         files.append("evaluation.json")
-        print(
-            f"held-out cost ({evaluation['draws']} draws, {evaluation['horizon_s']:g} s, "
-            f"{evaluation['switching']}): initial {evaluation['initial']['mean_cost']:.5g}, "
-            f"tuned {evaluation['tuned']['mean_cost']:.5g}"
-        )
-    if _draw_convergence(run, result, args, evaluation) is not None:
+    if _figure(run, result, evaluation) is not None:
         files.append("convergence.png (+ .pdf)")
-    print(f"wrote {args.out}/: {', '.join(files)}")
+    print(f"wrote {out}/: {', '.join(files)}")
     return 0
 
 
-def _print_result(run, result, runtime: dict, wall: float) -> None:
-    """The run's steps and final objective, and which gains it returned."""
-    print(
-        f"tuned {run.spec.controller} on scenario {run.spec.scenario}: {result.completed} "
-        f"steps x {run.spec.draws} draws x {run.spec.horizon:g} s, final objective "
-        f"{result.history[-1]['objective']:.5g} ({wall:.0f} s)"
+def _private_copy(out: Path, resume: bool) -> Path:
+    """Processes other than 0 write into a private folder (process 0 writes the outputs),
+    holding a copy of the checkpoint to resume from."""
+    from fojax.optimize import CHECKPOINT
+
+    folder = Path(tempfile.mkdtemp(prefix="fojax-tune-"))
+    if resume and (out / CHECKPOINT).is_file():
+        shutil.copy2(out / CHECKPOINT, folder / CHECKPOINT)
+    return folder
+
+
+def _record_session(run: Run, out: Path, session: dict) -> dict:
+    """``run.json``: the initial gains, the settings and one provenance entry per session."""
+    path = out / "run.json"
+    record = json.loads(path.read_text()) if run.args.resume and path.is_file() else {}
+    record.update(
+        controller=run.args.controller,
+        init=run.init_label,
+        init_gains=init_record(run.init_gains, run.init_label),
+        settings=run.fingerprint,
     )
-    if runtime["process_count"] > 1:
-        print(f"over {runtime['process_count']} processes, {runtime['device_count']} devices")
-    if result.validation is not None:
-        v = result.validation
+    record["sessions"] = list(record.get("sessions", [])) + [session]
+    out.mkdir(parents=True, exist_ok=True)
+    output.write_json(path, record)
+    return record
+
+
+def _finished_gains(run: Run, out: Path) -> str | None:
+    """``gains.json`` as it was when a finished run is resumed (kept as it is)."""
+    path = out / "gains.json"
+    return path.read_text() if run.args.resume and path.is_file() else None
+
+
+def _announce(run: Run) -> str:
+    args, spec = run.args, run.objective.spec
+    what = (
+        "the weighted-sum cost"
+        if args.requirement_set is None
+        else (
+            f"{args.objective} under {len(args.requirement_set)} requirements "
+            f"({', '.join(args.requirement_set.names)})"
+        )
+    )
+    return (
+        f"tuning {spec.controller} on scenario {spec.scenario}: {what}, {args.method}, "
+        f"{spec.draws} draws x {spec.horizon:g} s, {run.objective.size} parameters"
+    )
+
+
+def _summary(run: Run, result, wall: float) -> str:
+    """What the run did and which gains it returned."""
+    args = run.args
+    text = (
+        f"tuned {args.controller} on scenario {args.scenario} ({args.method}): {result.steps} "
+        f"steps, {result.draw_steps:.3g} draw-steps ({wall:.0f} s)"
+    )
+    v = result.validation
+    if v is not None and v["best"] is not None:
         chosen = (
-            "the start's (no step validated better)"
-            if v["best_step"] == 0
-            else (f"step {v['best_step']}'s")
+            "the start's (no answer validated better)"
+            if result.best_step == 0
+            else (f"step {result.best_step}'s")
         )
-        print(
-            f"returned {chosen} gains: validation cost {v['best']:.5g} against "
-            f"{v['initial']:.5g} at the start and {v['final']:.5g} at the last step "
-            f"({v['draws']} validation draws, {v['switching']}, {v['horizon_s']:g} s)"
+        text += (
+            f"\nreturned {chosen} gains: validation {_score(v['best'])} against "
+            f"{_score(v['initial'])} at the start and {_score(v['final'])} at the last "
+            f"step ({v['draws']} validation draws, {v['switching']}, {v['horizon_s']:g} s)"
         )
+    return text
 
 
-def _draw_convergence(run, result, args, evaluation: dict | None):
-    """``convergence.png`` (and ``.pdf``); None (a warning) when it cannot be drawn."""
+def _score(summary: dict | None) -> str:
+    if summary is None:
+        return "n/a"
+    if "yield" in summary:
+        return f"yield {summary['yield']:.1%} ({summary['passed']}/{summary['draws']})"
+    return f"cost {summary['cost']:.5g}"
+
+
+def _save_gains(run: Run, result, record: dict, earlier: str | None) -> None:
+    """``gains.json``: the returned gains and the run's record (a finished run resumed
+    keeps its file as it was)."""
+    from fojax.controllers import gains_io
+
+    path = Path(run.args.out) / "gains.json"
+    if earlier is not None and result.steps == json.loads(earlier)["metadata"].get("steps"):
+        records.atomic_write(path, earlier)
+        return
+    metadata = {
+        "tuned_by": "fojax tune",
+        "method": run.args.method,
+        "init": run.init_label,
+        "steps": result.steps,
+        "selected_step": result.best_step,
+        "selected_by": "validation" if result.validation else "last step",
+        "validation": result.validation,
+        "draw_steps": result.draw_steps,
+        "wall_time_s": result.wall_time_s,
+        "settings": run.fingerprint,
+        "init_gains": record["init_gains"],
+        "provenance": record["sessions"][-1],
+    }
+    if run.args.requirement_set is not None:
+        args = run.args
+        metadata.update(
+            tuned_to="requirements",
+            objective=args.objective,
+            requirements=args.requirement_set.to_dict(),
+            actuators=requirements_cli.actuators_record(args.rotor_speed_limit, args),
+        )
+    gains_io.save_gains(path, run.args.controller, run.objective.gains(result.x), metadata)
+
+
+def _heldout(run: Run, result, session: dict) -> dict:
+    """``evaluation.json``: the initial and the tuned gains on the held-out draws."""
+    import numpy as np
+
+    from fojax.optimize import HELDOUT_OFFSET
+
+    args, objective = run.args, run.objective
+    horizon = args.eval_horizon or objective.spec.horizon
+    keys = objective.keys("heldout", args.eval_draws)
+    document = {
+        "draws": args.eval_draws,
+        "horizon_s": horizon,
+        "switching": args.eval_switching,
+        "draw_indices": f"{HELDOUT_OFFSET} + [0, {args.eval_draws})",
+        "tuned_gains_from_step": result.best_step,
+    }
+    for label, x in (("initial", run.x0), ("tuned", result.x)):
+        _, summary, outputs = objective.evaluate(x, keys, horizon=horizon)
+        if args.requirement_set is None:
+            cost = np.where(
+                outputs.valid, outputs.values[:, 0], objective.spec.cost.divergence_cost
+            )
+            summary = {
+                "mean_cost": float(np.mean(cost)),
+                "std_cost": float(np.std(cost, ddof=1)) if len(cost) > 1 else None,
+                "mean_terms": dict(zip(TERMS, np.mean(outputs.terms, 0).tolist(), strict=True)),
+                "diverged": int(np.sum(~outputs.valid)),
+            }
+        document[label] = summary
+    document["provenance"] = session
+    print(
+        f"held-out ({args.eval_draws} draws, {horizon:g} s, {args.eval_switching}): initial "
+        f"{_held(document['initial'])}, tuned {_held(document['tuned'])}"
+    )
+    return document
+
+
+def _held(summary: dict) -> str:
+    return _score(summary) if "yield" in summary else f"cost {summary['mean_cost']:.5g}"
+
+
+def _figure(run: Run, result, evaluation):
+    """``convergence.png`` (and ``.pdf``); ``None`` (a warning) when it cannot be drawn."""
+    args, spec = run.args, run.objective.spec
+    start = result.validation["initial"] if result.validation else None
     return style.attempt(
         "convergence.png",
         figures.plot_convergence,
-        args.out / "history.csv",
-        args.out / "convergence.png",
+        Path(args.out) / "history.csv",
+        Path(args.out) / "convergence.png",
         evaluation,
-        run.config.clip_norm if run.config.method == "adam" else None,
-        f"fojax tune: {run.spec.controller}, scenario {run.spec.scenario}, "
-        f"{run.spec.draws} draws x {run.spec.horizon:g} s per step, {args.objective} objective",
-        None if result.validation is None else result.validation["initial"],
+        f"fojax tune: {spec.controller}, scenario {spec.scenario}, {args.method}, "
+        f"{spec.draws} draws x {spec.horizon:g} s, {args.objective}",
+        None if start is None else (start.get("cost") if "cost" in start else start["yield"]),
     )
 
 

@@ -1,0 +1,461 @@
+"""The one tuning loop: any strategy on an objective, within a budget, validated,
+checkpointed, with a history and progress.
+
+Each step the strategy asks for a request (:class:`fojax.optimize.objective.Request`),
+the objective evaluates it, the strategy is told. The budget (:class:`Budget`) counts
+steps, evaluated points, simulated draw-steps and seconds; a request that would exceed
+a count is not started.
+
+Validation, so that a run never hands back gains worse than its start: the start (step
+0), every ``validate_every`` steps and the last step, the strategy's answer is scored on
+``validation_draws`` validation draws (disjoint from the tuning and the held-out draws)
+at the evaluation law (:meth:`fojax.optimize.objective.Objective.evaluate`); the run
+returns the best validated answer (the start wins ties), and says which step it came
+from. ``validation_draws=0`` returns the last answer. The start's validation runs in a
+thread beside the first steps (it compiles the evaluation program while the first
+request's program runs); a program a later phase of the strategy needs
+(``strategy.needs()``) is compiled in a thread from the start, beside the first phase.
+
+Checkpoint: every ``checkpoint_every`` steps, at the end and on Ctrl-C, ``DIR/checkpoint.npz``
+holds the strategy's state (a pytree of arrays), the best validated point, the
+counters, the history and the run's fingerprint, written atomically
+(:func:`fojax.records.write_arrays`). A resumed run reloads them and asks the same
+requests, so it ends where the uninterrupted run ends, bit for bit; its record keeps the
+true start's validation. A checkpoint of another fingerprint is refused with the list of
+what differs; nothing is written before every check has passed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from fojax import records
+from fojax.optimize.objective import Objective
+from fojax.optimize.spec import VALIDATION_OFFSET
+
+__all__ = ["CHECKPOINT", "Budget", "Result", "check_resume", "run"]
+
+CHECKPOINT = "checkpoint.npz"
+FORMAT = 3
+COLUMNS = (
+    "step",
+    "loss",
+    "points",
+    "mean_target",
+    "max_target",
+    "grad_norm",
+    "width",
+    "diverged",
+    "bad_gradients",
+    "draw_steps",
+    "wall_time_s",
+    "validation",
+    "best_step",
+)
+"""The columns of every history row (a strategy adds its own after them)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """Limits of a run (``None``: none): steps (requests), evaluations (points),
+    draw_steps (draws x steps simulated), seconds (wall time, checked between steps)."""
+
+    steps: int | None = None
+    evaluations: int | None = None
+    draw_steps: int | None = None
+    seconds: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "evaluations", "draw_steps"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, int | np.integer) or value < 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.seconds is not None and not (math.isfinite(self.seconds) and self.seconds > 0):
+            raise ValueError(f"seconds must be a finite number > 0, got {self.seconds!r}")
+        if all(getattr(self, f.name) is None for f in dataclasses.fields(self)):
+            raise ValueError("a budget needs a limit: steps, evaluations, draw_steps or seconds")
+
+    def allows(self, used: dict, points: int, draw_steps: int) -> bool:
+        """Whether a request of ``points`` and ``draw_steps`` fits after ``used``."""
+        return not (
+            (self.steps is not None and used["steps"] >= self.steps)
+            or (self.evaluations is not None and used["evaluations"] + points > self.evaluations)
+            or (self.draw_steps is not None and used["draw_steps"] + draw_steps > self.draw_steps)
+            or (self.seconds is not None and used["wall_time_s"] >= self.seconds)
+        )
+
+
+class Result(NamedTuple):
+    """x: the returned point ``(d,)`` (the best validated answer; the last one without
+    validation). final_x: the last answer. history: one dict per step. steps: steps
+    done. best_step: the step ``x`` comes from (0: the start). validation: ``{"draws",
+    "switching", "horizon_s", "draw_indices", "initial", "best", "final"}`` (score
+    summaries) or ``None``. draw_steps, wall_time_s: what the run spent (every session).
+    state: the strategy's last state."""
+
+    x: np.ndarray
+    final_x: np.ndarray
+    history: list
+    steps: int
+    best_step: int
+    validation: dict | None
+    draw_steps: int
+    wall_time_s: float
+    state: Any
+
+
+def check_resume(out: str | Path | None, fingerprint: dict, resume: bool) -> dict | None:
+    """Before anything compiles: the checkpoint's header when resuming (``ValueError`` when
+    there is none, or it was written with another fingerprint), else ``None``
+    (``ValueError`` when ``out`` holds a checkpoint: it is never overwritten)."""
+    if out is None:
+        if resume:
+            raise ValueError("resume needs an output directory")
+        return None
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a directory")
+    path = out / CHECKPOINT
+    if not resume:
+        if path.exists():
+            raise ValueError(
+                f"{out} holds the checkpoint of an earlier run ({path}); pass --resume to "
+                "continue it, or choose another --out"
+            )
+        return None
+    if not path.exists():
+        raise ValueError(f"nothing to resume: {path} does not exist")
+    _, header = records.read_arrays(path)
+    records.check(header.get("fingerprint") or {}, fingerprint, str(path), earlier="checkpoint")
+    return header
+
+
+class _Run:
+    """A run's state between steps (what a checkpoint holds) and its validation."""
+
+    def __init__(self, objective, strategy, x0, fingerprint, out, header, validation, progress):
+        self.objective, self.strategy, self.progress = objective, strategy, progress
+        self.out = None if out is None else Path(out)
+        self.fingerprint = fingerprint
+        self.validation_draws, self.validate_every = validation
+        self.state, self.best_x = strategy.init(x0), np.asarray(x0, np.float64)
+        self.used = {"steps": 0, "evaluations": 0, "draw_steps": 0, "wall_time_s": 0.0}
+        self.history: list[dict] = []
+        self.best = {"key": None, "step": 0, "initial": None, "best": None, "final": None}
+        if header is not None:
+            arrays, _ = records.read_arrays(self.out / CHECKPOINT)
+            template = {"state": self.state, "best": self.best_x}
+            leaves, treedef = jax.tree.flatten(template)
+            if len(arrays) != len(leaves) or any(
+                a.shape != np.shape(t) or a.dtype != np.asarray(t).dtype
+                for a, t in zip(arrays, leaves, strict=True)
+            ):
+                raise ValueError(f"{self.out / CHECKPOINT} does not hold this run's state")
+            restored = jax.tree.unflatten(treedef, arrays)
+            self.state, self.best_x = restored["state"], restored["best"]
+            self.used, self.history = header["used"], header["history"]
+            self.best = {
+                **header["validation"],
+                "key": tuple(header["validation"]["key"] or ()) or None,
+            }
+        self.wall_before, self.first_step = self.used["wall_time_s"], self.used["steps"]
+        self.session = time.perf_counter()
+        self.excluded = 0.0
+        self.keys = objective.keys("validation", self.validation_draws) if self.validating else None
+        self._last: dict = {}
+        self._thread: threading.Thread | None = None
+        self._start: dict = {}
+
+    @property
+    def validating(self) -> bool:
+        return self.validation_draws > 0
+
+    def wall(self) -> float:
+        return self.wall_before + time.perf_counter() - self.session - self.excluded
+
+    def score(self, x):
+        """``(key, summary)`` of ``x`` on the validation draws (the last one reused)."""
+        if "x" in self._last and np.array_equal(x, self._last["x"]):
+            return self._last["key"], self._last["summary"]
+        key, summary, _ = self.objective.evaluate(x, self.keys)
+        self._last = {"x": np.array(x), "key": key, "summary": summary}
+        return key, summary
+
+    def start_validation(self, x0) -> None:
+        """The start's validation, in a thread (joined by :meth:`join_start`)."""
+        if not self.validating or self.best["initial"] is not None or self._thread is not None:
+            return
+
+        def validate():
+            try:
+                self._start["score"] = self.objective.evaluate(x0, self.keys)[:2]
+            except BaseException as error:  # re-raised in the main thread
+                self._start["error"] = error
+
+        self._thread = threading.Thread(target=validate, daemon=True)
+        self._thread.start()
+
+    def join_start(self) -> None:
+        if self._thread is None:
+            return
+        self._thread.join()
+        self._thread = None
+        if "error" in self._start:
+            raise self._start["error"]
+        key, summary = self._start["score"]
+        self.best.update(key=key, step=0, initial=summary, best=summary)
+        if self.progress:
+            print(f"  start: validation {_headline(summary)}", file=sys.stderr, flush=True)
+
+    def validate(self, last: bool) -> dict | None:
+        """Validate the answer when due; keep it when it is the best so far."""
+        step = self.used["steps"]
+        if not self.validating or not (last or step % self.validate_every == 0):
+            return None
+        self.join_start()
+        x = self.strategy.answer(self.state)
+        key, summary = self.score(x)
+        if key < self.best["key"]:  # ties keep the earlier
+            self.best.update(key=key, step=step, best=summary)
+            self.best_x = np.array(x)
+        if last:
+            self.best["final"] = summary
+        return summary
+
+    def save(self) -> None:
+        if self.out is None:
+            return
+        used = {**self.used, "wall_time_s": round(self.wall(), 3)}
+        best = {**self.best, "key": list(self.best["key"]) if self.best["key"] else None}
+        header = {
+            "format": FORMAT,
+            "fingerprint": self.fingerprint,
+            "used": used,
+            "history": self.history,
+            "validation": best,
+        }
+        leaves = jax.tree.leaves({"state": self.state, "best": self.best_x})
+        records.write_arrays(self.out / CHECKPOINT, leaves, header)
+        columns = list(dict.fromkeys(k for row in self.history for k in row))
+        records.write_csv(self.out / "history.csv", self.history, columns)
+
+
+def _headline(summary: dict) -> str:
+    if "yield" in summary:
+        return f"yield {summary['yield']:.1%} ({summary['passed']}/{summary['draws']})"
+    return f"cost {summary['cost']:.5g}"
+
+
+def _row(run: _Run, request, evaluation, validation) -> dict:
+    outputs, values = evaluation.outputs, np.asarray(evaluation.values, np.float64)
+    best = int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
+    valid = outputs.valid[best]
+    target = outputs.values[best, :, 0][valid]
+    row = {
+        "step": run.used["steps"],
+        "loss": float(values[best]),
+        "points": int(values.size),
+        "mean_target": float(np.mean(target)) if target.size else math.nan,
+        "max_target": float(np.max(target)) if target.size else math.nan,
+        "grad_norm": None
+        if evaluation.gradient is None
+        else float(np.linalg.norm(evaluation.gradient)),
+        "width": request.width,
+        "diverged": int(np.sum(~outputs.valid)),
+        "bad_gradients": evaluation.bad_gradients,
+        "draw_steps": run.used["draw_steps"],
+        "wall_time_s": round(run.wall(), 3),
+        "validation": None if validation is None else _number(validation),
+        "best_step": run.best["step"] if run.validating else None,
+    }
+    return {**row, **run.strategy.row(run.state)}
+
+
+def _number(summary: dict) -> float:
+    return summary["yield"] if "yield" in summary else summary["cost"]
+
+
+def _warm(objective: Objective, kinds, x0) -> threading.Thread | None:
+    """Compile the programs of ``kinds`` in a thread (a later phase's, beside the first)."""
+    if "gradient" not in kinds:
+        return None
+
+    def compile_gradient():
+        try:
+            objective.warm(x0)
+        except Exception:  # the phase that needs it reports the error itself
+            pass
+
+    thread = threading.Thread(target=compile_gradient, daemon=True)
+    thread.start()
+    return thread
+
+
+def run(
+    objective: Objective,
+    strategy,
+    budget: Budget,
+    x0=None,
+    *,
+    validation_draws: int = 32,
+    validate_every: int = 5,
+    checkpoint_every: int = 10,
+    out: str | Path | None = None,
+    fingerprint: dict | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    callback: Callable[[int, np.ndarray, dict], None] | None = None,
+    stop_after: int | None = None,
+) -> Result:
+    """Run ``strategy`` on ``objective`` from ``x0`` (default the base gains' point)
+    within ``budget`` (module docstring). fingerprint: what the run's numbers depend on
+    (default: the objective's, the strategy's and the budget's settings and the start),
+    checked on ``resume``. callback: ``callback(step, answer, row)`` after each step (its
+    time not counted). stop_after: stop once this many steps are done (an interruption,
+    for tests; the checkpoint is written). With ``out``: ``checkpoint.npz`` and
+    ``history.csv`` there."""
+    for label, value, low in (
+        ("validation_draws", validation_draws, 0),
+        ("validate_every", validate_every, 1),
+        ("checkpoint_every", checkpoint_every, 1),
+    ):
+        if not isinstance(value, int) or isinstance(value, bool) or value < low:
+            raise ValueError(f"{label} must be an integer >= {low}, got {value!r}")
+    x0 = objective.x0 if x0 is None else np.asarray(x0, np.float64)
+    if fingerprint is None:
+        fingerprint = describe(objective, strategy, budget, x0, validation_draws, validate_every)
+    header = check_resume(out, records.canonical(fingerprint), resume)
+    if out is not None:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    state = _Run(
+        objective,
+        strategy,
+        x0,
+        records.canonical(fingerprint),
+        out,
+        header,
+        (validation_draws, validate_every),
+        progress,
+    )
+    needs = strategy.needs()
+    warming = _warm(objective, needs[1:], x0) if state.used["steps"] == 0 else None
+    try:
+        last = math.inf if stop_after is None else stop_after
+        while state.used["steps"] < last:
+            request = strategy.ask(state.state)
+            points = np.atleast_2d(request.points).shape[0]
+            cost = points * objective.spec.draws * objective.spec.steps
+            if not budget.allows({**state.used, "wall_time_s": state.wall()}, points, cost):
+                break
+            evaluation = objective(request)
+            state.state = strategy.tell(state.state, request, evaluation)
+            state.used["steps"] += 1
+            state.used["evaluations"] += points
+            state.used["draw_steps"] += evaluation.draw_steps
+            state.start_validation(x0)
+            done = not _more(budget, state, strategy)
+            validation = state.validate(done)
+            row = _row(state, request, evaluation, validation)
+            state.history.append(row)
+            if progress:
+                _print(row, budget, state)
+            if callback is not None:
+                t0 = time.perf_counter()
+                callback(state.used["steps"], strategy.answer(state.state), row)
+                state.excluded += time.perf_counter() - t0
+            if state.used["steps"] % checkpoint_every == 0 or done:
+                state.save()
+            if done:
+                break
+    except KeyboardInterrupt:
+        state.save()
+        if progress:
+            print(
+                f"\ninterrupted after step {state.used['steps']}; checkpoint written to "
+                f"{state.out}; run again with --resume to continue",
+                file=sys.stderr,
+            )
+        raise
+    finally:
+        if warming is not None:
+            warming.join()
+    state.start_validation(x0)
+    state.join_start()
+    finished = not _more(budget, state, strategy)
+    if finished and state.history and state.validating and state.best["final"] is None:
+        state.validate(True)  # a finished run resumed, or a time budget spent
+        state.save()
+    return _result(state)
+
+
+def _more(budget: Budget, state: _Run, strategy) -> bool:
+    """Whether the budget allows another request like the next one."""
+    request = strategy.ask(state.state)
+    points = np.atleast_2d(request.points).shape[0]
+    spec = state.objective.spec
+    used = {**state.used, "wall_time_s": state.wall()}
+    return budget.allows(used, points, points * spec.draws * spec.steps)
+
+
+def _result(state: _Run) -> Result:
+    final_x = state.strategy.answer(state.state)
+    validation = None
+    if state.validating:
+        validation = {
+            "draws": state.validation_draws,
+            "switching": state.objective.switching,
+            "horizon_s": state.objective.spec.horizon,
+            "draw_indices": f"{VALIDATION_OFFSET} + [0, {state.validation_draws})",
+            **{k: state.best[k] for k in ("initial", "best", "final")},
+            "best_step": state.best["step"],
+        }
+    x = state.best_x if state.validating else final_x
+    best_step = state.best["step"] if state.validating else state.used["steps"]
+    return Result(
+        x,
+        final_x,
+        state.history,
+        state.used["steps"],
+        best_step,
+        validation,
+        state.used["draw_steps"],
+        round(state.wall(), 3),
+        state.state,
+    )
+
+
+def describe(objective, strategy, budget, x0, validation_draws, validate_every) -> dict:
+    """A run's fingerprint: everything its numbers depend on."""
+    return {
+        "format": FORMAT,
+        "objective": objective.describe(),
+        "strategy": strategy.settings(),
+        "budget": dataclasses.asdict(budget),
+        "start": np.asarray(x0, np.float64).tolist(),
+        "validation": {"draws": validation_draws, "every": validate_every},
+    }
+
+
+def _print(row: dict, budget: Budget, state: _Run) -> None:
+    total = budget.steps
+    done = row["step"]
+    per = (row["wall_time_s"] - state.wall_before) / max(done - state.first_step, 1)
+    left = f" (about {per * (total - done):.0f} s left)" if total else ""
+    text = f"  step {done}{f'/{total}' if total else ''}  loss {row['loss']:.4e}"
+    if row["grad_norm"] is not None:
+        text += f"  |grad| {row['grad_norm']:.3e}"
+    if row["diverged"]:
+        text += f"  diverged {row['diverged']}"
+    if row["validation"] is not None:
+        text += f"  validation {row['validation']:.4g} (best: step {state.best['step']})"
+    print(f"{text}  {row['wall_time_s']:.0f} s{left}", file=sys.stderr, flush=True)

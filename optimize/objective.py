@@ -1,0 +1,496 @@
+"""The tuning objective: one controller on one scenario (or a union of scenarios), its
+weighted-sum cost or a requirement set, the draws, the actuators and the precision,
+compiled once; every tuner (:mod:`fojax.optimize.strategies`) and every study calls it.
+
+Draws: the three ranges of :mod:`fojax.optimize.spec` (tuning samples, validation,
+held-out); a union's draw ``i`` is of member ``i % members``.
+
+Laws. Gradients are taken through the *tuning law*: the sliding-mode controllers switch
+with ``tanh(S / (w b))``, ``b`` the gains' boundary layer (the field of role
+``"smoothing"``) and ``w`` the request's width scale. Forward evaluations without a
+width (population methods, validation, held-out draws) run the *evaluation law*
+(``switching``, default ``sat`` with ``b``): the gains are scored as they are used.
+
+Outputs per draw (:class:`Outputs`): ``values[..., 0]`` the target ``f`` (the
+weighted sum ``J`` of :mod:`fojax.optimize.cost`, or with a requirement set its
+``target``: ``effort`` ``E`` or ``tracking`` ``P + A``), ``values[..., 1:]`` the
+normalised violations ``v_j`` of the requirements (:func:`fojax.requirements.violations`,
+``<= 0`` where the draw meets requirement ``j``), the cost terms, the status flags.
+
+A loss turns outputs into one number per point. The weighted-sum objective's own,
+:class:`MeanLoss`, is the mean (or CVaR) of ``J`` with a diverged draw costing
+``divergence_cost``; its gradient is ``sum_i w_i grad J_i`` over the draws whose
+gradient is finite (per-draw gradients: one copy of the parameters per draw in one
+batch-last reverse pass, so a diverged draw cannot poison the others). Another loss
+(the augmented Lagrangian of :mod:`fojax.optimize.strategies`) gives per-draw
+cotangents of the outputs from a forward pass at the same point, then the same
+per-draw reverse pass.
+
+Programs: a *lane* is one point on one draw; a request of ``P`` points on ``n`` draws is
+``P n`` lanes, run in blocks of ``lanes`` per device and call over the mesh (the last
+block padded by repeating its last lane), so a lane's numbers depend on the block size
+only, never on ``P``, ``n`` or the devices. The per-draw gradient runs in blocks of
+``device_batch`` draws per device (default: the whole sample), gathered to every process
+and reduced there the same way, so every mesh takes the same steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fojax import export_cache, observers, plant, scenarios, sharding, simulator
+from fojax import requirements as rq
+from fojax.controllers import registry
+from fojax.optimize import _blocks as blocks
+from fojax.optimize import cost as cost_lib
+from fojax.optimize import params as params_lib
+from fojax.optimize.spec import (
+    COMPILE_MODES,
+    TARGETS,
+    ProblemSpec,
+    checkpoint_interval,
+    draw_keys,
+)
+
+__all__ = ["LANES", "Evaluation", "MeanLoss", "Objective", "Outputs", "Request"]
+
+LANES = 64
+"""Default lanes (point x draw) per device and forward call."""
+
+
+def _covering(scenario: scenarios.Scenario, horizon: float) -> scenarios.Scenario:
+    """The scenario with tables covering at least ``horizon`` (its own length kept when
+    longer: draw ``i`` over a short horizon is the beginning of the same draw)."""
+    return (
+        scenario if horizon <= scenario.horizon else dataclasses.replace(scenario, horizon=horizon)
+    )
+
+
+class Outputs(NamedTuple):
+    """Per-draw outputs, on the host (float64), leading axes ``(..., n)``.
+
+    values: ``(..., n, 1 + R)``: the target ``f`` and the ``R`` violations (non-finite
+    where a draw diverged). terms: ``(..., n, 4)`` ``(P, A, E, C)``. status:
+    ``(..., n)`` int32 flags. metrics: requirement metric name -> ``(..., n)`` (with a
+    requirement set), else ``None``.
+    """
+
+    values: np.ndarray
+    terms: np.ndarray
+    status: np.ndarray
+    metrics: dict | None = None
+
+    @property
+    def valid(self) -> np.ndarray:
+        """``(..., n)`` bool: finite outputs and no divergence flag."""
+        finite = np.all(np.isfinite(self.values), -1)
+        return finite & ((self.status & cost_lib.DIVERGED) == 0)
+
+
+class Request(NamedTuple):
+    """What a strategy asks to have evaluated.
+
+    points: ``(P, d)`` float64 parameter vectors (:meth:`Objective.vector` order).
+    gradient: the loss's gradient at the single point (``P = 1``). sample: the tuning
+    sample's index (0: the fixed sample). width: the tuning law's width scale; ``None``:
+    the evaluation law (forward only). loss: what turns outputs into numbers (``None``:
+    the objective's :class:`MeanLoss`).
+    """
+
+    points: np.ndarray
+    gradient: bool = False
+    sample: int = 0
+    width: float | None = None
+    loss: Any = None
+
+
+class Evaluation(NamedTuple):
+    """values: ``(P,)`` the loss per point. gradient: ``(d,)`` or ``None``. outputs:
+    :class:`Outputs` ``(P, n, ...)``. bad_gradients: draws (not diverged) whose gradient
+    was not finite, left out. draw_steps: draws x steps simulated."""
+
+    values: np.ndarray
+    gradient: np.ndarray | None
+    outputs: Outputs
+    bad_gradients: int
+    draw_steps: int
+
+
+@dataclasses.dataclass(frozen=True)
+class MeanLoss:
+    """The weighted-sum objective: mean (or CVaR, :class:`~fojax.optimize.cost.CostConfig`)
+    of ``J`` over the draws, a diverged draw costing ``divergence_cost``; the gradient is
+    the same weights on the per-draw gradients of ``J`` (``pattern``)."""
+
+    config: cost_lib.CostConfig
+
+    def weights(self, outputs: Outputs) -> tuple[np.ndarray, np.ndarray]:
+        """``(loss (...,), weights (..., n))`` of outputs ``(..., n)``."""
+        cost = np.where(outputs.valid, outputs.values[..., 0], self.config.divergence_cost)
+        n = cost.shape[-1]
+        if self.config.objective == "mean":
+            weights = np.full(cost.shape, 1.0 / n)
+        else:  # the k largest, ties broken by index
+            k = self.config.tail_count(n)
+            order = np.argsort(-cost, axis=-1, kind="stable")[..., :k]
+            weights = np.zeros(cost.shape)
+            np.put_along_axis(weights, order, 1.0 / k, axis=-1)
+        return np.sum(weights * cost, -1), weights
+
+    def values(self, outputs: Outputs) -> np.ndarray:
+        return self.weights(outputs)[0]
+
+    def cotangents(self, outputs: Outputs) -> np.ndarray:
+        """``(n, 1)``: every draw's ``J`` with weight 1 (the weights come after)."""
+        return np.ones(outputs.values.shape[:-1] + (1,))
+
+
+class Objective:
+    """:class:`ProblemSpec` + base gains (+ a requirement set), compiled.
+
+    base_gains: the gains the tuned fields start from and the untuned fields keep
+    (checked by the controller). requirements: a :class:`fojax.requirements.RequirementSet`
+    (violations join the outputs; the loss must then be a constrained one). target: what
+    ``f`` is (:data:`TARGETS`; ``"cost"`` without requirements). scenario: a
+    :class:`fojax.scenarios.Scenario` simulated instead of the spec's (e.g. a nominal
+    run). rotor_speed_limit: ``w_max`` (rad/s) for rotor-limited actuators, ``None``:
+    ideal. switching: the evaluation law. mesh: a :func:`fojax.sharding.draw_mesh`
+    (default one device). device_batch: draws per device and call of the gradient
+    (default: the sample; with a mesh only). lanes: lanes per device and forward call.
+    """
+
+    def __init__(
+        self,
+        spec: ProblemSpec,
+        base_gains: Any,
+        requirements: rq.RequirementSet | None = None,
+        target: str = "cost",
+        scenario: scenarios.Scenario | None = None,
+        rotor_speed_limit: float | None = None,
+        switching: str = "sat",
+        mesh=None,
+        device_batch: int | None = None,
+        lanes: int = LANES,
+    ):
+        if target not in TARGETS or (requirements is None and target != "cost"):
+            raise ValueError(
+                f"target must be one of {TARGETS} ('cost' without requirements), got {target!r}"
+            )
+        if mesh is None and device_batch is not None:
+            raise ValueError(
+                f"device_batch={device_batch!r} applies to draws split over a mesh; pass "
+                "mesh= (e.g. fojax.sharding.draw_mesh()) or leave device_batch out"
+            )
+        self.spec, self.requirements, self.target = spec, requirements, target
+        self.switching, self.rotor_speed_limit = switching, rotor_speed_limit
+        self.dtype = jnp.dtype(spec.dtype)
+        cls = registry.get_controller_class(spec.controller)
+        base_gains = type(base_gains)(*(jnp.asarray(g, self.dtype) for g in base_gains))
+        cls.check_gains(base_gains)
+        self.base_gains = base_gains
+        self.param_map = params_lib.make_parameter_map(spec.controller, spec.fields, spec.share)
+        template = self.param_map.to_params(base_gains, self.dtype)
+        x0, self._unravel = self.param_map.ravel(template)
+        self.size, self.x0 = int(x0.size), np.asarray(x0, np.float64)
+        self.registered = scenario is None
+        self.scenario = spec.scenario_object() if scenario is None else scenario
+        self.members = len(self.scenario.members) if self.scenario.members else 0
+        self.mesh = mesh
+        self.device_batch = device_batch
+        self.lanes = int(lanes)
+        self._widths = cls.GAINS.with_role("smoothing")
+        self.loss = MeanLoss(spec.cost)
+        self._programs: dict = {}
+        self._lock = threading.Lock()
+
+    # -- description, parameters, draws -------------------------------------------
+    @property
+    def count(self) -> int:
+        """Outputs per draw: the target and one violation per requirement."""
+        return 1 + (len(self.requirements) if self.requirements is not None else 0)
+
+    def describe(self) -> dict:
+        """JSON-ready: what the objective's numbers depend on (a run's fingerprint)."""
+        reqs = self.requirements
+        return {
+            "problem": self.spec.as_dict(),
+            "target": self.target,
+            "requirements": None if reqs is None else reqs.to_dict(),
+            "rotor_speed_limit": self.rotor_speed_limit,
+            "evaluation_switching": self.switching,
+            "scenario": "spec" if self.registered else repr(self.scenario)[:200],
+            "lanes": self.lanes,
+            "device_batch": self.device_batch,
+        }
+
+    def vector(self, gains: Any) -> np.ndarray:
+        """``(d,)`` float64 parameters of ``gains``; ``ValueError`` when a field the
+        objective does not tune differs from the base gains (it would be lost)."""
+        tuned = set(self.param_map.names)
+        different = [
+            name
+            for name in self.base_gains._fields
+            if name not in tuned
+            and not np.array_equal(
+                np.asarray(getattr(gains, name), np.float64),
+                np.asarray(getattr(self.base_gains, name), np.float64),
+            )
+        ]
+        if different:
+            raise ValueError(
+                f"untuned fields differ from the objective's base gains: {', '.join(different)}"
+            )
+        params = self.param_map.to_params(gains, self.dtype)
+        return np.asarray(self.param_map.ravel(params)[0], np.float64)
+
+    def gains(self, x) -> Any:
+        """The evaluation gains of ``x`` ``(d,)`` (the base boundary layer)."""
+        return self.param_map.to_gains(self._unravel(jnp.asarray(x, self.dtype)), self.base_gains)
+
+    def keys(self, kind: str, count: int | None = None, first: int = 0) -> np.ndarray:
+        """``(count, 2)`` keys of range ``kind`` of the spec's seed (:func:`draw_keys`)."""
+        return draw_keys(self.spec.seed, kind, self.spec.draws if count is None else count, first)
+
+    def sample(self, index: int, draws: int | None = None) -> np.ndarray:
+        """Tuning sample ``index`` of ``draws`` (default the spec's) draws."""
+        n = self.spec.draws if draws is None else draws
+        return self.keys("tuning", n, index * n)
+
+    # -- the compiled rollouts ------------------------------------------------------
+    def _gains_of(self, x, width):
+        gains = self.param_map.to_gains(self._unravel(x), self.base_gains)
+        return gains._replace(**{w: getattr(self.base_gains, w) * width for w in self._widths})
+
+    def _observer(self, config):
+        cost = cost_lib.CostObserver(self.spec.cost, self.spec.dt)
+        if self.requirements is None:
+            return observers.Chain(cost=cost)
+        metrics = rq.RequirementMetrics.for_requirements(self.requirements, config)
+        return observers.Chain(cost=cost, requirements=metrics)
+
+    def _rollout(self, law: str, horizon: float, scenario, save_every: int):
+        """``run(x (d, L), width, keys (L, 2), member (L,)) -> (values (K, L), terms (4,
+        L), metrics, status (L,))``: one batch-last rollout, one copy of the gains per lane."""
+        spec, dtype = self.spec, self.dtype
+        config = simulator.SimulationConfig(
+            dt=spec.dt,
+            horizon=horizon,
+            save_every=save_every,
+            rotor_speed_limit=self.rotor_speed_limit,
+        )
+        controller, observer = spec.make_controller(law, horizon), self._observer(config)
+        scenario = _covering(scenario, horizon)
+        weights = jnp.asarray(spec.cost.weights, dtype)
+        model = plant.nominal_params(dtype)
+
+        def run(xs, width, keys, member):
+            gains = jax.vmap(self._gains_of, in_axes=(-1, None), out_axes=-1)(xs, width)
+            draws = scenarios.sample_draws(scenario, keys, spec.dt, dtype, member)
+            out = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
+            terms = out.outputs["cost"]
+            f = {"cost": jnp.sum(weights[:, None] * terms, 0), "effort": terms[2]}
+            f["tracking"] = terms[0] + terms[1]
+            metrics = out.outputs.get("requirements")
+            rows = [f[self.target][None]]
+            if metrics is not None:
+                rows.append(rq.violations(self.requirements, metrics))
+            return jnp.concatenate(rows), terms, metrics, out.status
+
+        return run
+
+    def _members(self, count: int) -> np.ndarray:
+        return np.arange(count) % self.members if self.members else np.zeros(count, np.int64)
+
+    def _forward(self, law: str, horizon: float, scenario, registered: bool):
+        """The lanes program of ``law`` at ``horizon``, compiled once (cached)."""
+        key = ("forward", law, horizon, id(scenario) if not registered else None)
+        with self._lock:
+            if key not in self._programs:
+                self._programs[key] = self._lanes_program(law, horizon, scenario, registered)
+        return self._programs[key]
+
+    def _program_key(self, **kind) -> dict:
+        """What a program closes over (its key in :mod:`fojax.export_cache`)."""
+        gains = {k: np.asarray(v).tolist() for k, v in self.base_gains._asdict().items()}
+        return {**self.describe(), "base_gains": gains, **kind}
+
+    def _lanes_program(self, law: str, horizon: float, scenario, registered: bool):
+        """The lanes program (lanes first in and out) over the mesh."""
+        steps = int(round(horizon / self.spec.dt))
+        run = self._rollout(law, horizon, scenario, checkpoint_interval(steps, 100.0))
+
+        def lanes(xs, width, keys, member):  # lanes first in and out
+            values, terms, metrics, status = run(xs.T, width, keys, member)
+            return values.T, terms.T, metrics, status
+
+        mesh = self.mesh or sharding.one_device_mesh()
+        program = sharding.sharded_batch(lanes, mesh, batched=(True, False, True, True))
+        if registered:
+            key = self._program_key(law=law, horizon=horizon, kind="lanes")
+            program = export_cache.reusable(program, "lanes", key)
+        return blocks.FirstCall(program), mesh
+
+    def forward(
+        self,
+        points,
+        keys,
+        width: float | None = None,
+        horizon: float | None = None,
+        scenario: scenarios.Scenario | None = None,
+    ) -> Outputs:
+        """Outputs ``(P, n, ...)`` of ``points`` ``(P, d)`` on the draws ``keys`` ``(n, 2)``
+        (common to the points), at the tuning law with ``width`` or the evaluation law
+        (``None``), at ``horizon`` (default the spec's) on ``scenario`` (default the
+        objective's)."""
+        points = np.atleast_2d(np.asarray(points, np.float64))
+        if points.shape[1] != self.size:
+            raise ValueError(f"points must be (P, {self.size}), got {points.shape}")
+        keys = np.asarray(keys)
+        horizon = self.spec.horizon if horizon is None else float(horizon)
+        registered = scenario is None and self.registered
+        scenario = self.scenario if scenario is None else scenario
+        law = self.switching if width is None else "tanh"
+        program, mesh = self._forward(law, horizon, scenario, registered)
+        count, n = points.shape[0], keys.shape[0]
+        xs = np.repeat(points, n, axis=0)
+        lane_keys, member = np.tile(keys, (count, 1)), np.tile(self._members(n), count)
+        width = jnp.asarray(1.0 if width is None else width, self.dtype)
+        out = blocks.in_blocks(
+            program, mesh, self.lanes, (xs, lane_keys, member), width, self.dtype
+        )
+        values, terms, metrics, status = out
+        shape = (count, n)
+        metrics = None if metrics is None else {k: v.reshape(shape) for k, v in metrics.items()}
+        return Outputs(
+            values.reshape(shape + (-1,)),
+            terms.reshape(shape + (4,)),
+            status.reshape(shape),
+            metrics,
+        )
+
+    def _gradient(self):
+        """The per-draw gradient program over the mesh (:func:`_over_mesh`), compiled once."""
+        with self._lock:
+            if "gradient" not in self._programs:
+                self._programs["gradient"] = self._gradient_program()
+        return self._programs["gradient"]
+
+    def _gradient_program(self):
+        spec = self.spec
+        run = self._rollout("tanh", spec.horizon, self.scenario, spec.block)
+
+        def per_draw(x, width, keys, member, cotangent):
+            copies = jnp.broadcast_to(x[:, None], x.shape + (keys.shape[0],))
+
+            def outputs(c):
+                values, terms, _, status = run(c, width, keys, member)
+                return values.T, (terms.T, status)
+
+            values, pullback, (terms, status) = jax.vjp(outputs, copies, has_aux=True)
+            (grads,) = pullback(cotangent.astype(values.dtype))
+            return values, terms, status, grads.T
+
+        key = self._program_key(kind="gradient") if self.registered else None
+        return blocks.over_mesh(
+            per_draw,
+            self.mesh or sharding.one_device_mesh(),
+            self.device_batch,
+            COMPILE_MODES[spec.compile],
+            key,
+        )
+
+    def warm(self, x=None) -> None:
+        """Compile the gradient program (an evaluation at ``x``, default the start, with
+        unit cotangents), e.g. in a thread beside a phase that does not need it yet."""
+        x = self.x0 if x is None else np.asarray(x, np.float64)
+        keys = self.sample(0)
+        self._gradient()(
+            jnp.asarray(x, self.dtype),
+            jnp.asarray(1.0, self.dtype),
+            keys,
+            self._members(len(keys)),
+            np.ones((len(keys), self.count), self.dtype),
+        )
+
+    # -- what strategies and the driver call -------------------------------------------
+    def __call__(self, request: Request) -> Evaluation:
+        """Evaluate a strategy's request on its tuning sample."""
+        loss = self.loss if request.loss is None else request.loss
+        keys = self.sample(request.sample)
+        points = np.atleast_2d(np.asarray(request.points, np.float64))
+        draw_steps = points.shape[0] * keys.shape[0] * self.spec.steps
+        if not request.gradient:
+            outputs = self.forward(points, keys, request.width)
+            return Evaluation(np.asarray(loss.values(outputs)), None, outputs, 0, draw_steps)
+        if points.shape[0] != 1 or request.width is None:
+            raise ValueError("a gradient is taken at one point, with the tuning law (a width)")
+        if self.requirements is not None and isinstance(loss, MeanLoss):
+            raise ValueError(
+                "a requirement set is tuned with a constrained loss (an augmented Lagrangian)"
+            )
+        n = keys.shape[0]
+        if isinstance(loss, MeanLoss):
+            cotangent = np.ones((n, 1))
+        else:  # the cotangents need the outputs at the point first
+            cotangent = loss.cotangents(_first(self.forward(points, keys, request.width)))
+            draw_steps *= 2
+        values, terms, status, grads = self._gradient()(
+            jnp.asarray(points[0], self.dtype),
+            jnp.asarray(request.width, self.dtype),
+            keys,
+            self._members(n),
+            np.asarray(cotangent, self.dtype),
+        )
+        outputs = Outputs(values, terms, status)
+        finite = np.all(np.isfinite(grads), -1)
+        usable = finite & outputs.valid
+        weights = loss.weights(outputs)[1] if isinstance(loss, MeanLoss) else np.ones(n)
+        gradient = np.sum(np.where(usable[:, None], grads, 0.0) * weights[:, None], 0)
+        bad = int(np.sum(~finite & outputs.valid))
+        outputs = Outputs(values[None], terms[None], status[None])
+        return Evaluation(np.asarray(loss.values(outputs)), gradient, outputs, bad, draw_steps)
+
+    def score(self, outputs: Outputs) -> tuple[tuple, dict]:
+        """``(key, summary)`` of one point's outputs ``(n, ...)`` at the evaluation law:
+        a smaller key is better. Weighted sum: the mean cost. Requirements: more draws
+        passing every requirement, then fewer failed (draw, requirement) pairs, then the
+        lower mean target over the valid draws."""
+        valid = outputs.valid
+        if self.requirements is None:
+            mean = float(self.loss.values(outputs))
+            return (mean,), {"cost": mean, "diverged": int(np.sum(~valid))}
+        metrics = rq.draw_metrics(outputs.metrics, outputs.status)
+        result = rq.evaluate(self.requirements, metrics, valid=valid)
+        f = outputs.values[..., 0]
+        mean = float(np.mean(f[valid])) if np.any(valid) else math.inf
+        failures = {n: int(k) for n, k in zip(result.names, result.failures, strict=True)}
+        summary = {
+            "passed": int(result.passed),
+            "draws": int(result.draws),
+            "yield": float(result.yield_),
+            "interval": [float(v) for v in result.interval],
+            "most_failed": result.most_failed,
+            "failures": failures,
+            "objective": mean,
+        }
+        return (-result.passed, sum(failures.values()), mean), summary
+
+    def evaluate(self, x, keys, horizon=None, scenario=None) -> tuple[tuple, dict, Outputs]:
+        """:meth:`score` of the point ``x`` ``(d,)`` on ``keys`` at the evaluation law
+        (``horizon``, ``scenario``: as :meth:`forward`), and its outputs ``(n, ...)``."""
+        outputs = _first(self.forward(np.asarray(x)[None], keys, None, horizon, scenario))
+        key, summary = self.score(outputs)
+        return key, summary, outputs
+
+
+def _first(outputs: Outputs) -> Outputs:
+    """The outputs of the first point of ``(P, n, ...)`` outputs."""
+    metrics = None if outputs.metrics is None else {k: v[0] for k, v in outputs.metrics.items()}
+    return Outputs(outputs.values[0], outputs.terms[0], outputs.status[0], metrics)

@@ -1,0 +1,169 @@
+"""A tuning problem's static description: the controller, the scenario, the draws, the
+cost, the tuned fields, the precision (:class:`ProblemSpec`, validated in Python before
+anything is traced), and the three disjoint ranges of draws (:func:`draw_keys`).
+
+Draws (``scenarios.draw_keys(seed, i)``): tuning sample ``k`` of ``n`` draws is indices
+``k n ... (k + 1) n - 1`` (sample 0 is the fixed sample of the sample-average methods,
+``k`` the generation or step of those that take fresh draws); validation draws, which a
+run uses to choose among its own iterates, are ``2^30 + j``; held-out draws, which no
+tuner sees, are ``2^31 + j``. No run reaches the validation range.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from fojax import scenarios, simulator
+from fojax.controllers import registry
+from fojax.optimize import cost as cost_lib
+from fojax.optimize import params as params_lib
+
+__all__ = [
+    "COMPILE_MODES",
+    "DTYPES",
+    "HELDOUT_OFFSET",
+    "TARGETS",
+    "VALIDATION_OFFSET",
+    "ProblemSpec",
+    "checkpoint_interval",
+    "draw_keys",
+]
+
+VALIDATION_OFFSET = 2**30
+HELDOUT_OFFSET = 2**31
+OFFSETS = {"tuning": 0, "validation": VALIDATION_OFFSET, "heldout": HELDOUT_OFFSET}
+DTYPES = ("float32", "float64")
+TARGETS = ("cost", "effort", "tracking")
+"""What ``f`` is: ``cost`` the weighted sum ``J``; ``effort`` ``E``; ``tracking`` ``P + A``."""
+COMPILE_MODES = {"optimized": None, "fast": {"xla_backend_optimization_level": 0}}
+"""``ProblemSpec.compile`` -> XLA options of the gradient program (``fast``: without
+LLVM's optimisation passes: several times faster to compile, slower to run)."""
+
+
+def draw_keys(seed: int, kind: str, count: int, first: int = 0) -> np.ndarray:
+    """Keys ``(count, 2)`` of draws ``first ... first + count - 1`` of range ``kind``
+    (``"tuning"``, ``"validation"`` or ``"heldout"``) of ``seed``."""
+    indices = OFFSETS[kind] + first + np.arange(count)
+    return np.asarray(scenarios.draw_keys(seed, indices))
+
+
+def checkpoint_interval(steps: int, target: float | None = None) -> int:
+    """Steps per checkpointed block of the reverse pass: the divisor of ``steps`` nearest
+    ``target`` (default ``0.75 sqrt(steps)``: memory ``(steps / L) c + L r`` for blocks
+    of ``L`` steps is least at ``L = sqrt(steps c / r)``; for the AFONFTSMC the carry
+    ``c`` is about 0.55 of one step's residuals ``r``, measured with
+    ``experiments/tune_memory.py``), so memory grows like the square root of the horizon."""
+    target = 0.75 * math.sqrt(steps) if target is None else target
+    return simulator.divisor_near(steps, target)
+
+
+@dataclasses.dataclass(frozen=True)
+class ProblemSpec:
+    """Everything that fixes an objective's draws and cost (validated on construction).
+
+    controller: registry name. scenario: 1, 2 or 3, or a tuple of them (their union).
+    horizon, dt: s. draws: draws per sample. seed: the draws' seed. cost:
+    :class:`fojax.optimize.cost.CostConfig`. fields: tuned gain fields (``None``:
+    :func:`fojax.optimize.params.default_fields`). share: axis sharing
+    (:data:`fojax.optimize.params.SHARING`). fractional: fractional method (controllers
+    with fractional operators; the others take only ``"soe"``). dtype: ``"float32"`` or
+    ``"float64"``. save_every: steps per checkpointed block of the reverse pass (``None``:
+    :func:`checkpoint_interval`). compile: ``"optimized"`` or ``"fast"``
+    (:data:`COMPILE_MODES`, the gradient program).
+    """
+
+    controller: str = "afonftsmc"
+    scenario: int | tuple[int, ...] = 2
+    horizon: float = 10.0
+    dt: float = 1e-3
+    draws: int = 16
+    seed: int = 0
+    cost: cost_lib.CostConfig = cost_lib.CostConfig()
+    fields: tuple[str, ...] | None = None
+    share: str = "paper"
+    fractional: str = "soe"
+    dtype: str = "float32"
+    save_every: int | None = None
+    compile: str = "optimized"
+
+    def __post_init__(self) -> None:
+        registry.get_controller_class(self.controller)
+        ids = self.scenario if isinstance(self.scenario, tuple | list) else (self.scenario,)
+        if not ids:
+            raise ValueError("scenario must name at least one scenario")
+        for i in ids:
+            scenarios.get_scenario(i)
+        if isinstance(self.scenario, list):
+            object.__setattr__(self, "scenario", tuple(self.scenario))
+        if self.compile not in COMPILE_MODES:
+            raise ValueError(
+                f"compile must be one of {', '.join(COMPILE_MODES)}, got {self.compile!r}"
+            )
+        for label in ("horizon", "dt"):
+            value = getattr(self, label)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
+        steps = self.horizon / self.dt
+        if abs(steps - round(steps)) > 1e-6 * steps or round(steps) < 1:
+            raise ValueError(
+                f"the horizon ({self.horizon} s) must be a whole, positive number of steps "
+                f"of {self.dt} s"
+            )
+        for label, low in (("draws", 1), ("seed", 0)):
+            value = getattr(self, label)
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise ValueError(f"{label} must be an integer >= {low}, got {value!r}")
+        if self.dtype not in DTYPES:
+            raise ValueError(f"dtype must be one of {DTYPES}, got {self.dtype!r}")
+        if self.save_every is not None and (
+            not isinstance(self.save_every, int)
+            or self.save_every < 1
+            or self.steps % self.save_every
+        ):
+            raise ValueError(
+                f"save_every must be a positive divisor of the {self.steps} steps, got "
+                f"{self.save_every!r}"
+            )
+        if self.fields is not None:
+            object.__setattr__(self, "fields", tuple(self.fields))
+        params_lib.make_parameter_map(self.controller, self.fields, self.share)  # validates
+        if "fractional_method" not in registry.controller_options(self.controller):
+            if self.fractional != "soe":
+                raise ValueError(
+                    f"fractional={self.fractional!r} does not apply to {self.controller}, "
+                    "which has no fractional operator; leave fractional at its default 'soe'"
+                )
+        self.make_controller("tanh", self.horizon)  # validates the fractional method
+
+    @property
+    def steps(self) -> int:
+        return int(round(self.horizon / self.dt))
+
+    @property
+    def block(self) -> int:
+        return self.save_every or checkpoint_interval(self.steps)
+
+    def scenario_object(self) -> scenarios.Scenario:
+        """The scenario (a union for several), its tables covering the horizon."""
+        ids = self.scenario if isinstance(self.scenario, tuple) else (self.scenario,)
+        found = [scenarios.get_scenario(i) for i in ids]
+        return found[0] if len(found) == 1 else scenarios.union(*found)
+
+    def make_controller(self, switching: str, horizon: float):
+        """The controller over ``horizon`` with ``switching`` and the fractional method,
+        each where the controller has one (the FL has neither)."""
+        options = dict(dt=self.dt, horizon=horizon, fractional_method=self.fractional)
+        options["switching"] = switching
+        return registry.make_controller(
+            self.controller, **registry.options_for(self.controller, options)
+        )
+
+    def as_dict(self) -> dict:
+        """JSON-ready description (part of every run's fingerprint)."""
+        out = dataclasses.asdict(self)
+        pmap = params_lib.make_parameter_map(self.controller, self.fields, self.share)
+        out["fields"], out["save_every"] = list(pmap.names), self.block
+        return out

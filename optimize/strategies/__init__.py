@@ -1,0 +1,37 @@
+"""Tuning strategies: one interface for every optimiser of the engine.
+
+A strategy is a static object (settled before anything runs) with pure functions on a
+state that is a dict of NumPy arrays of fixed shapes (checkpointed as it is, so a
+resumed run continues exactly), in the style of optax's transformations:
+
+``init(x0 (d,)) -> state``
+    The state before the first request.
+``ask(state) -> Request``
+    What to evaluate next (:class:`fojax.optimize.objective.Request`: points, whether a
+    gradient is needed, which tuning sample, which law, which loss).
+``tell(state, request, evaluation) -> state``
+    Consume the evaluation of that request.
+``answer(state) -> (d,)``
+    The current best guess (what the driver validates).
+``restart(state) -> state``
+    The loss changed (an outer iteration of :class:`AugmentedLagrangian`): forget what
+    depended on it.
+``settings() -> dict``
+    JSON-ready description (part of a run's fingerprint).
+``row(state) -> dict``
+    What the strategy adds to the run's history after a request.
+``needs() -> tuple``
+    The programs it will ask for, in order (``"forward"``, ``"gradient"``).
+
+Gradient strategies (:mod:`._gradient`): :class:`Optax` (any optax transformation;
+:func:`adam` is fojax's setting) and :class:`LBFGS`. Population strategies
+(:mod:`._population`): :class:`CMAES` and :class:`NelderMead`. Compositions
+(:mod:`._compose`): :class:`Chain` (one strategy hands its answer to the next) and
+:class:`AugmentedLagrangian` (requirements as constraints around any strategy).
+"""
+
+from fojax.optimize.strategies._compose import AugmentedLagrangian, Chain
+from fojax.optimize.strategies._gradient import LBFGS, Optax, adam
+from fojax.optimize.strategies._population import CMAES, NelderMead
+
+__all__ = ["CMAES", "LBFGS", "AugmentedLagrangian", "Chain", "NelderMead", "Optax", "adam"]

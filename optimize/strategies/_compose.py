@@ -1,0 +1,303 @@
+"""Strategies built from strategies: a chain, and the augmented Lagrangian.
+
+:class:`Chain` runs ``first`` for ``switch`` requests, then starts ``second`` from
+``first``'s answer: a population search that hands its best to a gradient polish.
+
+:class:`AugmentedLagrangian` tunes to requirements with any inner strategy. Draw ``i``
+of a sample of ``n`` has a target ``f_i`` and normalised violations ``v_ij`` (``<= 0``
+where it meets requirement ``j``). With ``F = mean_i f_i / f_0`` (over the valid draws;
+``f_0`` the start's mean) and one constraint ``c_j <= 0`` per requirement, the loss the
+inner strategy minimises is the augmented Lagrangian of the inequality constraints
+(Nocedal & Wright, Sec. 17.4, the Rockafellar form)::
+
+    L(x; lam, rho) = F + sum_j (max(0, lam_j + rho c_j)^2 - lam_j^2) / (2 rho)
+
+for ``inner_steps`` requests, then (after measuring ``c`` at the inner answer on the
+fixed sample, evaluation law) ``lam_j <- max(0, lam_j + rho c_j)`` and ``rho <- growth
+rho`` (capped at ``penalty_max``) when the largest violation did not fall below a
+quarter of the previous one; the inner strategy is restarted (:meth:`restart`) on the
+new loss. Two choices of ``c_j``:
+
+* ``formulation="mean"``: ``c_j = mean_i max(v_ij + m, 0)`` (``m`` the margin): zero
+  exactly when every draw meets requirement ``j`` with margin ``m`` (an exact penalty:
+  a finite multiplier makes the minimiser feasible; a squared hinge needs ``lam -> inf``
+  and was measured to stop short of the constraint);
+* ``formulation="chance"``: ``c_j = mean_i sigmoid((v_ij + m) / T) - alpha``, a smooth
+  share of draws violating ``j``, at most ``alpha``.
+
+A diverged draw (non-finite outputs, status ``nonfinite`` or ``tilt_limit``) counts as a
+full violation (its ``c_j`` term is 1) and adds nothing to ``F`` or the gradient.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from fojax.optimize.objective import Outputs, Request
+
+__all__ = ["FORMULATIONS", "AlmLoss", "AugmentedLagrangian", "Chain"]
+
+FORMULATIONS = ("mean", "chance")
+
+
+@dataclasses.dataclass(frozen=True)
+class Chain:
+    """``first`` for ``switch`` requests, then ``second`` from ``first``'s answer."""
+
+    first: Any
+    second: Any
+    switch: int
+    name: str = "chain"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.switch, int) or self.switch < 1:
+            raise ValueError(f"switch must be a positive integer, got {self.switch!r}")
+
+    def _active(self, state):
+        return (
+            (self.first, state["first"])
+            if int(state["phase"]) == 0
+            else (self.second, state["second"])
+        )
+
+    def init(self, x0) -> dict:
+        return {
+            "phase": np.asarray(0),
+            "count": np.asarray(0),
+            "first": self.first.init(x0),
+            "second": self.second.init(x0),
+        }
+
+    def ask(self, state) -> Request:
+        strategy, inner = self._active(state)
+        return strategy.ask(inner)
+
+    def tell(self, state, request, evaluation) -> dict:
+        state = dict(state)
+        state["told"] = np.asarray(state["phase"])
+        if int(state["phase"]) == 1:
+            state["second"] = self.second.tell(state["second"], request, evaluation)
+            return state
+        state["first"] = self.first.tell(state["first"], request, evaluation)
+        state["count"] = state["count"] + 1
+        if int(state["count"]) >= self.switch:
+            state["phase"] = np.asarray(1)
+            state["second"] = self.second.init(self.first.answer(state["first"]))
+        return state
+
+    def answer(self, state) -> np.ndarray:
+        strategy, inner = self._active(state)
+        return strategy.answer(inner)
+
+    def restart(self, state) -> dict:
+        key = "first" if int(state["phase"]) == 0 else "second"
+        strategy, inner = self._active(state)
+        return {**state, key: strategy.restart(inner)}
+
+    def settings(self) -> dict:
+        return {
+            "name": self.name,
+            "switch": self.switch,
+            "first": self.first.settings(),
+            "second": self.second.settings(),
+        }
+
+    def row(self, state) -> dict:
+        """The row of the strategy that took the last request."""
+        told = int(state["told"])
+        strategy, inner = (
+            (self.first, state["first"]) if told == 0 else (self.second, state["second"])
+        )
+        return {"phase": strategy.name, **strategy.row(inner)}
+
+    def needs(self) -> tuple:
+        return tuple(dict.fromkeys(self.first.needs() + self.second.needs()))
+
+
+@dataclasses.dataclass(frozen=True)
+class AlmLoss:
+    """The augmented Lagrangian (module docstring) at multipliers ``lam`` ``(R,)``,
+    penalty ``rho`` and scale ``f_0``, as a loss of the objective's outputs."""
+
+    lam: np.ndarray
+    rho: float
+    scale: float
+    formulation: str = "mean"
+    margin: float = 0.05
+    temperature: float = 0.1
+    allowed_share: float = 0.0
+
+    def parts(self, outputs: Outputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(F (...,), c (..., R), per-draw constraint terms (..., n, R))``."""
+        valid = outputs.valid
+        f = np.where(valid, outputs.values[..., 0], 0.0)
+        F = np.sum(f, -1) / np.maximum(np.sum(valid, -1), 1) / self.scale
+        shifted = np.where(valid[..., None], outputs.values[..., 1:], 0.0) + self.margin
+        if self.formulation == "mean":
+            per_draw = np.maximum(shifted, 0.0)
+        else:
+            per_draw = 1.0 / (1.0 + np.exp(-shifted / self.temperature))
+        per_draw = np.where(valid[..., None], per_draw, 1.0)
+        share = self.allowed_share if self.formulation == "chance" else 0.0
+        return F, np.mean(per_draw, -2) - share, per_draw
+
+    def values(self, outputs: Outputs) -> np.ndarray:
+        F, c, _ = self.parts(outputs)
+        shifted = np.maximum(0.0, self.lam + self.rho * c)
+        return F + np.sum(shifted**2 - self.lam**2, -1) / (2.0 * self.rho)
+
+    def cotangents(self, outputs: Outputs) -> np.ndarray:
+        """``(n, 1 + R)``: the derivatives of ``L`` by each draw's outputs (0 for a draw
+        that is not valid)."""
+        valid = outputs.valid
+        n = valid.shape[-1]
+        _, c, per_draw = self.parts(outputs)
+        dL_dc = np.maximum(0.0, self.lam + self.rho * c)
+        shifted = outputs.values[..., 1:] + self.margin
+        if self.formulation == "mean":
+            slope = (shifted > 0).astype(np.float64)
+        else:
+            slope = per_draw * (1 - per_draw) / self.temperature
+        cot = np.empty(outputs.values.shape)
+        cot[..., 0] = valid / max(int(np.sum(valid)), 1) / self.scale
+        cot[..., 1:] = valid[..., None] * slope * dL_dc / n
+        return np.where(np.isfinite(cot), cot, 0.0)
+
+
+_SCALE, _INNER, _MEASURE = range(3)
+
+
+@dataclasses.dataclass(frozen=True)
+class AugmentedLagrangian:
+    """Requirements as constraints around ``inner`` (module docstring). requirements:
+    ``R``. outer_steps: multiplier updates. inner_steps: inner requests per outer step.
+    penalty, penalty_growth, penalty_max: ``rho`` at the start, its growth, its cap.
+    formulation, margin, temperature, allowed_share: ``c_j`` (:class:`AlmLoss`)."""
+
+    inner: Any
+    requirements: int
+    outer_steps: int = 6
+    inner_steps: int = 10
+    penalty: float = 10.0
+    penalty_growth: float = 2.0
+    penalty_max: float = 1e3
+    formulation: str = "mean"
+    margin: float = 0.05
+    temperature: float = 0.1
+    allowed_share: float = 0.0
+    name: str = "augmented-lagrangian"
+
+    def __post_init__(self) -> None:
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"formulation must be one of {FORMULATIONS}, got {self.formulation!r}")
+        for label in ("outer_steps", "inner_steps", "requirements"):
+            value = getattr(self, label)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{label} must be a positive integer, got {value!r}")
+        for label in ("penalty", "penalty_max", "temperature"):
+            value = getattr(self, label)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
+        if not self.penalty_growth >= 1:
+            raise ValueError(f"penalty_growth must be >= 1, got {self.penalty_growth!r}")
+        if not (math.isfinite(self.margin) and self.margin >= 0):
+            raise ValueError(f"margin must be a finite number >= 0, got {self.margin!r}")
+        if not 0 <= self.allowed_share < 1:
+            raise ValueError(f"allowed_share must be in [0, 1), got {self.allowed_share!r}")
+        if self.formulation == "chance" and self.allowed_share == 0:
+            raise ValueError(
+                "the chance surrogate needs allowed_share > 0 (its sigmoid is > 0 on every "
+                "draw, so a zero share can never be met); e.g. allowed_share=0.05, or use "
+                "formulation='mean' to require every draw"
+            )
+
+    @property
+    def requests(self) -> int:
+        """Requests of a whole run: the scale, then per outer step the inner requests and
+        one measurement."""
+        return 1 + self.outer_steps * (self.inner_steps + 1)
+
+    def loss(self, state) -> AlmLoss:
+        return AlmLoss(
+            np.asarray(state["lam"]),
+            float(state["rho"]),
+            float(state["scale"]),
+            self.formulation,
+            self.margin,
+            self.temperature,
+            self.allowed_share,
+        )
+
+    def init(self, x0) -> dict:
+        zero = np.asarray(0.0)
+        return {
+            "inner": self.inner.init(x0),
+            "lam": np.zeros(self.requirements),
+            "rho": np.asarray(float(self.penalty)),
+            "scale": np.asarray(1.0),
+            "phase": np.asarray(_SCALE),
+            "outer": np.asarray(0),
+            "count": np.asarray(0),
+            "previous": np.asarray(np.inf),
+            "c": np.zeros(self.requirements),
+            "F": zero,
+        }
+
+    def ask(self, state) -> Request:
+        phase = int(state["phase"])
+        if phase == _INNER:
+            return self.inner.ask(state["inner"])._replace(loss=self.loss(state))
+        x = self.inner.answer(state["inner"])
+        return Request(x[None], False, 0, None, self.loss(state))
+
+    def tell(self, state, request, evaluation) -> dict:
+        state, phase = dict(state), int(state["phase"])
+        if phase == _INNER:
+            state["inner"] = self.inner.tell(state["inner"], request, evaluation)
+            state["count"] = state["count"] + 1
+            if int(state["count"]) >= self.inner_steps:
+                state.update(phase=np.asarray(_MEASURE), count=np.asarray(0))
+            return state
+        F, c, _ = self.loss(state).parts(evaluation.outputs)
+        if phase == _SCALE:
+            f0 = float(F[0])  # the scale is 1 here: F is the start's mean target
+            state.update(scale=np.asarray(f0 if f0 > 1e-12 else 1.0), phase=np.asarray(_INNER))
+            return state
+        c = np.asarray(c[0], np.float64)
+        rho = float(state["rho"])
+        worst = float(np.max(np.maximum(c, 0.0)))
+        if worst > 0.25 * float(state["previous"]):
+            rho = min(rho * self.penalty_growth, self.penalty_max)
+        state.update(
+            lam=np.maximum(0.0, state["lam"] + float(state["rho"]) * c), rho=np.asarray(rho)
+        )
+        state.update(previous=np.asarray(worst), c=c, F=np.asarray(float(F[0])))
+        state.update(outer=state["outer"] + 1, phase=np.asarray(_INNER))
+        state["inner"] = self.inner.restart(state["inner"])
+        return state
+
+    def answer(self, state) -> np.ndarray:
+        return self.inner.answer(state["inner"])
+
+    def restart(self, state) -> dict:
+        return {**state, "inner": self.inner.restart(state["inner"])}
+
+    def settings(self) -> dict:
+        out = {k: v for k, v in dataclasses.asdict(self).items() if k != "inner"}
+        return {**out, "inner": self.inner.settings()}
+
+    def row(self, state) -> dict:
+        return {
+            "outer_step": int(state["outer"]),
+            "penalty": float(state["rho"]),
+            "multipliers": np.asarray(state["lam"]).tolist(),
+            "constraints": np.asarray(state["c"]).tolist(),
+            **self.inner.row(state["inner"]),
+        }
+
+    def needs(self) -> tuple:
+        return tuple(dict.fromkeys(("forward",) + self.inner.needs()))

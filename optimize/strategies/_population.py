@@ -1,0 +1,273 @@
+"""Population strategies: CMA-ES and Nelder-Mead, forward evaluations only.
+
+:class:`CMAES` is the (mu/mu_w, lambda)-CMA-ES of Hansen's tutorial (arXiv:1604.00772,
+Table 1 and Algorithm: weighted recombination with active negative weights,
+cumulative step-size adaptation, rank-one and rank-mu covariance updates): each request
+is one generation, its ``popsize`` candidates (default ``4 + floor(3 ln d)``) on one
+tuning sample in one batched call (common random numbers within a generation; a fresh
+sample per generation by default), at the evaluation law unless ``width`` is given.
+The candidates of generation ``g`` come from ``numpy.random.default_rng([seed, g])``,
+so the state holds no generator and a resumed run asks for the same candidates. The
+answer is the distribution mean (the robust choice for a noisy loss).
+
+:class:`NelderMead` is SciPy's Nelder-Mead (``scipy.optimize.minimize(method=
+"Nelder-Mead")`` with the standard coefficients, no bounds), step for step, as ask and
+tell: the initial simplex ``x0 + step e_i``, then one reflection, expansion or
+contraction per request (a shrink asks for ``d`` points at once), on the fixed sample
+(a deterministic sample-average loss, as the simplex method needs). The answer is the
+best vertex.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from fojax.optimize.objective import Request
+
+__all__ = ["CMAES", "NelderMead"]
+
+
+def _check_positive(label: str, value) -> None:
+    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+        raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class CMAES:
+    """sigma0: initial step (in the unconstrained parameters). popsize: candidates per
+    generation (``None``: ``4 + floor(3 ln d)``). seed: the sampling seed. sample:
+    ``"fresh"`` (one tuning sample per generation) or ``"fixed"``. width: the tuning
+    law's width scale, ``None``: the evaluation law."""
+
+    sigma0: float = 0.5
+    popsize: int | None = None
+    seed: int = 0
+    sample: str = "fresh"
+    width: float | None = None
+    name: str = "cma-es"
+
+    def __post_init__(self) -> None:
+        _check_positive("sigma0", self.sigma0)
+        if self.popsize is not None and (not isinstance(self.popsize, int) or self.popsize < 2):
+            raise ValueError(f"popsize must be an integer >= 2, got {self.popsize!r}")
+        if self.sample not in ("fresh", "fixed"):
+            raise ValueError(f"sample must be 'fresh' or 'fixed', got {self.sample!r}")
+
+    def constants(self, d: int) -> dict:
+        """The tutorial's default constants for dimension ``d``."""
+        lam = self.popsize or 4 + int(3 * math.log(d))
+        mu = lam // 2
+        raw = math.log((lam + 1) / 2) - np.log(np.arange(1, lam + 1))
+        positive, negative = raw[:mu], raw[mu:]
+        mueff = positive.sum() ** 2 / np.sum(positive**2)
+        mueff_minus = negative.sum() ** 2 / np.sum(negative**2) if negative.size else 0.0
+        cc = (4 + mueff / d) / (d + 4 + 2 * mueff / d)
+        cs = (mueff + 2) / (d + mueff + 5)
+        c1 = 2 / ((d + 1.3) ** 2 + mueff)
+        cmu = min(1 - c1, 2 * (0.25 + mueff + 1 / mueff - 2) / ((d + 2) ** 2 + mueff))
+        damps = 1 + 2 * max(0.0, math.sqrt((mueff - 1) / (d + 1)) - 1) + cs
+        scale_minus = min(
+            1 + c1 / cmu, 1 + 2 * mueff_minus / (mueff + 2), (1 - c1 - cmu) / (d * cmu)
+        )
+        weights = np.where(
+            raw >= 0, raw / positive.sum(), scale_minus * raw / max(-negative.sum(), 1e-300)
+        )
+        chi = math.sqrt(d) * (1 - 1 / (4 * d) + 1 / (21 * d * d))
+        return dict(
+            lam=lam,
+            mu=mu,
+            weights=weights,
+            mueff=mueff,
+            cc=cc,
+            cs=cs,
+            c1=c1,
+            cmu=cmu,
+            damps=damps,
+            chi=chi,
+        )
+
+    def init(self, x0) -> dict:
+        x0 = np.asarray(x0, np.float64)
+        d = x0.size
+        return {
+            "mean": x0.copy(),
+            "sigma": np.asarray(float(self.sigma0)),
+            "C": np.eye(d),
+            "ps": np.zeros(d),
+            "pc": np.zeros(d),
+            "generation": np.asarray(0),
+        }
+
+    @staticmethod
+    def _eigen(C):
+        values, vectors = np.linalg.eigh((C + C.T) / 2)
+        return vectors, np.sqrt(np.maximum(values, 1e-300))
+
+    def ask(self, state) -> Request:
+        d, generation = state["mean"].size, int(state["generation"])
+        lam = self.constants(d)["lam"]
+        z = np.random.default_rng([self.seed, generation]).standard_normal((lam, d))
+        B, D = self._eigen(state["C"])
+        points = state["mean"] + float(state["sigma"]) * (z * D) @ B.T
+        return Request(points, False, generation if self.sample == "fresh" else 0, self.width)
+
+    def tell(self, state, request, evaluation) -> dict:
+        k = self.constants(state["mean"].size)
+        d, sigma, mean = state["mean"].size, float(state["sigma"]), state["mean"]
+        values = np.where(np.isfinite(evaluation.values), evaluation.values, np.inf)
+        order = np.argsort(values, kind="stable")
+        y = (request.points[order] - mean) / sigma
+        B, D = self._eigen(state["C"])
+        inv_sqrt = (B / D) @ B.T
+        step = k["weights"][: k["mu"]] @ y[: k["mu"]]
+        mean = mean + sigma * step
+        ps = (1 - k["cs"]) * state["ps"] + math.sqrt(k["cs"] * (2 - k["cs"]) * k["mueff"]) * (
+            inv_sqrt @ step
+        )
+        generation = int(state["generation"]) + 1
+        norm = float(np.linalg.norm(ps))
+        hsig = (
+            norm / math.sqrt(1 - (1 - k["cs"]) ** (2 * generation)) < (1.4 + 2 / (d + 1)) * k["chi"]
+        )
+        pc = (1 - k["cc"]) * state["pc"] + hsig * math.sqrt(
+            k["cc"] * (2 - k["cc"]) * k["mueff"]
+        ) * step
+        weights = k["weights"].copy()
+        negative = weights < 0
+        mahalanobis = np.sum((y @ inv_sqrt.T) ** 2, 1)
+        weights[negative] *= d / np.maximum(mahalanobis[negative], 1e-300)
+        delta = (1 - hsig) * k["cc"] * (2 - k["cc"])
+        C = (1 + k["c1"] * delta - k["c1"] - k["cmu"] * k["weights"].sum()) * state["C"]
+        C = C + k["c1"] * np.outer(pc, pc) + k["cmu"] * (y.T * weights) @ y
+        sigma = sigma * math.exp(min(1.0, (k["cs"] / k["damps"]) * (norm / k["chi"] - 1)))
+        return {
+            "mean": mean,
+            "sigma": np.asarray(sigma),
+            "C": (C + C.T) / 2,
+            "ps": ps,
+            "pc": pc,
+            "generation": np.asarray(generation),
+        }
+
+    def answer(self, state) -> np.ndarray:
+        return state["mean"].copy()
+
+    def restart(self, state) -> dict:
+        return state
+
+    def settings(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def row(self, state) -> dict:
+        return {"sigma": float(state["sigma"])}
+
+    def needs(self) -> tuple:
+        return ("forward",)
+
+
+# Nelder-Mead's phases: the trial(s) a state is waiting for.
+_INIT, _REFLECT, _EXPAND, _OUTSIDE, _INSIDE, _SHRINK = range(6)
+_RHO, _CHI, _PSI, _SIGMA = 1.0, 2.0, 0.5, 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class NelderMead:
+    """step: the initial simplex's edge. width: the tuning law's width scale, ``None``:
+    the evaluation law."""
+
+    step: float = 0.5
+    width: float | None = None
+    name: str = "nelder-mead"
+
+    def __post_init__(self) -> None:
+        _check_positive("step", self.step)
+
+    def init(self, x0) -> dict:
+        x0 = np.asarray(x0, np.float64)
+        simplex = x0[None, :] + np.vstack([np.zeros(x0.size), self.step * np.eye(x0.size)])
+        return self._wait(simplex, np.full(x0.size + 1, np.inf), _INIT, simplex, x0, np.inf)
+
+    def ask(self, state) -> Request:
+        return Request(state["pending"][: int(state["count"])], False, 0, self.width)
+
+    def answer(self, state) -> np.ndarray:
+        return state["simplex"][0].copy()
+
+    def restart(self, state) -> dict:
+        s = state
+        return self._wait(
+            s["simplex"], s["values"], _INIT, s["simplex"], s["reflected"], s["reflected_value"]
+        )
+
+    def settings(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def row(self, state) -> dict:
+        return {"best_sample_value": float(state["values"][0])}
+
+    def needs(self) -> tuple:
+        return ("forward",)
+
+    def tell(self, state, request, evaluation) -> dict:
+        sim, fsim = state["simplex"].copy(), state["values"].copy()
+        phase, values = int(state["phase"]), np.asarray(evaluation.values, np.float64)
+        xr, fxr = state["reflected"], float(state["reflected_value"])
+        n = sim.shape[1]
+        xbar = np.add.reduce(sim[:-1], 0) / n
+        shrink = False
+        if phase == _INIT:
+            fsim = values
+        elif phase == _SHRINK:
+            fsim[1:] = values
+        elif phase == _REFLECT:
+            xr, fxr = request.points[0], float(values[0])
+            if fxr < fsim[0]:
+                xe = (1 + _RHO * _CHI) * xbar - _RHO * _CHI * sim[-1]
+                return self._wait(sim, fsim, _EXPAND, xe, xr, fxr)
+            if fxr < fsim[-2]:
+                sim[-1], fsim[-1] = xr, fxr
+            elif fxr < fsim[-1]:
+                xc = (1 + _PSI * _RHO) * xbar - _PSI * _RHO * sim[-1]
+                return self._wait(sim, fsim, _OUTSIDE, xc, xr, fxr)
+            else:
+                xcc = (1 - _PSI) * xbar + _PSI * sim[-1]
+                return self._wait(sim, fsim, _INSIDE, xcc, xr, fxr)
+        elif phase == _EXPAND:
+            better = values[0] < fxr
+            sim[-1], fsim[-1] = (request.points[0], values[0]) if better else (xr, fxr)
+        elif phase == _OUTSIDE:
+            if values[0] <= fxr:
+                sim[-1], fsim[-1] = request.points[0], values[0]
+            else:
+                shrink = True
+        else:  # _INSIDE
+            if values[0] < fsim[-1]:
+                sim[-1], fsim[-1] = request.points[0], values[0]
+            else:
+                shrink = True
+        if shrink:
+            sim[1:] = sim[0] + _SIGMA * (sim[1:] - sim[0])
+            return self._wait(sim, fsim, _SHRINK, sim[1:], xr, fxr)
+        order = np.argsort(fsim)
+        sim, fsim = np.take(sim, order, 0), np.take(fsim, order, 0)
+        xbar = np.add.reduce(sim[:-1], 0) / n
+        return self._wait(sim, fsim, _REFLECT, (1 + _RHO) * xbar - _RHO * sim[-1], xr, fxr)
+
+    @staticmethod
+    def _wait(sim, fsim, phase, points, xr, fxr) -> dict:
+        """The state waiting for ``points`` (kept in a ``(d + 1, d)`` array: fixed shapes)."""
+        points = np.atleast_2d(points)
+        pending = np.zeros_like(sim)
+        pending[: len(points)] = points
+        return {
+            "simplex": sim,
+            "values": np.asarray(fsim, np.float64),
+            "pending": pending,
+            "count": np.asarray(len(points)),
+            "phase": np.asarray(phase),
+            "reflected": np.asarray(xr, np.float64),
+            "reflected_value": np.asarray(float(fxr)),
+        }
