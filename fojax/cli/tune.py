@@ -44,10 +44,10 @@ from typing import Any, NamedTuple
 from fojax import records
 from fojax.cli import arguments, figures, output, style
 from fojax.cli import requirements as requirements_cli
+from fojax.optimize.strategies import DEFAULT_STEPS, METHODS
 
 __all__ = ["METHODS", "OPTIONS", "Run", "build_parser", "main", "parse_args"]
 
-METHODS = ("auto", "adam", "lbfgs", "cma-es", "nelder-mead")
 WEIGHTED, CONSTRAINED = ("mean", "cvar"), ("effort", "tracking")
 TERMS = ("position", "attitude", "effort", "chattering")
 GRADIENT = ("auto", "adam", "lbfgs")
@@ -108,9 +108,6 @@ def _smoothing(a):
         return f"does not apply to {a.controller}, which has no boundary layer to anneal"
 
 
-_STEPS = {"auto": 30, "adam": 6, "lbfgs": 6, "cma-es": 20, "nelder-mead": 300}
-"""``--steps`` by method: auto, Adam, L-BFGS steps; CMA-ES generations; Nelder-Mead steps."""
-
 count, real, whole = arguments.positive_int, arguments.positive_float, arguments.nonnegative_int
 OPTIONS = (
     # what is tuned, on which draws
@@ -153,7 +150,7 @@ OPTIONS = (
     # the method
     Option("--method", dict(choices=METHODS, help="auto: CMA-ES then L-BFGS (default)"), "auto"),
     Option("--steps", dict(type=count, help="steps (generations for cma-es): auto 30, adam 6, "
-           "lbfgs 6, cma-es 20, nelder-mead 300"), lambda a: _STEPS[a.method],
+           "lbfgs 6, cma-es 20, nelder-mead 300"), lambda a: DEFAULT_STEPS[a.method],
            lambda a: "is set by --outer-steps and --inner-steps with --requirements"
            if a.requirements else None),
     Option("--seconds", dict(type=real, help="stop after this wall time (none)")),
@@ -309,7 +306,7 @@ def _build(parser, args) -> Run:
         device_batch=args.device_batch,
     )
     x0 = objective.vector(gains)
-    strategy = _strategy(args, objective.size)
+    strategy = _strategy(args)
     if reqs is not None:
         strategy = st.AugmentedLagrangian(
             strategy,
@@ -356,31 +353,18 @@ def _mesh():
     return sharding.draw_mesh(jax.devices())
 
 
-def _strategy(args, size: int):
+def _strategy(args):
     """The method's strategy (the inner one with ``--requirements``)."""
     from fojax.optimize import strategies as st
 
-    width = args.anneal_end
-    lbfgs = st.LBFGS(max_step=args.max_step, width=width)
-    cma = st.CMAES(sigma0=args.sigma, popsize=args.popsize, seed=args.seed)
     steps = args.inner_steps * args.outer_steps if args.requirements else args.steps
-    if args.method == "adam":
-        anneal = (args.anneal_start, width)
-        sample = "fixed" if args.requirements else "fresh"
-        return st.adam(
-            steps,
-            args.learning_rate,
-            1.0 if args.requirements else 0.1,
-            args.clip_norm,
-            anneal,
-            sample,
-        )
-    return {
-        "auto": st.Chain(cma, lbfgs, args.switch),
-        "lbfgs": lbfgs,
-        "cma-es": cma,
-        "nelder-mead": st.NelderMead(),
-    }[args.method]
+    return st.make(
+        args.method, steps, seed=args.seed, switch=args.switch, sigma=args.sigma,
+        popsize=args.popsize, max_step=args.max_step, width=args.anneal_end,
+        learning_rate=args.learning_rate, final_learning_rate=1.0 if args.requirements else 0.1,
+        clip_norm=args.clip_norm, anneal_start=args.anneal_start,
+        sample="fixed" if args.requirements else "fresh",
+    )  # fmt: skip
 
 
 def _initial_gains(parser, args, dtype):

@@ -28,10 +28,23 @@ Gradient strategies (:mod:`._gradient`): :class:`Optax` (any optax transformatio
 (:mod:`._population`): :class:`CMAES` and :class:`NelderMead`. Compositions
 (:mod:`._compose`): :class:`Chain` (one strategy hands its answer to the next) and
 :class:`AugmentedLagrangian` (requirements as constraints around any strategy).
+:func:`make` builds the named methods of ``fojax tune --method`` (:mod:`._methods`).
 """
 
 from fojax.optimize.strategies._compose import AugmentedLagrangian, Chain
 from fojax.optimize.strategies._gradient import LBFGS, Optax, adam
+from fojax.optimize.strategies._methods import DEFAULT_STEPS, METHODS, make
 from fojax.optimize.strategies._population import CMAES, NelderMead
 
-__all__ = ["CMAES", "LBFGS", "AugmentedLagrangian", "Chain", "NelderMead", "Optax", "adam"]
+__all__ = [
+    "CMAES",
+    "DEFAULT_STEPS",
+    "LBFGS",
+    "METHODS",
+    "AugmentedLagrangian",
+    "Chain",
+    "NelderMead",
+    "Optax",
+    "adam",
+    "make",
+]
