@@ -26,6 +26,7 @@ import numpy as np
 from fojax import fractional
 from fojax.cli import arguments, require_extra, style
 from fojax.cli import study as study_layer
+from fojax.records import atomic_write
 
 EXTRA_MODULES = ("mpmath", "pymittagleffler")
 """What the exact references (:mod:`fojax.cli.references`) need: the ``[experiments]``
@@ -263,7 +264,7 @@ def main(argv=None) -> int:
     results["provenance"] = study_layer.provenance(["fojax", "accuracy", *argv])
     study_layer.write_json(out / "accuracy.json", results)
     table = markdown(results)
-    (out / "accuracy.md").write_text(table)
+    atomic_write(out / "accuracy.md", table)
     print(table)
     written = ["accuracy.json", "accuracy.md"]
     if style.attempt("accuracy.png", plot, results, out / "accuracy.png") is not None:

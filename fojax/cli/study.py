@@ -140,35 +140,17 @@ def _fingerprint(controller, gains, scenario, config, study: Study, dtype, membe
     return monte_carlo.fingerprint(controller, gains, scenario, config, *settings, member=member)
 
 
-def _differences(store: Path, fingerprint: dict | None) -> list[tuple] | None:
-    """``[(field, earlier, now), ...]`` where ``fingerprint`` differs from the one of the
-    draws in ``store`` (``[]``: the same settings; None: nothing stored there)."""
-    from fojax import study as monte_carlo
-    from fojax.study import _store
-
-    manifest = Path(store) / "manifest.json"
-    if fingerprint is None or not manifest.is_file():
-        return None
-    try:
-        stored = json.loads(manifest.read_text())
-    except (OSError, ValueError):
-        return [("manifest.json", "cannot be read", "readable")]
-    if not isinstance(stored, dict) or not isinstance(stored.get("fingerprint"), dict):
-        return [("manifest.json", "no settings", "settings")]
-    earlier = dict(stored["fingerprint"])
-    earlier.setdefault("store_format", 1)
-    current = {"store_format": _store.STORE_FORMAT, **fingerprint}
-    return monte_carlo.fingerprint_differences(earlier, current)
-
-
 def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None:
     """How ``fingerprint`` differs from the one of the draws in ``store``: one line per
     field, naming the option that sets it (``[]``: the same settings; None: nothing
     stored there to compare)."""
-    from fojax.study import _store
+    from fojax import records
+    from fojax.study import manifest_differences
 
-    differences = _differences(store, fingerprint)
-    return None if differences is None else _store.describe_differences(differences, _flag)
+    if fingerprint is None:
+        return None
+    differences = manifest_differences(store, fingerprint)
+    return None if differences is None else records.describe(differences, _flag)
 
 
 def _mesh():
@@ -239,13 +221,15 @@ def check_stores(study: Study, out: Path, union: UnionMember | None = None) -> N
     holds draws of a run with other settings (before anything is compiled). The draw
     count, ``--keep``, the devices and the processes may differ: a longer run extends
     the stored one. ``union``: the study runs as a member of it (:func:`plan_unions`)."""
+    from fojax.study import manifest_differences
+
     _, scenario, config, dtype, runs = _prepared(study, union)
     member = None if union is None else union.member
     problems = []
     for name, (controller, gains) in runs.items():
         store = Path(out) / "chunks" / name
         fingerprint = _fingerprint(controller, gains, scenario, config, study, dtype, member)
-        differences = _differences(store, fingerprint)
+        differences = manifest_differences(store, fingerprint)
         if differences:
             problems.append((store, differences))
     if problems:

@@ -9,11 +9,16 @@
   thread); for a union of scenarios (:func:`fojax.scenarios.union`) one compiled
   function serves every member (``run(..., member=i)``);
 * :class:`ChunkStore`: one file per finished range of draws, keyed by
-  :func:`fingerprint`; :class:`StoreMismatch` names the settings that differ;
+  :func:`fingerprint`; :class:`StoreMismatch` names the settings that differ,
+  :func:`manifest_differences` lists them before anything runs
+  (:func:`fingerprint_differences`, :func:`describe_differences`: those of
+  :mod:`fojax.records`);
 * :func:`summarize`, :func:`metric_table`, :func:`status_counts`: per-metric means and
   95 % intervals over the valid draws (:mod:`fojax.statistics`).
 """
 
+from fojax.records import describe as describe_differences
+from fojax.records import differences as fingerprint_differences
 from fojax.study._run import (
     DEVICE_BATCH,
     DIVERGED,
@@ -32,12 +37,7 @@ from fojax.study._run import (
     numeric_xla_flags,
     run,
 )
-from fojax.study._store import (
-    ChunkStore,
-    StoreMismatch,
-    describe_differences,
-    fingerprint_differences,
-)
+from fojax.study._store import ChunkStore, StoreMismatch, manifest_differences
 from fojax.study._summary import metric_table, status_counts, summarize
 
 __all__ = [
@@ -59,6 +59,7 @@ __all__ = [
     "fingerprint",
     "fingerprint_differences",
     "make_chunk_runner",
+    "manifest_differences",
     "metric_table",
     "numeric_xla_flags",
     "run",

@@ -31,7 +31,6 @@ shared file system.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import os
 import sys
@@ -44,8 +43,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import _source, metrics, plant, scenarios, sharding, simulator
+from fojax import metrics, plant, scenarios, sharding, simulator
 from fojax.controllers.cascade import as_controller
+from fojax.records import code_digest as code_version
 from fojax.study._dispatch import (
     DIVERGED,
     MAX_DRAWS,
@@ -284,14 +284,6 @@ def numeric_xla_flags(flags: str | None = None) -> list[str]:
     return sorted(kept)
 
 
-@functools.lru_cache(maxsize=1)
-def code_version() -> str:
-    """A hash of the library's source (every ``fojax/**/*.py``): draws stored by other
-    code are not reused, as a change of a default (a fractional operator's modes, a
-    plant constant) changes the numbers without changing any setting."""
-    return _source.digest(Path(__file__).resolve().parents[1])
-
-
 def fingerprint(
     controller,
     gains,
@@ -310,7 +302,8 @@ def fingerprint(
     With the settings of the rollout: the block size ``device_batch`` (default
     :func:`default_device_batch`), the platform ``backend`` (``cpu``, ``gpu``, ...;
     default JAX's) and the ``XLA_FLAGS`` that change arithmetic
-    (:func:`numeric_xla_flags`), and the library's code (:func:`code_version`). Not in
+    (:func:`numeric_xla_flags`), and the library's code (``code_version``:
+    :func:`fojax.records.code_digest`, so draws stored by other code are not reused). Not in
     it, since they do not change a draw's numbers: the draw count, ``keep``, the
     devices and processes.
 
