@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import fractional
+from fojax import fractional, settings
 from fojax.cli import arguments, require_extra, style
 from fojax.cli import study as study_layer
 from fojax.records import atomic_write
@@ -256,7 +256,7 @@ def main(argv=None) -> int:
             f"--horizon / --dt is {steps} steps; at most {MAX_STEPS} (the full-memory "
             "reference costs steps^2): use a shorter --horizon or a larger --dt"
         )
-    jax.config.update("jax_enable_x64", True)
+    settings.enable_float64()
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     print(f"fractional accuracy: {args.horizon:g} s at dt = {args.dt:g} s (float64)", flush=True)

@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from fojax.cli.output import provenance, write_json
+from fojax.settings import Settings
+from fojax.settings import read as read_settings
 from fojax.study import StoreMismatch
 
 __all__ = [
@@ -253,16 +255,12 @@ class UnionMember(NamedTuple):
     member: int
 
 
-def union_enabled() -> bool:
+def union_enabled(settings: Settings | None = None) -> bool:
     """Whether :func:`run_studies` runs studies that differ only in their scenario and
     horizon as members of one union of scenarios (``FOJAX_UNION``, default 1; 0: each
-    study on its own scenario, one compiled program per study and controller)."""
-    text = os.environ.get("FOJAX_UNION", "").strip().lower()
-    if text in ("", "1", "true", "yes", "on"):
-        return True
-    if text in ("0", "false", "no", "off"):
-        return False
-    raise ValueError(f"FOJAX_UNION must be 0 or 1, got {text!r}")
+    study on its own scenario, one compiled program per study and controller);
+    ``settings``: default read now (:func:`fojax.settings.read`)."""
+    return (settings or read_settings()).union
 
 
 def _union_key(study: Study):
@@ -286,7 +284,7 @@ def _union_key(study: Study):
     )
 
 
-def plan_unions(studies: list[Study]) -> list[UnionMember | None]:
+def plan_unions(studies: list[Study], settings: Settings | None = None) -> list[UnionMember | None]:
     """For each study, the union it runs in, or None (alone).
 
     Studies with the same settings but their scenario and horizon (:func:`_union_key`)
@@ -301,7 +299,7 @@ def plan_unions(studies: list[Study]) -> list[UnionMember | None]:
     from fojax import scenarios, simulator
 
     plans: list[UnionMember | None] = [None] * len(studies)
-    if not union_enabled():
+    if not union_enabled(settings):
         return plans
     groups: dict = {}
     for index, study in enumerate(studies):
@@ -363,31 +361,11 @@ def _agreed(unions: list[UnionMember | None]) -> list[UnionMember | None]:
 # --------------------------------------------------------------------- running studies
 
 
-def compile_threads() -> int:
+def compile_threads(settings: Settings | None = None) -> int:
     """Threads compiling the runs' programs while earlier runs compute
-    (``FOJAX_COMPILE_THREADS``, default :func:`default_compile_threads`; 0: each
-    compiled when its run starts)."""
-    text = os.environ.get("FOJAX_COMPILE_THREADS", "").strip()
-    if not text:
-        return default_compile_threads()
-    try:
-        value = int(text)
-    except ValueError:
-        raise ValueError(f"FOJAX_COMPILE_THREADS must be an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise ValueError(f"FOJAX_COMPILE_THREADS must be an integer >= 0, got {value}")
-    return value
-
-
-def default_compile_threads() -> int:
-    """One compiling thread per core, at most 4. XLA compiles a program on one thread;
-    the runs' programs are independent, so they compile side by side (measured on 2
-    cores: docs/performance.md, "fojax reproduce")."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return max(1, min(4, cores))
+    (``FOJAX_COMPILE_THREADS``, default one per core, at most 4; 0: each compiled when
+    its run starts): :attr:`fojax.settings.Settings.threads`."""
+    return (settings or read_settings()).threads
 
 
 class _Job:
@@ -474,10 +452,10 @@ class _Job:
         )
 
 
-def _jobs(studies: list[tuple[Study, Path]], overwrite: bool) -> list[_Job]:
+def _jobs(studies: list[tuple[Study, Path]], overwrite: bool, settings=None) -> list[_Job]:
     """Every (study, controller) run, in order, each study alone or in its union
     (:func:`plan_unions`), after checking (or, with ``overwrite``, discarding) the stores."""
-    unions = plan_unions([study for study, _ in studies])
+    unions = plan_unions([study for study, _ in studies], settings)
     for index, (study, out) in enumerate(studies):
         chunks = Path(out) / "chunks"
         if overwrite and chunks.exists():
@@ -505,6 +483,7 @@ def run_studies(
     overwrite: bool = False,
     threads: int | None = None,
     announce=None,
+    settings: Settings | None = None,
 ):
     """Run several studies, each (study, output folder), controller after controller;
     yields ``(study, {name: result})`` as each study finishes.
@@ -518,12 +497,14 @@ def run_studies(
     so that each controller's runs share one program; a study whose folder holds draws
     of an earlier run alone continues that run alone. Each study's results are those
     of its scenario (its metrics, its horizon's snapshots).
-    ``announce(study)`` is called before a study's first run.
+    ``announce(study)`` is called before a study's first run. ``settings``: the
+    process's (:func:`fojax.settings.read`; default read now).
     """
     import concurrent.futures
 
-    threads = compile_threads() if threads is None else threads
-    jobs = _jobs(studies, overwrite)
+    settings = settings or read_settings()
+    threads = compile_threads(settings) if threads is None else threads
+    jobs = _jobs(studies, overwrite, settings)
     pending = [job.pending() for job in jobs]
     compiled: dict = {}
     executor = concurrent.futures.ThreadPoolExecutor(threads) if threads > 0 else None
@@ -563,15 +544,18 @@ def run_studies(
             executor.shutdown(wait=False, cancel_futures=True)
 
 
-def run_study(study: Study, out: Path, progress: bool = True, overwrite: bool = False) -> dict:
+def run_study(
+    study: Study, out: Path, progress: bool = True, overwrite: bool = False, settings=None
+) -> dict:
     """Run every controller of ``study`` on the same draws; returns the results by name.
 
     Draws go to ``out/chunks/<controller>``; a run started again with the same
     settings continues from them, one with more draws extends them. Raises
     :class:`StoreMismatch` (a ValueError) naming the fields that differ when they hold
     a run with other settings (unless ``overwrite``: then they are discarded).
+    ``settings``: :func:`run_studies`'.
     """
-    runs = run_studies([(study, out)], progress, overwrite)
+    runs = run_studies([(study, out)], progress, overwrite, settings=settings)
     try:
         return next(runs)[1]
     finally:

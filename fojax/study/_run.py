@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fojax import metrics, plant, scenarios, sharding, simulator
+from fojax import settings as process_settings
 from fojax.controllers.cascade import as_controller
 from fojax.records import code_digest as code_version
 from fojax.study._dispatch import (
@@ -272,9 +273,9 @@ def compile_chunk_runner(
 
 
 def numeric_xla_flags(flags: str | None = None) -> list[str]:
-    """The ``XLA_FLAGS`` (default: the environment's) that can change a program's
-    arithmetic: all but the host device count and dump options."""
-    flags = os.environ.get("XLA_FLAGS", "") if flags is None else flags
+    """The ``XLA_FLAGS`` (default: the process's, :func:`fojax.settings.read`) that can
+    change a program's arithmetic: all but the host device count and dump options."""
+    flags = process_settings.read().xla_flags if flags is None else flags
     kept = []
     for flag in flags.split():
         name = flag.lstrip("-").split("=")[0]
