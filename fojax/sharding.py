@@ -42,6 +42,7 @@ __all__ = [
     "draw_mesh",
     "draw_sharding",
     "check_coordinator_address",
+    "default_mesh",
     "detect_cluster",
     "distributed_settings",
     "one_device_mesh",
@@ -272,6 +273,12 @@ def draw_mesh(devices: Sequence[Any] | None = None) -> Mesh:
     if not devices:
         raise ValueError("draw_mesh needs at least one device")
     return Mesh(np.array(devices), (DRAW_AXIS,))
+
+
+def default_mesh() -> Mesh | None:
+    """A :func:`draw_mesh` of every device of every process (GPUs, or one CPU device
+    per core: :func:`fojax.settings.use_host_devices`), or None for one device."""
+    return draw_mesh(jax.devices()) if jax.device_count() > 1 else None
 
 
 def one_device_mesh() -> Mesh:

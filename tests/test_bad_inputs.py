@@ -215,7 +215,7 @@ def test_simulate_names_only_the_settings_that_differ(capsys, tmp_path):
     earlier, _ = simulate.parse_args(SIM + ["--switching", "sat", "--out", str(tmp_path)])
     from fojax.study import ChunkStore
 
-    _, scenario, config, dtype, runs = study._prepared(earlier)
+    _, scenario, config, dtype, runs = study.prepare_runs(earlier)
     controller, gains = runs["afonftsmc"]
     fingerprint = study._fingerprint(controller, gains, scenario, config, earlier, dtype)
     store = tmp_path / "chunks" / "afonftsmc"

@@ -77,7 +77,7 @@ def test_with_several_controllers_an_option_applies_to_those_that_take_it(tmp_pa
         "fractional_method": ["afonftsmc", "fobsmc"],
         "switching": ["afonftsmc", "anftsmc", "fobsmc", "bsmc"],
     }
-    runs = study_layer._prepared(study)[-1]
+    runs = study_layer.prepare_runs(study)[-1]
     assert (
         runs["bsmc"][0].law.switching == "sat" and runs["fobsmc"][0].law.fractional_method == "gl"
     )

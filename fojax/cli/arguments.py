@@ -32,6 +32,7 @@ __all__ = [
     "enable_dtype",
     "horizon_steps",
     "input_file",
+    "listed",
     "nonnegative_float",
     "nonnegative_int",
     "output_directory",
@@ -110,7 +111,7 @@ def nonnegative_float(text: str) -> float:
     return _real(text, True, "a finite number >= 0")
 
 
-def _listed(text: str, parse, example: str) -> tuple:
+def listed(text: str, parse, example: str) -> tuple:
     parts = [part.strip() for part in text.split(",")]
     if not text.strip() or any(not part for part in parts):
         raise argparse.ArgumentTypeError(
@@ -129,12 +130,12 @@ def _listed(text: str, parse, example: str) -> tuple:
 
 def positive_ints(text: str) -> tuple[int, ...]:
     """Comma-separated positive integers, e.g. ``1,64,1024``."""
-    return _listed(text, positive_int, "1,64,1024")
+    return listed(text, positive_int, "1,64,1024")
 
 
 def positive_floats(text: str) -> tuple[float, ...]:
     """Comma-separated finite numbers > 0, e.g. ``0.5,2``."""
-    return _listed(text, positive_float, "0.5,2")
+    return listed(text, positive_float, "0.5,2")
 
 
 def scenario_ids(text: str) -> tuple[int, ...]:

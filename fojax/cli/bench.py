@@ -69,7 +69,7 @@ def _horizon(text: str) -> float:
 
 
 def _horizons(text: str) -> tuple[float, ...]:
-    return arguments._listed(text, _horizon, "0.25,1")
+    return arguments.listed(text, _horizon, "0.25,1")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -36,6 +36,7 @@ __all__ = [
     "gains_record",
     "options_applied_to",
     "plan_unions",
+    "prepare_runs",
     "provenance",
     "run_studies",
     "run_study",
@@ -155,16 +156,6 @@ def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None
     return None if differences is None else records.describe(differences, _flag)
 
 
-def _mesh():
-    """Every device of every process (GPUs, or one CPU device per core: see
-    :func:`fojax.cli.arguments.use_host_devices`), or None for one device."""
-    import jax
-
-    from fojax import sharding
-
-    return sharding.draw_mesh(jax.devices()) if jax.device_count() > 1 else None
-
-
 def _scenario(study: Study):
     """The study's scenario, with the study's horizon."""
     from fojax import scenarios
@@ -187,16 +178,17 @@ def options_applied_to(study: Study) -> dict[str, list[str]]:
     return registry.applied_options(study.controllers, _law_options(study))
 
 
-def _prepared(study: Study, union: UnionMember | None = None):
-    """``(mesh, scenario, config, dtype, {name: (controller, gains)})``; with ``union``
-    (:func:`plan_unions`) the union's scenario, and its horizon for the simulation and
-    the controllers."""
+def prepare_runs(study: Study, union: UnionMember | None = None):
+    """What the study runs: ``(mesh, scenario, config, dtype, {name: (controller,
+    gains)})``, the mesh over every device (:func:`fojax.sharding.default_mesh`); with
+    ``union`` (:func:`plan_unions`) the union's scenario, and its horizon for the
+    simulation and the controllers."""
     import jax.numpy as jnp
 
-    from fojax import simulator
+    from fojax import sharding, simulator
     from fojax.controllers import registry
 
-    mesh = _mesh()
+    mesh = sharding.default_mesh()
     scenario = _scenario(study) if union is None else union.scenario
     horizon = study.horizon if union is None else union.scenario.horizon
     config = simulator.SimulationConfig(
@@ -225,7 +217,7 @@ def check_stores(study: Study, out: Path, union: UnionMember | None = None) -> N
     the stored one. ``union``: the study runs as a member of it (:func:`plan_unions`)."""
     from fojax.study import manifest_differences
 
-    _, scenario, config, dtype, runs = _prepared(study, union)
+    _, scenario, config, dtype, runs = prepare_runs(study, union)
     member = None if union is None else union.member
     problems = []
     for name, (controller, gains) in runs.items():
@@ -333,7 +325,7 @@ def _stored_alone(study: Study, out: Path) -> bool:
     chunks = Path(out) / "chunks"
     if not chunks.is_dir():
         return False
-    _, scenario, config, dtype, runs = _prepared(study)
+    _, scenario, config, dtype, runs = prepare_runs(study)
     for name, (controller, gains) in runs.items():
         fingerprint = _fingerprint(controller, gains, scenario, config, study, dtype)
         if store_differences(chunks / name, fingerprint) == []:
@@ -471,7 +463,7 @@ def _jobs(studies: list[tuple[Study, Path]], overwrite: bool, settings=None) -> 
             check_stores(study, out, unions[index])
     jobs = []
     for (study, out), union in zip(studies, unions, strict=True):
-        prepared = _prepared(study, union)
+        prepared = prepare_runs(study, union)
         member = None if union is None else union.member
         jobs.extend(_Job(study, out, name, prepared, member) for name in study.controllers)
     return jobs

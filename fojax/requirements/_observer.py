@@ -20,7 +20,6 @@ derivative of their largest term).
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any, NamedTuple
 
 import jax
@@ -28,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fojax import observers, plant, scenarios, simulator
+from fojax.plant import rotor_speed_limit
 from fojax.requirements._spec import METRICS, RequirementSet
 
 Array = jax.Array
@@ -50,19 +50,6 @@ DIVERGED = observers.NONFINITE | observers.TILT_LIMIT
 SATURATION_TEMPERATURE = 0.02
 SETTLING_WIDTH = 0.1  # of the band
 SETTLING_TEMPERATURE_STEPS = 10.0
-
-
-def rotor_speed_limit(thrust_to_weight: float = 2.0, params: plant.PlantParams | None = None):
-    """``w_max`` (rad/s) at which four rotors give ``thrust_to_weight`` times the weight of
-    ``params`` (default :func:`fojax.plant.nominal_params`: m = 0.74 kg, rho_b = 3e-3
-    N s^2): ``w_max = sqrt(thrust_to_weight m g / (4 rho_b))``, 34.78 rad/s at 2.
-
-    Requirement files ask for rotor-limited actuators by this ratio (docs/model.md)."""
-    if not (isinstance(thrust_to_weight, int | float) and thrust_to_weight > 0):
-        raise ValueError(f"thrust_to_weight must be a number > 0, got {thrust_to_weight!r}")
-    params = plant.nominal_params() if params is None else params
-    weight = float(params.mass) * float(params.gravity)
-    return math.sqrt(thrust_to_weight * weight / (4.0 * float(params.thrust_factor)))
 
 
 def simulation_config(

@@ -1,5 +1,5 @@
 """How :func:`fojax.study.run` runs its plan: the blocks to compute, ``devices`` per
-call of the compiled runner (:class:`_Dispatch`), each call's blocks saved to the
+call of the compiled runner (:class:`Dispatch`), each call's blocks saved to the
 store, the draws assembled in order from the store and the calls, and, in a
 multi-process run, process 0's plan and result sent to the others."""
 
@@ -74,12 +74,12 @@ def _place_member(member: int, mesh):
     return value
 
 
-def _to_compute(segments) -> int:
+def to_compute(segments) -> int:
     """How many draws of the plan are computed (not read from the store)."""
     return sum(b - a for kind, a, b, _ in segments if kind == "compute")
 
 
-def _plan_calls(chunk_store, draws: int, keep: int, batch: int, devices: int, mesh):
+def plan_calls(chunk_store, draws: int, keep: int, batch: int, devices: int, mesh):
     """The plan: ``segments`` (:func:`fojax.study._store.plan`: what is read from the
     store, what is computed) and ``calls``, the blocks to compute, ``devices`` per call
     (process 0's plan in a multi-process run: it alone reads the store)."""
@@ -102,7 +102,7 @@ def _plan_calls(chunk_store, draws: int, keep: int, batch: int, devices: int, me
     return segments, [blocks[i : i + devices] for i in range(0, len(blocks), devices)]
 
 
-class _Dispatch:
+class Dispatch:
     """Runs calls of the compiled runner, one block per device, and keeps each block's
     ``(status, per_draw, snapshots or None)`` in ``computed``."""
 
@@ -152,13 +152,13 @@ class _Dispatch:
         )  # fmt: skip
 
 
-def _result(segments, chunk_store, computed, batch, keep, mesh, call_times):
+def run_result(segments, chunk_store, computed, batch, keep, mesh, call_times):
     """The run's draws in order, read and computed (the same on every process):
     ``(status, per_draw, kept snapshots, computed draws, compile time)``."""
     multi, flat = _multiprocess(mesh), None
     if jax.process_index() == 0 or not multi:
         flat = _assemble(segments, chunk_store, computed, batch, keep)
-        flat["computed"] = np.asarray([_to_compute(segments)], np.int64)
+        flat["computed"] = np.asarray([to_compute(segments)], np.int64)
     if multi:  # the others hold only the computed blocks: process 0 sends the result
         flat = _broadcast_arrays(flat)
     computed_draws = int(flat.pop("computed")[0])
@@ -171,7 +171,7 @@ def _result(segments, chunk_store, computed, batch, keep, mesh, call_times):
     return status, per_draw, kept, computed_draws, compile_time
 
 
-def _save_blocks(chunk_store: ChunkStore, call: list[int], computed: dict, batch: int) -> None:
+def save_blocks(chunk_store: ChunkStore, call: list[int], computed: dict, batch: int) -> None:
     """Store the call's blocks, consecutive ones in one file (indices below 2**32)."""
     runs: list[list[int]] = []
     for k in sorted(set(call)):

@@ -50,11 +50,11 @@ from fojax.records import code_digest as code_version
 from fojax.study._dispatch import (
     DIVERGED,
     MAX_DRAWS,
-    _Dispatch,
-    _plan_calls,
-    _result,
-    _save_blocks,
-    _to_compute,
+    Dispatch,
+    plan_calls,
+    run_result,
+    save_blocks,
+    to_compute,
 )
 from fojax.study._store import ChunkStore, unflatten_snapshot
 
@@ -445,16 +445,16 @@ def run(
     if store is not None and lead:
         fields = (controller, gains, scenario, config, seed, dtype, metrics_config, batch)
         chunk_store = ChunkStore(Path(store), fingerprint(*fields, member=member))
-    segments, calls = _plan_calls(chunk_store, draws, keep, batch, layout["devices"], mesh)
+    segments, calls = plan_calls(chunk_store, draws, keep, batch, layout["devices"], mesh)
     if runner is None and calls:
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
-    dispatch = _Dispatch(runner, gains, scenario, config, seed, batch, keep, mesh, member)
+    dispatch = Dispatch(runner, gains, scenario, config, seed, batch, keep, mesh, member)
     start_time = time.perf_counter()
     report = progress and lead and (lambda *a: dispatch.report(controller.name, *a))
-    done = draws - _to_compute(segments)  # loaded from the store
+    done = draws - to_compute(segments)  # loaded from the store
     call_times = _run_calls(dispatch, calls, chunk_store, done, draws, layout, config, report)
     wall = time.perf_counter() - start_time
-    result = _result(segments, chunk_store, dispatch.computed, batch, keep, mesh, call_times)
+    result = run_result(segments, chunk_store, dispatch.computed, batch, keep, mesh, call_times)
     return _monte_carlo_result(controller.name, result, wall, layout, len(calls), draws)
 
 
@@ -470,7 +470,7 @@ def _check_run(controller, gains, scenario, draws, seed, device_batch, keep, mem
 
 
 def _monte_carlo_result(name, result, wall, layout, calls, draws) -> MonteCarloResult:
-    """The :class:`MonteCarloResult` of :func:`_result`'s ``result`` for ``calls`` calls."""
+    """The :class:`MonteCarloResult` of :func:`run_result`'s ``result`` for ``calls`` calls."""
     status, per_draw, kept, computed, compile_time = result
     return MonteCarloResult(
         controller=name,
@@ -492,7 +492,7 @@ def _run_calls(dispatch, calls, chunk_store, done, draws, layout, config, report
         t0 = time.perf_counter()
         dispatch(call, layout["devices"])
         if chunk_store is not None:
-            _save_blocks(chunk_store, call, dispatch.computed, batch)
+            save_blocks(chunk_store, call, dispatch.computed, batch)
         call_times.append(time.perf_counter() - t0)
         done += sum(max(0, min(batch, draws - k * batch)) for k in call)
         if report:
