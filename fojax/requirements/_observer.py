@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fojax import observers, plant, scenarios, simulator
+from fojax.blocks import EvaluatorCache, evaluate_in_blocks
 from fojax.plant import rotor_speed_limit
 from fojax.requirements._spec import METRICS, RequirementSet
 
@@ -286,27 +287,20 @@ def smooth_share(v: Array, temperature: float = 0.1, margin: float = 0.0) -> Arr
     return jax.nn.sigmoid((v + margin) / temperature)
 
 
-_EVALUATORS: dict = {}
+_EVALUATORS = EvaluatorCache(16)
+"""The compiled evaluations of :func:`measure`, by their settings (at most 16 kept)."""
 
 
 def _evaluator(controller, scenario, config, observer, dtype, model):
-    key = (controller, scenario, config, observer, str(dtype))
-    try:
-        cached = _EVALUATORS.get(key)
-    except TypeError:  # an unhashable controller: compile every time
-        key, cached = None, None
-    if cached is not None:
-        return cached
+    def build():
+        def run(gains, keys):
+            draws = scenarios.sample_draws(scenario, keys, config.dt, dtype)
+            result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
+            return result.outputs, result.status
 
-    def run(gains, keys):
-        draws = scenarios.sample_draws(scenario, keys, config.dt, dtype)
-        result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
-        return result.outputs, result.status
+        return jax.jit(run)
 
-    compiled = jax.jit(run)
-    if key is not None:
-        _EVALUATORS[key] = compiled
-    return compiled
+    return _EVALUATORS.get((controller, scenario, config, observer, str(dtype)), build)
 
 
 def measure(
@@ -321,9 +315,10 @@ def measure(
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Per-draw metrics (name -> ``(draws,)``, canonical units, NaN for diverged draws)
     and status ``(draws,)`` of ``gains`` on the draws ``keys`` (``(draws, 2)``,
-    :func:`fojax.scenarios.draw_keys`), in chunks of ``chunk`` draws (one compilation per
-    setting, cached). ``config``: e.g. :func:`simulation_config`; its
-    ``rotor_speed_limit`` decides the actuators. Forward only."""
+    :func:`fojax.scenarios.draw_keys`), in blocks of ``chunk`` draws (at most the draw
+    count; :func:`fojax.blocks.evaluate_in_blocks`), one compilation per setting
+    (cached). ``config``: e.g. :func:`simulation_config`; its ``rotor_speed_limit``
+    decides the actuators. Forward only."""
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     if scenario.horizon < config.horizon:
         scenario = dataclasses.replace(scenario, horizon=config.horizon)
@@ -332,15 +327,6 @@ def measure(
     run = _evaluator(controller, scenario, config, observer, dtype, model)
     gains = type(gains)(*(jnp.asarray(g, dtype) for g in gains))
     keys = np.asarray(keys)
-    n = keys.shape[0]
-    chunk = max(1, min(chunk, n))
-    parts, statuses = [], []
-    for first in range(0, n, chunk):
-        index = np.minimum(np.arange(first, first + chunk), n - 1)
-        outputs, status = run(gains, jnp.asarray(keys[index]))
-        size = min(chunk, n - first)
-        parts.append({k: np.asarray(v)[:size] for k, v in outputs.items()})
-        statuses.append(np.asarray(status)[:size])
-    outputs = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    status = np.concatenate(statuses)
+    block = max(1, min(chunk, keys.shape[0]))
+    outputs, status = evaluate_in_blocks(run, gains, keys, block=block)
     return draw_metrics(outputs, status), status

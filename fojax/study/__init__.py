@@ -13,10 +13,14 @@
   :func:`manifest_differences` lists them before anything runs
   (:func:`fingerprint_differences`, :func:`describe_differences`: those of
   :mod:`fojax.records`);
+* :func:`evaluate_in_blocks` (:mod:`fojax.blocks`): any per-draw function over many
+  draws in blocks, one per device and call, the same numbers as a direct call;
+  :class:`EvaluatorCache`: compiled evaluators, a bounded number;
 * :func:`summarize`, :func:`metric_table`, :func:`status_counts`: per-metric means and
   95 % intervals over the valid draws (:mod:`fojax.statistics`).
 """
 
+from fojax.blocks import EvaluatorCache, evaluate_in_blocks
 from fojax.records import describe as describe_differences
 from fojax.records import differences as fingerprint_differences
 from fojax.study._run import (
@@ -46,6 +50,7 @@ __all__ = [
     "MAX_SEED",
     "DEVICE_BATCH",
     "ChunkStore",
+    "EvaluatorCache",
     "OTHER_DEVICE_BATCH",
     "MonteCarloResult",
     "StoreMismatch",
@@ -56,6 +61,7 @@ __all__ = [
     "compile_chunk_runner",
     "default_device_batch",
     "describe_differences",
+    "evaluate_in_blocks",
     "fingerprint",
     "fingerprint_differences",
     "make_chunk_runner",

@@ -12,7 +12,7 @@ import time
 import jax
 import numpy as np
 
-from fojax import observers, scenarios, sharding
+from fojax import blocks, observers, scenarios, sharding
 from fojax.study._store import ChunkStore, flatten_snapshot, plan
 
 DIVERGED = observers.NONFINITE | observers.TILT_LIMIT
@@ -27,16 +27,6 @@ def _multiprocess(mesh) -> bool:
     return mesh is not None and any(
         d.process_index != jax.process_index() for d in mesh.devices.flat
     )
-
-
-def _gathered(tree, mesh):
-    """Device outputs as host arrays, every draw on every process."""
-    if _multiprocess(mesh):
-        from jax.experimental import multihost_utils
-
-        sharding.barrier("gather")  # processes may finish compiling far apart
-        return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
-    return jax.tree.map(np.asarray, tree)
 
 
 def _broadcast_bytes(payload: bytes | None) -> bytes:
@@ -58,20 +48,6 @@ def _broadcast_arrays(arrays: dict[str, np.ndarray] | None) -> dict[str, np.ndar
     data = _broadcast_bytes(buffer.getvalue() if jax.process_index() == 0 else None)
     with np.load(io.BytesIO(data)) as loaded:
         return {k: loaded[k] for k in loaded.files}
-
-
-def _place(runner_inputs, mesh):
-    gains, keys = runner_inputs
-    if mesh is not None and mesh.devices.size > 1:
-        return sharding.replicate(gains, mesh), sharding.shard_draws(keys, mesh)
-    return gains, keys
-
-
-def _place_member(member: int, mesh):
-    value = np.asarray(member, np.int32)
-    if mesh is not None and mesh.devices.size > 1:
-        return sharding.replicate(value, mesh)
-    return value
 
 
 def to_compute(segments) -> int:
@@ -117,16 +93,21 @@ class Dispatch:
         self.start_time = time.perf_counter()
         self.per_call = batch
 
+    def _runner(self, shared, keys):
+        """The compiled runner as :func:`fojax.blocks.evaluate_in_blocks` calls it."""
+        gains, *member = shared
+        return self.runner(gains, keys, *member)
+
     def __call__(self, call: list[int], devices: int) -> None:
-        batch, mesh = self.batch, self.mesh
+        batch = self.batch
         self.per_call = batch * devices
-        filled = call + [call[-1]] * (devices - len(call))  # a short last call: repeat
-        indices = np.concatenate([np.arange(k * batch, (k + 1) * batch) for k in filled])
+        indices = np.concatenate([np.arange(k * batch, (k + 1) * batch) for k in call])
         keys = np.asarray(scenarios.draw_keys(self.seed, np.minimum(indices, MAX_DRAWS - 1)))
-        inputs = _place((self.gains, keys), mesh)
-        if self.scenario.members:
-            inputs = (*inputs, _place_member(self.member, mesh))
-        status, values, snapshots = _gathered(self.runner(*inputs), mesh)
+        shared = (self.gains,)
+        if self.scenario.members:  # a union's member index, shared by every draw
+            shared = (self.gains, np.asarray(self.member, np.int32))
+        run = blocks.evaluate_in_blocks(self._runner, shared, keys, self.mesh, batch)
+        status, values, snapshots = run
         flat = flatten_snapshot(snapshots)
         if self.member_blocks is not None:
             flat = {name: v[:, : self.member_blocks] for name, v in flat.items()}
