@@ -1,5 +1,13 @@
 """Monte Carlo studies: chunked, vmapped rollouts of many draws, stored and summarised.
 
+* :class:`Study` (a declaration: the scenario, the controllers run on the same draws,
+  their gains, the draws, the seed and the settings), :func:`run_study`,
+  :func:`run_studies`: the study engine the commands are a thin layer over
+  (:mod:`fojax.cli.study`): each controller's draws in a store under the study's
+  folder, checked before anything compiles (:func:`check_stores`), studies that differ
+  only in their scenario run as members of one union (:func:`plan_unions`), programs
+  compiled in worker threads while earlier runs compute (:func:`compile_threads`);
+
 * :func:`run` (``fojax.run_monte_carlo``): draws ``0 ... n - 1`` of a scenario under
   one controller, in fixed blocks of draws, one per device and call, over the devices
   (and processes) of a mesh, resumable and extendable through a store; draw ``i``'s
@@ -23,6 +31,17 @@
 from fojax.blocks import EvaluatorCache, evaluate_in_blocks
 from fojax.records import describe as describe_differences
 from fojax.records import differences as fingerprint_differences
+from fojax.study._declaration import (
+    Study,
+    UnionMember,
+    check_stores,
+    options_applied_to,
+    prepare_runs,
+    scenario_of,
+    snapshot_interval,
+    store_fingerprint,
+)
+from fojax.study._jobs import compile_threads, run_studies, run_study
 from fojax.study._run import (
     DEVICE_BATCH,
     DIVERGED,
@@ -43,8 +62,22 @@ from fojax.study._run import (
 )
 from fojax.study._store import ChunkStore, StoreMismatch, manifest_differences
 from fojax.study._summary import metric_table, status_counts, summarize
+from fojax.study._unions import plan_unions, union_enabled
 
 __all__ = [
+    "Study",
+    "UnionMember",
+    "check_stores",
+    "compile_threads",
+    "options_applied_to",
+    "plan_unions",
+    "prepare_runs",
+    "run_studies",
+    "run_study",
+    "scenario_of",
+    "snapshot_interval",
+    "store_fingerprint",
+    "union_enabled",
     "DIVERGED",
     "MAX_DRAWS",
     "MAX_SEED",
