@@ -151,9 +151,12 @@ def _describe(run: Run) -> str:
     )
 
 
-def run_lane(plan: Plan, job_indices: list, out: Path, tuned_path: Path, progress: bool) -> None:
+def run_lane(
+    plan: Plan, job_indices: list, out: Path, tuned_path: Path, progress: bool, lane: str = "main"
+) -> None:
     """Compile and run the lane's jobs (each compiled in a background thread while the
-    previous one runs); runs with tuned gains wait for them, at the end."""
+    previous one runs); runs with tuned gains wait for them, at the end. ``lane``: its
+    name, in the progress lines."""
     tuned = load_tuned(tuned_path) if tuned_path.exists() else None
     jobs = [plan.jobs[i] for i in job_indices]
 
@@ -166,7 +169,7 @@ def run_lane(plan: Plan, job_indices: list, out: Path, tuned_path: Path, progres
 
     work = [(job, pending(job, tuned)) for job in jobs]
     work = [(job, runs) for job, runs in work if runs]
-    log = _logger(progress)
+    log = _logger(progress, lane)
     if not work:
         return
     deferred = []
@@ -206,8 +209,7 @@ def _wait_for_tuned(path: Path, poll: float = 5.0) -> dict:
     return load_tuned(path)
 
 
-def _logger(progress: bool):
-    lane = os.environ.get("FOJAX_SENSITIVITY_LANE", "main")
+def _logger(progress: bool, lane: str = "main"):
     start = time.perf_counter()
 
     def log(text: str) -> None:
@@ -474,7 +476,7 @@ def main(argv=None) -> int:
     lanes = assign_lanes(plan, args.workers)
     tuned_path = args.tuned_gains or (out / "tuning" / "results.json")
     if args.lane is not None:
-        run_lane(plan, lanes.get(args.lane, []), out, tuned_path, not args.quiet)
+        run_lane(plan, lanes.get(args.lane, []), out, tuned_path, not args.quiet, args.lane)
         return 0
 
     start = time.perf_counter()
@@ -489,12 +491,7 @@ def main(argv=None) -> int:
     if any(s.gains == "tuned" for s in plan.settings) and not tuned_path.exists():
         tuning, tuning_start = _start_tuning(args, tuned_path.parent, log), time.perf_counter()
     lane_argv = [a for a in argv if a != "--quiet"] + (["--quiet"] if args.quiet else [])
-    processes = {
-        lane: subprocess.Popen(
-            _lane_command(lane_argv, lane), env=dict(os.environ, FOJAX_SENSITIVITY_LANE=lane)
-        )
-        for lane in lanes
-    }
+    processes = {lane: subprocess.Popen(_lane_command(lane_argv, lane)) for lane in lanes}
     try:
         if tuning is not None:
             tuning_wall = _wait_for_tuning(tuning, tuned_path, tuning_start, log)

@@ -6,12 +6,12 @@ lanes that share the jobs among workers."""
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 from pathlib import Path
 
 import numpy as np
 
+from fojax import records
 from fojax.cli.reproduce import claims as claims_module
 
 SCENARIO_IDS = (1, 2, 3)
@@ -342,7 +342,7 @@ def run_key(run: Run, tuned: dict | None, seed: int) -> str:
     settings["union"] = _plain(job.members)
     settings["member"] = run.member
     settings["draws"] = job.draws
-    text = json.dumps(settings, sort_keys=True, default=str)
+    text = json.dumps(records.canonical(settings), sort_keys=True)
     if " at 0x" in text:  # an object spelled by its address: not the same in another process
         raise ValueError(f"run key depends on an address: {text}")
-    return hashlib.sha256(text.encode()).hexdigest()[:20]
+    return records.digest(settings, 20)

@@ -16,6 +16,7 @@ import numpy as np
 from fojax.cli import output
 from fojax.cli.reproduce import claims as claims_module
 from fojax.cli.reproduce.report import format_number as _fmt
+from fojax.records import atomic_write
 
 __all__ = ["MARKER", "PRECISION_METRICS", "TRUST_FRACTION", "precision_table", "write"]
 
@@ -564,7 +565,7 @@ def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, result
     style.attempt("verdict matrix", plot_matrix, plan, evaluated, meta, figure)
     figure_name = figure.name if doc is not None else "sensitivity.png"
     text = markdown(plan, evaluated, meta, precision, figure_name)
-    (out / "report.md").write_text(text)
+    atomic_write(out / "report.md", text)
     if doc is None:
         return out / "report.md"
     body = text.split("\n", 1)[1].lstrip("\n")  # the document keeps its own title

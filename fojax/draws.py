@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -20,10 +20,11 @@ import numpy as np
 from fojax import plant
 from fojax._arrays import as_time as _as_time
 
-if TYPE_CHECKING:
-    from fojax.scenarios import Scenario
-
 Array = jax.Array
+
+Scenario = Any
+"""A :class:`fojax.scenarios.Scenario` (that module builds on this one and re-exports
+its functions, so this one does not import it)."""
 
 
 class Draw(NamedTuple):

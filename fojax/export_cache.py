@@ -19,12 +19,9 @@ when the persistent compilation cache is off or when several processes run
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import importlib
 import importlib.metadata
 import json
-import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -32,21 +29,12 @@ from typing import Any
 import jax
 import numpy as np
 
-from fojax import _source
+from fojax import records
 
-__all__ = ["reusable", "source_digest"]
+__all__ = ["reusable"]
 
 _FORMAT = 1
 _REGISTERED: dict[type, str] = {}
-
-
-@functools.lru_cache(maxsize=1)
-def source_digest() -> str:
-    """A hash of the source of ``fojax`` and ``fojax.optimize`` (every ``*.py``)."""
-    from fojax import optimize
-
-    roots = (Path(__file__).resolve().parent, Path(optimize.__file__).resolve().parent)
-    return "".join(_source.digest(root) for root in roots)
 
 
 def _folder() -> Path | None:
@@ -108,13 +96,12 @@ def _digest(name: str, key: Mapping, signature: tuple, options) -> str:
         "key": key,
         "signature": signature,
         "compiler_options": options,
-        "source": source_digest(),
+        "source": records.code_digest(),
         "jax": [jax.__version__, importlib.metadata.version("jaxlib")],
         "x64": bool(jax.config.jax_enable_x64),
         "devices": [len(devices), devices[0].platform, devices[0].device_kind],
     }
-    text = json.dumps(document, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:24]
+    return records.digest(document, 24)
 
 
 def _load(path: Path):
@@ -126,10 +113,7 @@ def _load(path: Path):
 def _save(path: Path, exported) -> None:
     types = _namedtuples(exported.in_tree) | _namedtuples(exported.out_tree)
     header = json.dumps({"types": _register(types)}).encode()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}")
-    temporary.write_bytes(header + b"\n" + exported.serialize())
-    os.replace(temporary, path)
+    records.atomic_write(path, header + b"\n" + exported.serialize())
 
 
 def reusable(

@@ -78,6 +78,7 @@ __all__ = [
     "nominal_params",
     "rk4_step",
     "rk4_step_parts",
+    "rotor_speed_limit",
     "rotor_speed_sum",
     "rotor_speeds_squared",
     "saturate_inputs",
@@ -170,6 +171,19 @@ def nominal_params(dtype=None) -> PlantParams:
 
 
 # ------------------------------------------------------------------------------- state
+
+
+def rotor_speed_limit(thrust_to_weight: float = 2.0, params: PlantParams | None = None):
+    """``w_max`` (rad/s) at which four rotors give ``thrust_to_weight`` times the weight of
+    ``params`` (default :func:`nominal_params`: m = 0.74 kg, rho_b = 3e-3
+    N s^2): ``w_max = sqrt(thrust_to_weight m g / (4 rho_b))``, 34.78 rad/s at 2.
+
+    Requirement files ask for rotor-limited actuators by this ratio (docs/model.md)."""
+    if not (isinstance(thrust_to_weight, int | float) and thrust_to_weight > 0):
+        raise ValueError(f"thrust_to_weight must be a number > 0, got {thrust_to_weight!r}")
+    params = nominal_params() if params is None else params
+    weight = float(params.mass) * float(params.gravity)
+    return math.sqrt(thrust_to_weight * weight / (4.0 * float(params.thrust_factor)))
 
 
 def make_state(position, attitude, velocity=None, attitude_rate=None, dtype=None) -> Array:

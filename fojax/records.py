@@ -7,7 +7,8 @@
   with a JSON header.
 * :func:`digest`: hex digits of SHA-256 naming a JSON-ready document or bytes;
   :func:`source_digest`: the same over a package's ``*.py`` files (caches that must not
-  outlive the code that filled them).
+  outlive the code that filled them); :func:`code_digest`: that of fojax's whole source
+  (``fojax/`` and ``fojax.optimize``), the one code key of stored draws and programs.
 * A *fingerprint* is a JSON-ready dict of every setting a result depends on, and nothing
   else. :func:`differences` lists the fields in which two differ (dotted paths),
   :func:`describe` says them one per line, :func:`check` raises a ``ValueError`` that
@@ -18,10 +19,13 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import importlib.util
 import io
 import json
 import os
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -32,11 +36,13 @@ __all__ = [
     "cached",
     "canonical",
     "check",
+    "code_digest",
     "describe",
     "differences",
     "digest",
     "read_arrays",
     "source_digest",
+    "source_roots",
     "stored",
     "write_arrays",
     "write_csv",
@@ -55,12 +61,17 @@ def atomic_write(path: str | os.PathLike, data: bytes | str) -> Path:
     """``path`` holding ``data`` (text is UTF-8), written atomically; parents created."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as handle:
-        handle.write(data.encode() if isinstance(data, str) else data)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+    # One temporary name per process and thread: two writers of one file (e.g. two
+    # processes exporting the same program) never write into each other's.
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{threading.get_ident()}.tmp")
+    try:
+        with open(tmp, "wb") as handle:
+            handle.write(data.encode() if isinstance(data, str) else data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -70,18 +81,19 @@ def write_json(path: str | os.PathLike, document: Any, default=str, indent: int 
     return atomic_write(path, json.dumps(document, indent=indent, default=default) + "\n")
 
 
-def write_npz(path: str | os.PathLike, arrays: dict) -> Path:
-    """``path`` holding ``arrays`` (a compressed ``.npz``), atomically."""
+def write_npz(path: str | os.PathLike, arrays: dict, compress: bool = True) -> Path:
+    """``path`` holding ``arrays`` (a ``.npz``, compressed unless not ``compress``),
+    atomically."""
     import numpy as np
 
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
+    (np.savez_compressed if compress else np.savez)(buffer, **arrays)
     return atomic_write(path, buffer.getvalue())
 
 
 def write_csv(path: str | os.PathLike, rows: list[dict], columns=None) -> Path:
     """``path`` holding ``rows`` under a header (``columns``, default the first row's
-    keys; a float as its ``repr``, ``None`` as an empty cell), atomically."""
+    keys; a float, NumPy's too, as its ``repr``, ``None`` as an empty cell), atomically."""
     import csv
 
     buffer = io.StringIO()
@@ -90,10 +102,15 @@ def write_csv(path: str | os.PathLike, rows: list[dict], columns=None) -> Path:
     if columns:
         writer.writeheader()
     for row in rows:
-        writer.writerow(
-            {k: "" if v is None else repr(v) if isinstance(v, float) else v for k, v in row.items()}
-        )
+        writer.writerow({k: _cell(v) for k, v in row.items()})
     return atomic_write(path, buffer.getvalue())
+
+
+def _cell(value: Any) -> Any:
+    """A CSV cell of :func:`write_csv`: ``None`` empty, a float as its ``repr``."""
+    if value is None:
+        return ""
+    return repr(float(value)) if isinstance(value, float) else value
 
 
 def write_arrays(path: str | os.PathLike, arrays: list, header: dict) -> Path:
@@ -148,6 +165,22 @@ def source_digest(*roots: str | os.PathLike) -> str:
             hashed.update(path.relative_to(root).as_posix().encode())
             hashed.update(path.read_bytes())
     return hashed.hexdigest()[:16]
+
+
+def source_roots() -> tuple[Path, Path]:
+    """The folders of fojax's source: ``fojax/`` and ``fojax.optimize`` (installed from
+    ``optimize/``, beside it), found without importing the latter."""
+    spec = importlib.util.find_spec("fojax.optimize")
+    optimize = Path(next(iter(spec.submodule_search_locations)))
+    return Path(__file__).resolve().parent, optimize.resolve()
+
+
+@functools.lru_cache(maxsize=1)
+def code_digest() -> str:
+    """:func:`source_digest` of fojax's whole source (:func:`source_roots`), once per
+    process: what stored draws and exported programs are keyed by, so that none is
+    reused by other code (a changed default changes numbers, not settings)."""
+    return source_digest(*source_roots())
 
 
 # -------------------------------------------------------------------- fingerprints

@@ -7,10 +7,11 @@ shared (gains, the nominal model) is replicated, and each device runs the batche
 rollout on its own block (:func:`sharded_batch`). Each device runs the same program as
 a single-device run of its block, so the results are the same.
 
-On one host the mesh holds its local devices: GPUs, or CPU "devices" made with
-``XLA_FLAGS=--xla_force_host_platform_device_count=N`` (one per core; set before JAX
-starts). On several hosts, call :func:`initialize` first in every process
-(``jax.distributed``); the mesh then spans the devices of all processes, and
+On one host the mesh holds its local devices: GPUs, or CPU "devices", one per core
+(:func:`fojax.settings.use_host_devices`, or
+``XLA_FLAGS=--xla_force_host_platform_device_count=N``; set before JAX starts). On
+several hosts, call :func:`initialize` first in every process (``jax.distributed``);
+the mesh then spans the devices of all processes, and
 :func:`shard_draws` builds global arrays from the values every process computes for
 the shards it owns.
 
@@ -25,7 +26,6 @@ Typical use::
 from __future__ import annotations
 
 import math
-import os
 import re
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -34,12 +34,15 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from fojax import settings as process_settings
+
 __all__ = [
     "DRAW_AXIS",
     "barrier",
     "draw_mesh",
     "draw_sharding",
     "check_coordinator_address",
+    "default_mesh",
     "detect_cluster",
     "distributed_settings",
     "one_device_mesh",
@@ -54,27 +57,28 @@ __all__ = [
 DRAW_AXIS = "draws"
 
 
-JAX_VARIABLES = ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
-"""The environment variables of a :func:`jax.distributed.initialize` run. JAX reads only
-the first itself (0.4-0.10); :func:`initialize` reads all three."""
+JAX_VARIABLES = process_settings.DISTRIBUTED_VARIABLES
+"""The environment variables of a :func:`jax.distributed.initialize` run
+(:data:`fojax.settings.DISTRIBUTED_VARIABLES`)."""
 
 _SETTINGS = ("coordinator_address", "num_processes", "process_id")
 _VARIABLE = dict(zip(_SETTINGS, JAX_VARIABLES, strict=True))
 
 
-def detect_cluster() -> tuple[str, int] | None:
+def detect_cluster(settings: process_settings.Settings | None = None) -> tuple[str, int] | None:
     """``(name, process count)`` of the cluster this process runs in, as
     :func:`jax.distributed.initialize` detects it (SLURM, Open MPI, Kubernetes, Cloud
     TPU; not the opt-in mpi4py), or None. A cluster job of one process is not a
-    distributed run, so callers join only when the count is above 1."""
+    distributed run, so callers join only when the count is above 1. ``settings``
+    (default read now, :func:`fojax.settings.read`): where JAX's own detection is
+    missing, SLURM's variables from there."""
     try:
         from jax._src import clusters  # JAX's own detection; private, hence guarded
 
         types = list(clusters.ClusterEnv._cluster_types)
     except (ImportError, AttributeError):  # another JAX: SLURM's variables by hand
-        if all(os.environ.get(v) for v in ("SLURM_JOB_ID", "SLURM_NTASKS", "SLURM_PROCID")):
-            return "slurm", int(os.environ["SLURM_NTASKS"])
-        return None
+        slurm = (settings or process_settings.read()).slurm
+        return ("slurm", int(slurm[1])) if all(slurm) else None
     for env in types:
         if getattr(env, "opt_in_only_method", False):
             continue
@@ -117,6 +121,7 @@ def distributed_settings(
     process_id: int | None = None,
     detect: bool = True,
     names: dict[str, str] | None = None,
+    settings: process_settings.Settings | None = None,
 ) -> dict[str, Any] | None:
     """What :func:`initialize` passes to :func:`jax.distributed.initialize`, checked:
     ``{"coordinator_address", "num_processes", "process_id", "joined"}``, or None for a
@@ -132,8 +137,11 @@ def distributed_settings(
     from it). ``ValueError``, one line naming the setting, for a missing setting, a
     count or id that is not an integer (``count >= 1``, ``0 <= id < count``) and an
     address without a port. ``names``: how to call each argument in messages (e.g.
-    ``{"num_processes": "--num-processes"}``).
+    ``{"num_processes": "--num-processes"}``). settings: the variables' values (default
+    read now, :func:`fojax.settings.read`).
     """
+    settings = process_settings.read() if settings is None else settings
+    variables = dict(zip(_SETTINGS, settings.distributed, strict=True))
     names = {key: key for key in _SETTINGS} | dict(names or {})
     arguments = dict(zip(_SETTINGS, (coordinator_address, num_processes, process_id), strict=True))
     values: dict[str, Any] = {}
@@ -141,8 +149,8 @@ def distributed_settings(
     for key in _SETTINGS:
         if arguments[key] is not None:
             values[key], labels[key] = arguments[key], names[key]
-        elif os.environ.get(_VARIABLE[key], "").strip():
-            values[key], labels[key] = os.environ[_VARIABLE[key]], _VARIABLE[key]
+        elif variables[key] is not None:
+            values[key], labels[key] = variables[key], _VARIABLE[key]
     if "coordinator_address" in values:
         values["coordinator_address"] = check_coordinator_address(
             values["coordinator_address"], labels["coordinator_address"]
@@ -157,7 +165,7 @@ def distributed_settings(
             f"{labels['num_processes']} ({values['num_processes']}): the processes are "
             f"numbered 0 to {values['num_processes'] - 1}"
         )
-    cluster = detect_cluster() if detect else None
+    cluster = detect_cluster(settings) if detect else None
     if not values:
         if cluster is None or cluster[1] <= 1:
             return None
@@ -188,6 +196,7 @@ def initialize(
     process_id: int | None = None,
     detect: bool = True,
     names: dict[str, str] | None = None,
+    settings: process_settings.Settings | None = None,
 ) -> dict[str, int]:
     """Join a multi-process run through :func:`jax.distributed.initialize`, if there is one.
 
@@ -198,7 +207,8 @@ def initialize(
     with several tasks); otherwise this is a single-process run and nothing is done.
     Incomplete or inconsistent settings are a ``ValueError`` naming the setting, raised
     before anything starts (:func:`distributed_settings`, whose ``names`` this passes
-    on). Call it before any other JAX call that touches devices; a second call after
+    on; ``settings``: the variables, default read now). Call it before any other JAX
+    call that touches devices; a second call after
     joining does nothing. On CPUs the processes exchange results through JAX's CPU
     collectives (gloo).
 
@@ -210,12 +220,12 @@ def initialize(
     if jax.distributed.is_initialized():
         joined = "earlier"
     else:
-        settings = distributed_settings(
-            coordinator_address, num_processes, process_id, detect, names
+        chosen = distributed_settings(
+            coordinator_address, num_processes, process_id, detect, names, settings
         )
-        if settings is not None:
-            joined = settings.pop("joined")
-            jax.distributed.initialize(**settings)
+        if chosen is not None:
+            joined = chosen.pop("joined")
+            jax.distributed.initialize(**chosen)
     return {
         "process_index": jax.process_index(),
         "process_count": jax.process_count(),
@@ -263,6 +273,12 @@ def draw_mesh(devices: Sequence[Any] | None = None) -> Mesh:
     if not devices:
         raise ValueError("draw_mesh needs at least one device")
     return Mesh(np.array(devices), (DRAW_AXIS,))
+
+
+def default_mesh() -> Mesh | None:
+    """A :func:`draw_mesh` of every device of every process (GPUs, or one CPU device
+    per core: :func:`fojax.settings.use_host_devices`), or None for one device."""
+    return draw_mesh(jax.devices()) if jax.device_count() > 1 else None
 
 
 def one_device_mesh() -> Mesh:
@@ -371,9 +387,7 @@ def sharded_batch(
     """
     batched = tuple(batched)
     if not all(isinstance(b, bool) for b in batched):
-        raise ValueError(
-            f"batched entries must be True (batched) or False (shared), got {batched}"
-        )
+        raise ValueError(f"batched entries must be True (batched) or False (shared), got {batched}")
     specs = tuple(PartitionSpec(DRAW_AXIS) if b else PartitionSpec() for b in batched)
     mapped = jax.shard_map(
         fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(DRAW_AXIS), check_vma=False

@@ -213,11 +213,11 @@ def test_simulate_names_only_the_settings_that_differ(capsys, tmp_path):
     """An earlier run's chunks with another seed and switching: the message lists those
     two fields and how to start afresh, before anything runs."""
     earlier, _ = simulate.parse_args(SIM + ["--switching", "sat", "--out", str(tmp_path)])
-    from fojax.study import ChunkStore
+    from fojax.study import ChunkStore, store_fingerprint
 
-    _, scenario, config, dtype, runs = study._prepared(earlier)
+    _, scenario, config, dtype, runs = study.prepare_runs(earlier)
     controller, gains = runs["afonftsmc"]
-    fingerprint = study._fingerprint(controller, gains, scenario, config, earlier, dtype)
+    fingerprint = store_fingerprint(controller, gains, scenario, config, earlier, dtype)
     store = tmp_path / "chunks" / "afonftsmc"
     ChunkStore(store, fingerprint)  # the earlier run's (empty) store
     status = cli.main(["simulate"] + SIM + ["--seed", "7", "--out", str(tmp_path), "--quiet"])

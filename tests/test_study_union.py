@@ -1,6 +1,6 @@
-"""``fojax.cli.study.run_studies``: studies of several scenarios share one compiled
-program per controller (a union of their scenarios) and give the results of each
-scenario run alone."""
+"""``fojax.study.run_studies`` (``fojax.cli.study``'s): studies of several scenarios
+share one compiled program per controller (a union of their scenarios) and give the
+results of each scenario run alone."""
 
 import jax
 
@@ -44,13 +44,14 @@ def _run(studies, root, monkeypatch, union: bool):
         compiled.append(args[2])  # the scenario
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(monte_carlo, "compile_chunk_runner", counting)
+    # where the study engine (fojax.study._jobs) finds it
+    monkeypatch.setattr(monte_carlo._run, "compile_chunk_runner", counting)
     pairs = [(s, root / f"s{s.scenario_id}") for s in studies]
     results = {
         study.scenario_id: found
         for study, found in study_layer.run_studies(pairs, progress=False, threads=0)
     }
-    monkeypatch.setattr(monte_carlo, "compile_chunk_runner", original)
+    monkeypatch.setattr(monte_carlo._run, "compile_chunk_runner", original)
     return results, compiled
 
 

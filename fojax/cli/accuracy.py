@@ -23,9 +23,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import fractional
+from fojax import fractional, settings
 from fojax.cli import arguments, require_extra, style
 from fojax.cli import study as study_layer
+from fojax.records import atomic_write
 
 EXTRA_MODULES = ("mpmath", "pymittagleffler")
 """What the exact references (:mod:`fojax.cli.references`) need: the ``[experiments]``
@@ -255,7 +256,7 @@ def main(argv=None) -> int:
             f"--horizon / --dt is {steps} steps; at most {MAX_STEPS} (the full-memory "
             "reference costs steps^2): use a shorter --horizon or a larger --dt"
         )
-    jax.config.update("jax_enable_x64", True)
+    settings.enable_float64()
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     print(f"fractional accuracy: {args.horizon:g} s at dt = {args.dt:g} s (float64)", flush=True)
@@ -263,7 +264,7 @@ def main(argv=None) -> int:
     results["provenance"] = study_layer.provenance(["fojax", "accuracy", *argv])
     study_layer.write_json(out / "accuracy.json", results)
     table = markdown(results)
-    (out / "accuracy.md").write_text(table)
+    atomic_write(out / "accuracy.md", table)
     print(table)
     written = ["accuracy.json", "accuracy.md"]
     if style.attempt("accuracy.png", plot, results, out / "accuracy.png") is not None:

@@ -12,8 +12,16 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 from pathlib import Path
+
+from fojax import settings
+from fojax.settings import (
+    CACHE_VARIABLE,
+    compile_cache_dir,
+    default_cache_dir,
+    enable_compile_cache,
+    use_host_devices,
+)
 
 __all__ = [
     "check_controllers",
@@ -24,6 +32,7 @@ __all__ = [
     "enable_dtype",
     "horizon_steps",
     "input_file",
+    "listed",
     "nonnegative_float",
     "nonnegative_int",
     "output_directory",
@@ -37,6 +46,7 @@ __all__ = [
     "add_options",
     "add_runtime_options",
     "add_study_options",
+    "CACHE_VARIABLE",
     "compile_cache_dir",
     "default_cache_dir",
     "enable_compile_cache",
@@ -101,7 +111,7 @@ def nonnegative_float(text: str) -> float:
     return _real(text, True, "a finite number >= 0")
 
 
-def _listed(text: str, parse, example: str) -> tuple:
+def listed(text: str, parse, example: str) -> tuple:
     parts = [part.strip() for part in text.split(",")]
     if not text.strip() or any(not part for part in parts):
         raise argparse.ArgumentTypeError(
@@ -120,12 +130,12 @@ def _listed(text: str, parse, example: str) -> tuple:
 
 def positive_ints(text: str) -> tuple[int, ...]:
     """Comma-separated positive integers, e.g. ``1,64,1024``."""
-    return _listed(text, positive_int, "1,64,1024")
+    return listed(text, positive_int, "1,64,1024")
 
 
 def positive_floats(text: str) -> tuple[float, ...]:
     """Comma-separated finite numbers > 0, e.g. ``0.5,2``."""
-    return _listed(text, positive_float, "0.5,2")
+    return listed(text, positive_float, "0.5,2")
 
 
 def scenario_ids(text: str) -> tuple[int, ...]:
@@ -207,9 +217,7 @@ def horizon_steps(parser, horizon: float, dt: float, example: bool = True) -> in
 def enable_dtype(dtype: str) -> None:
     """``--dtype float64`` turns JAX's 64-bit mode on (before any array is made)."""
     if dtype == "float64":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
+        settings.enable_float64()
 
 
 # ------------------------------------------------------------------------------ paths
@@ -326,55 +334,7 @@ input_file = _argparse_type(check_input_file, "gains file")
 """argparse type: an existing, readable gains file (:func:`check_input_file`)."""
 
 
-def _usable_cores() -> int:
-    """Cores this process may run on (its CPU affinity: under SLURM, the task's)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
-
-
-def _jax_started() -> bool:
-    """Whether JAX has made its backends (True when it cannot tell)."""
-    if "jax" not in sys.modules:
-        return False
-    try:
-        from jax._src import xla_bridge
-
-        return bool(xla_bridge.backends_are_initialized())
-    except (ImportError, AttributeError):
-        return True
-
-
-def use_host_devices(requested: int | None = None) -> int | None:
-    """Ask XLA for one CPU device per core (or ``requested``) unless JAX has started.
-
-    XLA's CPU backend runs one program on one device; with several host devices
-    :mod:`fojax.sharding` splits the draws over the cores (about 1.5-1.8x the
-    throughput of one device on 2 cores, ``docs/performance.md``). Only the CPU
-    platform is affected: on a GPU machine the GPUs stay the default devices. Returns
-    the count asked for, or None when JAX had already started (then nothing changes)
-    or ``XLA_FLAGS`` already sets it. JAX has started once it has made a backend (the
-    first device, array or compilation): XLA reads ``XLA_FLAGS`` then, not when
-    ``jax`` is imported (importing :mod:`fojax`, as ``fojax.cli`` does, imports it).
-    """
-    if _jax_started():
-        return None
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_force_host_platform_device_count" in flags:
-        return None
-    count = requested or _usable_cores()
-    os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
-    return count
-
-
 # ------------------------------------------------------- compilation and distributed runs
-
-CACHE_VARIABLE = "FOJAX_COMPILE_CACHE"
-"""Environment variable: ``0`` (or ``off``, ``false``, ``no``) turns the persistent
-compilation cache off; a folder name puts it there."""
-
-_OFF = ("0", "off", "false", "no")
 
 
 class _Removed(argparse.Action):
@@ -463,58 +423,6 @@ def add_runtime_options(parser: argparse.ArgumentParser, distributed: bool = Tru
     group.add_argument("--process-id", metavar="I", help="this process's index, 0 to N - 1")
 
 
-def default_cache_dir() -> Path:
-    """``$XDG_CACHE_HOME/fojax/jax``, or ``~/.cache/fojax/jax``."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "fojax" / "jax"
-
-
-def compile_cache_dir(disabled: bool = False) -> Path | None:
-    """Where the commands keep compiled programs: None when ``disabled`` or
-    ``FOJAX_COMPILE_CACHE`` says off; that variable's folder when it names one; else
-    :func:`default_cache_dir`."""
-    text = os.environ.get(CACHE_VARIABLE, "").strip()
-    if disabled or text.lower() in _OFF:
-        return None
-    return Path(text).expanduser() if text else default_cache_dir()
-
-
-def enable_compile_cache(disabled: bool = False) -> str | None:
-    """Turn JAX's persistent compilation cache on (or off when ``disabled`` or
-    ``FOJAX_COMPILE_CACHE=0``); returns the folder in use, or None.
-
-    A folder already chosen (``JAX_COMPILATION_CACHE_DIR``, or by the program calling
-    the command, as the test suite does) is kept. A folder that cannot be created is a
-    warning: the command runs without the cache.
-    """
-    import jax
-
-    if compile_cache_dir(disabled) is None:
-        jax.config.update("jax_enable_compilation_cache", False)
-        return None
-    jax.config.update("jax_enable_compilation_cache", True)
-    chosen = jax.config.jax_compilation_cache_dir
-    if chosen:
-        return str(chosen)
-    path = compile_cache_dir()
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        print(
-            f"warning: no compilation cache ({path} cannot be created: "
-            f"{error.strerror or error}); set {CACHE_VARIABLE}=DIR to put it elsewhere",
-            file=sys.stderr,
-        )
-        jax.config.update("jax_enable_compilation_cache", False)
-        return None
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    # Every program is kept, the small ones too: a warm start of fojax tune compiled
-    # ~56 small programs (parameter maps, the optimiser's update, key derivation) of
-    # 20-100 ms each before the first step when only rollouts were kept.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    return str(path)
-
-
 DISTRIBUTED_FLAGS = {
     "coordinator_address": "--coordinator",
     "num_processes": "--num-processes",
@@ -561,25 +469,28 @@ def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
     ``--no-compile-cache``) and join a ``jax.distributed`` run when asked or detected
     (:func:`fojax.sharding.initialize`). Bad values exit with status 2 and a message.
 
-    Returns :func:`fojax.sharding.initialize`'s answer plus ``"compile_cache"``.
+    Returns :func:`fojax.sharding.initialize`'s answer plus ``"compile_cache"`` and
+    ``"settings"``, the process's :class:`fojax.settings.Settings`, read here once (a
+    variable fojax cannot use exits with status 2 too).
     """
     parser = argparse.ArgumentParser(prog=prog, add_help=False)
     add_runtime_options(parser, distributed)
     known, _ = parser.parse_known_args(argv)
     try:
+        found = settings.read()
         options = parse_distributed(vars(known)) if distributed else {}
     except ValueError as error:
         parser.error(str(error))
-    cache = enable_compile_cache(known.no_compile_cache)
+    cache = enable_compile_cache(known.no_compile_cache, found)
     from fojax import sharding
 
     if distributed:
         try:
-            info = sharding.initialize(**options, names=DISTRIBUTED_FLAGS)
+            info = sharding.initialize(**options, names=DISTRIBUTED_FLAGS, settings=found)
         except ValueError as error:
             parser.error(str(error))
         except RuntimeError as error:  # e.g. JAX already started in this process
             parser.error(f"cannot join the multi-process run: {error}")
     else:
         info = {"process_index": 0, "process_count": 1, "joined": None}
-    return {**info, "compile_cache": cache}
+    return {**info, "compile_cache": cache, "settings": found}

@@ -24,7 +24,7 @@ Big batches run a shorter horizon (``--long-horizon`` for at most ``--long-max-d
 draws, ``--short-horizon`` above): cost is linear in the horizon (``--scaling``
 measures it), and the horizon used is printed and stored with each figure. On a CPU
 the default spreads the draws over one XLA host device per core
-(``--xla_force_host_platform_device_count``; set before JAX starts, ``--devices``
+(:func:`fojax.settings.use_host_devices`; set before JAX starts, ``--devices``
 changes it). Progress goes to stderr; ``--json FILE`` writes every figure with its
 units.
 """
@@ -69,7 +69,7 @@ def _horizon(text: str) -> float:
 
 
 def _horizons(text: str) -> tuple[float, ...]:
-    return arguments._listed(text, _horizon, "0.25,1")
+    return arguments.listed(text, _horizon, "0.25,1")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -22,6 +22,8 @@ import numpy as np
 from fojax.cli import style
 
 __all__ = [
+    "inputs_envelope",
+    "kept_valid",
     "plot_adaptive",
     "plot_all",
     "plot_convergence",
@@ -42,7 +44,7 @@ def _time(result) -> np.ndarray:
     return np.asarray(result.trajectories.time[0])
 
 
-def _valid(result, array) -> np.ndarray:
+def kept_valid(result, array) -> np.ndarray:
     """``array`` of the kept draws that did not diverge."""
     return np.asarray(array)[style.valid_kept(result)]
 
@@ -80,7 +82,7 @@ def plot_tracking(results: dict, path: Path, title: str = "Tracking") -> Path:
     first = next(iter(results.values()))
     t0 = _time(first)
     for i, (name, result) in enumerate(results.items()):
-        state = _valid(result, result.trajectories.state)
+        state = kept_valid(result, result.trajectories.state)
         for axis in range(6):
             style.band(
                 axes[axis % 3, axis // 3], _time(result), state[:, :, axis], style.color(name, i)
@@ -108,7 +110,7 @@ def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Pa
         tr = result.trajectories
         position_error = np.asarray(tr.state)[:, :, :3] - np.asarray(tr.reference)[:, :, :3]
         attitude_error = np.asarray(tr.state)[:, :, 3:6] - np.asarray(tr.info.attitude_reference)
-        errors = _valid(result, np.concatenate([position_error, attitude_error], axis=-1))
+        errors = kept_valid(result, np.concatenate([position_error, attitude_error], axis=-1))
         for axis in range(6):
             style.band(
                 axes[axis % 3, axis // 3], _time(result), errors[:, :, axis], style.color(name, i)
@@ -120,15 +122,15 @@ def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Pa
     )
 
 
-def _inputs_envelope(result):
+def inputs_envelope(result):
     """``(low, high)`` ``(draws, blocks, 4)`` of the kept draws that did not diverge;
     the samples themselves where a store predates the envelope."""
     tr = result.trajectories
     low = getattr(tr, "inputs_low", None)
     high = getattr(tr, "inputs_high", None)
     if low is None or high is None:
-        return _valid(result, tr.inputs), _valid(result, tr.inputs)
-    return _valid(result, low), _valid(result, high)
+        return kept_valid(result, tr.inputs), kept_valid(result, tr.inputs)
+    return kept_valid(result, low), kept_valid(result, high)
 
 
 def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Path:
@@ -141,7 +143,7 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
     fig = plt.figure(figsize=(max(10.0, 2.6 * n + 1.5), 8), layout="constrained")
     axes = fig.subplots(4, n, sharex=True, sharey="row", squeeze=False)
     for i, (name, result) in enumerate(results.items()):
-        low, high = _inputs_envelope(result)
+        low, high = inputs_envelope(result)
         color = style.color(name, i)
         axes[0, i].set_title(style.label(name, result), color=color, fontsize=10)
         if low.shape[0] == 0:
@@ -177,7 +179,7 @@ def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) ->
     ref = np.asarray(first.trajectories.reference[0])
     shown = 0
     for i, (name, result) in enumerate(results.items()):
-        state = _valid(result, result.trajectories.state)
+        state = kept_valid(result, result.trajectories.state)
         color = style.color(name, i)
         shown = max(shown, min(draws, state.shape[0]))
         for d in range(min(draws, state.shape[0])):
@@ -214,7 +216,7 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
     fig, axes = _figure(3, 2, (11, 8))
     handles = []
     for i, (name, result) in enumerate(results.items()):
-        adaptive = _valid(result, result.trajectories.info.adaptive)  # (draws, time, 6, 3)
+        adaptive = kept_valid(result, result.trajectories.info.adaptive)  # (draws, time, 6, 3)
         if adaptive.shape[0] == 0 or not np.any(adaptive):
             continue
         color = style.color(name, i)

@@ -5,7 +5,7 @@ generated blocks of the docs.
 * :func:`log`: one progress line on stderr (nothing with ``quiet``).
 * :func:`write_json`, :func:`write_npz`, :func:`write_csv`: atomic JSON, NumPy and CSV
   files (a run stopped while writing leaves the old file or the new one, never half of
-  one).
+  one): those of :mod:`fojax.records`, the one place files are written.
 * :func:`git_commit`, :func:`commit_label`: the checkout's commit and whether it has
   uncommitted changes; :func:`versions`: Python's and the key packages' versions;
   :func:`provenance`: what a result needs to be rerun exactly; :func:`run_context`:
@@ -18,7 +18,6 @@ generated blocks of the docs.
 from __future__ import annotations
 
 import datetime
-import json
 import os
 import platform
 import shlex
@@ -26,6 +25,8 @@ import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+
+from fojax.records import atomic_write, write_csv, write_json, write_npz
 
 __all__ = [
     "block_label",
@@ -49,38 +50,6 @@ def log(quiet: bool, text: str) -> None:
     """``text`` on stderr, flushed, unless ``quiet`` (a command's ``--quiet``)."""
     if not quiet:
         print(text, file=sys.stderr, flush=True)
-
-
-def write_json(path: Path, document: Any, default=str) -> Path:
-    """``path`` holding ``document`` (indented JSON), written atomically; ``default``:
-    what stands for a value JSON has no type for (``str(value)``)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(document, indent=1, default=default) + "\n")
-    os.replace(tmp, path)
-    return path
-
-
-def write_npz(path: Path, arrays: dict) -> None:
-    """``path`` holding ``arrays`` (compressed ``.npz``), written atomically."""
-    import numpy as np
-
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
-
-
-def write_csv(path: Path, rows: list[dict]) -> None:
-    """``path`` holding ``rows`` (a header from the first row's keys), written atomically."""
-    import csv
-
-    tmp = path.with_name(f".{path.name}.tmp")
-    with tmp.open("w", newline="") as handle:
-        if rows:
-            writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-    tmp.replace(path)
 
 
 # ------------------------------------------------------------------------- provenance
@@ -296,11 +265,11 @@ def splice(
     if marker is not None:
         if marker not in content:
             raise ValueError(f"{document}: no line {marker!r} to regenerate below")
-        document.write_text(content[: content.index(marker) + len(marker)] + "\n\n" + text)
+        atomic_write(document, content[: content.index(marker) + len(marker)] + "\n\n" + text)
         return
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
     if begin not in content or end not in content:
         raise ValueError(f"{document} has no {begin} ... {end} block")
     head, rest = content.split(begin, 1)
     _, tail = rest.split(end, 1)
-    document.write_text(f"{head}{begin}\n{text}\n{end}{tail}")
+    atomic_write(document, f"{head}{begin}\n{text}\n{end}{tail}")

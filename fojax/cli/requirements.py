@@ -154,7 +154,7 @@ def measure_study(study, reqs) -> dict:
     from fojax import scenarios
     from fojax.cli import study as study_layer
 
-    _, scenario, config, dtype, runs = study_layer._prepared(study)
+    _, scenario, config, dtype, runs = study_layer.prepare_runs(study)
     keys = np.asarray(scenarios.draw_keys(study.seed, np.arange(study.draws)))
     out = {}
     for name, (controller, gains) in runs.items():

@@ -216,7 +216,8 @@ def main(argv=None) -> int:
         out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     try:
-        results = run_study(study, out, progress=not args.quiet and lead, overwrite=args.overwrite)
+        progress = not args.quiet and lead
+        results = run_study(study, out, progress, args.overwrite, runtime["settings"])
     except KeyboardInterrupt:
         print(
             f"\ninterrupted: finished draws are kept in {out / 'chunks'}; run the same "

@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from fojax.cli.output import provenance, write_json, write_npz
-from fojax.cli.study import Study, _mesh, gains_record, options_applied_to
+from fojax.cli.study import Study, gains_record, options_applied_to
 
 __all__ = ["write_outputs"]
 
@@ -46,9 +46,10 @@ def _used_gains(study: Study, name: str):
 def _batch_layout(study: Study) -> dict:
     """How the draws were laid out over processes and devices (a draw's numbers do not
     depend on it, only on the block size ``device_batch``)."""
+    from fojax import sharding
     from fojax import study as monte_carlo
 
-    layout = monte_carlo.batch_layout(study.draws, study.device_batch, _mesh())
+    layout = monte_carlo.batch_layout(study.draws, study.device_batch, sharding.default_mesh())
     layout["note"] = (
         "each call computes one block of device_batch consecutive draws per device of "
         "every process; a draw's numbers depend on device_batch, not on the draw count, "

@@ -27,6 +27,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from fojax import records
 from fojax.controllers import registry
 
 __all__ = ["gains_from_dict", "gains_to_dict", "load_gains", "save_gains"]
@@ -118,9 +119,7 @@ def save_gains(path: str | os.PathLike, controller: str, gains, metadata: dict |
     document = {"controller": controller, "gains": gains_to_dict(gains)}
     if metadata:
         document["metadata"] = metadata
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(document, indent=2) + "\n")
-    os.replace(tmp, path)
+    records.atomic_write(path, json.dumps(document, indent=2) + "\n")
 
 
 def load_gains(path: str | os.PathLike, dtype: Any = None) -> tuple[str, Any, dict]:

@@ -50,8 +50,19 @@ def register(cls: type) -> type:
     return cls
 
 
+BUILTIN_MODULES = (
+    "fojax.controllers.afonftsmc",
+    "fojax.controllers.anftsmc",
+    "fojax.controllers.backstepping",
+    "fojax.controllers.fl",
+)
+"""The modules of the built-in laws, each registering its own (:func:`register`): loaded
+by name, as a law of one's own is, so that this module imports none of them."""
+
+
 def _builtin() -> None:
-    import fojax.controllers  # noqa: F401  (its modules register the built-in laws)
+    for name in BUILTIN_MODULES:
+        importlib.import_module(name)
 
 
 def controller_names() -> tuple[str, ...]:

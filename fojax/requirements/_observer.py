@@ -20,7 +20,6 @@ derivative of their largest term).
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any, NamedTuple
 
 import jax
@@ -28,6 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from fojax import observers, plant, scenarios, simulator
+from fojax.blocks import EvaluatorCache, evaluate_in_blocks
+from fojax.plant import rotor_speed_limit
 from fojax.requirements._spec import METRICS, RequirementSet
 
 Array = jax.Array
@@ -50,19 +51,6 @@ DIVERGED = observers.NONFINITE | observers.TILT_LIMIT
 SATURATION_TEMPERATURE = 0.02
 SETTLING_WIDTH = 0.1  # of the band
 SETTLING_TEMPERATURE_STEPS = 10.0
-
-
-def rotor_speed_limit(thrust_to_weight: float = 2.0, params: plant.PlantParams | None = None):
-    """``w_max`` (rad/s) at which four rotors give ``thrust_to_weight`` times the weight of
-    ``params`` (default :func:`fojax.plant.nominal_params`: m = 0.74 kg, rho_b = 3e-3
-    N s^2): ``w_max = sqrt(thrust_to_weight m g / (4 rho_b))``, 34.78 rad/s at 2.
-
-    Requirement files ask for rotor-limited actuators by this ratio (docs/model.md)."""
-    if not (isinstance(thrust_to_weight, int | float) and thrust_to_weight > 0):
-        raise ValueError(f"thrust_to_weight must be a number > 0, got {thrust_to_weight!r}")
-    params = plant.nominal_params() if params is None else params
-    weight = float(params.mass) * float(params.gravity)
-    return math.sqrt(thrust_to_weight * weight / (4.0 * float(params.thrust_factor)))
 
 
 def simulation_config(
@@ -299,27 +287,20 @@ def smooth_share(v: Array, temperature: float = 0.1, margin: float = 0.0) -> Arr
     return jax.nn.sigmoid((v + margin) / temperature)
 
 
-_EVALUATORS: dict = {}
+_EVALUATORS = EvaluatorCache(16)
+"""The compiled evaluations of :func:`measure`, by their settings (at most 16 kept)."""
 
 
 def _evaluator(controller, scenario, config, observer, dtype, model):
-    key = (controller, scenario, config, observer, str(dtype))
-    try:
-        cached = _EVALUATORS.get(key)
-    except TypeError:  # an unhashable controller: compile every time
-        key, cached = None, None
-    if cached is not None:
-        return cached
+    def build():
+        def run(gains, keys):
+            draws = scenarios.sample_draws(scenario, keys, config.dt, dtype)
+            result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
+            return result.outputs, result.status
 
-    def run(gains, keys):
-        draws = scenarios.sample_draws(scenario, keys, config.dt, dtype)
-        result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
-        return result.outputs, result.status
+        return jax.jit(run)
 
-    compiled = jax.jit(run)
-    if key is not None:
-        _EVALUATORS[key] = compiled
-    return compiled
+    return _EVALUATORS.get((controller, scenario, config, observer, str(dtype)), build)
 
 
 def measure(
@@ -334,9 +315,10 @@ def measure(
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Per-draw metrics (name -> ``(draws,)``, canonical units, NaN for diverged draws)
     and status ``(draws,)`` of ``gains`` on the draws ``keys`` (``(draws, 2)``,
-    :func:`fojax.scenarios.draw_keys`), in chunks of ``chunk`` draws (one compilation per
-    setting, cached). ``config``: e.g. :func:`simulation_config`; its
-    ``rotor_speed_limit`` decides the actuators. Forward only."""
+    :func:`fojax.scenarios.draw_keys`), in blocks of ``chunk`` draws (at most the draw
+    count; :func:`fojax.blocks.evaluate_in_blocks`), one compilation per setting
+    (cached). ``config``: e.g. :func:`simulation_config`; its ``rotor_speed_limit``
+    decides the actuators. Forward only."""
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     if scenario.horizon < config.horizon:
         scenario = dataclasses.replace(scenario, horizon=config.horizon)
@@ -345,15 +327,6 @@ def measure(
     run = _evaluator(controller, scenario, config, observer, dtype, model)
     gains = type(gains)(*(jnp.asarray(g, dtype) for g in gains))
     keys = np.asarray(keys)
-    n = keys.shape[0]
-    chunk = max(1, min(chunk, n))
-    parts, statuses = [], []
-    for first in range(0, n, chunk):
-        index = np.minimum(np.arange(first, first + chunk), n - 1)
-        outputs, status = run(gains, jnp.asarray(keys[index]))
-        size = min(chunk, n - first)
-        parts.append({k: np.asarray(v)[:size] for k, v in outputs.items()})
-        statuses.append(np.asarray(status)[:size])
-    outputs = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    status = np.concatenate(statuses)
+    block = max(1, min(chunk, keys.shape[0]))
+    outputs, status = evaluate_in_blocks(run, gains, keys, block=block)
     return draw_metrics(outputs, status), status

@@ -296,7 +296,7 @@ class Settings:
         if self.rotor_speed_limit is not None:
             return float(self.rotor_speed_limit)
         if self.thrust_to_weight is not None:
-            from fojax.requirements._observer import rotor_speed_limit
+            from fojax.plant import rotor_speed_limit
 
             return rotor_speed_limit(self.thrust_to_weight)
         return None

@@ -1,5 +1,5 @@
 """How :func:`fojax.study.run` runs its plan: the blocks to compute, ``devices`` per
-call of the compiled runner (:class:`_Dispatch`), each call's blocks saved to the
+call of the compiled runner (:class:`Dispatch`), each call's blocks saved to the
 store, the draws assembled in order from the store and the calls, and, in a
 multi-process run, process 0's plan and result sent to the others."""
 
@@ -12,7 +12,7 @@ import time
 import jax
 import numpy as np
 
-from fojax import observers, scenarios, sharding
+from fojax import blocks, observers, scenarios, sharding
 from fojax.study._store import ChunkStore, flatten_snapshot, plan
 
 DIVERGED = observers.NONFINITE | observers.TILT_LIMIT
@@ -27,16 +27,6 @@ def _multiprocess(mesh) -> bool:
     return mesh is not None and any(
         d.process_index != jax.process_index() for d in mesh.devices.flat
     )
-
-
-def _gathered(tree, mesh):
-    """Device outputs as host arrays, every draw on every process."""
-    if _multiprocess(mesh):
-        from jax.experimental import multihost_utils
-
-        sharding.barrier("gather")  # processes may finish compiling far apart
-        return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
-    return jax.tree.map(np.asarray, tree)
 
 
 def _broadcast_bytes(payload: bytes | None) -> bytes:
@@ -60,26 +50,12 @@ def _broadcast_arrays(arrays: dict[str, np.ndarray] | None) -> dict[str, np.ndar
         return {k: loaded[k] for k in loaded.files}
 
 
-def _place(runner_inputs, mesh):
-    gains, keys = runner_inputs
-    if mesh is not None and mesh.devices.size > 1:
-        return sharding.replicate(gains, mesh), sharding.shard_draws(keys, mesh)
-    return gains, keys
-
-
-def _place_member(member: int, mesh):
-    value = np.asarray(member, np.int32)
-    if mesh is not None and mesh.devices.size > 1:
-        return sharding.replicate(value, mesh)
-    return value
-
-
-def _to_compute(segments) -> int:
+def to_compute(segments) -> int:
     """How many draws of the plan are computed (not read from the store)."""
     return sum(b - a for kind, a, b, _ in segments if kind == "compute")
 
 
-def _plan_calls(chunk_store, draws: int, keep: int, batch: int, devices: int, mesh):
+def plan_calls(chunk_store, draws: int, keep: int, batch: int, devices: int, mesh):
     """The plan: ``segments`` (:func:`fojax.study._store.plan`: what is read from the
     store, what is computed) and ``calls``, the blocks to compute, ``devices`` per call
     (process 0's plan in a multi-process run: it alone reads the store)."""
@@ -102,7 +78,7 @@ def _plan_calls(chunk_store, draws: int, keep: int, batch: int, devices: int, me
     return segments, [blocks[i : i + devices] for i in range(0, len(blocks), devices)]
 
 
-class _Dispatch:
+class Dispatch:
     """Runs calls of the compiled runner, one block per device, and keeps each block's
     ``(status, per_draw, snapshots or None)`` in ``computed``."""
 
@@ -117,16 +93,21 @@ class _Dispatch:
         self.start_time = time.perf_counter()
         self.per_call = batch
 
+    def _runner(self, shared, keys):
+        """The compiled runner as :func:`fojax.blocks.evaluate_in_blocks` calls it."""
+        gains, *member = shared
+        return self.runner(gains, keys, *member)
+
     def __call__(self, call: list[int], devices: int) -> None:
-        batch, mesh = self.batch, self.mesh
+        batch = self.batch
         self.per_call = batch * devices
-        filled = call + [call[-1]] * (devices - len(call))  # a short last call: repeat
-        indices = np.concatenate([np.arange(k * batch, (k + 1) * batch) for k in filled])
+        indices = np.concatenate([np.arange(k * batch, (k + 1) * batch) for k in call])
         keys = np.asarray(scenarios.draw_keys(self.seed, np.minimum(indices, MAX_DRAWS - 1)))
-        inputs = _place((self.gains, keys), mesh)
-        if self.scenario.members:
-            inputs = (*inputs, _place_member(self.member, mesh))
-        status, values, snapshots = _gathered(self.runner(*inputs), mesh)
+        shared = (self.gains,)
+        if self.scenario.members:  # a union's member index, shared by every draw
+            shared = (self.gains, np.asarray(self.member, np.int32))
+        run = blocks.evaluate_in_blocks(self._runner, shared, keys, self.mesh, batch)
+        status, values, snapshots = run
         flat = flatten_snapshot(snapshots)
         if self.member_blocks is not None:
             flat = {name: v[:, : self.member_blocks] for name, v in flat.items()}
@@ -152,13 +133,13 @@ class _Dispatch:
         )  # fmt: skip
 
 
-def _result(segments, chunk_store, computed, batch, keep, mesh, call_times):
+def run_result(segments, chunk_store, computed, batch, keep, mesh, call_times):
     """The run's draws in order, read and computed (the same on every process):
     ``(status, per_draw, kept snapshots, computed draws, compile time)``."""
     multi, flat = _multiprocess(mesh), None
     if jax.process_index() == 0 or not multi:
         flat = _assemble(segments, chunk_store, computed, batch, keep)
-        flat["computed"] = np.asarray([_to_compute(segments)], np.int64)
+        flat["computed"] = np.asarray([to_compute(segments)], np.int64)
     if multi:  # the others hold only the computed blocks: process 0 sends the result
         flat = _broadcast_arrays(flat)
     computed_draws = int(flat.pop("computed")[0])
@@ -171,7 +152,7 @@ def _result(segments, chunk_store, computed, batch, keep, mesh, call_times):
     return status, per_draw, kept, computed_draws, compile_time
 
 
-def _save_blocks(chunk_store: ChunkStore, call: list[int], computed: dict, batch: int) -> None:
+def save_blocks(chunk_store: ChunkStore, call: list[int], computed: dict, batch: int) -> None:
     """Store the call's blocks, consecutive ones in one file (indices below 2**32)."""
     runs: list[list[int]] = []
     for k in sorted(set(call)):

@@ -31,7 +31,6 @@ shared file system.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import os
 import sys
@@ -44,16 +43,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import _source, metrics, plant, scenarios, sharding, simulator
+from fojax import metrics, plant, scenarios, sharding, simulator
+from fojax import settings as process_settings
 from fojax.controllers.cascade import as_controller
+from fojax.records import code_digest as code_version
 from fojax.study._dispatch import (
     DIVERGED,
     MAX_DRAWS,
-    _Dispatch,
-    _plan_calls,
-    _result,
-    _save_blocks,
-    _to_compute,
+    Dispatch,
+    plan_calls,
+    run_result,
+    save_blocks,
+    to_compute,
 )
 from fojax.study._store import ChunkStore, unflatten_snapshot
 
@@ -272,9 +273,9 @@ def compile_chunk_runner(
 
 
 def numeric_xla_flags(flags: str | None = None) -> list[str]:
-    """The ``XLA_FLAGS`` (default: the environment's) that can change a program's
-    arithmetic: all but the host device count and dump options."""
-    flags = os.environ.get("XLA_FLAGS", "") if flags is None else flags
+    """The ``XLA_FLAGS`` (default: the process's, :func:`fojax.settings.read`) that can
+    change a program's arithmetic: all but the host device count and dump options."""
+    flags = process_settings.read().xla_flags if flags is None else flags
     kept = []
     for flag in flags.split():
         name = flag.lstrip("-").split("=")[0]
@@ -282,14 +283,6 @@ def numeric_xla_flags(flags: str | None = None) -> list[str]:
             continue
         kept.append(flag)
     return sorted(kept)
-
-
-@functools.lru_cache(maxsize=1)
-def code_version() -> str:
-    """A hash of the library's source (every ``fojax/**/*.py``): draws stored by other
-    code are not reused, as a change of a default (a fractional operator's modes, a
-    plant constant) changes the numbers without changing any setting."""
-    return _source.digest(Path(__file__).resolve().parents[1])
 
 
 def fingerprint(
@@ -310,7 +303,8 @@ def fingerprint(
     With the settings of the rollout: the block size ``device_batch`` (default
     :func:`default_device_batch`), the platform ``backend`` (``cpu``, ``gpu``, ...;
     default JAX's) and the ``XLA_FLAGS`` that change arithmetic
-    (:func:`numeric_xla_flags`), and the library's code (:func:`code_version`). Not in
+    (:func:`numeric_xla_flags`), and the library's code (``code_version``:
+    :func:`fojax.records.code_digest`, so draws stored by other code are not reused). Not in
     it, since they do not change a draw's numbers: the draw count, ``keep``, the
     devices and processes.
 
@@ -451,16 +445,16 @@ def run(
     if store is not None and lead:
         fields = (controller, gains, scenario, config, seed, dtype, metrics_config, batch)
         chunk_store = ChunkStore(Path(store), fingerprint(*fields, member=member))
-    segments, calls = _plan_calls(chunk_store, draws, keep, batch, layout["devices"], mesh)
+    segments, calls = plan_calls(chunk_store, draws, keep, batch, layout["devices"], mesh)
     if runner is None and calls:
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
-    dispatch = _Dispatch(runner, gains, scenario, config, seed, batch, keep, mesh, member)
+    dispatch = Dispatch(runner, gains, scenario, config, seed, batch, keep, mesh, member)
     start_time = time.perf_counter()
     report = progress and lead and (lambda *a: dispatch.report(controller.name, *a))
-    done = draws - _to_compute(segments)  # loaded from the store
+    done = draws - to_compute(segments)  # loaded from the store
     call_times = _run_calls(dispatch, calls, chunk_store, done, draws, layout, config, report)
     wall = time.perf_counter() - start_time
-    result = _result(segments, chunk_store, dispatch.computed, batch, keep, mesh, call_times)
+    result = run_result(segments, chunk_store, dispatch.computed, batch, keep, mesh, call_times)
     return _monte_carlo_result(controller.name, result, wall, layout, len(calls), draws)
 
 
@@ -476,7 +470,7 @@ def _check_run(controller, gains, scenario, draws, seed, device_batch, keep, mem
 
 
 def _monte_carlo_result(name, result, wall, layout, calls, draws) -> MonteCarloResult:
-    """The :class:`MonteCarloResult` of :func:`_result`'s ``result`` for ``calls`` calls."""
+    """The :class:`MonteCarloResult` of :func:`run_result`'s ``result`` for ``calls`` calls."""
     status, per_draw, kept, computed, compile_time = result
     return MonteCarloResult(
         controller=name,
@@ -498,7 +492,7 @@ def _run_calls(dispatch, calls, chunk_store, done, draws, layout, config, report
         t0 = time.perf_counter()
         dispatch(call, layout["devices"])
         if chunk_store is not None:
-            _save_blocks(chunk_store, call, dispatch.computed, batch)
+            save_blocks(chunk_store, call, dispatch.computed, batch)
         call_times.append(time.perf_counter() - t0)
         done += sum(max(0, min(batch, draws - k * batch)) for k in call)
         if report:

@@ -11,7 +11,6 @@ a run with another chunk size or on other devices reads them as they are.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -20,7 +19,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from fojax import simulator
+from fojax import records, simulator
 from fojax.controllers.base import ControlInfo
 
 STORE_FORMAT = 2
@@ -56,63 +55,39 @@ class StoreMismatch(ValueError):
         self.directory, self.differences = self.stores[0]
         text = "\n".join(
             f"{store} holds draws of a run with other settings; it differs in:\n  "
-            + "\n  ".join(describe_differences(found, hint))
+            + "\n  ".join(records.describe(found, hint))
             for store, found in self.stores
         )
         super().__init__(f"{text}\n{advice or self.ADVICE}")
 
 
-def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(value, dict):
-        out: dict[str, Any] = {}
-        for key in value:
-            out.update(_flatten(value[key], f"{prefix}.{key}" if prefix else str(key)))
-        return out
-    return {prefix: value}
+def manifest_differences(directory: str | os.PathLike, fingerprint: dict) -> list | None:
+    """``[(field, earlier, now), ...]`` where ``fingerprint`` (without the store's
+    format, which is added) differs from the one of the draws in ``directory``: ``[]``
+    the same settings, None nothing stored there. A manifest of the first format
+    (no ``store_format``) is named as such; one that cannot be read, or holds no
+    settings, is one difference saying so."""
+    manifest = Path(directory) / "manifest.json"
+    if not manifest.is_file():
+        return None
+    try:
+        stored = json.loads(manifest.read_text())
+    except (OSError, ValueError):
+        return [("manifest.json", "cannot be read", "readable")]
+    if not isinstance(stored, dict) or not isinstance(stored.get("fingerprint"), dict):
+        return [("manifest.json", "no settings", "settings")]
+    current = _keyed(fingerprint)
+    key = records.digest(current)
+    if stored.get("key") == key:
+        return []
+    earlier = {"store_format": 1, **stored["fingerprint"]}
+    found = records.differences(earlier, current)
+    return found or [("key", stored.get("key"), key)]  # same settings, other hashing
 
 
-ABSENT = "<absent>"
-
-
-def fingerprint_differences(stored: dict, current: dict) -> list[tuple[str, Any, Any]]:
-    """``[(field, stored value, current value)]`` for every leaf that differs (dotted
-    paths; :data:`ABSENT` where a field exists on one side only), sorted by field."""
-    old = _flatten(_canonical(stored))
-    new = _flatten(_canonical(current))
-    return [
-        (field, old.get(field, ABSENT), new.get(field, ABSENT))
-        for field in sorted(set(old) | set(new))
-        if old.get(field, ABSENT) != new.get(field, ABSENT)
-    ]
-
-
-def _short(value: Any, width: int = 60) -> str:
-    text = json.dumps(value, default=str)
-    return text if len(text) <= width else text[: width - 3] + "..."
-
-
-def describe_differences(
-    differences: list[tuple[str, Any, Any]], hint=lambda field: "", earlier: str = "earlier"
-) -> list[str]:
-    """One line per difference: ``field (hint): earlier X, now Y`` (``earlier``: what
-    the stored side is called)."""
-    lines = []
-    for field, old, new in differences:
-        extra = hint(field)
-        lines.append(
-            f"{field}{f' ({extra})' if extra else ''}: {earlier} {_short(old)}, now {_short(new)}"
-        )
-    return lines
-
-
-def _canonical(document: Any) -> Any:
-    """JSON-normalised (tuples as lists, keys sorted, NumPy scalars as numbers)."""
-    return json.loads(json.dumps(document, sort_keys=True, default=str))
-
-
-def _fingerprint_hash(fingerprint: dict) -> str:
-    text = json.dumps(_canonical(fingerprint), sort_keys=True)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+def _keyed(fingerprint: dict) -> dict:
+    """The fingerprint a store keeps: the run's, with the store's format."""
+    return {"store_format": STORE_FORMAT, **records.canonical(fingerprint)}
 
 
 class StoredRange(NamedTuple):
@@ -134,30 +109,15 @@ class ChunkStore:
 
     def __init__(self, directory: str | os.PathLike, fingerprint: dict, writable: bool = True):
         self.directory = Path(directory)
-        self.fingerprint = {"store_format": STORE_FORMAT, **_canonical(fingerprint)}
-        self.key = _fingerprint_hash(self.fingerprint)
+        self.fingerprint = _keyed(fingerprint)
+        self.key = records.digest(self.fingerprint)
         self.writable = writable
-        manifest = self.directory / "manifest.json"
-        if manifest.exists():
-            try:
-                stored = json.loads(manifest.read_text())
-            except ValueError:
-                stored = {}
-            if not isinstance(stored, dict) or stored.get("key") != self.key:
-                earlier = stored.get("fingerprint") if isinstance(stored, dict) else None
-                if not isinstance(earlier, dict):
-                    earlier = {}
-                earlier.setdefault("store_format", 1)
-                differences = fingerprint_differences(earlier, self.fingerprint)
-                if not differences:  # same settings, other hashing: take it as a mismatch
-                    differences = [("key", stored.get("key"), self.key)]
-                raise StoreMismatch(self.directory, differences)
-        elif writable:
-            self.directory.mkdir(parents=True, exist_ok=True)
+        found = manifest_differences(self.directory, fingerprint)
+        if found:
+            raise StoreMismatch(self.directory, found)
+        if found is None and writable:
             document = {"key": self.key, "fingerprint": self.fingerprint}
-            tmp = manifest.with_name(".manifest.json.tmp")
-            tmp.write_text(json.dumps(document, indent=1) + "\n")
-            os.replace(tmp, manifest)
+            records.write_json(self.directory / "manifest.json", document)
 
     @classmethod
     def existing(cls, directory: str | os.PathLike) -> ChunkStore | None:
@@ -224,9 +184,7 @@ class ChunkStore:
         if snapshots is not None:
             arrays.update({f"s.{k}": np.asarray(v) for k, v in snapshots.items()})
         path = self.directory / f"draws_{first:010d}-{stop:010d}.npz"
-        tmp = path.with_name(f".{path.stem}.tmp.npz")
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
+        records.write_npz(path, arrays, compress=False)
         for other in self.ranges():
             if other.path != path and first <= other.first and other.stop <= stop:
                 other.path.unlink(missing_ok=True)

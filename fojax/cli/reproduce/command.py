@@ -39,14 +39,16 @@ def _make_study(**fields) -> simulate.Study:
     return simulate.Study(**fields)
 
 
-def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce):
+def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce, settings=None):
     """Yields ``(study, results)`` scenario by scenario (:func:`fojax.cli.study.run_studies`:
     the next runs' programs compile while one runs; the scenarios run as members of one
     union, so each controller's program serves every scenario)."""
     from fojax.cli import study as study_layer
 
     pairs = [(study, out / f"s{study.scenario_id}") for study in studies]
-    yield from study_layer.run_studies(pairs, progress, overwrite, announce=announce)
+    yield from study_layer.run_studies(
+        pairs, progress, overwrite, announce=announce, settings=settings
+    )
 
 
 def _write_outputs(study, results: dict, directory: Path) -> dict:
@@ -263,7 +265,8 @@ def main(argv=None) -> int:
 
     drawer = _FigureDrawer(out / "figures", progress) if lead and not args.no_figures else None
     try:
-        for study, results in _run_studies(studies, out, progress, args.overwrite, announce):
+        runs = _run_studies(studies, out, progress, args.overwrite, announce, runtime["settings"])
+        for study, results in runs:
             results_by_scenario[study.scenario_id] = results
             if lead:
                 directory = out / f"s{study.scenario_id}"

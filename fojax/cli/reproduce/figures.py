@@ -31,8 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from fojax.cli import style
-from fojax.cli.figures import _inputs_envelope as _envelopes
-from fojax.cli.figures import _valid
+from fojax.cli.figures import inputs_envelope, kept_valid
 
 __all__ = ["FIGURE_NUMBERS", "plot_all"]
 
@@ -95,7 +94,7 @@ def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> P
     first = next(iter(results.values())).trajectories
     t = np.asarray(first.time[0])
     for i, (name, result) in enumerate(results.items()):
-        state = _valid(result, result.trajectories.state)
+        state = kept_valid(result, result.trajectories.state)
         for axis in range(6):
             style.band(axes[axis % 3, axis // 3], t, state[:, :, axis], style.color(name, i))
     for axis in range(3):
@@ -121,7 +120,7 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
     t = np.asarray(first.time[0])
     reference_velocity = _reference_velocity(scenario_id, t)
     colors = {name: style.color(name, i) for i, name in enumerate(results)}
-    envelopes = {name: _envelopes(result) for name, result in results.items()}
+    envelopes = {name: inputs_envelope(result) for name, result in results.items()}
     for channel in range(4):
 
         def width(name, channel=channel):
@@ -138,10 +137,10 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
                 )  # fmt: skip
     for name, result in results.items():
         tr = result.trajectories
-        position_error = _valid(result, np.asarray(tr.state)[:, :, :3] - tr.reference[:, :, :3])
+        position_error = kept_valid(result, np.asarray(tr.state)[:, :, :3] - tr.reference[:, :, :3])
         for axis in range(3):
             style.band(axes[axis, 1], t, position_error[:, :, axis], colors[name])
-        velocity = _valid(result, tr.state)[:, :, 6:9]
+        velocity = kept_valid(result, tr.state)[:, :, 6:9]
         velocity_error = np.linalg.norm(velocity - reference_velocity[None], axis=-1)
         style.band(axes[3, 1], t, velocity_error, colors[name])
     inputs = ["u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)"]
@@ -174,7 +173,7 @@ def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: 
     first = next(iter(results.values())).trajectories
     ref = np.asarray(first.reference[0])
     for i, (name, result) in enumerate(results.items()):
-        state = _valid(result, result.trajectories.state)
+        state = kept_valid(result, result.trajectories.state)
         if state.shape[0] == 0:
             continue
         color = style.color(name, i)
@@ -220,7 +219,7 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
         if name not in ADAPTIVE:
             continue
         symbols = ADAPTIVE[name]
-        adaptive = _valid(result, result.trajectories.info.adaptive)  # (draws, T, 6, 3)
+        adaptive = kept_valid(result, result.trajectories.info.adaptive)  # (draws, T, 6, 3)
         if adaptive.shape[0] == 0:
             continue
         color = style.color(name, index)

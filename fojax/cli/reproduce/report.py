@@ -10,6 +10,7 @@ import numpy as np
 from fojax.cli import output
 from fojax.cli.reproduce import claims as claims_module
 from fojax.cli.reproduce.claims import BASELINE, CHATTER_THRESHOLD
+from fojax.records import atomic_write
 
 __all__ = ["TABLE_METRICS", "write_report"]
 
@@ -274,7 +275,7 @@ def write_report(
     tables = tables or {}
     lines = _markdown(out, summaries, claims, settings, figures, wall_time, tables)
     report_md = out / "report.md"
-    report_md.write_text("\n".join(lines) + "\n")
+    atomic_write(report_md, "\n".join(lines) + "\n")
     document = _document(summaries, claims, settings, figures, wall_time, tables)
     report_json = out / "report.json"
     output.write_json(report_json, document, default=_json_default)
