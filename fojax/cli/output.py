@@ -18,6 +18,7 @@ generated blocks of the docs.
 from __future__ import annotations
 
 import datetime
+import json
 import os
 import platform
 import shlex
