@@ -285,18 +285,21 @@ def _number(summary: dict) -> float:
     return summary["yield"] if "yield" in summary else summary["cost"]
 
 
-def _warm(objective: Objective, kinds, x0) -> threading.Thread | None:
-    """Compile the programs of ``kinds`` in a thread (a later phase's, beside the first)."""
-    if "gradient" not in kinds:
+def _warm(objective: Objective, needs, x0) -> threading.Thread | None:
+    """Compile, in a thread, the gradient programs a later phase needs (``needs``: the
+    strategy's after the first), beside the first phase."""
+    widths = [width for kind, width in needs if kind == "gradient"]
+    if not widths:
         return None
 
-    def compile_gradient():
-        try:
-            objective.warm(x0)
-        except Exception:  # the phase that needs it reports the error itself
-            pass
+    def compile_gradients():
+        for width in dict.fromkeys(widths):
+            try:
+                objective.warm(x0, width)
+            except Exception:  # the phase that needs it reports the error itself
+                pass
 
-    thread = threading.Thread(target=compile_gradient, daemon=True)
+    thread = threading.Thread(target=compile_gradients, daemon=True)
     thread.start()
     return thread
 
@@ -354,7 +357,7 @@ def run(
         while state.used["steps"] < last:
             request = strategy.ask(state.state)
             points = np.atleast_2d(request.points).shape[0]
-            cost = points * objective.spec.draws * objective.spec.steps
+            cost = points * (request.draws or objective.spec.draws) * objective.spec.steps
             if not budget.allows({**state.used, "wall_time_s": state.wall()}, points, cost):
                 break
             evaluation = objective(request)
@@ -404,7 +407,7 @@ def _more(budget: Budget, state: _Run, strategy) -> bool:
     points = np.atleast_2d(request.points).shape[0]
     spec = state.objective.spec
     used = {**state.used, "wall_time_s": state.wall()}
-    return budget.allows(used, points, points * spec.draws * spec.steps)
+    return budget.allows(used, points, points * (request.draws or spec.draws) * spec.steps)
 
 
 def _result(state: _Run) -> Result:
@@ -435,12 +438,12 @@ def _result(state: _Run) -> Result:
 
 
 def describe(objective, strategy, budget, x0, validation_draws, validate_every) -> dict:
-    """A run's fingerprint: everything its numbers depend on."""
+    """A run's fingerprint: everything its steps depend on (not the budget: a run resumed
+    with a larger one goes on where it stopped)."""
     return {
         "format": FORMAT,
         "objective": objective.describe(),
         "strategy": strategy.settings(),
-        "budget": dataclasses.asdict(budget),
         "start": np.asarray(x0, np.float64).tolist(),
         "validation": {"draws": validation_draws, "every": validate_every},
     }

@@ -5,11 +5,12 @@ compiled once; every tuner (:mod:`fojax.optimize.strategies`) and every study ca
 Draws: the three ranges of :mod:`fojax.optimize.spec` (tuning samples, validation,
 held-out); a union's draw ``i`` is of member ``i % members``.
 
-Laws. Gradients are taken through the *tuning law*: the sliding-mode controllers switch
-with ``tanh(S / (w b))``, ``b`` the gains' boundary layer (the field of role
-``"smoothing"``) and ``w`` the request's width scale. Forward evaluations without a
-width (population methods, validation, held-out draws) run the *evaluation law*
-(``switching``, default ``sat`` with ``b``): the gains are scored as they are used.
+Laws. A request with a width ``w`` runs the *tuning law*: the sliding-mode controllers
+switch with ``tanh(S / (w b))``, ``b`` the gains' boundary layer (the field of role
+``"smoothing"``); one without runs the *evaluation law* (``switching``, default ``sat``
+with ``b``): the gains scored as they are used (validation and held-out draws always
+run it). Both have gradients (``sat`` is piecewise linear, differentiable almost
+everywhere; the paper's ``sign`` has none worth taking).
 
 Outputs per draw (:class:`Outputs`): ``values[..., 0]`` the target ``f`` (the
 weighted sum ``J`` of :mod:`fojax.optimize.cost`, or with a requirement set its
@@ -100,8 +101,8 @@ class Request(NamedTuple):
     points: ``(P, d)`` float64 parameter vectors (:meth:`Objective.vector` order).
     gradient: the loss's gradient at the single point (``P = 1``). sample: the tuning
     sample's index (0: the fixed sample). width: the tuning law's width scale; ``None``:
-    the evaluation law (forward only). loss: what turns outputs into numbers (``None``:
-    the objective's :class:`MeanLoss`).
+    the evaluation law. loss: what turns outputs into numbers (``None``: the objective's
+    :class:`MeanLoss`). draws: the sample's size (``None``: the spec's).
     """
 
     points: np.ndarray
@@ -109,6 +110,7 @@ class Request(NamedTuple):
     sample: int = 0
     width: float | None = None
     loss: Any = None
+    draws: int | None = None
 
 
 class Evaluation(NamedTuple):
@@ -375,16 +377,17 @@ class Objective:
             metrics,
         )
 
-    def _gradient(self):
-        """The per-draw gradient program over the mesh (:func:`_over_mesh`), compiled once."""
+    def _gradient(self, law: str = "tanh"):
+        """The per-draw gradient program of ``law`` over the mesh
+        (:func:`fojax.optimize._blocks.over_mesh`), compiled once."""
         with self._lock:
-            if "gradient" not in self._programs:
-                self._programs["gradient"] = self._gradient_program()
-        return self._programs["gradient"]
+            if ("gradient", law) not in self._programs:
+                self._programs[("gradient", law)] = self._gradient_program(law)
+        return self._programs[("gradient", law)]
 
-    def _gradient_program(self):
+    def _gradient_program(self, law: str):
         spec = self.spec
-        run = self._rollout("tanh", spec.horizon, self.scenario, spec.block)
+        run = self._rollout(law, spec.horizon, self.scenario, spec.block)
 
         def per_draw(x, width, keys, member, cotangent):
             copies = jnp.broadcast_to(x[:, None], x.shape + (keys.shape[0],))
@@ -397,7 +400,7 @@ class Objective:
             (grads,) = pullback(cotangent.astype(values.dtype))
             return values, terms, status, grads.T
 
-        key = self._program_key(kind="gradient") if self.registered else None
+        key = self._program_key(kind="gradient", law=law) if self.registered else None
         return blocks.over_mesh(
             per_draw,
             self.mesh or sharding.one_device_mesh(),
@@ -406,12 +409,13 @@ class Objective:
             key,
         )
 
-    def warm(self, x=None) -> None:
-        """Compile the gradient program (an evaluation at ``x``, default the start, with
-        unit cotangents), e.g. in a thread beside a phase that does not need it yet."""
+    def warm(self, x=None, width: float | None = 1.0) -> None:
+        """Compile the gradient program of the law of ``width`` (an evaluation at ``x``,
+        default the start, with unit cotangents), e.g. in a thread beside a phase that
+        does not need it yet."""
         x = self.x0 if x is None else np.asarray(x, np.float64)
         keys = self.sample(0)
-        self._gradient()(
+        self._gradient("tanh" if width is not None else self.switching)(
             jnp.asarray(x, self.dtype),
             jnp.asarray(1.0, self.dtype),
             keys,
@@ -423,14 +427,14 @@ class Objective:
     def __call__(self, request: Request) -> Evaluation:
         """Evaluate a strategy's request on its tuning sample."""
         loss = self.loss if request.loss is None else request.loss
-        keys = self.sample(request.sample)
+        keys = self.sample(request.sample, request.draws)
         points = np.atleast_2d(np.asarray(request.points, np.float64))
         draw_steps = points.shape[0] * keys.shape[0] * self.spec.steps
         if not request.gradient:
             outputs = self.forward(points, keys, request.width)
             return Evaluation(np.asarray(loss.values(outputs)), None, outputs, 0, draw_steps)
-        if points.shape[0] != 1 or request.width is None:
-            raise ValueError("a gradient is taken at one point, with the tuning law (a width)")
+        if points.shape[0] != 1:
+            raise ValueError("a gradient is taken at one point")
         if self.requirements is not None and isinstance(loss, MeanLoss):
             raise ValueError(
                 "a requirement set is tuned with a constrained loss (an augmented Lagrangian)"
@@ -441,9 +445,10 @@ class Objective:
         else:  # the cotangents need the outputs at the point first
             cotangent = loss.cotangents(_first(self.forward(points, keys, request.width)))
             draw_steps *= 2
-        values, terms, status, grads = self._gradient()(
+        law = "tanh" if request.width is not None else self.switching
+        values, terms, status, grads = self._gradient(law)(
             jnp.asarray(points[0], self.dtype),
-            jnp.asarray(request.width, self.dtype),
+            jnp.asarray(1.0 if request.width is None else request.width, self.dtype),
             keys,
             self._members(n),
             np.asarray(cotangent, self.dtype),

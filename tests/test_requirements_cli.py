@@ -108,19 +108,18 @@ def test_missing_file_and_bad_rotor_limit(tmp_path, capsys, tiny):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (["--position-weight", "2"], "--position-weight applies to the weighted-sum tuner only"),
-        (["--steps", "3"], "--steps applies to the weighted-sum tuner only"),
-        (["--cvar-fraction", "0.2"], "--cvar-fraction applies to the weighted-sum tuner"),
+        (["--position-weight", "2"], "--position-weight applies to the weighted-sum objective"),
+        (["--steps", "3"], "--steps is set by --outer-steps and --inner-steps"),
+        (["--cvar-fraction", "0.2"], "--cvar-fraction applies to --objective cvar only"),
         (["--resume"], "nothing to resume"),
-        (["--objective", "mean"], "--objective mean is the weighted-sum tuner's"),
-        (["--method", "cma-es", "--inner-steps", "3"], "--inner-steps applies to the gradient"),
-        (["--method", "cma-es", "--learning-rate", "0.1"], "--learning-rate applies to the"),
-        (["--generations", "3"], "--generations applies to --method cma-es only"),
+        (["--objective", "mean"], "--objective mean is the weighted-sum objective's"),
+        (["--method", "cma-es", "--learning-rate", "0.1"], "--learning-rate applies to"),
         (["--method", "lbfgs", "--clip-norm", "2"], "--clip-norm applies to --method adam"),
+        (["--eval-horizon", "1"], "--eval-horizon applies to the weighted-sum objective"),
         (["--eval-switching", "sat"], "--eval-switching does not apply to fl"),
     ],
 )
-def test_tune_options_of_the_other_tuner(tmp_path, capsys, tiny, extra, message):
+def test_tune_options_that_do_not_apply_with_requirements(tmp_path, capsys, tiny, extra, message):
     argv = [*BASE_TUNE, "--requirements", str(tiny), *extra, "--out", str(tmp_path / "o")]
     err = _exit_2(capsys, tune.parse_args, argv)
     assert message in err
@@ -133,7 +132,6 @@ def test_tune_options_of_the_other_tuner(tmp_path, capsys, tiny, extra, message)
         (["--rotor-limit", "2"], "--rotor-limit applies with --requirements FILE only"),
         (["--outer-steps", "2"], "--outer-steps applies with --requirements FILE only"),
         (["--objective", "effort"], "--objective effort applies with --requirements FILE only"),
-        (["--method", "cma-es"], "--method cma-es applies with --requirements FILE only"),
     ],
 )
 def test_requirement_options_without_requirements(tmp_path, capsys, extra, message):
@@ -142,21 +140,25 @@ def test_requirement_options_without_requirements(tmp_path, capsys, extra, messa
 
 
 def test_tune_defaults_with_requirements(tmp_path, tiny):
-    run, args = tune.parse_args([*BASE_TUNE, "--requirements", str(tiny), "--out", str(tmp_path)])
-    assert (args.objective, args.method, args.draws) == ("effort", "adam", 8)
-    assert (run.config.outer_steps, run.config.inner_steps) == (10, 10)
-    assert run.config.learning_rate == 0.1 and run.config.formulation == "mean"
-    assert run.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(2.0))
+    run = tune.parse_args([*BASE_TUNE, "--requirements", str(tiny), "--out", str(tmp_path)])
+    args = run.args
+    assert (args.objective, args.method, args.draws, args.eval_draws) == ("effort", "auto", 8, 128)
+    strategy = run.strategy
+    assert (strategy.outer_steps, strategy.inner_steps, strategy.formulation) == (10, 10, "mean")
+    assert run.budget.steps == 1 + 10 * 11 and args.validate_every == 11
+    assert run.objective.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(2.0))
     # --rotor-limit replaces the file's limit, in the simulation and in the metric.
-    run, _ = tune.parse_args(
+    run = tune.parse_args(
         [*BASE_TUNE, "--requirements", str(tiny), "--rotor-limit", "3", "--out", str(tmp_path)]
     )
-    assert run.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(3.0))
-    assert run.requirements.settings.thrust_to_weight == 3.0
-    assert run.problem.sim_config.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(3.0))
-    # Without --requirements the weighted-sum tuner keeps its defaults.
-    _, args = tune.parse_args([*BASE_TUNE, "--out", str(tmp_path / "w")])
-    assert (args.objective, args.method, args.draws) == ("mean", "lbfgs", 16)
+    assert run.objective.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(3.0))
+    assert run.objective.requirements.settings.thrust_to_weight == 3.0
+    # Any method, inside the augmented Lagrangian; without --requirements the weighted sum.
+    for method in tune.METHODS:
+        argv = [*BASE_TUNE, "--requirements", str(tiny), "--method", method, "--out", str(tmp_path)]
+        assert tune.parse_args(argv).strategy.inner.name != "augmented-lagrangian"
+    args = tune.parse_args([*BASE_TUNE, "--out", str(tmp_path / "w")]).args
+    assert (args.objective, args.method, args.draws) == ("mean", "auto", 16)
 
 
 @pytest.fixture(scope="module")
@@ -164,9 +166,9 @@ def tuned(tmp_path_factory, tiny):
     """A tiny requirement tuning run of the FL (the cheapest controller to compile)."""
     out = tmp_path_factory.mktemp("tuned")
     argv = [
-        "tune", *BASE_TUNE, "--requirements", str(tiny), "--draws", "2", "--outer-steps", "2",
-        "--inner-steps", "2", "--validation-draws", "4", "--eval-draws", "4", "--quiet",
-        "--out", str(out),
+        "tune", *BASE_TUNE, "--requirements", str(tiny), "--method", "adam", "--draws", "2",
+        "--outer-steps", "2", "--inner-steps", "2", "--validation-draws", "4",
+        "--eval-draws", "4", "--quiet", "--out", str(out),
     ]  # fmt: skip
     assert cli.main(argv) == 0
     return out
@@ -180,7 +182,8 @@ def test_tune_to_requirements_writes_gains_and_heldout_yield(tuned, tiny):
     assert meta["actuators"]["rotor_limited"] is True
     assert meta["requirements"]["requirements"][0]["name"] == "tilt"
     history = (tuned / "history.csv").read_text().splitlines()
-    assert len(history) == 3 and "constraint[overshoot]" in history[0]
+    assert len(history) == 1 + 1 + 2 * 3  # the scale, then 2 x (2 steps and a measurement)
+    assert "constraints" in history[0] and "multipliers" in history[0]
     evaluation = json.loads((tuned / "evaluation.json").read_text())
     for label in ("initial", "tuned"):
         entry = evaluation[label]
@@ -196,9 +199,9 @@ def test_tune_to_requirements_resumes_to_the_uninterrupted_gains(tmp_path, tuned
 
     def argv(outer, *extra, folder=out):
         return [
-            "tune", *BASE_TUNE, "--requirements", str(tiny), "--draws", "2", "--outer-steps",
-            str(outer), "--inner-steps", "2", "--validation-draws", "4", "--eval-draws", "4",
-            "--quiet", "--out", str(folder), *extra,
+            "tune", *BASE_TUNE, "--requirements", str(tiny), "--method", "adam", "--draws",
+            "2", "--outer-steps", str(outer), "--inner-steps", "2", "--validation-draws", "4",
+            "--eval-draws", "4", "--quiet", "--out", str(folder), *extra,
         ]  # fmt: skip
 
     assert cli.main(argv(1)) == 0
@@ -207,17 +210,14 @@ def test_tune_to_requirements_resumes_to_the_uninterrupted_gains(tmp_path, tuned
     got = json.loads((out / "gains.json").read_text())
     want = json.loads((tuned / "gains.json").read_text())
     assert got["gains"] == want["gains"]
-    assert got["metadata"]["selected"] == want["metadata"]["selected"]
+    assert got["metadata"]["validation"] == want["metadata"]["validation"]
     history = (out / "history.csv").read_text().splitlines()
-    assert len(history) == 3
+    assert history == (tuned / "history.csv").read_text().splitlines() or len(history) == 8
     assert len(json.loads((out / "run.json").read_text())["sessions"]) == 2
     changed = _exit_2(capsys, cli.main, argv(2, "--resume", "--margin", "0.1"))
-    assert "differs in:" in changed and "tuner.margin: checkpoint 0.05, now 0.1" in changed
+    assert "differs in:" in changed and "strategy.margin: checkpoint 0.05, now 0.1" in changed
     missing = _exit_2(capsys, cli.main, argv(1, "--resume", folder=tmp_path / "none"))
     assert "nothing to resume" in missing
-    cma = [*BASE_TUNE, "--requirements", str(tiny), "--method", "cma-es", "--resume"]
-    message = _exit_2(capsys, cli.main, ["tune", *cma, "--out", str(out)])
-    assert "--resume applies to the gradient tuner" in message
 
 
 def test_simulate_requirements_yield_matches_per_draw_metrics(tmp_path, tiny, tuned, capsys):
@@ -272,12 +272,14 @@ def test_tune_cma_es_baseline_writes_gains(tmp_path, tiny):
     out = tmp_path / "cma"
     argv = [
         "tune", *BASE_TUNE, "--requirements", str(tiny), "--method", "cma-es",
-        "--generations", "1", "--draws", "2", "--validation-draws", "2", "--eval-draws", "0",
-        "--quiet", "--out", str(out),
+        "--outer-steps", "1", "--inner-steps", "1", "--draws", "2", "--validation-draws", "2",
+        "--eval-draws", "0", "--quiet", "--out", str(out),
     ]  # fmt: skip
     assert cli.main(argv) == 0
     document = json.loads((out / "gains.json").read_text())
     assert document["metadata"]["method"] == "cma-es"
-    assert document["metadata"]["selected_from"] in ("start", "cma-es mean")
-    assert len((out / "history.csv").read_text().splitlines()) == 2  # header + 1 generation
+    assert document["metadata"]["selected_step"] in (0, 3)  # the start, or the last answer
+    history = (out / "history.csv").read_text().splitlines()
+    assert len(history) == 4  # header, the scale, one generation, the measurement
+    assert [row.split(",")[2] for row in history[1:]] != ["1", "1", "1"]  # a population
     assert not (out / "evaluation.json").exists()

@@ -1,200 +1,220 @@
-"""The constrained tuner: a toy with a known constrained optimum (pure JAX), then one
-short simulator run whose held-out yield must fall in the interval it states."""
+"""Tuning to requirements: the augmented Lagrangian on a toy with a known constrained
+optimum (any inner strategy), its gradient against finite differences on the
+simulator, a short simulator run that must raise the held-out yield from a start that
+fails the set, resume, and a union of scenarios."""
 
-import jax.numpy as jnp
+import functools
+
 import numpy as np
 import pytest
 
 from fojax import requirements as rq
-from fojax.optimize import constrained as co
+from fojax.controllers import registry
+from fojax.optimize import driver
+from fojax.optimize import strategies as st
+from fojax.optimize.objective import Evaluation, Objective, Outputs, Request
+from fojax.optimize.spec import ProblemSpec
 
 
-def _toy(x, data):
-    """Draw i: minimise |x|^2 subject to x_1 >= 1 + 0.1 xi_i and x_2 >= 0.5 + 0.1 eta_i.
-    With every draw required the optimum is x* = (1 + 0.1 max xi, 0.5 + 0.1 max eta)."""
-    xi, eta = data
-    objective = x[0] ** 2 + x[1] ** 2
-    violations = jnp.stack([1.0 + 0.1 * xi - x[0], 0.5 + 0.1 * eta - x[1]])
-    return (objective, violations), jnp.zeros(xi.shape, jnp.int32)
+class _Toy:
+    """Draw i: minimise ``|x|^2`` subject to ``x_1 >= 1 + 0.1 xi_i`` and ``x_2 >= 0.5 +
+    0.1 eta_i``; with every draw required the optimum is ``x* = (1 + 0.1 max xi, 0.5 +
+    0.1 max eta)``. The outputs and their per-draw Jacobians are exact (by hand), so the
+    loss's gradient is ``sum_i cot_i . J_i`` as the objective forms it."""
+
+    def __init__(self, n=64):
+        rng = np.random.default_rng(0)
+        self.xi, self.eta = rng.standard_normal(n), rng.standard_normal(n)
+        self.star = np.array([1 + 0.1 * self.xi.max(), 0.5 + 0.1 * self.eta.max()])
+
+    def outputs(self, points) -> Outputs:
+        points = np.atleast_2d(points)
+        f = np.sum(points**2, 1)[:, None] + 0 * self.xi
+        v1 = 1.0 + 0.1 * self.xi - points[:, :1]
+        v2 = 0.5 + 0.1 * self.eta - points[:, 1:]
+        values = np.stack([f, v1, v2], -1)
+        return Outputs(values, np.zeros(values.shape[:2] + (4,)), np.zeros(values.shape[:2], int))
+
+    def __call__(self, request: Request) -> Evaluation:
+        outputs = self.outputs(request.points)
+        values = request.loss.values(outputs)
+        gradient = None
+        if request.gradient:
+            x = np.asarray(request.points)[0]
+            cot = request.loss.cotangents(Outputs(*(a[0] for a in outputs[:3])))
+            jacobian = np.array([2 * x, [-1.0, 0.0], [0.0, -1.0]])  # (outputs, parameters)
+            gradient = cot.sum(0) @ jacobian
+        return Evaluation(values, gradient, outputs, 0, 0)
+
+    def drive(self, strategy, x0, requests):
+        state = strategy.init(np.asarray(x0, np.float64))
+        for _ in range(requests):
+            request = strategy.ask(state)
+            state = strategy.tell(state, request, self(request))
+        return strategy.answer(state), state
 
 
 @pytest.fixture(scope="module")
 def toy():
-    rng = np.random.default_rng(0)
-    n = 64
-    data = tuple(jnp.asarray(rng.standard_normal(n)) for _ in range(2))
-    star = np.array([1 + 0.1 * float(jnp.max(data[0])), 0.5 + 0.1 * float(jnp.max(data[1]))])
-    return data, n, star
+    return _Toy()
 
 
-def _run(toy, **kw):
-    data, n, _ = toy
-    config = co.ConstrainedConfig(
-        outer_steps=20,
-        inner_steps=50,
-        margin=0.01,
-        validation_draws=0,
-        penalty_growth=4.0,
-        penalty_max=1e4,
-        **kw,
-    )
-    result = co.minimize(co.make_alm_step(_toy, config), jnp.zeros(2), data, n, config, 2)
-    return np.asarray(result.params), result
+def _alm(inner, **kw):
+    settings = dict(outer_steps=20, inner_steps=50, margin=0.01, penalty_growth=4.0,
+                    penalty_max=1e4)  # fmt: skip
+    return st.AugmentedLagrangian(inner, 2, **{**settings, **kw})
 
 
-def _train_yield(toy, x):
-    (xi, eta), _, _ = toy
-    return np.mean((1 + 0.1 * np.asarray(xi) <= x[0]) & (0.5 + 0.1 * np.asarray(eta) <= x[1]))
+@pytest.mark.parametrize(
+    "inner", [st.adam(1000, 0.05, 1.0, 1.0, sample="fixed"), st.LBFGS(max_step=0.5)],
+    ids=["adam", "lbfgs"],
+)  # fmt: skip
+def test_mean_formulation_reaches_the_constrained_optimum(toy, inner):
+    strategy = _alm(inner)
+    x, state = toy.drive(strategy, np.zeros(2), strategy.requests)
+    assert np.max(np.abs(x - toy.star)) < 0.03, (x, toy.star)
+    assert x @ x == pytest.approx(toy.star @ toy.star, rel=0.05)
+    assert np.all(state["lam"] > 0)
 
 
-def test_mean_formulation_reaches_the_constrained_optimum(toy):
-    x, result = _run(toy, formulation="mean")
-    star = toy[2]
-    assert np.max(np.abs(x - star)) < 0.03, (x, star)
-    assert x @ x == pytest.approx(star @ star, rel=0.05)
-    assert result.multipliers.shape == (2,) and np.all(result.multipliers > 0)
+def test_cma_es_inside_the_lagrangian_reaches_it_too(toy):
+    strategy = _alm(st.CMAES(sigma0=0.3, popsize=8, sample="fixed"), inner_steps=30)
+    x, _ = toy.drive(strategy, np.zeros(2), strategy.requests)
+    assert np.max(np.abs(x - toy.star)) < 0.05, (x, toy.star)
 
 
 def test_chance_surrogate_is_feasible_and_conservative(toy):
-    x, _ = _run(toy, formulation="chance", allowed_share=0.05, temperature=0.1)
-    star = toy[2]
-    assert _train_yield(toy, x) == 1.0
-    assert np.all(x >= star - 1e-3)
-    assert x @ x < 1.5 * (star @ star)
+    inner = st.adam(1000, 0.05, 1.0, 1.0, sample="fixed")
+    strategy = _alm(inner, formulation="chance", allowed_share=0.05, temperature=0.1)
+    x, _ = toy.drive(strategy, np.zeros(2), strategy.requests)
+    meets = (1 + 0.1 * toy.xi <= x[0]) & (0.5 + 0.1 * toy.eta <= x[1])
+    assert np.mean(meets) == 1.0
+    assert np.all(x >= toy.star - 1e-3) and x @ x < 1.5 * (toy.star @ toy.star)
 
 
 def test_config_is_checked():
+    inner = st.LBFGS()
     with pytest.raises(ValueError, match="formulation"):
-        co.ConstrainedConfig(formulation="barrier")
+        st.AugmentedLagrangian(inner, 2, formulation="barrier")
     with pytest.raises(ValueError, match="allowed_share"):
-        co.ConstrainedConfig(allowed_share=1.0)
+        st.AugmentedLagrangian(inner, 2, allowed_share=1.0)
     with pytest.raises(ValueError, match="allowed_share > 0"):
-        co.ConstrainedConfig(formulation="chance")
+        st.AugmentedLagrangian(inner, 2, formulation="chance")
     with pytest.raises(ValueError, match="inner_steps"):
-        co.ConstrainedConfig(inner_steps=0)
+        st.AugmentedLagrangian(inner, 2, inner_steps=0)
+
+
+# ---------------------------------------------------------------- the simulator
+
+REQUIREMENTS = rq.parse(
+    {
+        "settings": {"thrust_to_weight": 2.0},
+        "requirements": [
+            {"name": "tilt", "metric": "max_tilt", "max": 3, "unit": "deg"},
+            {"name": "torque", "metric": "torque_effort", "max": 0.7, "unit": "N m"},
+        ],
+    }
+)
+
+
+@functools.cache
+def fl_objective(dtype="float32"):
+    """The FL on scenario 2 (0.4 s, rotor-limited at thrust-to-weight 2), tracking under a
+    tilt and a torque-effort requirement its default gains miss."""
+    spec = ProblemSpec(controller="fl", scenario=2, horizon=0.4, draws=8, dtype=dtype)
+    base = registry.get_controller_class("fl").default_gains()
+    limit = REQUIREMENTS.settings.speed_limit()
+    return Objective(spec, base, REQUIREMENTS, target="tracking", rotor_speed_limit=limit)
+
+
+def test_lagrangian_gradient_matches_finite_differences():
+    objective = fl_objective("float64")
+    x = objective.x0 + 0.05
+    loss = st.AugmentedLagrangian(st.LBFGS(), 2).loss(
+        {"lam": np.array([0.5, 2.0]), "rho": 10.0, "scale": 0.3}
+    )
+    evaluation = objective(Request(x[None], gradient=True, width=1.0, loss=loss))
+    assert evaluation.draw_steps == 2 * 8 * 400  # the outputs first, then the reverse pass
+    direction = np.random.default_rng(1).normal(size=x.size)
+    eps = 1e-6
+    ends = objective(Request(np.stack([x + eps * direction, x - eps * direction]), width=1.0,
+                             loss=loss))  # fmt: skip
+    numeric = (ends.values[0] - ends.values[1]) / (2 * eps)
+    assert abs(numeric) > 1e-3
+    assert float(evaluation.gradient @ direction) == pytest.approx(numeric, rel=1e-4)
 
 
 @pytest.fixture(scope="module")
 def simulator_run():
-    """FL on scenario 2 (0.4 s, rotor-limited actuators at thrust-to-weight 2), tuned for
-    tracking under a torque-effort and a tilt requirement its default gains miss."""
-    from fojax.controllers import registry
-    from fojax.optimize.problem import ProblemSpec
-
-    reqs = rq.parse(
-        {
-            "settings": {"thrust_to_weight": 2.0},
-            "requirements": [
-                {"name": "tilt", "metric": "max_tilt", "max": 3, "unit": "deg"},
-                {"name": "torque", "metric": "torque_effort", "max": 0.7, "unit": "N m"},
-            ],
-        }
+    objective = fl_objective()
+    strategy = st.AugmentedLagrangian(
+        st.adam(12, 0.1, 1.0, 1.0, sample="fixed"), 2, outer_steps=3, inner_steps=4
     )
-    spec = ProblemSpec(controller="fl", scenario=2, horizon=0.4, draws=8, dtype="float32")
-    base = registry.get_controller_class("fl").default_gains()
-    problem = co.RequirementProblem(spec, base, reqs, objective="tracking")
-    config = co.ConstrainedConfig(
-        formulation="mean", outer_steps=3, inner_steps=4, validation_draws=32, learning_rate=0.1
-    )
-    result = co.tune_to_requirements(problem, config)
-    heldout = problem.evaluate(result.params, problem.heldout_keys(64))
-    return problem, result, heldout
+    result = driver.run(objective, strategy, driver.Budget(steps=strategy.requests),
+                        validation_draws=32, validate_every=5, progress=False)  # fmt: skip
+    keys = objective.keys("heldout", 64)
+    before = objective.evaluate(objective.x0, keys)[1]
+    after = objective.evaluate(result.x, keys)[1]
+    return objective, result, before, after
 
 
-def test_simulator_run_is_rotor_limited_and_validated(simulator_run):
-    problem, result, _ = simulator_run
-    assert problem.sim_config.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(2.0))
-    assert len(result.history) == 3
-    start = result.initial
-    assert "interval" in result.selected
-    for row in [{"validation": start}, *result.history]:  # the best validated one
-        assert co._rank(row["validation"]) <= co._rank(result.selected)
-    assert start["draws"] == 32
+def test_tuning_raises_the_heldout_yield_from_a_failing_start(simulator_run):
+    objective, result, before, after = simulator_run
+    assert objective.rotor_speed_limit == pytest.approx(rq.rotor_speed_limit(2.0))
+    assert before["yield"] <= 0.1  # the default gains fail the set
+    assert after["yield"] >= before["yield"] + 0.25, (before, after)
+    low, high = result.validation["best"]["interval"]
+    assert low <= after["yield"] <= high or after["yield"] >= high  # the interval is honest
 
 
-def test_heldout_yield_within_the_stated_interval(simulator_run):
-    _, result, heldout = simulator_run
-    low, high = result.selected["interval"]
-    assert low <= heldout["yield"].yield_ <= high, (result.selected, heldout["yield"].describe())
+def test_the_run_returns_its_best_validated_iterate(simulator_run):
+    objective, result, _, _ = simulator_run
+    assert result.steps == 1 + 3 * 5
+    best = result.validation["best"]
+    for row in result.history:
+        if row["validation"] is not None:
+            assert row["validation"] <= best["yield"] + 1e-12
+    assert result.validation["initial"]["draws"] == 32
 
 
-def test_cma_es_baseline_on_the_same_constraints(simulator_run):
-    problem, result, _ = simulator_run
-    out = co.cma_es_requirements(
-        problem, budget_draw_steps=2 * 4 * 4 * 400, popsize=4, draws=4, validation_draws=32
-    )
-    assert len(out["history"]) == 2 and out["draw_steps"] == 2 * 4 * 4 * 400
-    start = result.initial  # the start's validation, on the same validation draws
-    # The selection never hands back worse than the start (by yield, then objective).
-    assert co._rank(out["selected"]) >= co._rank(start)
-    assert out["selected"]["draws"] == start["draws"]
-    problem.gains(out["params"])  # maps onto feasible gains
+def test_an_interrupted_lagrangian_run_resumes_to_the_uninterrupted_result(tmp_path):
+    objective = fl_objective()
 
-
-def test_an_interrupted_run_resumes_to_the_uninterrupted_result(toy, tmp_path):
-    data, n, _ = toy
-
-    def run(outer_steps, checkpoint=None, fingerprint=None):
-        config = co.ConstrainedConfig(outer_steps=outer_steps, inner_steps=10, validation_draws=0)
-
-        def validate(x):  # counts by hand on the tuning draws: passed and failures
-            ok = np.stack(
-                [1 + 0.1 * np.asarray(data[0]) <= x[0], 0.5 + 0.1 * np.asarray(data[1]) <= x[1]]
-            )
-            failures = {"a": int(np.sum(~ok[0])), "b": int(np.sum(~ok[1]))}
-            return {
-                "passed": int(np.sum(ok.all(0))),
-                "failures": failures,
-                "objective": float(x @ x),
-            }
-
-        step = co.make_alm_step(_toy, config)
-        return co.minimize(
-            step, jnp.zeros(2), data, n, config, 2, validate,
-            checkpoint=checkpoint, fingerprint=fingerprint,
+    def run(out, stop_after=None, resume=False):
+        strategy = st.AugmentedLagrangian(st.LBFGS(), 2, outer_steps=2, inner_steps=2)
+        return driver.run(
+            objective, strategy, driver.Budget(steps=strategy.requests), validation_draws=4,
+            validate_every=3, checkpoint_every=1, out=out, stop_after=stop_after,
+            resume=resume, progress=False,
         )  # fmt: skip
 
-    whole = run(4)
-    path = tmp_path / "checkpoint.npz"
-    first = run(2, path, {"run": 1})
-    assert len(first.history) == 2 and path.is_file()
-    resumed = run(4, path, {"run": 1})
-    np.testing.assert_array_equal(resumed.params, whole.params)
-    np.testing.assert_array_equal(resumed.final_params, whole.final_params)
-    np.testing.assert_array_equal(resumed.multipliers, whole.multipliers)
-    assert resumed.penalty == whole.penalty
-    assert resumed.selected == whole.selected and resumed.initial == whole.initial
+    whole = run(tmp_path / "whole")
+    run(tmp_path / "part", stop_after=4)
+    resumed = run(tmp_path / "part", resume=True)
+    np.testing.assert_array_equal(resumed.x, whole.x)
+    np.testing.assert_array_equal(resumed.state["lam"], whole.state["lam"])
+    assert resumed.validation == whole.validation
     strip = [{k: v for k, v in row.items() if k != "wall_time_s"} for row in whole.history]
-    again = [{k: v for k, v in row.items() if k != "wall_time_s"} for row in resumed.history]
-    assert again == strip
-    with pytest.raises(ValueError, match="differs in:\n  run: checkpoint 1, now 2"):
-        run(4, path, {"run": 2})
+    assert [{k: v for k, v in r.items() if k != "wall_time_s"} for r in resumed.history] == strip
 
 
-def test_union_problem_alternates_members():
-    """A requirement problem on a union of scenarios: draw i is draw i of member
-    i % members run alone (the same metrics, float32 within the union's rounding)."""
-    from fojax import scenarios
-    from fojax.controllers import registry
-    from fojax.optimize.problem import ProblemSpec
-
+def test_a_union_objective_alternates_members():
+    """Draw i of a union of scenarios is draw i of member i % members run alone (the same
+    metrics, float32 within the union's rounding)."""
     reqs = rq.parse(
         {"requirements": [{"name": "t", "metric": "max_tilt", "max": 30, "unit": "deg"}]}
     )
-    spec = ProblemSpec(controller="fl", scenario=2, horizon=0.05, draws=4, dtype="float32")
     base = registry.get_controller_class("fl").default_gains()
-    union = scenarios.union(scenarios.get_scenario(2), scenarios.get_scenario(3))
-    keys = scenarios.draw_keys(0, np.arange(4))
-    together = co.RequirementProblem(spec, base, reqs, scenario=union).evaluate(base, keys)
+
+    def metrics(scenario):
+        spec = ProblemSpec(controller="fl", scenario=scenario, horizon=0.05, draws=4)
+        objective = Objective(spec, base, reqs, target="tracking")
+        return objective.evaluate(objective.x0, objective.sample(0))[2].metrics
+
+    together = metrics((2, 3))
     for member, scenario_id in enumerate((2, 3)):
-        alone = co.RequirementProblem(
-            spec, base, reqs, scenario=scenarios.get_scenario(scenario_id)
-        ).evaluate(base, keys)
+        alone = metrics(scenario_id)
         for name in ("max_tilt", "position_rmse", "torque_effort"):
-            np.testing.assert_allclose(
-                together["metrics"][name][member::2],
-                alone["metrics"][name][member::2],
-                rtol=1e-4, atol=1e-6, err_msg=name,
-            )  # fmt: skip
-    # The members differ (scenario 3's reference and disturbances are other ones).
-    assert not np.allclose(together["metrics"]["position_rmse"], alone["metrics"]["position_rmse"])
+            np.testing.assert_allclose(together[name][member::2], alone[name][member::2],
+                                       rtol=1e-4, atol=1e-6, err_msg=name)  # fmt: skip
+    assert not np.allclose(together["position_rmse"], alone["position_rmse"])

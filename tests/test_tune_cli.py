@@ -48,14 +48,21 @@ def _write(path, document):
           "--chattering-weight", "0"], "at least one cost weight"),
         (["--learning-rate", "-1"], "finite number > 0"),
         (["--resume"], "nothing to resume"),
-        # An option that would change nothing (the default method is L-BFGS).
-        (["--learning-rate", "0.1"], "--learning-rate applies to --method adam only"),
-        (["--clip-norm", "2"], "--clip-norm applies to --method adam only"),
-        (["--anneal-start", "2"], "L-BFGS keeps the boundary-layer scale at --anneal-end"),
-        (["--method", "adam", "--max-step", "0.5"], "--max-step applies to --method lbfgs"),
+        # An option that would change nothing (the default method is auto).
+        (["--learning-rate", "0.1"], "--learning-rate applies to --method adam only, not to "
+         "--method auto"),
+        (["--method", "lbfgs", "--clip-norm", "2"], "--clip-norm applies to --method adam only"),
+        (["--anneal-start", "2"], "--anneal-start applies to --method adam only"),
+        (["--method", "adam", "--max-step", "0.5"], "--max-step applies to --method auto or "
+         "lbfgs only"),
+        (["--method", "cma-es", "--switch", "2"], "--switch applies to --method auto only"),
+        (["--method", "nelder-mead", "--sigma", "1"], "--sigma applies to --method auto or cma-es"),
+        (["--method", "cma-es", "--compile", "fast"], "--compile applies to --method auto or adam"),
         (["--cvar-fraction", "0.5"], "--cvar-fraction applies to --objective cvar only"),
-        (["--validation-draws", "0", "--validate-every", "2"], "--validation-draws is 0"),
+        (["--validation-draws", "0", "--validate-every", "2"], "applies with validation draws"),
         (["--eval-draws", "0", "--eval-horizon", "1"], "--eval-draws is 0"),
+        (["--outer-steps", "2"], "--outer-steps applies with --requirements FILE only"),
+        (["--objective", "effort"], "--objective effort applies with --requirements FILE only"),
         (["--controller", "fl", "--fractional", "gl"], "--fractional does not apply to fl"),
         (["--controller", "bsmc", "--fractional", "soe"], "bsmc, which takes no fractional"),
         (["--controller", "fl", "--eval-switching", "sat"], "--eval-switching does not apply"),
@@ -68,6 +75,16 @@ def test_bad_arguments_fail_before_anything_is_written(capsys, tmp_path, extra, 
     err = _error(capsys, argv)
     assert message in err, err
     assert not out.exists()
+
+
+def test_every_method_on_every_objective_is_one_declared_option_set():
+    """Each option's default lives in the table, and a method is independent of the
+    objective: every method parses with the weighted sum and with a requirement set."""
+    names = [option.flag for option in tune.OPTIONS]
+    assert len(names) == len(set(names))
+    for method in tune.METHODS:
+        run = tune.parse_args(SMALL + ["--method", method, "--out", "/nonexistent/run"])
+        assert run.args.method == method and run.budget.steps == run.args.steps
 
 
 def test_initial_gains_files_are_validated(capsys, tmp_path):
@@ -99,21 +116,26 @@ def test_initial_gains_files_are_validated(capsys, tmp_path):
 
 def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     out = tmp_path / "run"
-    argv = SMALL + ["--steps", "2", "--checkpoint-every", "1", "--eval-draws", "2", "--quiet"]
+    argv = SMALL + ["--steps", "3", "--switch", "2", "--popsize", "4", "--checkpoint-every",
+                    "1", "--eval-draws", "2", "--validate-every", "2", "--quiet"]  # fmt: skip
     assert cli.main(["tune"] + argv + ["--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "held-out cost" in printed
+    assert "held-out (2 draws" in printed
     name, gains, metadata = gains_io.load_gains(out / "gains.json")
     assert name == "afonftsmc" and metadata["tuned_by"] == "fojax tune"
-    assert metadata["problem"]["draws"] == 3 and metadata["init"] == "naive"
+    assert metadata["method"] == "auto" and metadata["init"] == "naive"
+    assert metadata["settings"]["objective"]["problem"]["draws"] == 3
     rows = (out / "history.csv").read_text().strip().splitlines()
-    assert len(rows) == 3 and rows[0].startswith("step,objective,")
-    # The returned gains are the best validated ones, and say which step they are from.
+    assert len(rows) == 4 and rows[0].startswith("step,loss,points,")
+    # Two CMA-ES generations of 4 candidates, then an L-BFGS step.
     columns = rows[0].split(",")
-    last = dict(zip(columns, rows[-1].split(","), strict=True))
+    table = [dict(zip(columns, row.split(","), strict=True)) for row in rows[1:]]
+    assert [r["phase"] for r in table] == ["cma-es", "cma-es", "lbfgs"]
+    assert [r["points"] for r in table] == ["4", "4", "1"] and table[2]["grad_norm"]
+    # The returned gains are the best validated ones, and say which step they are from.
     validation = metadata["validation"]
-    assert metadata["selected_step"] == validation["best_step"] == int(last["best_step"])
-    assert float(last["validation_cost"]) == pytest.approx(validation["final"], rel=1e-12)
+    assert metadata["selected_step"] == validation["best_step"] == int(table[-1]["best_step"])
+    assert float(table[-1]["validation"]) == pytest.approx(validation["final"]["cost"])
     assert validation["draws"] == 32 and validation["switching"] == "sat"
     assert "returned " in printed and "validation cost" in printed
     evaluation = json.loads((out / "evaluation.json").read_text())
@@ -146,9 +168,10 @@ def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     err = _error(capsys, argv + ["--out", str(out)])
     assert "pass --resume" in err
     err = _error(capsys, argv + ["--resume", "--max-step", "0.5", "--out", str(out)])
-    assert "another configuration" in err and "tuner.max_step: checkpoint 1.0, now 0.5" in err
+    assert "another configuration" in err
+    assert "strategy.second.max_step: checkpoint 1.0, now 0.5" in err
     err = _error(capsys, argv + ["--resume", "--objective", "cvar", "--out", str(out)])
-    assert 'problem.cost.objective: checkpoint "mean", now "cvar"' in err
+    assert 'objective.problem.cost.objective: checkpoint "mean", now "cvar"' in err
     assert checkpoint.read_bytes() == before
     # Resuming a finished run changes nothing (its sessions are logged in run.json).
     text = (out / "gains.json").read_text()

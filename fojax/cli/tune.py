@@ -268,58 +268,30 @@ def _build(parser, args) -> Run:
     dtype = _dtype(args)
     fields = _fields(args)
     weights = {f"{t}_weight": getattr(args, f"{t}_weight") for t in TERMS}
-    cost = optimize.CostConfig(
-        error=args.error,
-        objective=args.objective if args.objective in WEIGHTED else "mean",
-        cvar_fraction=args.cvar_fraction,
-        **weights,
-    )
-    spec = optimize.ProblemSpec(
-        controller=args.controller,
-        scenario=args.scenario,
-        horizon=args.horizon,
-        dt=args.dt,
-        draws=args.draws,
-        seed=args.seed,
-        cost=cost,
-        fields=fields,
-        share=args.share,
-        fractional=args.fractional,
-        dtype=args.dtype,
-        compile=args.compile,
-    )
-    if args.eval_horizon is not None:
-        optimize.ProblemSpec(
-            **{**dataclasses.asdict(spec), "cost": cost, "horizon": args.eval_horizon}
-        )
+    reduction = args.objective if args.objective in WEIGHTED else "mean"
+    cost = optimize.CostConfig(args.error, objective=reduction,
+                               cvar_fraction=args.cvar_fraction, **weights)  # fmt: skip
+    take = ("controller", "scenario", "horizon", "dt", "draws", "seed", "share", "fractional",
+            "dtype", "compile")  # fmt: skip
+    spec = optimize.ProblemSpec(cost=cost, fields=fields, **{k: getattr(args, k) for k in take})
+    if args.eval_horizon is not None:  # a whole number of steps
+        dataclasses.replace(spec, horizon=args.eval_horizon)
     gains, label = _initial_gains(parser, args, dtype)
     reqs, limit = requirements_cli.resolve_requirements(args)
     args.requirement_set, args.rotor_speed_limit = reqs, limit
-    objective = optimize.Objective(
-        spec,
-        gains,
-        requirements=reqs,
-        target=args.objective if reqs is not None else "cost",
-        rotor_speed_limit=limit,
-        switching=args.eval_switching,
-        mesh=_mesh(),
-        device_batch=args.device_batch,
-    )
+    target = args.objective if reqs is not None else "cost"
+    objective = optimize.Objective(spec, gains, reqs, target, rotor_speed_limit=limit,
+                                   switching=args.eval_switching, mesh=_mesh(),
+                                   device_batch=args.device_batch)  # fmt: skip
     x0 = objective.vector(gains)
-    strategy = _strategy(args)
+    strategy, steps = _strategy(args), args.steps
     if reqs is not None:
-        strategy = st.AugmentedLagrangian(
-            strategy,
-            len(reqs),
-            outer_steps=args.outer_steps,
-            inner_steps=args.inner_steps,
-            formulation=args.formulation,
-            margin=args.margin,
-            allowed_share=0.05 if args.formulation == "chance" else 0.0,
-        )
-        budget = optimize.Budget(steps=strategy.requests, seconds=args.seconds)
-    else:
-        budget = optimize.Budget(steps=args.steps, seconds=args.seconds)
+        share = 0.05 if args.formulation == "chance" else 0.0
+        strategy = st.AugmentedLagrangian(strategy, len(reqs), args.outer_steps, args.inner_steps,
+                                          formulation=args.formulation, margin=args.margin,
+                                          allowed_share=share)  # fmt: skip
+        steps = strategy.requests
+    budget = optimize.Budget(steps=steps, seconds=args.seconds)
     fingerprint = optimize.describe(
         objective, strategy, budget, x0, args.validation_draws, args.validate_every
     )
@@ -357,7 +329,7 @@ def _strategy(args):
     """The method's strategy (the inner one with ``--requirements``)."""
     from fojax.optimize import strategies as st
 
-    steps = args.inner_steps * args.outer_steps if args.requirements else args.steps
+    steps = args.inner_steps if args.requirements else args.steps  # a fresh Adam per outer step
     return st.make(
         args.method, steps, seed=args.seed, switch=args.switch, sigma=args.sigma,
         popsize=args.popsize, max_step=args.max_step, width=args.anneal_end,

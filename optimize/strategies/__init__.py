@@ -21,7 +21,8 @@ resumed run continues exactly), in the style of optax's transformations:
 ``row(state) -> dict``
     What the strategy adds to the run's history after a request.
 ``needs() -> tuple``
-    The programs it will ask for, in order (``"forward"``, ``"gradient"``).
+    The programs it will ask for, in order: ``(kind, width)`` pairs, ``kind``
+    ``"forward"`` or ``"gradient"``, ``width`` the law's (``None``: the evaluation law).
 
 Gradient strategies (:mod:`._gradient`): :class:`Optax` (any optax transformation;
 :func:`adam` is fojax's setting) and :class:`LBFGS`. Population strategies

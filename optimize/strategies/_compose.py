@@ -68,6 +68,7 @@ class Chain:
         return {
             "phase": np.asarray(0),
             "count": np.asarray(0),
+            "told": np.asarray(0),
             "first": self.first.init(x0),
             "second": self.second.init(x0),
         }
@@ -287,7 +288,8 @@ class AugmentedLagrangian:
         return {**state, "inner": self.inner.restart(state["inner"])}
 
     def settings(self) -> dict:
-        out = {k: v for k, v in dataclasses.asdict(self).items() if k != "inner"}
+        leave_out = ("inner", "outer_steps")  # the budget's (a run may go on for longer)
+        out = {k: v for k, v in dataclasses.asdict(self).items() if k not in leave_out}
         return {**out, "inner": self.inner.settings()}
 
     def row(self, state) -> dict:
@@ -300,4 +302,4 @@ class AugmentedLagrangian:
         }
 
     def needs(self) -> tuple:
-        return tuple(dict.fromkeys(("forward",) + self.inner.needs()))
+        return tuple(dict.fromkeys((("forward", None),) + self.inner.needs()))

@@ -80,7 +80,8 @@ class Optax:
         return np.asarray(state["x"], np.float64)
 
     def restart(self, state) -> dict:
-        return {**self.init(state["x"]), "step": state["step"]}
+        """A fresh optimiser (and schedule) at the current point."""
+        return self.init(state["x"])
 
     def settings(self) -> dict:
         return {
@@ -95,7 +96,7 @@ class Optax:
         return {"step_length": _learning_rate(self, int(state["step"]) - 1)}
 
     def needs(self) -> tuple:
-        return ("gradient",)
+        return (("gradient", self.anneal[1]),)
 
 
 def _learning_rate(strategy: Optax, step: int) -> float | None:
@@ -171,6 +172,8 @@ class LBFGS:
             raise ValueError(f"memory must be a positive integer, got {self.memory!r}")
         for label in ("max_step", "width"):
             value = getattr(self, label)
+            if label == "width" and value is None:
+                continue  # the evaluation law
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
 
@@ -210,7 +213,7 @@ class LBFGS:
         return {"step_length": float(state["alpha"]), "accepted": int(state["moved"])}
 
     def needs(self) -> tuple:
-        return ("gradient",)
+        return (("gradient", self.width),)
 
     def _direction(self, state) -> np.ndarray:
         g, k = state["g"], int(state["pairs"])

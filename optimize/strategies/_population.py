@@ -47,6 +47,10 @@ class CMAES:
     seed: int = 0
     sample: str = "fresh"
     width: float | None = None
+    inject: tuple[float, ...] = ()
+    inject_from: int = 0
+    gradient_width: float | None = None
+    draws: int | None = None
     name: str = "cma-es"
 
     def __post_init__(self) -> None:
@@ -99,7 +103,12 @@ class CMAES:
             "ps": np.zeros(d),
             "pc": np.zeros(d),
             "generation": np.asarray(0),
+            "phase": np.asarray(0),
+            "gradient": np.zeros(d),
         }
+
+    def _injects(self, state) -> bool:
+        return bool(self.inject) and int(state["generation"]) >= self.inject_from
 
     @staticmethod
     def _eigen(C):
@@ -108,13 +117,27 @@ class CMAES:
 
     def ask(self, state) -> Request:
         d, generation = state["mean"].size, int(state["generation"])
+        sample = generation if self.sample == "fresh" else 0
+        if self._injects(state) and int(state["phase"]) == 0:  # the gradient at the mean
+            return Request(state["mean"][None], True, sample, self.gradient_width, draws=self.draws)
         lam = self.constants(d)["lam"]
         z = np.random.default_rng([self.seed, generation]).standard_normal((lam, d))
         B, D = self._eigen(state["C"])
         points = state["mean"] + float(state["sigma"]) * (z * D) @ B.T
-        return Request(points, False, generation if self.sample == "fresh" else 0, self.width)
+        if self._injects(state):  # steps along -C g, of Mahalanobis length t sqrt(d)
+            g = state["gradient"]
+            direction = -(state["C"] @ g) / max(math.sqrt(float(g @ state["C"] @ g)), 1e-300)
+            for i, t in enumerate(self.inject):
+                points[lam - 1 - i] = (
+                    state["mean"] + float(state["sigma"]) * t * math.sqrt(d) * direction
+                )
+        return Request(points, False, sample, self.width, draws=self.draws)
 
     def tell(self, state, request, evaluation) -> dict:
+        if self._injects(state) and int(state["phase"]) == 0:
+            gradient = np.asarray(evaluation.gradient, np.float64)
+            gradient = np.where(np.isfinite(gradient), gradient, 0.0)
+            return {**state, "phase": np.asarray(1), "gradient": gradient}
         k = self.constants(state["mean"].size)
         d, sigma, mean = state["mean"].size, float(state["sigma"]), state["mean"]
         values = np.where(np.isfinite(evaluation.values), evaluation.values, np.inf)
@@ -150,6 +173,8 @@ class CMAES:
             "ps": ps,
             "pc": pc,
             "generation": np.asarray(generation),
+            "phase": np.asarray(0),
+            "gradient": state["gradient"],
         }
 
     def answer(self, state) -> np.ndarray:
@@ -165,7 +190,8 @@ class CMAES:
         return {"sigma": float(state["sigma"])}
 
     def needs(self) -> tuple:
-        return ("forward",)
+        injected = (("gradient", self.gradient_width),) if self.inject else ()
+        return (("forward", self.width),) + injected
 
 
 # Nelder-Mead's phases: the trial(s) a state is waiting for.
@@ -209,7 +235,7 @@ class NelderMead:
         return {"best_sample_value": float(state["values"][0])}
 
     def needs(self) -> tuple:
-        return ("forward",)
+        return (("forward", self.width),)
 
     def tell(self, state, request, evaluation) -> dict:
         sim, fsim = state["simplex"].copy(), state["values"].copy()
