@@ -56,7 +56,8 @@ def evaluate_in_blocks(fn: Callable, shared: Any, keys, mesh=None, block: int | 
         shared: a pytree given whole to every call (gains, parameters, ...); placed
             on every device of ``mesh`` (:func:`fojax.sharding.replicate`).
         keys: ``(n, ...)``, e.g. ``(n, 2)`` keys of :func:`fojax.scenarios.draw_keys`,
-            ``n >= 1``; the same values on every process.
+            or a pytree of such arrays (every leaf with the leading axis ``n``: a
+            draw's inputs), ``n >= 1``; the same values on every process.
         mesh: None: ``fn`` as it is, one block per call; else a
             :func:`fojax.sharding.draw_mesh`, the keys of each call split over its
             devices (:func:`fojax.sharding.shard_draws`; placed only for more than one
@@ -69,11 +70,12 @@ def evaluate_in_blocks(fn: Callable, shared: Any, keys, mesh=None, block: int | 
     the repeats are dropped. Draw ``i``'s numbers are those of a direct call of ``fn``
     on its block, whatever ``n``, the mesh and the processes.
     """
-    keys = np.asarray(keys)
-    count = int(keys.shape[0]) if keys.ndim else 0
+    keys = jax.tree.map(np.asarray, keys)
+    shapes = [np.shape(leaf) for leaf in jax.tree.leaves(keys)]
+    count = shapes[0][0] if shapes and shapes[0] else 0
     block = count if block is None else block
-    if count < 1:
-        raise ValueError(f"evaluate_in_blocks needs at least one key, got shape {keys.shape}")
+    if count < 1 or any(not shape or shape[0] != count for shape in shapes):
+        raise ValueError(f"evaluate_in_blocks needs at least one key, got shapes {shapes}")
     if isinstance(block, bool) or not isinstance(block, int | np.integer) or block < 1:
         raise ValueError(f"block must be a positive integer, got {block!r}")
     devices = 1 if mesh is None else int(mesh.devices.size)
@@ -83,8 +85,8 @@ def evaluate_in_blocks(fn: Callable, shared: Any, keys, mesh=None, block: int | 
     if placed:
         shared = sharding.replicate(shared, mesh)
     parts = []
-    for first in range(0, keys.shape[0], per_call):
-        chunk = keys[first : first + per_call]
+    for first in range(0, count + (-count % per_call), per_call):
+        chunk = jax.tree.map(lambda leaf, first=first: leaf[first : first + per_call], keys)
         chunk = sharding.shard_draws(chunk, mesh) if placed else chunk
         parts.append(gather(fn(shared, chunk), mesh))
     return jax.tree.map(lambda *xs: np.concatenate(xs)[:count], *parts)

@@ -46,10 +46,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import export_cache, observers, plant, scenarios, sharding, simulator
+from fojax import blocks, export_cache, observers, plant, scenarios, sharding, simulator
 from fojax import requirements as rq
 from fojax.controllers import registry
-from fojax.optimize import _blocks as blocks
 from fojax.optimize import cost as cost_lib
 from fojax.optimize import params as params_lib
 from fojax.optimize.spec import (
@@ -205,6 +204,7 @@ class Objective:
         self.scenario = spec.scenario_object() if scenario is None else scenario
         self.members = len(self.scenario.members) if self.scenario.members else 0
         self.mesh = mesh
+        self._mesh = mesh or sharding.one_device_mesh()
         self.device_batch = device_batch
         self.lanes = int(lanes)
         self._widths = cls.GAINS.with_role("smoothing")
@@ -328,16 +328,22 @@ class Objective:
         steps = int(round(horizon / self.spec.dt))
         run = self._rollout(law, horizon, scenario, checkpoint_interval(steps, 100.0))
 
-        def lanes(xs, width, keys, member):  # lanes first in and out
+        def lanes(width, batch):  # lanes first in and out
+            xs, keys, member = batch
             values, terms, metrics, status = run(xs.T, width, keys, member)
             return values.T, terms.T, metrics, status
 
-        mesh = self.mesh or sharding.one_device_mesh()
-        program = sharding.sharded_batch(lanes, mesh, batched=(True, False, True, True))
-        if registered:
-            key = self._program_key(law=law, horizon=horizon, kind="lanes")
-            program = export_cache.reusable(program, "lanes", key)
-        return blocks.FirstCall(program), mesh
+        key = self._program_key(law=law, horizon=horizon, kind="lanes") if registered else None
+        return self._program(lanes, key, None)
+
+    def _program(self, fn, key, options):
+        """``fn(shared, batch)`` compiled for one block per device of the mesh (kept
+        across processes under ``key``, :mod:`fojax.export_cache`); its first call
+        holds a lock, so that two threads never compile it twice."""
+        program = sharding.sharded_batch(fn, self._mesh, (False, True), options)
+        if key is not None:
+            program = export_cache.reusable(program, key["kind"], key, options)
+        return _FirstCall(program)
 
     def forward(
         self,
@@ -359,15 +365,13 @@ class Objective:
         registered = scenario is None and self.registered
         scenario = self.scenario if scenario is None else scenario
         law = self.switching if width is None else "tanh"
-        program, mesh = self._forward(law, horizon, scenario, registered)
+        program = self._forward(law, horizon, scenario, registered)
         count, n = points.shape[0], keys.shape[0]
-        xs = np.repeat(points, n, axis=0)
-        lane_keys, member = np.tile(keys, (count, 1)), np.tile(self._members(n), count)
+        xs = np.repeat(points, n, axis=0).astype(self.dtype)
+        batch = (xs, np.tile(keys, (count, 1)), np.tile(self._members(n), count))
         width = jnp.asarray(1.0 if width is None else width, self.dtype)
-        out = blocks.in_blocks(
-            program, mesh, self.lanes, (xs, lane_keys, member), width, self.dtype
-        )
-        values, terms, metrics, status = out
+        out = blocks.evaluate_in_blocks(program, width, batch, self._mesh, self.lanes)
+        values, terms, metrics, status = jax.tree.map(_float64, out)
         shape = (count, n)
         metrics = None if metrics is None else {k: v.reshape(shape) for k, v in metrics.items()}
         return Outputs(
@@ -378,8 +382,7 @@ class Objective:
         )
 
     def _gradient(self, law: str = "tanh"):
-        """The per-draw gradient program of ``law`` over the mesh
-        (:func:`fojax.optimize._blocks.over_mesh`), compiled once."""
+        """The per-draw gradient program of ``law``, compiled once."""
         with self._lock:
             if ("gradient", law) not in self._programs:
                 self._programs[("gradient", law)] = self._gradient_program(law)
@@ -389,7 +392,8 @@ class Objective:
         spec = self.spec
         run = self._rollout(law, spec.horizon, self.scenario, spec.block)
 
-        def per_draw(x, width, keys, member, cotangent):
+        def per_draw(shared, batch):
+            (x, width), (keys, member, cotangent) = shared, batch
             copies = jnp.broadcast_to(x[:, None], x.shape + (keys.shape[0],))
 
             def outputs(c):
@@ -401,13 +405,19 @@ class Objective:
             return values, terms, status, grads.T
 
         key = self._program_key(kind="gradient", law=law) if self.registered else None
-        return blocks.over_mesh(
-            per_draw,
-            self.mesh or sharding.one_device_mesh(),
-            self.device_batch,
-            COMPILE_MODES[spec.compile],
-            key,
-        )
+        return self._program(per_draw, key, COMPILE_MODES[spec.compile])
+
+    def _per_draw(self, law, x, width, keys, cotangent):
+        """``(values (n, K), terms (n, 4), status (n,), gradients (n, d))``: the outputs
+        of ``x`` on ``keys`` and the per-draw gradients of ``cotangent . outputs``, in
+        blocks of ``device_batch`` draws per device (default: the whole sample) over the
+        mesh; every mesh gives the same per-draw values, bit for bit, for a given
+        ``device_batch`` (:func:`fojax.blocks.evaluate_in_blocks`)."""
+        shared = (jnp.asarray(x, self.dtype), jnp.asarray(width, self.dtype))
+        batch = (keys, self._members(len(keys)).astype(np.int32), np.asarray(cotangent, self.dtype))
+        block = self.device_batch or len(keys)
+        out = blocks.evaluate_in_blocks(self._gradient(law), shared, batch, self._mesh, block)
+        return jax.tree.map(_float64, out)
 
     def warm(self, x=None, width: float | None = 1.0) -> None:
         """Compile the gradient program of the law of ``width`` (an evaluation at ``x``,
@@ -415,13 +425,8 @@ class Objective:
         does not need it yet."""
         x = self.x0 if x is None else np.asarray(x, np.float64)
         keys = self.sample(0)
-        self._gradient("tanh" if width is not None else self.switching)(
-            jnp.asarray(x, self.dtype),
-            jnp.asarray(1.0, self.dtype),
-            keys,
-            self._members(len(keys)),
-            np.ones((len(keys), self.count), self.dtype),
-        )
+        law = "tanh" if width is not None else self.switching
+        self._per_draw(law, x, 1.0, keys, np.ones((len(keys), self.count)))
 
     # -- what strategies and the driver call -------------------------------------------
     def __call__(self, request: Request) -> Evaluation:
@@ -446,13 +451,8 @@ class Objective:
             cotangent = loss.cotangents(_first(self.forward(points, keys, request.width)))
             draw_steps *= 2
         law = "tanh" if request.width is not None else self.switching
-        values, terms, status, grads = self._gradient(law)(
-            jnp.asarray(points[0], self.dtype),
-            jnp.asarray(1.0 if request.width is None else request.width, self.dtype),
-            keys,
-            self._members(n),
-            np.asarray(cotangent, self.dtype),
-        )
+        width = 1.0 if request.width is None else request.width
+        values, terms, status, grads = self._per_draw(law, points[0], width, keys, cotangent)
         outputs = Outputs(values, terms, status)
         finite = np.all(np.isfinite(grads), -1)
         usable = finite & outputs.valid
@@ -493,6 +493,25 @@ class Objective:
         outputs = _first(self.forward(np.asarray(x)[None], keys, None, horizon, scenario))
         key, summary = self.score(outputs)
         return key, summary, outputs
+
+
+def _float64(array: np.ndarray) -> np.ndarray:
+    return array.astype(np.float64) if array.dtype.kind == "f" else array
+
+
+class _FirstCall:
+    """A program whose first call holds a lock: two threads never compile it twice."""
+
+    def __init__(self, program):
+        self.program, self.lock, self.ready = program, threading.Lock(), False
+
+    def __call__(self, *args):
+        if not self.ready:
+            with self.lock:
+                out = self.program(*args)
+                self.ready = True
+                return out
+        return self.program(*args)
 
 
 def _first(outputs: Outputs) -> Outputs:
