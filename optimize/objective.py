@@ -469,8 +469,12 @@ class Objective:
         lower mean target over the valid draws."""
         valid = outputs.valid
         if self.requirements is None:
+            cost = np.where(valid, outputs.values[:, 0], self.spec.cost.divergence_cost)
             mean = float(self.loss.values(outputs))
-            return (mean,), {"cost": mean, "diverged": int(np.sum(~valid))}
+            terms = dict(zip(("P", "A", "E", "C"), np.mean(outputs.terms, 0).tolist(), strict=True))
+            spread = float(np.std(cost, ddof=1)) if len(cost) > 1 else None
+            summary = {"cost": mean, "std": spread, "terms": terms, "diverged": int(np.sum(~valid))}
+            return (mean,), summary
         metrics = rq.draw_metrics(outputs.metrics, outputs.status)
         result = rq.evaluate(self.requirements, metrics, valid=valid)
         f = outputs.values[..., 0]

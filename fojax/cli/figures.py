@@ -377,7 +377,7 @@ def plot_convergence(
 
 
 def _held_number(summary: dict) -> float:
-    return summary["yield"] if "yield" in summary else summary["mean_cost"]
+    return summary["yield"] if "yield" in summary else summary["cost"]
 
 
 def plot_yield(results: dict, path: Path, title: str) -> Path:

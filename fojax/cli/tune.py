@@ -536,8 +536,6 @@ def _save_gains(run: Run, result, record: dict, earlier: str | None) -> None:
 
 def _heldout(run: Run, result, session: dict) -> dict:
     """``evaluation.json``: the initial and the tuned gains on the held-out draws."""
-    import numpy as np
-
     from fojax.optimize import HELDOUT_OFFSET
 
     args, objective = run.args, run.objective
@@ -551,28 +549,13 @@ def _heldout(run: Run, result, session: dict) -> dict:
         "tuned_gains_from_step": result.best_step,
     }
     for label, x in (("initial", run.x0), ("tuned", result.x)):
-        _, summary, outputs = objective.evaluate(x, keys, horizon=horizon)
-        if args.requirement_set is None:
-            cost = np.where(
-                outputs.valid, outputs.values[:, 0], objective.spec.cost.divergence_cost
-            )
-            summary = {
-                "mean_cost": float(np.mean(cost)),
-                "std_cost": float(np.std(cost, ddof=1)) if len(cost) > 1 else None,
-                "mean_terms": dict(zip(TERMS, np.mean(outputs.terms, 0).tolist(), strict=True)),
-                "diverged": int(np.sum(~outputs.valid)),
-            }
-        document[label] = summary
+        document[label] = objective.evaluate(x, keys, horizon=horizon)[1]
     document["provenance"] = session
     print(
         f"held-out ({args.eval_draws} draws, {horizon:g} s, {args.eval_switching}): initial "
-        f"{_held(document['initial'])}, tuned {_held(document['tuned'])}"
+        f"{_score(document['initial'])}, tuned {_score(document['tuned'])}"
     )
     return document
-
-
-def _held(summary: dict) -> str:
-    return _score(summary) if "yield" in summary else f"cost {summary['mean_cost']:.5g}"
 
 
 def _figure(run: Run, result, evaluation):
