@@ -1,16 +1,13 @@
 """What several studies share: their command lines (numeric options, the output and
-smoke-run options, the gradient tuner's settings), float64, held-out draws, and the
-files every study ends with (``results.json``, ``table.md``, a document's block)."""
+smoke-run options, the gradient tuner's settings), float64, and the files every study
+ends with (``results.json``, ``table.md``, a document's block). Held-out draws are
+:func:`fojax.optimize.draw_keys`'s (``"heldout"``); a run kept under its fingerprint is
+:func:`fojax.records.cached`'s."""
 
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
-from collections.abc import Callable
 from pathlib import Path
-
-import numpy as np
 
 from fojax.cli import arguments, output
 
@@ -71,15 +68,6 @@ def tuner_config(args, steps: int, validation_draws: int, **fields):
     return TunerConfig(**given, **fields)
 
 
-def heldout_keys(seed: int, draws: int, offset: int = 0) -> np.ndarray:
-    """Keys ``(draws, 2)`` of held-out draws ``HELDOUT_OFFSET + offset + j`` of ``seed``
-    (:data:`fojax.optimize.problem.HELDOUT_OFFSET`: never seen by a tuner)."""
-    from fojax import scenarios
-    from fojax.optimize.problem import HELDOUT_OFFSET
-
-    return np.asarray(scenarios.draw_keys(seed, HELDOUT_OFFSET + offset + np.arange(draws)))
-
-
 def finish(out: Path, results: dict, text: str, doc=None, block=None, doc_text=None, wrote=None):
     """Write ``out/results.json`` and ``out/table.md`` (``text``); with ``doc``, replace
     its block ``block`` with ``doc_text`` (default ``text``); print ``text`` and, given
@@ -116,37 +104,3 @@ def settings(args, leave_out=()) -> dict:
     return {
         k: (str(v) if isinstance(v, Path) else v) for k, v in plain.items() if k not in leave_out
     }
-
-
-def digest(document) -> str:
-    """10 hex digits naming a JSON-ready ``document`` (keys sorted)."""
-    text = json.dumps(document, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:10]
-
-
-def stored(folder: Path, stem: str, fingerprint) -> dict | None:
-    """The record :func:`cached` keeps for ``stem`` and ``fingerprint``, or ``None``."""
-    from fojax.study import fingerprint_differences
-
-    path = Path(folder) / f"{stem}-{digest(fingerprint)}.json"
-    if not path.is_file():
-        return None
-    record = json.loads(path.read_text())
-    kept = record.pop("fingerprint", None)
-    return record if kept is None or not fingerprint_differences(kept, fingerprint) else None
-
-
-def cached(folder: Path, stem: str, fingerprint, compute: Callable[[], dict]) -> dict:
-    """One run of a study, computed once: ``folder/<stem>-<digest of fingerprint>.json``
-    holds the record ``compute()`` returned, with ``fingerprint`` (JSON-ready: every
-    setting the run depends on, and nothing else) beside it. A later call with the same
-    fingerprint reads the record back; other settings are another file, so runs of
-    several settings share a folder and none is reused for settings it was not made
-    with. Written atomically: an interrupted study loses only the run in progress."""
-    record = stored(folder, stem, fingerprint)
-    if record is None:
-        record = compute()
-        path = Path(folder) / f"{stem}-{digest(fingerprint)}.json"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        output.write_json(path, {**record, "fingerprint": fingerprint})
-    return record

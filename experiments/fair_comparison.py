@@ -216,6 +216,7 @@ def main(argv=None) -> int:
     _common.enable_float64(args.dtype == "float64")
     from fojax import scenarios
     from fojax.controllers import gains_io
+    from fojax.optimize import draw_keys
     from fojax.optimize import tuner as tuner_lib
 
     start_all = time.perf_counter()
@@ -228,7 +229,7 @@ def main(argv=None) -> int:
     for index, name in enumerate(args.controllers, 1):
         specs[name], gain_sets[name], tuning[name] = tune(args, config, index, name)
     # -- evaluation on the same held-out draws ----------------------------------------
-    keys = _common.heldout_keys(args.seed, args.eval_draws)
+    keys = draw_keys(args.seed, "heldout", args.eval_draws)
     evaluation = {}
     for k in args.eval_scenarios:
         t0 = time.perf_counter()

@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 from experiments import _common
+from fojax import records
 from fojax.cli import arguments, output
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -123,6 +124,7 @@ def evaluate_one(name: str, gains_dict: dict | None, scenario_id: int, switching
     from fojax import requirements as rq
     from fojax import scenarios
     from fojax.controllers import gains_io, registry
+    from fojax.optimize import draw_keys
 
     options = {"dt": 1e-3, "horizon": args.horizon}
     if switching is not None:
@@ -134,7 +136,7 @@ def evaluate_one(name: str, gains_dict: dict | None, scenario_id: int, switching
         gains = gains_io.gains_from_dict(name, gains_dict, "study")
     config = rq.simulation_config(reqs, args.horizon)
     scenario = scenarios.get_scenario(scenario_id)
-    keys = _common.heldout_keys(args.seed, args.draws)
+    keys = draw_keys(args.seed, "heldout", args.draws)
     start = time.perf_counter()
     metrics, status = rq.measure(controller, gains, scenario, reqs, keys, config)
     valid = (status & rq.DIVERGED) == 0
@@ -186,7 +188,7 @@ def _rows(name: str, record: dict, switchings, budget: dict, reqs, args) -> list
                        switching, args.draws, args.horizon]  # fmt: skip
         stem = f"{name}-{label}-s{scenario_id}-{switching}"
         evaluate = functools.partial(evaluate_one, name, gains, scenario_id, switching, reqs, args)
-        row = _common.cached(args.out / "yield", stem, fingerprint, evaluate)
+        row = records.cached(args.out / "yield", stem, fingerprint, evaluate)
         where = {"scenario": scenario_id, "switching": switching or "-"}
         rows.append({"controller": name, "gains": label, **where, **row})
         print(f"{name} {label} scenario {scenario_id} {switching or '-'}: "
@@ -232,7 +234,7 @@ def main(argv=None) -> int:
     budget = _budget(args, reqs)
     rows, tuned_records = [], {}
     for name in controllers:
-        record = _common.cached(
+        record = records.cached(
             args.out / "tuned", name, budget, lambda n=name: tune_one(n, reqs, args)
         )
         tuned_records[name] = record

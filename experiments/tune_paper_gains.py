@@ -62,6 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import _common
+from fojax import records
 from fojax.cli import output
 
 __all__ = ["main", "unseen_reference"]
@@ -131,6 +132,7 @@ class _Study:
 
         from fojax.controllers.afonftsmc import paper_gains
         from fojax.optimize import cost as cost_lib
+        from fojax.optimize import draw_keys
         from fojax.optimize import params as params_lib
         from fojax.optimize import problem as problem_lib
 
@@ -151,8 +153,8 @@ class _Study:
         self.naive = params_lib.naive_gains("afonftsmc", dtype)
         self.paper = paper_gains(dtype)
         self.problem = problem_lib.TuningProblem(self.spec, self.naive)
-        self.validation_keys = _common.heldout_keys(
-            self.spec.seed, args.validation_draws, VALIDATION_OFFSET
+        self.validation_keys = draw_keys(
+            self.spec.seed, "heldout", args.validation_draws, VALIDATION_OFFSET
         )
         self.curves = []
 
@@ -276,13 +278,13 @@ def run_tuners(args, study: _Study, start_cost: float) -> dict:
     Nelder-Mead with ``--df-budget-factor`` times its draw-steps."""
     settings = _common.settings(args, leave_out=("out", "update_doc", "quiet"))
     folder = args.out / "runs"
-    gradient = _common.cached(folder, "gradient", settings, lambda: study.gradient(start_cost))
+    gradient = records.cached(folder, "gradient", settings, lambda: study.gradient(start_cost))
     budget = int(args.df_budget_factor * gradient["summary"]["draw_steps"])
-    es = _common.cached(
+    es = records.cached(
         folder, "cma-es", settings | {"budget": budget}, lambda: study.cma_es(budget)
     )
     every = max(1, es["summary"]["popsize"])
-    nm = _common.cached(
+    nm = records.cached(
         folder, "nelder-mead", settings | {"budget": budget, "every": every},
         lambda: study.nelder_mead(budget, every),
     )  # fmt: skip

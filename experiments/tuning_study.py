@@ -40,7 +40,7 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
   another; the load average is recorded before and after each run.
 
 Each finished run is kept in ``--out/runs/`` under its fingerprint, the settings it
-depends on (:data:`BY_METHOD`; :func:`experiments._common.cached`): an interrupted study
+depends on (:data:`BY_METHOD`; :func:`fojax.records.cached`): an interrupted study
 continues where it stopped, a run is never reused for other settings, and variants of
 one tuner share the other tuners' runs in one ``--out`` (``--gradient-draws 64`` reuses
 the CMA-ES runs). ``results.json``, ``table.md`` and the figures ``tuning_wall.png`` and
@@ -61,6 +61,7 @@ import numpy as np
 
 from experiments import _common, tuning_study_user
 from experiments.tuning_study_report import METHODS, plot, summarize, table
+from fojax import records as kept
 from fojax.cli import arguments, output
 
 __all__ = ["main", "summarize", "table"]
@@ -177,6 +178,7 @@ class _Setup:
         import jax.numpy as jnp
 
         from fojax.optimize import cost as cost_lib
+        from fojax.optimize import draw_keys
         from fojax.optimize import params as params_lib
         from fojax.optimize import problem as problem_lib
 
@@ -197,7 +199,7 @@ class _Setup:
         dtype = jnp.dtype(args.dtype)
         self.naive = params_lib.naive_gains("afonftsmc", dtype)
         self.problem = problem_lib.TuningProblem(self.spec, self.naive)
-        self.heldout_keys = _common.heldout_keys(0, args.heldout_draws)
+        self.heldout_keys = draw_keys(0, "heldout", args.heldout_draws)
         self.compile_s: dict[str, float] = {}
 
         problem = self.problem
@@ -418,16 +420,16 @@ def _bench_fingerprint(args, share: str) -> dict:
 
 def _stored_run(args, share, start, seed, method) -> dict | None:
     fingerprint = run_fingerprint(args, share, start, seed, method)
-    return _common.stored(args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint)
+    return kept.stored(args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint)
 
 
 def run_share(args, share: str, settings: dict) -> None:
     """The runs (and the bench) of one parameter count that are not stored yet (each
-    kept under its fingerprint: :func:`experiments._common.cached`)."""
+    kept under its fingerprint: :func:`fojax.records.cached`)."""
     cases = itertools.product(args.starts, args.seeds, args.methods)
     pending = [case for case in cases if _stored_run(args, share, *case) is None]
     bench_fingerprint = _bench_fingerprint(args, share)
-    bench_done = _common.stored(args.out, f"bench_{share}", bench_fingerprint) is not None
+    bench_done = kept.stored(args.out, f"bench_{share}", bench_fingerprint) is not None
     if not pending and (not args.bench or bench_done):
         return
     t0 = time.perf_counter()
@@ -438,7 +440,7 @@ def run_share(args, share: str, settings: dict) -> None:
         f"{time.perf_counter() - t0:.0f} s ({setup.compile_s})",
     )
     if args.bench and not bench_done:
-        bench = _common.cached(
+        bench = kept.cached(
             args.out, f"bench_{share}", bench_fingerprint, lambda: bench_batched(setup, args.bench)
         )
         output.log(
@@ -448,7 +450,7 @@ def run_share(args, share: str, settings: dict) -> None:
         )
     for start, seed, method in pending:
         fingerprint = run_fingerprint(args, share, start, seed, method)
-        record = _common.cached(
+        record = kept.cached(
             args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint,
             lambda case=(start, seed, method): run_one(setup, *case) | {"settings": settings},
         )  # fmt: skip
@@ -474,7 +476,7 @@ def report(args, settings: dict, start_all: float) -> int:
             "settings they depend on); run without --report-only, or give the settings "
             "the runs were made with"
         )
-    benches = [_common.stored(out, f"bench_{s}", _bench_fingerprint(args, s)) for s in args.shares]
+    benches = [kept.stored(out, f"bench_{s}", _bench_fingerprint(args, s)) for s in args.shares]
     results = {
         "user_view": users,
         "bench": [bench for bench in benches if bench is not None],

@@ -1,7 +1,7 @@
 """The tuning study's user view (:mod:`experiments.tuning_study`): ``fojax tune`` from
 the paper's gains as a new user runs it, in a fresh process with an empty compilation
 cache, timed as a whole, each run kept under its fingerprint
-(:func:`experiments._common.cached`)."""
+(:func:`fojax.records.cached`)."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from experiments import _common
 from experiments.tuning_study_report import USER_MODES
+from fojax import records as kept
 from fojax.cli import output
 
 
@@ -62,7 +62,7 @@ def user_view(args, out: Path) -> list[dict]:
         for mode in USER_MODES:
             fingerprint = user_fingerprint(args, mode, index)
             run = functools.partial(_run, args, out / "user_view", mode, index)
-            records.append(_common.cached(out / "user_view", f"{mode}_{index}", fingerprint, run))
+            records.append(kept.cached(out / "user_view", f"{mode}_{index}", fingerprint, run))
     return records
 
 

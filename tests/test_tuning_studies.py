@@ -78,9 +78,9 @@ def test_remark3_tiny(tmp_path):
 
 
 def test_cached_runs(tmp_path):
-    """experiments._common.cached: computed once per fingerprint, kept atomically, never
-    reused for other settings."""
-    from experiments import _common
+    """fojax.records.cached (the studies' runs): computed once per fingerprint, kept
+    atomically as ``<stem>-<digest10>.json``, never reused for other settings."""
+    from fojax import records
 
     calls = []
 
@@ -88,15 +88,15 @@ def test_cached_runs(tmp_path):
         calls.append(value)
         return {"value": value}
 
-    assert _common.cached(tmp_path, "run", {"a": 1}, lambda: compute(1)) == {"value": 1}
-    assert _common.cached(tmp_path, "run", {"a": 1}, lambda: compute(9)) == {"value": 1}
-    assert _common.cached(tmp_path, "run", {"a": 2}, lambda: compute(2)) == {"value": 2}
+    assert records.cached(tmp_path, "run", {"a": 1}, lambda: compute(1)) == {"value": 1}
+    assert records.cached(tmp_path, "run", {"a": 1}, lambda: compute(9)) == {"value": 1}
+    assert records.cached(tmp_path, "run", {"a": 2}, lambda: compute(2)) == {"value": 2}
     assert calls == [1, 2] and len(list(tmp_path.glob("run-*.json"))) == 2
-    assert _common.stored(tmp_path, "run", {"a": 3}) is None
+    assert records.stored(tmp_path, "run", {"a": 3}) is None
     # A file whose stored fingerprint is not the one asked for is computed again.
-    path = tmp_path / f"run-{_common.digest({'a': 1})}.json"
+    path = tmp_path / f"run-{records.digest({'a': 1}, 10)}.json"
     path.write_text(json.dumps({"value": 1, "fingerprint": {"a": 5}}))
-    assert _common.cached(tmp_path, "run", {"a": 1}, lambda: compute(3)) == {"value": 3}
+    assert records.cached(tmp_path, "run", {"a": 1}, lambda: compute(3)) == {"value": 3}
     assert json.loads(path.read_text())["fingerprint"] == {"a": 1}
     assert not list(tmp_path.glob(".*tmp"))
 
