@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from fojax.cli import arguments, output
 
 
@@ -104,3 +106,41 @@ def settings(args, leave_out=()) -> dict:
     return {
         k: (str(v) if isinstance(v, Path) else v) for k, v in plain.items() if k not in leave_out
     }
+
+
+def recorded_run(objective, strategy, budget, x0, **options):
+    """``(result, steps)``: :func:`fojax.optimize.run` of ``strategy`` on ``objective``
+    from ``x0`` within ``budget`` (``options``: the driver's), and the driver's callback
+    record of every step, ``(step, wall time (s), draw-steps, answer (d,))``. The
+    answers are scored after the run (:func:`mean_costs`): nothing runs beside it."""
+    from fojax import optimize
+
+    steps = []
+
+    def record(step, answer, row):
+        steps.append((step, row["wall_time_s"], row["draw_steps"], np.array(answer)))
+
+    result = optimize.run(objective, strategy, budget, x0, callback=record, **options)
+    return result, steps
+
+
+def mean_costs(objective, points, keys) -> np.ndarray:
+    """The mean cost (a diverged draw at the cost's ``divergence_cost``) of each of
+    ``points`` ``(P, d)`` on ``keys`` at the evaluation law; each distinct point is
+    evaluated once, all in one batched call."""
+    points = np.asarray(points, np.float64).reshape(-1, objective.size)
+    distinct = {x.tobytes(): x for x in points}
+    outputs = objective.forward(np.stack(list(distinct.values())), keys)
+    means = dict(zip(distinct, objective.loss.values(outputs), strict=True))
+    return np.asarray([means[x.tobytes()] for x in points], np.float64)
+
+
+def draw_costs(objective, x, keys, horizon=None, scenario=None):
+    """Per-draw costs of the point ``x`` on ``keys`` at the evaluation law
+    (:class:`fojax.optimize.cost.DrawCosts`: a diverged draw at ``divergence_cost``);
+    ``horizon``, ``scenario``: :meth:`fojax.optimize.Objective.forward`'s."""
+    from fojax.optimize.cost import DrawCosts
+
+    _, _, out = objective.evaluate(x, keys, horizon, scenario)
+    cost = np.where(out.valid, out.values[:, 0], objective.spec.cost.divergence_cost)
+    return DrawCosts(cost, out.terms, out.status, ~out.valid)
