@@ -59,17 +59,6 @@ def enable_float64(on: bool = True) -> None:
         jax.config.update("jax_enable_x64", True)
 
 
-def tuner_config(args, steps: int, validation_draws: int, **fields):
-    """The gradient tuner's settings (:class:`fojax.optimize.tuner.TunerConfig`) of a
-    study with ``--gradient-method``, ``--learning-rate``, ``--max-step`` and
-    ``--validate-every``; ``fields``: other settings."""
-    from fojax.optimize.tuner import TunerConfig
-
-    given = {k: getattr(args, k) for k in ("learning_rate", "max_step", "validate_every")}
-    given.update(steps=steps, method=args.gradient_method, validation_draws=validation_draws)
-    return TunerConfig(**given, **fields)
-
-
 def finish(out: Path, results: dict, text: str, doc=None, block=None, doc_text=None, wrote=None):
     """Write ``out/results.json`` and ``out/table.md`` (``text``); with ``doc``, replace
     its block ``block`` with ``doc_text`` (default ``text``); print ``text`` and, given
