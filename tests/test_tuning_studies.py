@@ -145,6 +145,29 @@ def test_cone_residual_constructed():
     assert rows[-1]["size"] == "all" and set(rows[-1]["set"]) == {"a", "b"}
 
 
+def test_nnls_matches_scipy():
+    """experiments.remark3_inverted.nnls (Lawson-Hanson in NumPy) against SciPy's on
+    random problems: tall, wide, with active bounds and without."""
+    from scipy import optimize as scipy_optimize
+
+    from experiments.remark3_inverted import nnls
+
+    rng = np.random.default_rng(3)
+    for m, n in [(8, 3), (33, 17), (33, 5), (5, 9), (40, 40), (1, 1)] * 5:
+        A = rng.standard_normal((m, n)) * rng.uniform(0.1, 10, n)
+        b = rng.standard_normal(m)
+        x, residual = nnls(A, b)
+        expected, expected_residual = scipy_optimize.nnls(A, b)
+        assert np.all(x >= 0)
+        assert residual == pytest.approx(expected_residual, rel=1e-9, abs=1e-12)
+        np.testing.assert_allclose(x, expected, rtol=1e-7, atol=1e-9)
+    # b in the cone of A's columns: an exact, non-negative solution.
+    A = rng.standard_normal((10, 4))
+    x, residual = nnls(A, A @ np.array([1.0, 0.0, 2.0, 0.5]))
+    np.testing.assert_allclose(x, [1.0, 0.0, 2.0, 0.5], atol=1e-12)
+    assert residual == pytest.approx(0.0, abs=1e-12)
+
+
 @pytest.mark.slow
 def test_remark3_inverted_tiny(tmp_path):
     from experiments import remark3_inverted
