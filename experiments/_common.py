@@ -133,3 +133,25 @@ def draw_costs(objective, x, keys, horizon=None, scenario=None):
     _, _, out = objective.evaluate(x, keys, horizon, scenario)
     cost = np.where(out.valid, out.values[:, 0], objective.spec.cost.divergence_cost)
     return DrawCosts(cost, out.terms, out.status, ~out.valid)
+
+
+def to_requirements(objective, x0, method, outer_steps, inner_steps, *, validation_draws,
+                    margin=0.05, progress=False, **settings):  # fmt: skip
+    """Tune ``objective`` (with a requirement set) from ``x0`` as ``fojax tune
+    --requirements`` does: ``method``'s strategy (:func:`fojax.optimize.strategies.make`
+    with ``settings``; the fixed sample, one width, Adam at a constant step) inside the
+    augmented Lagrangian, ``outer_steps`` x ``inner_steps`` steps, validated on
+    ``validation_draws`` draws after every outer step. Returns the driver's result."""
+    from fojax import optimize
+    from fojax.optimize import strategies
+
+    inner = strategies.make(
+        method, outer_steps * inner_steps, final_learning_rate=1.0, anneal_start=1.0,
+        sample="fixed", **settings,
+    )  # fmt: skip
+    count = len(objective.requirements)
+    strategy = strategies.AugmentedLagrangian(inner, count, outer_steps, inner_steps, margin=margin)
+    return optimize.run(
+        objective, strategy, optimize.Budget(steps=strategy.requests), x0,
+        validation_draws=validation_draws, validate_every=inner_steps + 1, progress=progress,
+    )  # fmt: skip

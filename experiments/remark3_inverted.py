@@ -336,22 +336,15 @@ def requirements_found(study: _Quantities, paper: dict, analysis: dict):
 def tune_requirements(study: _Quantities, reqs, start: str, args) -> dict:
     """The augmented Lagrangian from the gains ``start`` (``"naive"`` or ``"paper"``) to
     ``reqs``, objective effort: its record (cached in ``--out/tuned``) and gains."""
-    from fojax import optimize
     from fojax.controllers import gains_io
-    from fojax.optimize import strategies
 
     def run() -> dict:
         began = time.perf_counter()
         objective = study.objective(reqs)
-        steps = args.outer_steps * args.inner_steps
-        inner = strategies.adam(steps, args.learning_rate, 1.0, anneal=(1.0, 1.0), sample="fixed")
-        strategy = strategies.AugmentedLagrangian(
-            inner, len(reqs), args.outer_steps, args.inner_steps, margin=0.0
-        )
-        result = optimize.run(
-            objective, strategy, optimize.Budget(steps=strategy.requests),
-            study.vector_of(getattr(study, start)), validation_draws=1,
-            validate_every=args.inner_steps + 1, progress=not args.quiet,
+        result = _common.to_requirements(
+            objective, study.vector_of(getattr(study, start)), "adam", args.outer_steps,
+            args.inner_steps, validation_draws=1, margin=0.0, progress=not args.quiet,
+            learning_rate=args.learning_rate,
         )  # fmt: skip
         paper = objective.evaluate(objective.x0, objective.keys("validation", 1))[1]
         return {

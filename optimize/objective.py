@@ -382,7 +382,9 @@ class Objective:
                 self._programs["gradient"] = self._gradient_program()
         return self._programs["gradient"]
 
-    def _gradient_program(self):
+    def _per_draw(self):
+        """``per_draw(x, width, keys, member, cotangent) -> (values, terms, status, grads)``
+        of one block of draws (the gradient program before the mesh)."""
         spec = self.spec
         run = self._rollout("tanh", spec.horizon, self.scenario, spec.block)
 
@@ -397,27 +399,44 @@ class Objective:
             (grads,) = pullback(cotangent.astype(values.dtype))
             return values, terms, status, grads.T
 
+        return per_draw
+
+    def _gradient_program(self):
         key = self._program_key(kind="gradient") if self.registered else None
         return blocks.over_mesh(
-            per_draw,
+            self._per_draw(),
             self.mesh or sharding.one_device_mesh(),
             self.device_batch,
-            COMPILE_MODES[spec.compile],
+            COMPILE_MODES[self.spec.compile],
             key,
         )
 
-    def warm(self, x=None) -> None:
-        """Compile the gradient program (an evaluation at ``x``, default the start, with
-        unit cotangents), e.g. in a thread beside a phase that does not need it yet."""
+    def _gradient_args(self, x=None) -> tuple:
+        """The gradient program's arguments at ``x`` (default the start) on the fixed
+        sample, width 1, unit cotangents."""
         x = self.x0 if x is None else np.asarray(x, np.float64)
         keys = self.sample(0)
-        self._gradient()(
+        return (
             jnp.asarray(x, self.dtype),
             jnp.asarray(1.0, self.dtype),
             keys,
             self._members(len(keys)),
             np.ones((len(keys), self.count), self.dtype),
         )
+
+    def lower_gradient(self, x=None):
+        """``(lowered, args)``: the per-draw gradient of the fixed sample in one block on
+        one device, lowered at ``x`` (default the start); ``lowered.compile()`` is the
+        program (its ``memory_analysis()`` the working set: ``experiments/tune_memory.py``),
+        called with ``*args``."""
+        args = self._gradient_args(x)
+        program = jax.jit(self._per_draw(), compiler_options=COMPILE_MODES[self.spec.compile])
+        return program.lower(*args), args
+
+    def warm(self, x=None) -> None:
+        """Compile the gradient program (an evaluation at ``x``, default the start, with
+        unit cotangents), e.g. in a thread beside a phase that does not need it yet."""
+        self._gradient()(*self._gradient_args(x))
 
     # -- what strategies and the driver call -------------------------------------------
     def __call__(self, request: Request) -> Evaluation:
