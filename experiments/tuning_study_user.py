@@ -33,7 +33,8 @@ def records(args, out: Path, run: bool = True) -> list[dict]:
     return [
         {k: v for k, v in r.items() if k != "fingerprint"}
         for r in found
-        if r.get("fingerprint") == user_fingerprint(args, r["mode"], r["run"])
+        if r.get("mode") in USER_MODES
+        and r.get("fingerprint") == user_fingerprint(args, r["mode"], r["run"])
     ]
 
 
