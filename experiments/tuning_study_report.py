@@ -249,7 +249,7 @@ def plot(runs: list[dict], path: Path, axis: str) -> Path:
     panels = sorted({(r["parameters"], r["share"], r["start"]) for r in runs})
     cols = len({p[2] for p in panels}) or 1
     rows = max(1, len(panels) // cols)
-    fig = plt.figure(figsize=(5.2 * cols, 3.6 * rows), layout="constrained")
+    fig = plt.figure(figsize=(5.2 * max(cols, 2), 3.6 * rows + 0.6), layout="constrained")
     axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(rows, cols)
     column = 1 if axis == "wall" else 2
     for index, (size, share, start) in enumerate(panels):
