@@ -1,13 +1,12 @@
 """What several studies share: their command lines (numeric options, the output and
-smoke-run options, the gradient tuner's settings), float64, held-out draws, and the
-files every study ends with (``results.json``, ``table.md``, a document's block)."""
+smoke-run options, the gradient tuner's settings), float64, and the files every study
+ends with (``results.json``, ``table.md``, a document's block). Held-out draws are
+:func:`fojax.optimize.draw_keys`'s (``"heldout"``); a run kept under its fingerprint is
+:func:`fojax.records.cached`'s."""
 
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -60,26 +59,6 @@ def enable_float64(on: bool = True) -> None:
         jax.config.update("jax_enable_x64", True)
 
 
-def tuner_config(args, steps: int, validation_draws: int, **fields):
-    """The gradient tuner's settings (:class:`fojax.optimize.tuner.TunerConfig`) of a
-    study with ``--gradient-method``, ``--learning-rate``, ``--max-step`` and
-    ``--validate-every``; ``fields``: other settings."""
-    from fojax.optimize.tuner import TunerConfig
-
-    given = {k: getattr(args, k) for k in ("learning_rate", "max_step", "validate_every")}
-    given.update(steps=steps, method=args.gradient_method, validation_draws=validation_draws)
-    return TunerConfig(**given, **fields)
-
-
-def heldout_keys(seed: int, draws: int, offset: int = 0) -> np.ndarray:
-    """Keys ``(draws, 2)`` of held-out draws ``HELDOUT_OFFSET + offset + j`` of ``seed``
-    (:data:`fojax.optimize.problem.HELDOUT_OFFSET`: never seen by a tuner)."""
-    from fojax import scenarios
-    from fojax.optimize.problem import HELDOUT_OFFSET
-
-    return np.asarray(scenarios.draw_keys(seed, HELDOUT_OFFSET + offset + np.arange(draws)))
-
-
 def finish(out: Path, results: dict, text: str, doc=None, block=None, doc_text=None, wrote=None):
     """Write ``out/results.json`` and ``out/table.md`` (``text``); with ``doc``, replace
     its block ``block`` with ``doc_text`` (default ``text``); print ``text`` and, given
@@ -118,35 +97,61 @@ def settings(args, leave_out=()) -> dict:
     }
 
 
-def digest(document) -> str:
-    """10 hex digits naming a JSON-ready ``document`` (keys sorted)."""
-    text = json.dumps(document, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:10]
+def recorded_run(objective, strategy, budget, x0, **options):
+    """``(result, steps)``: :func:`fojax.optimize.run` of ``strategy`` on ``objective``
+    from ``x0`` within ``budget`` (``options``: the driver's), and the driver's callback
+    record of every step, ``(step, wall time (s), draw-steps, answer (d,))``. The
+    answers are scored after the run (:func:`mean_costs`): nothing runs beside it."""
+    from fojax import optimize
+
+    steps = []
+
+    def record(step, answer, row):
+        steps.append((step, row["wall_time_s"], row["draw_steps"], np.array(answer)))
+
+    result = optimize.run(objective, strategy, budget, x0, callback=record, **options)
+    return result, steps
 
 
-def stored(folder: Path, stem: str, fingerprint) -> dict | None:
-    """The record :func:`cached` keeps for ``stem`` and ``fingerprint``, or ``None``."""
-    from fojax.study import fingerprint_differences
+def mean_costs(objective, points, keys) -> np.ndarray:
+    """The mean cost (a diverged draw at the cost's ``divergence_cost``) of each of
+    ``points`` ``(P, d)`` on ``keys`` at the evaluation law; each distinct point is
+    evaluated once, all in one batched call."""
+    points = np.asarray(points, np.float64).reshape(-1, objective.size)
+    distinct = {x.tobytes(): x for x in points}
+    outputs = objective.forward(np.stack(list(distinct.values())), keys)
+    means = dict(zip(distinct, objective.loss.values(outputs), strict=True))
+    return np.asarray([means[x.tobytes()] for x in points], np.float64)
 
-    path = Path(folder) / f"{stem}-{digest(fingerprint)}.json"
-    if not path.is_file():
-        return None
-    record = json.loads(path.read_text())
-    kept = record.pop("fingerprint", None)
-    return record if kept is None or not fingerprint_differences(kept, fingerprint) else None
+
+def draw_costs(objective, x, keys, horizon=None, scenario=None):
+    """Per-draw costs of the point ``x`` on ``keys`` at the evaluation law
+    (:class:`fojax.optimize.cost.DrawCosts`: a diverged draw at ``divergence_cost``);
+    ``horizon``, ``scenario``: :meth:`fojax.optimize.Objective.forward`'s."""
+    from fojax.optimize.cost import DrawCosts
+
+    _, _, out = objective.evaluate(x, keys, horizon, scenario)
+    cost = np.where(out.valid, out.values[:, 0], objective.spec.cost.divergence_cost)
+    return DrawCosts(cost, out.terms, out.status, ~out.valid)
 
 
-def cached(folder: Path, stem: str, fingerprint, compute: Callable[[], dict]) -> dict:
-    """One run of a study, computed once: ``folder/<stem>-<digest of fingerprint>.json``
-    holds the record ``compute()`` returned, with ``fingerprint`` (JSON-ready: every
-    setting the run depends on, and nothing else) beside it. A later call with the same
-    fingerprint reads the record back; other settings are another file, so runs of
-    several settings share a folder and none is reused for settings it was not made
-    with. Written atomically: an interrupted study loses only the run in progress."""
-    record = stored(folder, stem, fingerprint)
-    if record is None:
-        record = compute()
-        path = Path(folder) / f"{stem}-{digest(fingerprint)}.json"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        output.write_json(path, {**record, "fingerprint": fingerprint})
-    return record
+def to_requirements(objective, x0, method, outer_steps, inner_steps, *, validation_draws,
+                    margin=0.05, progress=False, **settings):  # fmt: skip
+    """Tune ``objective`` (with a requirement set) from ``x0`` as ``fojax tune
+    --requirements`` does: ``method``'s strategy (:func:`fojax.optimize.strategies.make`
+    with ``settings``; the fixed sample, one width, Adam at a constant step) inside the
+    augmented Lagrangian, ``outer_steps`` x ``inner_steps`` steps, validated on
+    ``validation_draws`` draws after every outer step. Returns the driver's result."""
+    from fojax import optimize
+    from fojax.optimize import strategies
+
+    inner = strategies.make(
+        method, outer_steps * inner_steps, final_learning_rate=1.0, anneal_start=1.0,
+        sample="fixed", **settings,
+    )  # fmt: skip
+    count = len(objective.requirements)
+    strategy = strategies.AugmentedLagrangian(inner, count, outer_steps, inner_steps, margin=margin)
+    return optimize.run(
+        objective, strategy, optimize.Budget(steps=strategy.requests), x0,
+        validation_draws=validation_draws, validate_every=inner_steps + 1, progress=progress,
+    )  # fmt: skip

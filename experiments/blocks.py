@@ -69,7 +69,6 @@ _TUNING = (*_CLOSED_LOOP, "optimize", "experiments/_common.py")
 _REQUIREMENTS = (*_TUNING, "fojax/requirements", "fojax/cli/requirements.py")
 _REQUIREMENTS_STUDY = (
     *_REQUIREMENTS,
-    "fojax/cli/_requirement_tuning.py",
     "experiments/requirements_study.py",
 )
 
@@ -132,7 +131,6 @@ BLOCKS: dict[str, Block] = {
             (
                 *_TUNING,
                 "fojax/cli/tune.py",
-                "fojax/cli/_tuning.py",
                 "experiments/tuning_study.py",
                 "experiments/tuning_study_report.py",
                 "experiments/tuning_study_user.py",
@@ -171,7 +169,12 @@ BLOCKS: dict[str, Block] = {
             "remark3-inverted",
             "docs/requirements.md",
             _study("remark3_inverted", "--update-doc"),
-            (*_REQUIREMENTS, "experiments/remark3.py", "experiments/remark3_inverted.py"),
+            (
+                *_REQUIREMENTS,
+                "experiments/remark3.py",
+                "experiments/remark3_inverted.py",
+                "experiments/remark3_inverted_report.py",
+            ),
         ),
     )
 }

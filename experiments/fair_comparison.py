@@ -7,18 +7,23 @@
 
 The paper compares its AFONFTSMC, tuned with MATLAB's optimisation toolbox, against
 baselines whose gains are not published. Here every registered controller starts from
-its documented default gains (``docs/model.md``) and gets the same gradient tuning:
-the same problem (scenario ``--scenario``, ``--horizon`` s, the cost of
-:mod:`fojax.optimize.cost` with the ``fojax tune`` defaults, the same minibatch draws: common
-random numbers), the same budget (``--steps`` steps of ``--draws`` draws) and the same
-tuner settings. Then default and tuned gains of every controller are evaluated with
-``sat`` switching (the gains' boundary layers) on the same ``--eval-draws`` held-out
-draws at each scenario's full horizon, on scenarios 1, 2 and 3, and every controller's
-tuned cost is compared with the tuned AFONFTSMC's draw by draw (95 % Student-t).
+its documented default gains (``docs/model.md``) and gets the same tuning on the engine
+(:mod:`fojax.optimize`): the same problem (scenario ``--scenario``, ``--horizon`` s, the
+cost of :mod:`fojax.optimize.cost` with the ``fojax tune`` defaults, the same draws:
+common random numbers), the same method (``--method``, default ``fojax tune``'s:
+CMA-ES for ``--switch`` generations, then L-BFGS), the same budget (``--steps`` steps of
+``--draws`` draws; a CMA-ES generation is one step, its population growing with the
+controller's parameters) and the same validation (the driver's: 32 validation draws
+every 5 steps, the best validated gains returned). Then default and tuned gains of
+every controller are evaluated with ``sat`` switching (the gains' boundary layers) on
+the same ``--eval-draws`` held-out draws at each scenario's full horizon, on scenarios
+1, 2 and 3, and every controller's tuned cost is compared with the tuned AFONFTSMC's
+draw by draw (95 % Student-t).
 ``--tiny`` (the smoke test) evaluates on the tuning scenario only.
 
-Each controller's tuning run checkpoints under ``--out/tuning/<name>/``: an interrupted
-study started again with the same command continues where it stopped.
+Each controller's tuning run checkpoints under ``--out/tuning/<name>/`` (the driver's
+checkpoint): an interrupted study started again with the same command continues where
+it stopped, to the result the uninterrupted run gives.
 
 Writes ``results.json`` and ``table.md`` to ``--out``.
 """
@@ -34,6 +39,7 @@ import numpy as np
 
 from experiments import _common
 from fojax.cli import arguments, output
+from fojax.optimize.strategies import METHODS
 
 __all__ = ["main", "table"]
 
@@ -48,16 +54,13 @@ def build_parser() -> argparse.ArgumentParser:
     _common.add_numbers(
         parser,
         horizon=(10.0, "tuning horizon (s)"),
-        draws=(16, "draws per gradient step"),
-        steps=(50, "gradient steps"),
+        draws=(16, "draws per sample"),
+        steps=(50, "steps (CMA-ES: generations)"),
     )
     parser.add_argument(
-        "--method",
-        choices=("lbfgs", "adam"),
-        default="lbfgs",
-        help="the gradient tuner's method (lbfgs: quasi-Newton on one fixed sample of --draws "
-        "draws; adam: fresh minibatches)",
+        "--method", choices=METHODS, default="auto", help="fojax tune's methods (auto)"
     )
+    _common.add_numbers(parser, switch=(None, "CMA-ES generations before L-BFGS (8; auto)"))
     _common.add_numbers(parser, learning_rate=(None, "Adam's step (0.1; --method adam only)"))
     parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument("--controllers", help="comma-separated names (default: all registered)")
@@ -88,6 +91,8 @@ def parse_args(argv) -> argparse.Namespace:
         )
     if args.learning_rate is None:
         args.learning_rate = 0.1
+    if args.switch is not None and args.method != "auto":
+        parser.error(f"--switch applies to --method auto only, not to --method {args.method}")
     known = registry.controller_names()
     if args.controllers is None:
         args.controllers = tuple(known)
@@ -106,23 +111,24 @@ def parse_args(argv) -> argparse.Namespace:
         args.dtype, args.eval_draws = "float64", 3
         args.eval_horizon = args.eval_horizon or 0.3
         args.eval_scenarios = (args.scenario,)
+        args.switch = args.switch or 1  # both of auto's phases
+    args.switch = args.switch or 8
     steps = args.horizon / 1e-3
     if abs(steps - round(steps)) > 1e-6 * steps:
         parser.error(f"--horizon must be a whole number of 1 ms steps, got {args.horizon}")
     return args
 
 
-def tune(args, config, index: int, name: str):
-    """Tune ``name`` from its default gains (resuming its checkpoint); its problem, its
-    default and tuned gains, and the tuning's record."""
+def tune(args, index: int, name: str):
+    """Tune ``name`` from its default gains (resuming its checkpoint): its objective,
+    its default and tuned points, and the tuning's record."""
     import jax.numpy as jnp
 
+    from fojax import optimize
     from fojax.controllers import registry
-    from fojax.optimize import params as params_lib
-    from fojax.optimize import problem as problem_lib
-    from fojax.optimize import tuner as tuner_lib
+    from fojax.optimize import strategies
 
-    spec = problem_lib.ProblemSpec(
+    spec = optimize.ProblemSpec(
         controller=name,
         scenario=args.scenario,
         horizon=args.horizon,
@@ -131,28 +137,35 @@ def tune(args, config, index: int, name: str):
         dtype=args.dtype,
     )
     defaults = registry.get_controller_class(name).default_gains(jnp.dtype(args.dtype))
+    objective = optimize.Objective(spec, defaults)
+    strategy = strategies.make(
+        args.method, args.steps, seed=args.seed, switch=args.switch,
+        learning_rate=args.learning_rate,
+    )  # fmt: skip
     run_dir = args.out / "tuning" / name
-    resume = (run_dir / tuner_lib.CHECKPOINT).exists()
-    run = tuner_lib.prepare(spec, config, defaults, "default", run_dir, resume=resume)
+    resume = (run_dir / optimize.CHECKPOINT).exists()
     output.log(
         args.quiet,
-        f"[{index}/{len(args.controllers)}] tuning {name}: {config.steps} steps x "
-        f"{spec.draws} draws x {spec.horizon:g} s" + (" (resumed)" if resume else ""),
+        f"[{index}/{len(args.controllers)}] tuning {name} ({args.method}): {args.steps} steps "
+        f"x {spec.draws} draws x {spec.horizon:g} s" + (" (resumed)" if resume else ""),
     )
     t0 = time.perf_counter()
-    result = tuner_lib.tune(run, progress=not args.quiet)
-    last = result.history[-1]
+    budget = optimize.Budget(steps=args.steps)
+    result = optimize.run(
+        objective, strategy, budget, out=run_dir, resume=resume, progress=not args.quiet
+    )
     record = {
-        "draw_steps": last["draw_steps"],
-        "tuning_wall_time_s": last["wall_time_s"],
+        "draw_steps": result.draw_steps,
+        "tuning_wall_time_s": result.wall_time_s,
         "this_invocation_s": round(time.perf_counter() - t0, 1),
-        "first_objective": result.history[0]["objective"],
-        "final_objective": last["objective"],
+        "first_objective": result.history[0]["loss"],
+        "final_objective": result.history[-1]["loss"],
         "returned_step": result.best_step,
         "validation": result.validation,
-        "parameters": params_lib.make_parameter_map(name, spec.fields, spec.share).size,
+        "parameters": objective.size,
+        "strategy": strategy.settings(),
     }
-    return spec, {"default": defaults, "tuned": result.gains}, record
+    return objective, {"default": objective.x0, "tuned": result.x}, record
 
 
 def _compare(by_gains: dict, base) -> dict:
@@ -181,18 +194,18 @@ def _compare(by_gains: dict, base) -> dict:
     return record
 
 
-def evaluate(args, specs: dict, gain_sets: dict, scenario, keys) -> dict:
-    """Every controller's default and tuned gains on the held-out draws ``keys`` of
-    ``scenario``, compared with the tuned baseline's."""
-    from fojax.optimize import problem as problem_lib
+def evaluate(args, objectives: dict, points: dict, scenario_id: int, keys) -> dict:
+    """Every controller's default and tuned points on the held-out draws ``keys`` of
+    scenario ``scenario_id``, compared with the tuned baseline's."""
+    from fojax import scenarios
 
+    scenario = scenarios.get_scenario(scenario_id)
     horizon = args.eval_horizon or scenario.horizon
+    own = scenario_id == args.scenario  # the objectives' own scenario (compiled)
     costs = {
         name: {
-            which: problem_lib.evaluate(
-                specs[name], gains, keys, horizon=horizon, scenario=scenario
-            )
-            for which, gains in gain_sets[name].items()
+            which: _common.draw_costs(objectives[name], x, keys, horizon, None if own else scenario)
+            for which, x in points[name].items()
         }
         for name in args.controllers
     }
@@ -214,27 +227,21 @@ def _doc_head(argv, results: dict) -> str:
 def main(argv=None) -> int:
     args = parse_args(argv)
     _common.enable_float64(args.dtype == "float64")
-    from fojax import scenarios
     from fojax.controllers import gains_io
-    from fojax.optimize import tuner as tuner_lib
+    from fojax.optimize import draw_keys
 
     start_all = time.perf_counter()
-    config = tuner_lib.TunerConfig(
-        steps=args.steps, method=args.method, learning_rate=args.learning_rate
-    )
     args.out.mkdir(parents=True, exist_ok=True)
-    # -- tuning: the same problem, budget and settings for every controller --------------
-    specs, gain_sets, tuning = {}, {}, {}
+    # -- tuning: the same problem, method, budget and settings for every controller -----
+    objectives, points, tuning = {}, {}, {}
     for index, name in enumerate(args.controllers, 1):
-        specs[name], gain_sets[name], tuning[name] = tune(args, config, index, name)
+        objectives[name], points[name], tuning[name] = tune(args, index, name)
     # -- evaluation on the same held-out draws ----------------------------------------
-    keys = _common.heldout_keys(args.seed, args.eval_draws)
+    keys = draw_keys(args.seed, "heldout", args.eval_draws)
     evaluation = {}
     for k in args.eval_scenarios:
         t0 = time.perf_counter()
-        evaluation[f"scenario {k}"] = evaluate(
-            args, specs, gain_sets, scenarios.get_scenario(k), keys
-        )
+        evaluation[f"scenario {k}"] = evaluate(args, objectives, points, k, keys)
         output.log(args.quiet, f"evaluated scenario {k} ({time.perf_counter() - t0:.0f} s)")
     results = {
         "problem": {
@@ -243,16 +250,21 @@ def main(argv=None) -> int:
             "draws": args.draws,
             "seed": args.seed,
             "dtype": args.dtype,
-            "cost": dataclasses.asdict(specs[BASELINE].cost),
+            "cost": dataclasses.asdict(objectives[BASELINE].spec.cost),
             "start": "each controller's default gains",
         },
-        "tuner": dataclasses.asdict(config),
+        "tuner": {
+            "method": args.method,
+            "steps": args.steps,
+            "switch": args.switch,
+            "learning_rate": args.learning_rate,
+        },  # fmt: skip
         "evaluation_switching": "sat",
         "tuning": tuning,
         "evaluation": evaluation,
         "gains": {
-            name: {which: gains_io.gains_to_dict(g) for which, g in sets.items()}
-            for name, sets in gain_sets.items()
+            name: {w: gains_io.gains_to_dict(objectives[name].gains(x)) for w, x in p.items()}
+            for name, p in points.items()
         },
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
     }
@@ -313,7 +325,11 @@ def table(results: dict) -> str:
     for name in names:
         t = tuning[name]
         v = t.get("validation")
-        returned = "-" if not v else (f"{v['best_step']}: {v['initial']:.4g} -> {v['best']:.4g}")
+        returned = (
+            "-"
+            if not v
+            else f"{v['best_step']}: {v['initial']['cost']:.4g} -> {v['best']['cost']:.4g}"
+        )
         lines.append(
             f"| {name} | {t['parameters']} | {t['draw_steps']:.3g} | "
             f"{t['tuning_wall_time_s']:.0f} | {t['first_objective']:.4g} -> "

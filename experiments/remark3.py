@@ -1,7 +1,7 @@
 """Remark 3 redone: is the paper's gain set a local optimum of the objective its
 authors would have set, and where does gradient tuning from a naive start land?
 
-    python -m experiments.remark3 [--out results/remark3] [--iterations 40]
+    python -m experiments.remark3 [--out results/remark3] [--steps 40]
                                   [--horizon 80] [--tiny]
 
 The paper (Remark 3) chose its AFONFTSMC gains "using MATLAB optimization toolbox"
@@ -9,19 +9,29 @@ without giving the objective. The one such a user would have set: the integral o
 squared position and attitude errors (ISE, ``J = P + A`` of :mod:`fojax.optimize.cost` with
 ``w_effort = w_chattering = 0``) on the nominal run of scenario 1: the reference
 (54)-(55) and the deterministic disturbances (53) with the nominal drag (no random
-variation: one deterministic run), over the scenario's 80 s, float64. Switching: the
-boundary layer ``sat`` of the evaluation (the paper's ``sgn`` has no useful gradient;
-its cost is reported beside). Parameters: the tuner's 33 (``share="paper"``: x = y,
-z, phi = theta = psi; ``p/q``, ``phi``, the orders and the adaptation rates
-included), unconstrained as in :mod:`fojax.optimize.params` (log or logit of each gain).
+variation: one deterministic run), over the scenario's 80 s, float64. Parameters: the
+tuner's 33 (``share="paper"``: x = y, z, phi = theta = psi; ``p/q``, ``phi``, the orders
+and the adaptation rates included), unconstrained as in :mod:`fojax.optimize.params` (log
+or logit of each gain). One :class:`fojax.optimize.Objective` on that run (one draw: the
+run is deterministic).
 
-1. At the paper's gains: ``J``, the gradient with respect to the unconstrained
-   parameters (per field; a unit step in a log-mapped parameter is a relative change
-   of the gain), its norm, a central finite difference along it (a check of the
-   reverse pass), and ``J`` along the negative gradient at several step lengths.
-2. L-BFGS (SciPy ``L-BFGS-B`` with the reverse-mode gradient, ``u`` in
-   ``[-U_MAX, U_MAX]``) for ``--iterations`` iterations from the naive start
-   (:func:`fojax.optimize.params.naive_gains`) and from the paper's gains.
+Switching. ``J`` is scored with the boundary layer ``sat`` (the evaluation law; the
+paper's ``sgn`` has no useful gradient, its cost is reported beside). The engine takes
+gradients through its tuning law only, ``tanh(S / (w b))`` at the gains' boundary layers
+``b``, not through ``sat``: the gradient, its finite-difference check and the L-BFGS
+steps are of ``J`` at ``tanh`` with ``w = 1`` (:data:`WIDTH`: the same slope as ``sat``
+at ``S = 0``, the closest smooth law), and ``J`` at ``sat`` is reported beside it.
+
+1. At the paper's gains: ``J`` (``sat`` and ``tanh``), the gradient with respect to the
+   unconstrained parameters (per field; a unit step in a log-mapped parameter is a
+   relative change of the gain), its norm, a central finite difference along it (a
+   check of the reverse pass), and ``J`` along the negative gradient at several step
+   lengths.
+2. L-BFGS (:class:`fojax.optimize.strategies.LBFGS` on the run, through the driver
+   :func:`fojax.optimize.run`: ``--steps`` gradient evaluations, each trial step capped
+   at 1 in every parameter) from the naive start (:func:`fojax.optimize.params.naive_gains`)
+   and from the paper's gains; every answer is validated on the run at ``sat`` and the
+   best returned (the start on a tie).
 3. Field by field: naive, paper, tuned-from-naive, tuned-from-paper gains, with
    ``J``, ``P``, ``A`` and the effort and chattering terms of :mod:`fojax.optimize.cost`.
 
@@ -45,12 +55,14 @@ __all__ = ["main"]
 
 STEPS_ALONG = (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
 """Step lengths (in the unconstrained parameters) along the negative unit gradient."""
+WIDTH = 1.0
+"""The tuning law's width scale of the gradient (module docstring)."""
+TERMS = ("position", "attitude", "effort", "chattering")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _common.parser("remark3")
-    _common.add_numbers(parser, horizon=80.0, iterations=40)
-    parser.add_argument("--switching", choices=("sat", "tanh"), default="sat")
+    _common.add_numbers(parser, horizon=80.0, steps=(40, "L-BFGS's gradient evaluations"))
     _common.add_outputs(parser, "remark3")
     return parser
 
@@ -62,184 +74,149 @@ def nominal_scenario_1():
     return dataclasses.replace(scenarios.get_scenario(1), drag_variation=0.0)
 
 
-class _Objective:
-    """``J = P + A`` of the nominal run of scenario 1 against the tuner's unconstrained
-    parameters (compiled, with its gradient), and every cost term of a gain set."""
+class _Study:
+    """``J = P + A`` of the nominal run of scenario 1 (:class:`fojax.optimize.Objective`,
+    ``sat`` its evaluation law) and the same run at ``sign``."""
 
     def __init__(self, args):
-        import jax
         import jax.numpy as jnp
 
-        from fojax import scenarios, simulator
-        from fojax.controllers import registry
+        from fojax import optimize
         from fojax.controllers.afonftsmc import paper_gains
-        from fojax.optimize import cost as cost_lib
-        from fojax.optimize import params as params_lib
-        from fojax.optimize import problem as problem_lib
 
-        scenario = nominal_scenario_1()
-        steps = int(round(args.horizon / 1e-3))
-        config = simulator.SimulationConfig(
-            dt=1e-3, horizon=args.horizon, save_every=problem_lib.checkpoint_interval(steps)
+        spec = optimize.ProblemSpec(
+            scenario=1,
+            horizon=args.horizon,
+            draws=1,
+            cost=optimize.CostConfig(effort_weight=0.0, chattering_weight=0.0),
+            dtype="float64",
         )
-        tracking = cost_lib.CostConfig(effort_weight=0.0, chattering_weight=0.0)
-        self.param_map = params_lib.make_parameter_map("afonftsmc", None, "paper")
         self.paper = paper_gains(jnp.float64)
-        self.naive = params_lib.naive_gains("afonftsmc", jnp.float64)
-        self.key = scenarios.draw_keys(0, [0])[0]  # the run is deterministic: no random process
+        self.objective = optimize.Objective(spec, self.paper, scenario=nominal_scenario_1())
+        self.sign = optimize.Objective(
+            spec, self.paper, scenario=self.objective.scenario, switching="sign"
+        )
+        self.keys = self.objective.sample(0)  # the run is deterministic: no random process
+        self.starts = {
+            "naive": self.objective.vector(optimize.naive_gains("afonftsmc", jnp.float64)),
+            "paper": self.objective.x0,
+        }
 
-        def draw_cost(switching, weights):
-            law = registry.make_controller(
-                "afonftsmc", dt=1e-3, horizon=args.horizon, switching=switching
-            )
-            return cost_lib.make_draw_cost(law, scenario, config, weights)
+    def J(self, points, width=None):
+        """``(J (P,), diverged (P,))`` of ``points`` at ``tanh`` (``width``) or ``sat``."""
+        out = self.objective.forward(points, self.keys, width)
+        return out.values[:, 0, 0], ~out.valid[:, 0]
 
-        tracking_cost = draw_cost(args.switching, tracking)
-        _, self.unravel = self.param_map.ravel(self.param_map.to_params(self.paper, jnp.float64))
+    def gradient(self, x):
+        from fojax.optimize import Request
 
-        def objective(vector):
-            gains = self.param_map.to_gains(self.unravel(vector), self.paper)
-            j, terms, status = tracking_cost(gains, self.key)
-            bad = ((status & cost_lib.DIVERGED) != 0) | ~jnp.isfinite(j)
-            return j, bad
+        evaluation = self.objective(Request(np.asarray(x)[None], True, 0, WIDTH))
+        return float(evaluation.values[0]), np.asarray(evaluation.gradient)
 
-        self.value_and_grad = jax.jit(jax.value_and_grad(objective, has_aux=True))
-        self.value = jax.jit(objective)
-        every_term = cost_lib.CostConfig()
-        self.term_costs = {s: jax.jit(draw_cost(s, every_term)) for s in ("sat", "sign")}
-
-    def vector_of(self, gains):
-        import jax.numpy as jnp
-
-        return np.asarray(self.param_map.ravel(self.param_map.to_params(gains, jnp.float64))[0])
-
-    def gains_of(self, vector):
-        import jax.numpy as jnp
-
-        return self.param_map.to_gains(self.unravel(jnp.asarray(vector)), self.paper)
-
-    def describe(self, gains) -> dict:
-        """``J`` and each term of the cost of ``gains`` under ``sat`` and ``sign``."""
-        from fojax.optimize import cost as cost_lib
-
+    def describe(self, x) -> dict:
+        """``J`` and each term of the cost of ``x`` under ``sat`` and ``sign``."""
         out = {}
-        for switching, fn in self.term_costs.items():
-            _, terms, status = fn(gains, self.key)
-            terms = np.asarray(terms, np.float64).tolist()
-            named = dict(zip(("position", "attitude", "effort", "chattering"), terms, strict=True))
-            diverged = bool(int(status) & cost_lib.DIVERGED)
+        for switching, objective in (("sat", self.objective), ("sign", self.sign)):
+            _, _, outputs = objective.evaluate(x, self.keys)
+            terms = outputs.terms[0].tolist()
+            named = dict(zip(TERMS, terms, strict=True))
+            diverged = not bool(outputs.valid[0])
             out[switching] = {"J": terms[0] + terms[1], **named, "diverged": diverged}
         return out
 
 
-def paper_point(obj: _Objective, quiet: bool):
+def paper_point(study: _Study, quiet: bool):
     """``J`` and its gradient at the paper's gains, a central finite difference along
     it, and ``J`` along the negative gradient; with the compile and gradient times."""
-    import jax.numpy as jnp
-
+    x_paper = study.starts["paper"]
     t0 = time.perf_counter()
-    x_paper = obj.vector_of(obj.paper)
-    (j_paper, _), grad = obj.value_and_grad(jnp.asarray(x_paper))
-    grad = np.asarray(grad)
+    j_paper, grad = study.gradient(x_paper)
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    obj.value_and_grad(jnp.asarray(x_paper))[1].block_until_ready()
+    study.gradient(x_paper)
     gradient_s = time.perf_counter() - t0
     norm = float(np.linalg.norm(grad))
     direction = -grad / norm
-    output.log(quiet, f"paper: J = {float(j_paper):.6g}, |grad| = {norm:.4g} ({gradient_s:.1f} s)")
+    output.log(quiet, f"paper: J = {j_paper:.6g}, |grad| = {norm:.4g} ({gradient_s:.1f} s)")
     h = 1e-5
-    plus = float(obj.value(jnp.asarray(x_paper + h * direction))[0])
-    minus = float(obj.value(jnp.asarray(x_paper - h * direction))[0])
-    along = []
-    for t in STEPS_ALONG:
-        j, bad = obj.value(jnp.asarray(x_paper + t * direction))
-        along.append({"step": t, "J": float(j), "diverged": bool(bad)})
-    labels = obj.param_map.labels()
+    (plus, minus), _ = study.J(x_paper + np.outer([h, -h], direction), WIDTH)
+    points = x_paper + np.outer(STEPS_ALONG, direction)
+    (tanh, bad), (sat, bad_sat) = study.J(points, WIDTH), study.J(points)
+    along = [
+        {"step": t, "J": float(j), "J_sat": float(js), "diverged": bool(b or bs)}
+        for t, j, js, b, bs in zip(STEPS_ALONG, tanh, sat, bad, bad_sat, strict=True)
+    ]
+    labels = study.objective.param_map.labels()
     per_field = sorted(
         ({"parameter": label, "dJ_du": float(g)} for label, g in zip(labels, grad, strict=True)),
         key=lambda entry: -abs(entry["dJ_du"]),
     )
     point = {
-        "J": float(j_paper),
+        "J": j_paper,
+        "J_sat": float(study.J(x_paper[None])[0][0]),
         "gradient_norm": norm,
         "directional_derivative": -norm,
-        "finite_difference": (plus - minus) / (2 * h),
+        "finite_difference": float(plus - minus) / (2 * h),
         "along_negative_gradient": along,
         "gradient_by_parameter": per_field,
     }
     return point, compile_s, gradient_s
 
 
-def lbfgs(obj: _Objective, start_vector, label: str, args):
-    """SciPy's L-BFGS-B from ``start_vector`` for ``--iterations`` iterations: the
-    answer, the trace of ``J`` per iteration and SciPy's message."""
-    import jax.numpy as jnp
-    from scipy import optimize as scipy_optimize
+def lbfgs(study: _Study, start: str, args):
+    """L-BFGS from ``start`` for ``--steps`` gradient evaluations (validated at ``sat``
+    every step): the returned answer and the trace per step."""
+    from fojax import optimize
+    from fojax.optimize import strategies
 
-    from fojax.optimize import params as params_lib
-
-    trace = []
-    calls = {"n": 0}
-    t_start = time.perf_counter()
-
-    def fun(x):
-        (j, bad), g = obj.value_and_grad(jnp.asarray(x))
-        calls["n"] += 1
-        if bool(bad) or not np.all(np.isfinite(np.asarray(g))):
-            return 1e6, np.zeros_like(x)
-        return float(j), np.asarray(g, np.float64)
-
-    def callback(xk):
-        j = float(obj.value(jnp.asarray(xk))[0])
-        wall = round(time.perf_counter() - t_start, 1)
-        trace.append(
-            {"iteration": len(trace) + 1, "evaluations": calls["n"], "J": j, "wall_time_s": wall}
-        )
-        output.log(args.quiet, f"  {label}: iteration {len(trace)}, J = {j:.6g}")
-
-    bound = params_lib.U_MAX
-    result = scipy_optimize.minimize(
-        fun,
-        start_vector,
-        jac=True,
-        method="L-BFGS-B",
-        bounds=[(-bound, bound)] * len(start_vector),
-        callback=callback,
-        options={"maxiter": args.iterations, "maxfun": 3 * args.iterations},
-    )
-    return np.asarray(result.x), trace, str(result.message)
+    output.log(args.quiet, f"L-BFGS from {start} ({args.steps} gradient evaluations)")
+    result = optimize.run(
+        study.objective, strategies.LBFGS(width=WIDTH), optimize.Budget(steps=args.steps),
+        study.starts[start], validation_draws=1, validate_every=1, progress=not args.quiet,
+    )  # fmt: skip
+    trace = [
+        {
+            "step": row["step"],
+            "J": row["loss"],
+            "accepted": row["accepted"],
+            "J_sat": row["validation"],
+            "wall_time_s": row["wall_time_s"],
+        }
+        for row in result.history
+    ]
+    record = {"trace": trace, "returned_step": result.best_step}
+    record["accepted"] = sum(row["accepted"] for row in trace[1:])  # the first: the start
+    return result.x, record
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.tiny:
-        args.horizon, args.iterations = 0.3, 3
+        args.horizon, args.steps = 0.3, 4
     _common.enable_float64()
     from fojax.controllers import gains_io
 
     start_all = time.perf_counter()
-    obj = _Objective(args)
-    point, compile_s, gradient_s = paper_point(obj, args.quiet)
-    gain_sets, traces = {"naive": obj.naive, "paper": obj.paper}, {}
-    for start, origin in (("naive", "the naive start"), ("paper", "the paper's gains")):
-        output.log(args.quiet, f"L-BFGS from {origin} ({args.iterations} iterations)")
-        x, trace, message = lbfgs(obj, obj.vector_of(gain_sets[start]), start, args)
-        traces[f"from {start}"] = {"trace": trace, "message": message}
-        gain_sets[f"tuned from {start}"] = obj.gains_of(x)
+    study = _Study(args)
+    point, compile_s, gradient_s = paper_point(study, args.quiet)
+    points, traces = dict(study.starts), {}
+    for start in ("naive", "paper"):
+        points[f"tuned from {start}"], traces[f"from {start}"] = lbfgs(study, start, args)
     results = {
         "objective": {
             "J": "P + A: ISE of position (m^2 s) and attitude (rad^2 s) errors",
             "scenario": "1, nominal drag (no random variation), disturbances (53)",
             "horizon_s": args.horizon,
-            "switching": args.switching,
+            "switching": "sat (scored); tanh at width 1 (differentiated)",
             "dtype": "float64",
-            "parameters": obj.param_map.size,
+            "parameters": study.objective.size,
         },
         "paper_point": point,
         "lbfgs": traces,
-        "costs": {name: obj.describe(g) for name, g in gain_sets.items()},
-        "gains": {name: gains_io.gains_to_dict(g) for name, g in gain_sets.items()},
+        "costs": {name: study.describe(x) for name, x in points.items()},
+        "gains": {
+            name: gains_io.gains_to_dict(study.objective.gains(x)) for name, x in points.items()
+        },
         "compile_time_s": round(compile_s, 1),
         "gradient_time_s": round(gradient_s, 2),
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
@@ -272,9 +249,11 @@ def table(results: dict) -> str:
     objective = results["objective"]
     lines = [
         f"Objective: `J = P + A` on the nominal run of scenario 1 ({objective['horizon_s']:g} s, "
-        f"`{objective['switching']}` switching, float64, {objective['parameters']} parameters).",
+        f"float64, {objective['parameters']} parameters), scored at `sat`; its gradient is "
+        f"taken at `tanh` with the width of `sat`'s boundary layer (the engine's tuning law).",
         "",
-        f"At the paper's gains: `J` = {point['J']:.5g}; gradient norm "
+        f"At the paper's gains: `J` = {point['J_sat']:.5g} at `sat`, {point['J']:.5g} at "
+        f"`tanh`; gradient norm "
         f"{point['gradient_norm']:.3g} (directional derivative along the negative gradient "
         f"{point['directional_derivative']:.4g}, central finite difference "
         f"{point['finite_difference']:.4g}). Largest components `dJ/du` (u: log of the "
@@ -288,12 +267,15 @@ def table(results: dict) -> str:
         + " | ".join(f"{e['step']:g}" for e in point["along_negative_gradient"])
         + " |",
         "|---|" + "---|" * len(point["along_negative_gradient"]),
-        "| J | "
-        + " | ".join(
-            f"{e['J']:.4g}" + (" (div.)" if e["diverged"] else "")
-            for e in point["along_negative_gradient"]
-        )
-        + " |",
+        *(
+            f"| J (`{law}`) | "
+            + " | ".join(
+                f"{e[key]:.4g}" + (" (div.)" if e["diverged"] else "")
+                for e in point["along_negative_gradient"]
+            )
+            + " |"
+            for law, key in (("tanh", "J"), ("sat", "J_sat"))
+        ),
         "",
     ]
     gains = results["gains"]
@@ -322,8 +304,8 @@ def table(results: dict) -> str:
         "",
         "L-BFGS: "
         + "; ".join(
-            f"{name}: {len(t['trace'])} iterations, {t['trace'][-1]['evaluations']} "
-            f"gradient evaluations, {t['trace'][-1]['wall_time_s']:.0f} s"
+            f"{name}: {len(t['trace'])} gradient evaluations, {t['accepted']} steps accepted, "
+            f"returned step {t['returned_step']}, {t['trace'][-1]['wall_time_s']:.0f} s"
             for name, t in traces.items()
             if t["trace"]
         )

@@ -11,7 +11,12 @@ tuners' law), ideal actuators unless ``--rotor-limited``; the tuner's 33 unconst
 parameters ``u`` (log or logit of each gain, ``share="paper"``). Quantities: the cost
 terms ``P``, ``A``, ``E``, ``C`` (:mod:`fojax.optimize.cost`) and every metric of
 :data:`fojax.requirements.METRICS`, with their Jacobian in ``u`` (reverse mode, checked
-against a central finite difference).
+against a central finite difference), all from :class:`fojax.optimize.Objective`: one
+objective minimising ``E`` under a bound of 0 on every metric (its outputs: ``E`` and
+each metric over its scale), one reverse pass per row; ``C``'s row from an objective of
+the cost ``C`` alone; ``P = T position_rmse^2`` and ``A = T attitude_rmse^2`` (the same
+sums in the cost's and the metrics' observers, ``T`` the horizon), so their rows are the
+metrics'.
 
 Stationarity. With bounds ``g_j <= b_j = g_j(x_p)`` (met with equality by the paper's
 gains ``x_p``), ``x_p`` is a KKT point of ``min f s.t. g_j <= b_j, j in S`` exactly
@@ -28,8 +33,9 @@ requirement set found); ``P + A + w_E E`` over ``w_E``; the same at the naive st
 at the tuned gains (the reference of what a tuned point reaches).
 
 Tuning to the requirements found for ``effort`` (:func:`requirements_found`), objective
-effort, by :func:`fojax.optimize.constrained.tune_to_requirements` (``--outer-steps`` x
-``--inner-steps`` Adam steps, margin 0): from the naive start (does it land near the
+effort, by the engine (:class:`fojax.optimize.strategies.AugmentedLagrangian` around Adam,
+``--outer-steps`` x ``--inner-steps`` steps on the run, margin 0; its answer validated on
+the run after every outer step, the best returned): from the naive start (does it land near the
 paper's gains, field by field?) and from the paper's gains (does the tuner stay there:
 a local minimum, or only a stationary point?).
 
@@ -53,6 +59,8 @@ import numpy as np
 
 from experiments import _common
 from experiments import remark3 as remark3_study
+from experiments.remark3_inverted_report import SURROGATES, figure, table
+from fojax import records
 from fojax.cli import output
 
 __all__ = ["best_subsets", "cone_residual", "main"]
@@ -70,12 +78,38 @@ ACTIVE = 1e-9
 BOUND_TOLERANCE = 1e-6
 """Relative slack of a bound set at the paper's value: the evaluation program rounds
 the metric differently in the last digits."""
-SURROGATES = ("settling_time", "rotor_saturation")
-"""Piecewise-constant metrics whose derivative is a smooth surrogate's
-(:mod:`fojax.requirements`): their finite difference is 0 or a jump, not compared."""
 
 
 # ------------------------------------------------------------------ the cone residual
+
+
+def nnls(A, b, max_iterations: int | None = None) -> tuple[np.ndarray, float]:
+    """``(x, |A x - b|)`` with ``x = argmin_{x >= 0} |A x - b|`` (``A`` ``(m, n)``):
+    Lawson and Hanson's active-set method (Solving Least Squares Problems, 1974, ch. 23),
+    as SciPy's ``nnls``: move the coordinate of the largest gradient ``A^T (b - A x)``
+    into the passive set, solve the least squares on it, and step back to the boundary
+    while a passive coordinate would turn non-positive."""
+    A, b = np.asarray(A, np.float64), np.asarray(b, np.float64)
+    n = A.shape[1]
+    x, passive = np.zeros(n), np.zeros(n, bool)
+    tolerance = 10 * max(A.shape) * np.finfo(np.float64).eps * max(np.abs(A).sum(0).max(), 1)
+    for _ in range(max_iterations or 3 * n):
+        w = A.T @ (b - A @ x)
+        if passive.all() or np.max(np.where(passive, -np.inf, w)) <= tolerance:
+            break
+        passive[np.argmax(np.where(passive, -np.inf, w))] = True
+        while True:
+            z = np.zeros(n)
+            z[passive] = np.linalg.lstsq(A[:, passive], b, rcond=None)[0]
+            if np.all(z[passive] > 0):
+                x = z
+                break
+            blocking = passive & (z <= 0)
+            alpha = np.min(x[blocking] / (x[blocking] - z[blocking]))
+            x = x + alpha * (z - x)
+            passive &= x > tolerance
+            x[~passive] = 0.0
+    return x, float(np.linalg.norm(A @ x - b))
 
 
 def cone_residual(gradient, candidates) -> tuple[float, np.ndarray]:
@@ -83,8 +117,6 @@ def cone_residual(gradient, candidates) -> tuple[float, np.ndarray]:
     and the minimiser ``lam`` ``(k,)`` (``candidates`` ``(k, n)``: one gradient per
     row; ``r = 1`` without candidates). Solved by non-negative least squares on
     unit-norm rows; ``lam`` is scaled back to the rows as given."""
-    from scipy import optimize as scipy_optimize
-
     gradient = np.asarray(gradient, np.float64)
     candidates = np.asarray(candidates, np.float64).reshape(-1, gradient.size)
     size = np.linalg.norm(gradient)
@@ -97,7 +129,7 @@ def cone_residual(gradient, candidates) -> tuple[float, np.ndarray]:
     if not np.any(usable):  # no candidate, or only zero gradients
         return 1.0, np.zeros(len(candidates))
     unit = candidates[usable] / norms[usable, None]
-    mu, residual = scipy_optimize.nnls(unit.T, -gradient / size)
+    mu, residual = nnls(unit.T, -gradient / size)
     lam = np.zeros(len(candidates))
     lam[usable] = mu * size / norms[usable]
     return float(residual), lam
@@ -132,80 +164,101 @@ def best_subsets(gradient, candidates, names, max_size: int = 3) -> list[dict]:
 # ------------------------------------------------------------------ the simulator side
 
 
+@dataclasses.dataclass(frozen=True)
+class _Row:
+    """A loss whose gradient is row ``index`` of the outputs' Jacobian (one draw)."""
+
+    index: int
+
+    def values(self, outputs):
+        return outputs.values[..., 0, self.index]
+
+    def cotangents(self, outputs):
+        cotangent = np.zeros(outputs.values.shape)
+        cotangent[..., self.index] = 1.0
+        return cotangent
+
+
 class _Quantities:
     """The cost terms and metrics of one deterministic run as functions of ``u``
-    (compiled: values, Jacobian), with the problems the tuners use."""
+    (values, Jacobian: module docstring), and the objectives the tuners use."""
 
     def __init__(self, args):
-        import jax
         import jax.numpy as jnp
 
+        from fojax import optimize, scenarios
         from fojax import requirements as rq
-        from fojax import scenarios
         from fojax.controllers.afonftsmc import paper_gains
-        from fojax.optimize import constrained as co
-        from fojax.optimize import params as params_lib
-        from fojax.optimize.problem import ProblemSpec
 
-        self._co = co
         reqs = rq.load(args.requirements)
         settings = dataclasses.replace(reqs.settings, rotor_limited=args.rotor_limited)
         self.base_requirements = dataclasses.replace(reqs, settings=settings)
-        self.spec = ProblemSpec(
+        self.limit = settings.speed_limit() if args.rotor_limited else None
+        self.spec = optimize.ProblemSpec(
             "afonftsmc", args.scenario, args.horizon, draws=1, seed=args.seed, dtype="float64"
         )
         self.scenario = dataclasses.replace(scenarios.get_scenario(args.scenario), drag_variation=0)
         self.paper = paper_gains(jnp.float64)
-        self.naive = params_lib.naive_gains("afonftsmc", jnp.float64)
-        problem = self.problem(self.base_requirements, "effort")
-        self.param_map, base = problem.param_map, problem.base_gains
-        _, self.unravel = self.param_map.ravel(self.param_map.to_params(self.paper, jnp.float64))
+        self.naive = optimize.naive_gains("afonftsmc", jnp.float64)
+        probes = tuple(
+            rq.Requirement(m, m, "upper", 0.0, info.unit) for m, info in rq.METRICS.items()
+        )
+        self.scales = np.asarray([r.scale for r in probes])
+        self.metrics = self.objective(rq.RequirementSet(probes, settings, "every metric"))
+        chattering = optimize.CostConfig(
+            position_weight=0.0, attitude_weight=0.0, effort_weight=0.0, chattering_weight=1.0
+        )
+        self.chattering = self.objective(cost=chattering)
+        self.param_map = self.metrics.param_map
         self.names = COST_TERMS + tuple(rq.METRICS)
-        keys = problem.tuning_keys()
+        self.keys = self.metrics.sample(0)
 
-        def values(vector):  # the tuning law's (tanh) run
-            gains = self.param_map.to_gains(self.unravel(vector), base)
-            terms, measured, status = problem.outputs(problem.base.controller, gains, keys)
-            row = [terms[:, 0]] + [measured[m][:1] for m in rq.METRICS]
-            return jnp.concatenate(row), status[0]
+    def objective(self, requirements=None, cost=None):
+        """The run's objective: effort under ``requirements``, or the weighted sum
+        ``cost``; the tuning law (``tanh`` at the boundary layers) throughout."""
+        from fojax import optimize
 
-        self.values = jax.jit(values)
-        self.jacobian = jax.jit(jax.jacrev(values, has_aux=True))
-
-    def problem(self, requirements, objective: str):
-        return self._co.RequirementProblem(
-            self.spec, self.paper, requirements, objective, switching="tanh",
-            scenario=self.scenario,
+        spec = self.spec if cost is None else dataclasses.replace(self.spec, cost=cost)
+        return optimize.Objective(
+            spec, self.paper, requirements, "cost" if requirements is None else "effort",
+            scenario=self.scenario, rotor_speed_limit=self.limit, switching="tanh",
         )  # fmt: skip
 
     def vector_of(self, gains) -> np.ndarray:
-        import jax.numpy as jnp
+        return self.metrics.vector(gains)
 
-        return np.asarray(self.param_map.ravel(self.param_map.to_params(gains, jnp.float64))[0])
+    def values(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """``(values (P, q), status (P,))`` of ``points`` ``(P, 33)``."""
+        out = self.metrics.forward(points, self.keys, width=1.0)
+        metrics = np.stack([out.metrics[m][:, 0] for m in self.names[4:]], -1)
+        return np.concatenate([out.terms[:, 0], metrics], -1), out.status[:, 0]
 
     def point(self, gains) -> dict:
         """Values ``(q,)`` and Jacobian ``(q, 33)`` at ``gains``, and its status."""
-        import jax.numpy as jnp
+        from fojax.optimize import Request
 
-        x = jnp.asarray(self.vector_of(gains))
-        values, status = self.values(x)
-        jacobian, _ = self.jacobian(x)
-        return {
-            "x": np.asarray(x),
-            "values": np.asarray(values, np.float64),
-            "jacobian": np.asarray(jacobian, np.float64),
-            "status": int(status),
-        }
+        x = self.vector_of(gains)
+        values, status = self.values(x[None])
+
+        def row(objective, loss=None):
+            return objective(Request(x[None], True, 0, 1.0, loss)).gradient
+
+        rows = [row(self.metrics, _Row(k)) for k in range(1 + len(self.scales))]
+        metrics = np.stack(rows[1:]) * self.scales[:, None]
+        by_name = dict(zip(self.names[4:], metrics, strict=True))
+        rmse = dict(zip(self.names[4:], values[0, 4:], strict=True))
+        tracking = [
+            2 * self.spec.horizon * rmse[m] * by_name[m] for m in ("position_rmse", "attitude_rmse")
+        ]
+        jacobian = np.stack([*tracking, rows[0], row(self.chattering), *metrics])
+        return {"x": x, "values": values[0], "jacobian": jacobian, "status": int(status[0])}
 
     def finite_difference_check(self, point: dict, h: float = 1e-6) -> dict:
         """Central differences of every quantity along a random unit direction against
         the Jacobian's product: the relative error per quantity."""
-        import jax.numpy as jnp
-
         direction = np.random.default_rng(0).standard_normal(point["x"].size)
         direction /= np.linalg.norm(direction)
-        plus = np.asarray(self.values(jnp.asarray(point["x"] + h * direction))[0])
-        minus = np.asarray(self.values(jnp.asarray(point["x"] - h * direction))[0])
+        (plus, minus), _ = self.values(point["x"] + np.outer([h, -h], direction))
         fd = (plus - minus) / (2 * h)
         ad = point["jacobian"] @ direction
         scale = np.maximum(np.abs(ad), 1e-12 * np.maximum(np.abs(point["values"]), 1e-300))
@@ -284,33 +337,28 @@ def tune_requirements(study: _Quantities, reqs, start: str, args) -> dict:
     """The augmented Lagrangian from the gains ``start`` (``"naive"`` or ``"paper"``) to
     ``reqs``, objective effort: its record (cached in ``--out/tuned``) and gains."""
     from fojax.controllers import gains_io
-    from fojax.optimize import constrained as co
-
-    problem = study.problem(reqs, "effort")
-    config = co.ConstrainedConfig(
-        outer_steps=args.outer_steps,
-        inner_steps=args.inner_steps,
-        learning_rate=args.learning_rate,
-        margin=0.0,
-        validation_draws=1,
-    )
 
     def run() -> dict:
         began = time.perf_counter()
-        init = problem.param_map.to_params(getattr(study, start), problem.dtype)
-        result = co.tune_to_requirements(problem, config, init, progress=not args.quiet)
-        paper = problem.evaluate(study.paper, problem.validation_keys(1))
+        objective = study.objective(reqs)
+        result = _common.to_requirements(
+            objective, study.vector_of(getattr(study, start)), "adam", args.outer_steps,
+            args.inner_steps, validation_draws=1, margin=0.0, progress=not args.quiet,
+            learning_rate=args.learning_rate,
+        )  # fmt: skip
+        paper = objective.evaluate(objective.x0, objective.keys("validation", 1))[1]
         return {
-            "gains": gains_io.gains_to_dict(problem.gains(result.params)),
-            "selected": result.selected,
-            "initial": result.initial,
-            "paper": co._validation_summary(paper),
+            "gains": gains_io.gains_to_dict(objective.gains(result.x)),
+            "selected": {"step": result.best_step, **result.validation["best"]},
+            "initial": result.validation["initial"],
+            "paper": paper,
             "wall_time_s": round(time.perf_counter() - began, 1),
         }
 
     settings = _common.settings(args, ("out", "update_doc", "quiet", "requirements"))
     fingerprint = {"settings": settings, "requirements": reqs.to_dict(), "start": start}
-    record = _common.cached(args.out / "tuned", start, fingerprint, run)
+    fingerprint["engine"] = "fojax.optimize"
+    record = records.cached(args.out / "tuned", start, fingerprint, run)
     return {"record": record, "gains": gains_io.gains_from_dict("afonftsmc", record["gains"])}
 
 
@@ -424,166 +472,6 @@ def _results(args, study, points, analysis, check, reqs, tuned, gain_sets) -> di
         "load_average": output.load_average(),
         "git_commit": output.git_commit().get("commit"),
     }
-
-
-def _fmt_set(entry: dict) -> str:  # the bounds with a multiplier > 0
-    return ", ".join(f"{n} ({w:.3g})" for n, w in entry["set"].items() if w > 0) or "-"
-
-
-def _residual_lines(results: dict) -> list[str]:
-    """The residuals by requirement set (size, objective, gain set) and weighted sum."""
-    lines = [
-        "Residual `r` (0: stationary, 1: no bound helps) of the best requirement set of each "
-        "size, multipliers in brackets:",
-        "",
-    ]
-    lines += _common.table_head(
-        "gains | objective | 1 bound | 2 bounds | 3 bounds | every candidate"
-    )
-    for point, analysis in results["analysis"].items():
-        for objective in ("tracking", "effort"):
-            cells = [
-                f"{e['residual']:.3f}" + (f": {_fmt_set(e)}" if point == "paper" else "")
-                for e in analysis[objective]["subsets"]
-            ]
-            lines.append(f"| {point} | {objective} | " + " | ".join(cells) + " |")
-    lines += ["", "Weighted sum `P + A + w_E E + w_C C`: residual at `w = 0` is 1.", ""]
-    lines += _common.table_head(
-        "gains | fojax tune's weights (1e-5, 1e-5) | best `(w_E, w_C)` | its residual"
-    )
-    for point, analysis in results["analysis"].items():
-        w = analysis["weights"]
-        lines.append(
-            f"| {point} | {w['fojax_tune_default']['residual']:.3f} | ({w['best']['w_E']:.3g}, "
-            f"{w['best']['w_C']:.3g}) | {w['best']['residual']:.3f} |"
-        )
-    return lines
-
-
-def table(results: dict) -> str:
-    """Markdown: the residuals per point and objective, the weights, the requirement set
-    found, the tuned gains against the paper's field by field, the quantities."""
-    s = results["setting"]
-    worst = max(results["finite_difference_check"].items(), key=lambda i: i[1]["relative_error"])
-    lines = [
-        f"Setting: scenario {s['scenario']}, {s['drag']}, {s['horizon_s']:g} s, {s['switching']}, "
-        f"{s['actuators']} actuators, {s['dtype']}, {s['parameters']} parameters `u`. "
-        f"Jacobian of {len(results['quantities'])} quantities against a central finite "
-        "difference along a random direction: largest relative error "
-        f"{worst[1]['relative_error']:.1g} "
-        f"(`{worst[0]}`; {' and '.join(SURROGATES)} carry a smooth surrogate's derivative, "
-        "not compared).",
-        "",
-        *_residual_lines(results),
-    ]
-    names = list(results["gains"])
-    values = {
-        k: dict(zip(results["quantities"], v, strict=True)) for k, v in results["values"].items()
-    }
-    found = results["requirements_found"]["requirements"]
-    lines += [
-        "",
-        "Quantities of each gain set (the requirement set found: bounds at the paper's values):",
-        "",
-    ]
-    lines += _common.table_head("quantity | bound | " + " | ".join(names))
-    bounds = {r["metric"]: r["max"] for r in found}
-    for q in results["quantities"]:
-        bound = f"<= {bounds[q]:.4g}" if q in bounds else ""
-        cells = [f"{values[n][q]:.4g}" for n in names]
-        lines.append(f"| {q} | {bound} | " + " | ".join(cells) + " |")
-    lines += ["", "Gains field by field (`log10(gain / paper)` in brackets):", ""]
-    lines += _common.table_head("parameter | " + " | ".join(names))
-    distances = results["distance_to_paper"]
-    for label in distances["paper"]["values"]:
-        cells = [
-            f"{distances[n]['values'][label]:.4g}"
-            + ("" if n == "paper" else f" ({distances[n]['log10_ratio'][label]:+.2f})")
-            for n in names
-        ]
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    lines.append(
-        "| **median abs log10** | "
-        + " | ".join(f"{distances[n]['median_abs_log10']:.2f}" for n in names)
-        + " |"
-    )
-    lines.append(
-        "| **within a factor 2** | "
-        + " | ".join(
-            f"{distances[n]['within_factor_2']}/{distances[n]['parameters']}" for n in names
-        )
-        + " |"
-    )
-    tuning = results["requirement_tuning"]
-    t = results["times_s"]
-    runs = "; ".join(
-        f"from {start}: selected outer step {r['selected'].get('outer_step')}, meets "
-        f"{r['selected'].get('passed', '?')}/1 ({r['wall_time_s']:.0f} s)"
-        for start, r in tuning.items()
-    )
-    lines += [
-        "",
-        f"Requirement tuning (objective effort): {runs}; the paper's gains meet "
-        f"{tuning['paper']['paper']['passed']}/1. Jacobian: {t['jacobian']:.1f} s (first, "
-        f"with compilation, {t['first_jacobian_with_compile']:.0f} s); {t['total']:.0f} s in "
-        f"all, load average at the end {results['load_average']}.",
-    ]
-    return "\n".join(lines)
-
-
-def figure(results: dict, path: Path) -> None:
-    """(a) The best residual by number of bounds, per gain set and objective; (b) the
-    residual of ``P + A + w_E E`` over ``w_E``; (c) ``log10(gain / paper)`` per
-    parameter of the other gain sets."""
-    from fojax.cli import style
-
-    plt = style.pyplot()
-    fig, (sizes, sweep, fields) = plt.subplots(
-        1, 3, figsize=(15, 4.8), gridspec_kw={"width_ratios": [1, 1, 1.9]}
-    )
-    colors = {name: f"C{i}" for i, name in enumerate(results["analysis"])}
-    for name, analysis in results["analysis"].items():
-        for objective, style_ in (("effort", "-o"), ("tracking", "--s")):
-            rows = analysis[objective]["subsets"]
-            sizes.plot(
-                range(1, len(rows) + 1), [e["residual"] for e in rows], style_, ms=4,
-                color=colors[name], label=f"{name}, {objective}",
-            )  # fmt: skip
-        w = analysis["weights"]
-        sweep.loglog(w["sweep_w_E"], w["sweep_residual"], color=colors[name], label=name)
-    count = len(results["analysis"]["paper"]["effort"]["subsets"])
-    sizes.set_xticks(range(1, count + 1), [*map(str, range(1, count)), "all"])
-    sizes.set_xlabel("bounds (the best set of each size)")
-    sizes.set_ylabel("residual r (0: stationary, 1: no bound helps)")
-    sizes.set_ylim(0, 1.02)
-    sizes.set_title("(a) min objective s.t. bounds at these gains' values", fontsize=10)
-    sizes.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.16))
-    sweep.axhline(1, color="0.5", lw=0.8)
-    sweep.axvline(1e-5, color="0.5", ls=":", lw=1)
-    where = sweep.get_xaxis_transform()
-    sweep.text(1e-5, 0.97, " fojax tune's w_E", transform=where, va="top", color="0.4", fontsize=8)
-    sweep.set_xlabel("effort weight w_E")
-    sweep.set_ylabel("r = |grad(P + A + w_E E)| / |grad(P + A)|")
-    sweep.set_title("(b) the weighted sum P + A + w_E E", fontsize=10)
-    sweep.legend(fontsize=8)
-    distances = results["distance_to_paper"]
-    labels = list(distances["paper"]["log10_ratio"])
-    xs = np.arange(len(labels))
-    fields.axhspan(-np.log10(2), np.log10(2), color="0.88", zorder=0, label="within a factor 2")
-    fields.axhline(0, color="k", lw=0.8)
-    for name, entry in distances.items():
-        if name == "paper":
-            continue
-        ys = [entry["log10_ratio"][label] for label in labels]
-        text = f"{name} (median |.| {entry['median_abs_log10']:.2f})"
-        fields.plot(xs, ys, "o", ms=4, color=colors[name], label=text)
-    fields.set_xticks(xs, labels, rotation=90, fontsize=7)
-    fields.set_ylabel("log10(gain / paper's gain)")
-    fields.set_title("(c) each gain set against the paper's, field by field", fontsize=10)
-    fields.legend(fontsize=8, loc="best")
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
 
 
 if __name__ == "__main__":

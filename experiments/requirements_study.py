@@ -9,14 +9,17 @@ scenario, ``sign`` (the paper's ``sgn``) and ``sat`` switching.
         [--tune-draws 8] [--outer-steps 10] [--inner-steps 10] [--update-doc]
 
 Every controller starts from its default gains (the paper's for the AFONFTSMC) and is
-tuned by ``tune_to_requirements`` (mean hinge, Adam at learning rate 0.1, the ``fojax
-tune --requirements`` defaults) on scenario ``--tune-scenario`` (several: their union,
-draw ``i`` of member ``i % members``), minimising effort,
-with the requirement file's rotor limit; then the default and the tuned gains are
-measured on ``--draws`` held-out draws (indices from 2**31, never used in tuning or
-validation) of each scenario at the tuning horizon, with each switching function (the
-FL has none: one row), and the yield with its 95 % Clopper-Pearson interval is
-reported with the most-failed requirement and the mean effort.
+tuned on the engine as ``fojax tune --requirements`` tunes (the augmented Lagrangian of
+the mean hinge around ``--method``'s strategy, default Adam at learning rate 0.1 on the
+fixed sample; ``--method auto`` is ``fojax tune``'s default) on scenario
+``--tune-scenario`` (several: their union, draw ``i`` of member ``i % members``),
+minimising effort, with the requirement file's rotor limit, validated on
+``--validation-draws`` draws after every outer step (the best validated gains kept);
+then the default and the tuned gains are measured on ``--draws`` held-out draws
+(indices from 2**31, never used in tuning or validation) of each scenario at the tuning
+horizon, with each switching function (the FL has none: one row), and the yield with
+its 95 % Clopper-Pearson interval is reported with the most-failed requirement and the
+mean effort.
 
 Everything is cached in ``--out``: ``tuned/<controller>.json`` (the gains and the
 tuner's record) and ``yield/<label>.json`` (one evaluation); a run started again
@@ -37,7 +40,9 @@ import time
 from pathlib import Path
 
 from experiments import _common
+from fojax import records
 from fojax.cli import arguments, output
+from fojax.optimize.strategies import METHODS
 
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "requirements.md"
@@ -66,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     _common.add_numbers(parser, horizon=10.0, tune_draws=8, outer_steps=10, inner_steps=10)
     _common.add_numbers(parser, validation_draws=32)
+    parser.add_argument("--method", choices=METHODS, default="adam", help="the inner strategy")
     parser.add_argument("--seed", type=arguments.seed, default=0)
     parser.add_argument("--update-doc", action="store_true")
     return parser
@@ -73,44 +79,38 @@ def build_parser() -> argparse.ArgumentParser:
 
 def tune_one(name: str, reqs, args) -> dict:
     """Tune ``name`` to ``reqs`` (the study's budget); the gains and the record."""
-    from fojax import requirements as rq  # noqa: F401 - the set is rq's
-    from fojax import scenarios
+    from fojax import optimize
     from fojax.controllers import gains_io, registry
-    from fojax.optimize import constrained as co
-    from fojax.optimize.problem import ProblemSpec
 
     ids = args.tune_scenario if isinstance(args.tune_scenario, list) else [args.tune_scenario]
-    members = [scenarios.get_scenario(i) for i in ids]
-    spec = ProblemSpec(
+    spec = optimize.ProblemSpec(
         controller=name,
-        scenario=ids[0],
+        scenario=tuple(ids) if len(ids) > 1 else ids[0],
         horizon=args.horizon,
         draws=args.tune_draws,
         seed=args.seed,
     )
     gains = registry.get_controller_class(name).default_gains()
-    union = scenarios.union(*members) if len(members) > 1 else None
-    problem = co.RequirementProblem(spec, gains, reqs, objective="effort", scenario=union)
-    config = co.ConstrainedConfig(
-        outer_steps=args.outer_steps,
-        inner_steps=args.inner_steps,
-        learning_rate=0.1,
-        validation_draws=args.validation_draws,
-    )
+    limit = reqs.settings.simulation_limit()
+    objective = optimize.Objective(spec, gains, reqs, "effort", rotor_speed_limit=limit)
     start = time.perf_counter()
-    result = co.tune_to_requirements(problem, config, progress=True)
+    result = _common.to_requirements(
+        objective, objective.x0, args.method, args.outer_steps, args.inner_steps,
+        validation_draws=args.validation_draws, progress=True, learning_rate=0.1, seed=args.seed,
+    )  # fmt: skip
     return {
         "controller": name,
-        "gains": gains_io.gains_to_dict(problem.gains(result.params)),
-        "selected": result.selected,
-        "initial_validation": result.initial,
+        "gains": gains_io.gains_to_dict(objective.gains(result.x)),
+        "selected": {"step": result.best_step, **result.validation["best"]},
+        "initial_validation": result.validation["initial"],
         "history": [
-            {k: row[k] for k in ("outer_step", "objective", "penalty", "wall_time_s")}
-            | {"validation_yield": row.get("validation", {}).get("yield")}
+            {k: row[k] for k in ("step", "outer_step", "loss", "penalty", "wall_time_s")}
+            | {"validation_yield": row["validation"]}
             for row in result.history
+            if row["validation"] is not None
         ],
         "wall_time_s": round(time.perf_counter() - start, 1),
-        "draw_steps": (1 + config.outer_steps * (config.inner_steps + 1)) * spec.draws * spec.steps,
+        "draw_steps": result.draw_steps,
         "load_average": output.load_average(),
     }
 
@@ -123,6 +123,7 @@ def evaluate_one(name: str, gains_dict: dict | None, scenario_id: int, switching
     from fojax import requirements as rq
     from fojax import scenarios
     from fojax.controllers import gains_io, registry
+    from fojax.optimize import draw_keys
 
     options = {"dt": 1e-3, "horizon": args.horizon}
     if switching is not None:
@@ -134,7 +135,7 @@ def evaluate_one(name: str, gains_dict: dict | None, scenario_id: int, switching
         gains = gains_io.gains_from_dict(name, gains_dict, "study")
     config = rq.simulation_config(reqs, args.horizon)
     scenario = scenarios.get_scenario(scenario_id)
-    keys = _common.heldout_keys(args.seed, args.draws)
+    keys = draw_keys(args.seed, "heldout", args.draws)
     start = time.perf_counter()
     metrics, status = rq.measure(controller, gains, scenario, reqs, keys, config)
     valid = (status & rq.DIVERGED) == 0
@@ -168,8 +169,9 @@ def table(results: dict) -> str:
 
 def _budget(args, reqs) -> dict:
     """What the tuned gains depend on: the requirements and the tuning budget."""
-    names = "tune_scenario horizon tune_draws outer_steps inner_steps validation_draws seed"
-    return {"requirements": reqs.to_dict(), **{k: getattr(args, k) for k in names.split()}}
+    names = "tune_scenario horizon tune_draws outer_steps inner_steps validation_draws seed method"
+    budget = {k: getattr(args, k) for k in names.split()} | {"engine": "fojax.optimize"}
+    return {"requirements": reqs.to_dict(), **budget}
 
 
 def _rows(name: str, record: dict, switchings, budget: dict, reqs, args) -> list[dict]:
@@ -186,7 +188,7 @@ def _rows(name: str, record: dict, switchings, budget: dict, reqs, args) -> list
                        switching, args.draws, args.horizon]  # fmt: skip
         stem = f"{name}-{label}-s{scenario_id}-{switching}"
         evaluate = functools.partial(evaluate_one, name, gains, scenario_id, switching, reqs, args)
-        row = _common.cached(args.out / "yield", stem, fingerprint, evaluate)
+        row = records.cached(args.out / "yield", stem, fingerprint, evaluate)
         where = {"scenario": scenario_id, "switching": switching or "-"}
         rows.append({"controller": name, "gains": label, **where, **row})
         print(f"{name} {label} scenario {scenario_id} {switching or '-'}: "
@@ -203,12 +205,12 @@ def _tuned_on(args) -> str:
 
 def _doc_head(args, results: dict, tuned_records: dict) -> str:
     walls = ", ".join(
-        f"{n} {r['wall_time_s']:.0f} s (selected outer step {r['selected'].get('outer_step')})"
+        f"{n} {r['wall_time_s']:.0f} s (selected step {r['selected'].get('step')})"
         for n, r in tuned_records.items()
     )
     return (
         f"Run: `{' '.join(results['command'])}`. Budget per controller: "
-        f"{args.outer_steps} outer x {args.inner_steps} inner Adam steps on "
+        f"{args.outer_steps} outer x {args.inner_steps} inner {args.method} steps on "
         f"{args.tune_draws} draws x {args.horizon:g} s of {_tuned_on(args)}, "
         f"{args.validation_draws} validation draws; held-out: {args.draws} draws per "
         f"row at {args.horizon:g} s. Tuning wall time: {walls} (2 shared cores, load "
@@ -232,7 +234,7 @@ def main(argv=None) -> int:
     budget = _budget(args, reqs)
     rows, tuned_records = [], {}
     for name in controllers:
-        record = _common.cached(
+        record = records.cached(
             args.out / "tuned", name, budget, lambda n=name: tune_one(n, reqs, args)
         )
         tuned_records[name] = record

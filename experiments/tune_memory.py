@@ -4,15 +4,15 @@
                                       [--execute-up-to 10] [--out results/tune_memory]
 
 For each horizon, in a fresh subprocess: compile the gradient of the mean tuning cost
-(:meth:`fojax.optimize.problem.TuningProblem.lower_gradient`, float32, AFONFTSMC, the
-paper's gains) and read XLA's ``memory_analysis()`` (temporary buffers = the peak
-working set the compiled program allocates besides its arguments and outputs); for
-horizons up to ``--execute-up-to`` s also run it once and record the process's peak
-resident memory (``ru_maxrss``, which includes JAX itself and the compiler). Blocks of
-the rollout (``save_every``) follow :func:`fojax.optimize.problem.checkpoint_interval`
-(about ``0.75 sqrt(steps)`` steps) and, for comparison, a fixed 100 steps or one
-block over the whole horizon (``--blocks auto 100 full``). Writes
-``memory.json`` and prints a table.
+(:meth:`fojax.optimize.Objective.lower_gradient`: the per-draw gradient of the fixed
+sample on one device, float32, AFONFTSMC, the paper's gains) and read XLA's
+``memory_analysis()`` (temporary buffers = the peak working set the compiled program
+allocates besides its arguments and outputs); for horizons up to ``--execute-up-to`` s
+also run it once and record the process's peak resident memory (``ru_maxrss``, which
+includes JAX itself and the compiler). Blocks of the rollout (``save_every``) follow
+:func:`fojax.optimize.checkpoint_interval` (about ``0.75 sqrt(steps)`` steps) and, for
+comparison, a fixed 100 steps or one block over the whole horizon (``--blocks auto 100
+full``). Writes ``memory.json`` and prints a table.
 """
 
 from __future__ import annotations
@@ -28,19 +28,16 @@ from fojax.cli import output
 CHILD = r"""
 import json, resource, sys, time
 import jax, jax.numpy as jnp
-from fojax.optimize import problem as P
+from fojax import optimize
 from fojax.controllers.afonftsmc import paper_gains
 horizon, draws = float(sys.argv[1]), int(sys.argv[2])
 block, execute = sys.argv[3], sys.argv[4] == "1"
 steps = round(horizon / 1e-3)
 save_every = None if block == "auto" else steps if block == "full" else int(block)
-spec = P.ProblemSpec(horizon=horizon, draws=draws, dtype="float32", save_every=save_every)
-problem = P.TuningProblem(spec, paper_gains(jnp.float32))
-params = problem.initial_params()
-keys = problem.minibatch_keys(0)
-scale = jnp.asarray(1.0, jnp.float32)
+spec = optimize.ProblemSpec(horizon=horizon, draws=draws, dtype="float32", save_every=save_every)
 t0 = time.perf_counter()
-compiled = problem.lower_gradient(params, scale, keys).compile()
+lowered, args = optimize.Objective(spec, paper_gains(jnp.float32)).lower_gradient()
+compiled = lowered.compile()
 compile_s = time.perf_counter() - t0
 m = compiled.memory_analysis()
 out = {"horizon_s": horizon, "draws": draws, "steps": spec.steps, "save_every": spec.block,
@@ -51,7 +48,7 @@ rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 out["rss_before_run_mb"] = rss_before
 if execute:
     t0 = time.perf_counter()
-    jax.block_until_ready(compiled(params, scale, keys))
+    jax.block_until_ready(compiled(*args))
     out["run_s"] = round(time.perf_counter() - t0, 1)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print("RESULT " + json.dumps(out))

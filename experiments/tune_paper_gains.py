@@ -1,5 +1,6 @@
-"""Reproduce the paper's gains: tune the AFONFTSMC from a naive guess, by gradient and
-by derivative-free baselines, and compare against the paper's gains on held-out draws.
+"""Reproduce the paper's gains: tune the AFONFTSMC from a naive guess with ``fojax
+tune``'s default method, by gradient and by derivative-free baselines, all on the engine
+(:mod:`fojax.optimize`), and compare against the paper's gains on held-out draws.
 
     python -m experiments.tune_paper_gains [--out results/tune_paper_gains]
                                            [--steps 50] [--draws 16] [--horizon 10] ...
@@ -7,25 +8,30 @@ by derivative-free baselines, and compare against the paper's gains on held-out 
 
 Protocol (every number in ``docs/tuning.md`` comes from this script):
 
-1. Tuning problem: scenario ``--scenario`` (2: drag uncertainty, disturbances (53),
-   Gaussian disturbances), reference (54)-(55), ``--horizon`` seconds, the cost of
-   :mod:`fojax.optimize.cost` with the CLI defaults, draws from the tuning stream of seed
-   ``--seed``; start: :func:`fojax.optimize.params.naive_gains`.
-2. Tuners, same problem, same starting point:
-   * gradient (:mod:`fojax.optimize.tuner`): ``--steps`` steps of ``--draws`` draws,
-     ``--gradient-method`` (``lbfgs``: quasi-Newton on one fixed sample; ``adam``: a
-     fresh minibatch every step), returning its best validated iterate (its own
-     ``--tuner-validation-draws`` validation draws, every ``--validate-every``
-     steps);
-   * CMA-ES (each generation in one batched call) and Nelder-Mead
-     (:mod:`fojax.optimize.derivative_free`) with
-     ``--df-budget-factor`` times the gradient tuner's simulated draw-steps (a
-     gradient step simulates its draws once forward; its reverse pass costs a few
-     forward passes more in wall time, which the wall-time axis shows).
-   Along the way each tuner's current answer is scored on ``--validation-draws``
-   held-out draws at the tuning horizon (``sat`` switching), not counted in any
-   budget or wall time.
-3. Evaluation of the paper's, the naive and the three tuned gain sets with the
+1. Tuning problem (one :class:`fojax.optimize.Objective`, its programs compiled before
+   any tuner runs: no tuner's wall time counts compilation): scenario ``--scenario``
+   (2: drag uncertainty, disturbances (53), Gaussian disturbances), reference
+   (54)-(55), ``--horizon`` seconds, the cost of :mod:`fojax.optimize.cost` with the CLI
+   defaults, ``--draws`` draws per sample of seed ``--seed``; start:
+   :func:`fojax.optimize.params.naive_gains`.
+2. Tuners (:func:`fojax.optimize.strategies.make`), same problem, same start, each run
+   by :func:`fojax.optimize.run`:
+   * default (``auto``, ``fojax tune``'s: CMA-ES for ``--switch`` generations, then
+     L-BFGS), ``--default-steps`` steps;
+   * gradient (``--gradient-method``: ``lbfgs``, quasi-Newton on the fixed sample;
+     ``adam``, a fresh sample every step), ``--steps`` steps;
+   * CMA-ES (each generation in one batched call, on fresh draws, at the evaluation
+     law; its answer the distribution mean) and Nelder-Mead (the fixed sample; its
+     answer the best vertex) with ``--df-budget-factor`` times the gradient tuner's
+     simulated draw-steps (a gradient step simulates its draws once forward; its
+     reverse pass costs a few forward passes more in wall time, which the wall-time
+     axis shows).
+   The default and the gradient tuner return their best validated answer (their own
+   ``--tuner-validation-draws`` validation draws every ``--validate-every`` steps);
+   CMA-ES and Nelder-Mead their last. After each run, every step's answer is scored on
+   ``--validation-draws`` held-out draws at the tuning horizon (``sat``): not counted
+   in any budget or wall time.
+3. Evaluation of the paper's, the naive and the four tuned gain sets with the
    evaluation switching (``sat``, the gains' boundary layers) on ``--eval-draws``
    held-out draws at the scenario's full horizon, on: the tuning scenario; the same
    disturbances with a reference not used in tuning (:func:`unseen_reference`); and
@@ -62,12 +68,14 @@ from pathlib import Path
 import numpy as np
 
 from experiments import _common
+from fojax import records
 from fojax.cli import output
+from fojax.optimize.strategies import DEFAULT_STEPS
 
 __all__ = ["main", "unseen_reference"]
 
-VALIDATION_OFFSET = 100_000  # validation draws: held-out indices from here on
-METHODS = ("gradient", "cma-es", "nelder-mead")
+VALIDATION_OFFSET = 100_000  # the curves' draws: held-out indices from here on
+TUNERS = ("default", "gradient", "cma-es", "nelder-mead")
 
 
 def unseen_reference(t):
@@ -93,14 +101,14 @@ def unseen_reference(t):
 def build_parser() -> argparse.ArgumentParser:
     parser = _common.parser("tune_paper_gains")
     number = functools.partial(_common.add_numbers, parser, int, float)
-    number(scenario=2, horizon=(10.0, "tuning horizon (s)"), draws=(16, "draws per gradient step"))
-    number(steps=(50, "gradient steps"))
+    number(scenario=2, horizon=(10.0, "tuning horizon (s)"), draws=(16, "draws per sample"))
+    number(steps=(50, "gradient steps"), default_steps=DEFAULT_STEPS["auto"], switch=8)
     parser.add_argument("--gradient-method", choices=("lbfgs", "adam"), default="lbfgs")
     number(learning_rate=(0.1, "Adam's"), max_step=(1.0, "L-BFGS's"), tuner_validation_draws=32)
     number(seed=0)
     parser.add_argument("--dtype", default="float32")
     number(df_budget_factor=3.0, cma_sigma=0.5, validation_draws=32)
-    number(validate_every=(5, "gradient steps"), eval_draws=64)
+    number(validate_every=(5, "steps"), eval_draws=64)
     number(eval_horizon=(None, "s (default: each scenario's)"))
     _common.add_outputs(parser, "tune_paper_gains")
     # Cost weights (default: the fojax tune defaults).
@@ -113,6 +121,7 @@ def parse_args(argv) -> argparse.Namespace:
     if args.tiny:
         # The small problem of the tests (shares their compiled code).
         args.horizon, args.draws, args.steps = 0.3, 3, 2
+        args.default_steps, args.switch = 3, 1
         args.seed, args.dtype = 5, "float64"
         args.effort_weight, args.chattering_weight, args.attitude_weight = 1e-3, 1e-3, 2.0
         args.validation_draws, args.validate_every, args.eval_draws = 2, 1, 2
@@ -123,170 +132,123 @@ def parse_args(argv) -> argparse.Namespace:
 
 
 class _Study:
-    """The tuning problem, its validation draws (held-out, scored along the way), and
-    the tuners' curves: ``(method, draw-steps, wall time (s), validation cost)``."""
+    """The tuning problem (compiled first), the draws its answers are scored on along
+    the way, and the tuners' runs."""
 
     def __init__(self, args):
         import jax.numpy as jnp
 
+        from fojax import optimize
         from fojax.controllers.afonftsmc import paper_gains
-        from fojax.optimize import cost as cost_lib
-        from fojax.optimize import params as params_lib
-        from fojax.optimize import problem as problem_lib
 
         self.args = args
         weights = ("effort_weight", "chattering_weight", "attitude_weight")
         overrides = {k: getattr(args, k) for k in weights if getattr(args, k) is not None}
-        self.spec = problem_lib.ProblemSpec(
+        self.spec = optimize.ProblemSpec(
             controller="afonftsmc",
             scenario=args.scenario,
             horizon=args.horizon,
             draws=args.draws,
             seed=args.seed,
-            cost=cost_lib.CostConfig(**overrides),
+            cost=optimize.CostConfig(**overrides),
             dtype=args.dtype,
         )
-        self.config = _common.tuner_config(args, args.steps, args.tuner_validation_draws)
         dtype = jnp.dtype(args.dtype)
-        self.naive = params_lib.naive_gains("afonftsmc", dtype)
-        self.paper = paper_gains(dtype)
-        self.problem = problem_lib.TuningProblem(self.spec, self.naive)
-        self.validation_keys = _common.heldout_keys(
-            self.spec.seed, args.validation_draws, VALIDATION_OFFSET
+        self.naive = optimize.naive_gains("afonftsmc", dtype)
+        self.objective = optimize.Objective(self.spec, self.naive)
+        self.starts = {"paper": self.objective.vector(paper_gains(dtype)), "naive": None}
+        self.starts["naive"] = self.objective.x0
+        self.validation_keys = optimize.draw_keys(
+            args.seed, "heldout", args.validation_draws, VALIDATION_OFFSET
         )
-        self.curves = []
 
-    def validate(self, gains) -> float:
-        from fojax.optimize import problem as problem_lib
-
-        return float(np.mean(problem_lib.evaluate(self.spec, gains, self.validation_keys).cost))
+    def validate(self, points) -> np.ndarray:
+        return _common.mean_costs(self.objective, points, self.validation_keys)
 
     def compile(self) -> float:
-        """Compile the tuners' functions first, so that no tuner's wall time counts them;
-        the seconds it took."""
+        """Compile the objective's programs (the forward evaluation, the gradient) first,
+        so that no tuner's wall time counts them; the seconds it took."""
         t0 = time.perf_counter()
-        problem, warm = self.problem, self.problem.initial_params()
-        problem.value_and_grad(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
-        problem.value(warm, 1.0, problem.minibatch_keys(0)).objective.block_until_ready()
+        self.objective.warm()
+        self.validate([self.objective.x0])
         return time.perf_counter() - t0
 
-    def gradient(self, start_cost: float) -> dict:
-        """The gradient tuner from the naive start (validation cost ``start_cost``): its
-        record (:func:`_record`)."""
-        from fojax.optimize import tuner as tuner_lib
+    def strategy(self, name: str, budget: int | None):
+        """``(strategy, budget, validation draws)`` of tuner ``name`` (module docstring);
+        ``budget``: the derivative-free tuners' draw-steps."""
+        from fojax import optimize
+        from fojax.optimize import strategies
 
-        curve = []
-
-        def on_step(step, params, row):
-            # The tuner's answer so far: its best validated iterate (the start until a
-            # validated step beats it).
-            if row["validation_cost"] is None:
-                return
-            if row["best_step"] == step:
-                value = self.validate(self.problem.gains(params))
-            else:
-                value = curve[-1][3] if curve else start_cost
-            curve.append(("gradient", row["draw_steps"], row["wall_time_s"], value))
-
-        quiet, spec, config = self.args.quiet, self.spec, self.config
-        output.log(
-            quiet, f"gradient tuner: {config.steps} steps x {spec.draws} draws x {spec.horizon:g} s"
+        args = self.args
+        if name in ("cma-es", "nelder-mead"):
+            strategy = strategies.make(name, seed=args.seed, sigma=args.cma_sigma)
+            return strategy, optimize.Budget(draw_steps=budget), 0
+        method, steps = (
+            ("auto", args.default_steps)
+            if name == "default"
+            else (args.gradient_method, args.steps)
         )
-        run = tuner_lib.prepare(spec, config, self.naive, "naive", None)
-        result = tuner_lib.tune(run, progress=not quiet, callback=on_step, problem=self.problem)
-        last = result.history[-1]
+        strategy = strategies.make(
+            method, steps, seed=args.seed, switch=args.switch, sigma=args.cma_sigma,
+            max_step=args.max_step, learning_rate=args.learning_rate,
+        )  # fmt: skip
+        return strategy, optimize.Budget(steps=steps), args.tuner_validation_draws
+
+    def run(self, name: str, budget: int | None = None) -> dict:
+        """Tuner ``name`` from the naive start: its record (:func:`_record`)."""
+        strategy, limit, validation_draws = self.strategy(name, budget)
+        spent = ", ".join(f"{v} {k}" for k, v in dataclasses.asdict(limit).items() if v)
+        output.log(self.args.quiet, f"{name}: {spent}")
+        result, steps = _common.recorded_run(
+            self.objective, strategy, limit, self.objective.x0, progress=not self.args.quiet,
+            validation_draws=validation_draws, validate_every=self.args.validate_every,
+        )  # fmt: skip
+        costs = self.validate([answer for *_, answer in steps])
+        curve = [(name, d, w, float(c)) for (_, w, d, _), c in zip(steps, costs, strict=True)]
         summary = {
-            "draw_steps": last["draw_steps"],
-            "wall_time_s": last["wall_time_s"],
-            "steps": config.steps,
-            "final_objective": last["objective"],
-            "method": config.method,
+            "draw_steps": result.draw_steps,
+            "wall_time_s": result.wall_time_s,
+            "steps": result.steps,
+            "evaluations": sum(row["points"] for row in result.history),
+            "final_loss": result.history[-1]["loss"],
+            "method": {"default": "auto", "gradient": self.args.gradient_method}.get(name, name),
             "returned_step": result.best_step,
             "validation": result.validation,
         }
-        return _record(result.gains, curve, summary)
-
-    def _recorder(self, method: str, curve: list):
-        def callback(draw_steps, params, row):
-            value = self.validate(self.problem.gains(params))
-            curve.append((method, draw_steps, row["wall_time_s"], value))
-            best = row["best_objective"]
-            output.log(self.args.quiet, f"  {method}: {draw_steps} draw-steps, best {best:.4g}")
-
-        return callback
-
-    def cma_es(self, budget: int) -> dict:
-        """CMA-ES from the naive start with ``budget`` draw-steps: its record."""
-        from fojax.optimize import derivative_free
-
-        curve = []
-        output.log(self.args.quiet, f"CMA-ES: budget {budget} draw-steps")
-        es = derivative_free.cma_es(
-            self.problem,
-            budget,
-            sigma0=self.args.cma_sigma,
-            seed=self.args.seed,
-            width_scale=self.config.anneal_end,
-            callback=self._recorder("cma-es", curve),
-        )
-        summary = {
-            "draw_steps": es.draw_steps,
-            "wall_time_s": round(es.wall_time_s, 3),
-            "evaluations": es.evaluations,
-            "generations": len(es.history),
-            "popsize": es.evaluations // max(len(es.history), 1),
-        }
-        return _record(es.gains, curve, summary)
-
-    def nelder_mead(self, budget: int, every: int) -> dict:
-        """Nelder-Mead from the naive start with ``budget`` draw-steps, scored every
-        ``every`` evaluations (CMA-ES's population): its record."""
-        from fojax.optimize import derivative_free
-
-        curve = []
-        output.log(self.args.quiet, f"Nelder-Mead: budget {budget} draw-steps")
-        nm = derivative_free.nelder_mead(
-            self.problem,
-            budget,
-            width_scale=self.config.anneal_end,
-            callback=self._recorder("nelder-mead", curve),
-            callback_every=every,
-        )
-        curve.append(("nelder-mead", nm.draw_steps, nm.wall_time_s, self.validate(nm.gains)))
-        summary = {
-            "draw_steps": nm.draw_steps,
-            "wall_time_s": round(nm.wall_time_s, 3),
-            "evaluations": nm.evaluations,
-        }
-        return _record(nm.gains, curve, summary)
+        return _record(self.objective, result.x, curve, summary)
 
 
-def _record(gains, curve: list, summary: dict) -> dict:
-    """A tuner's run as JSON: its gains, its curve points ``(method, draw-steps, wall
-    time, validation cost)`` and what it spent (``summary``)."""
+def _record(objective, x, curve: list, summary: dict) -> dict:
+    """A tuner's run as JSON: its answer ``x`` and gains, its curve points ``(method,
+    draw-steps, wall time, validation cost)`` and what it spent (``summary``)."""
     from fojax.controllers import gains_io
 
-    return {"gains": gains_io.gains_to_dict(gains), "curve": [list(c) for c in curve],
-            "summary": summary}  # fmt: skip
+    return {
+        "x": np.asarray(x).tolist(),
+        "gains": gains_io.gains_to_dict(objective.gains(x)),
+        "curve": [list(c) for c in curve],
+        "summary": summary,
+    }
 
 
-def run_tuners(args, study: _Study, start_cost: float) -> dict:
+def run_tuners(args, study: _Study) -> dict:
     """Each tuner's record, kept under its fingerprint in ``--out/runs`` (a study started
-    again reuses the tuners that finished): the gradient tuner, then CMA-ES and
-    Nelder-Mead with ``--df-budget-factor`` times its draw-steps."""
+    again reuses the tuners that finished): the gradient tuner and the default, then
+    CMA-ES and Nelder-Mead with ``--df-budget-factor`` times the gradient's draw-steps."""
     settings = _common.settings(args, leave_out=("out", "update_doc", "quiet"))
+    settings["engine"] = "fojax.optimize"
     folder = args.out / "runs"
-    gradient = _common.cached(folder, "gradient", settings, lambda: study.gradient(start_cost))
-    budget = int(args.df_budget_factor * gradient["summary"]["draw_steps"])
-    es = _common.cached(
-        folder, "cma-es", settings | {"budget": budget}, lambda: study.cma_es(budget)
-    )
-    every = max(1, es["summary"]["popsize"])
-    nm = _common.cached(
-        folder, "nelder-mead", settings | {"budget": budget, "every": every},
-        lambda: study.nelder_mead(budget, every),
-    )  # fmt: skip
-    return {"gradient": gradient, "cma-es": es, "nelder-mead": nm}
+    found = {
+        name: records.cached(folder, name, settings, lambda name=name: study.run(name))
+        for name in ("gradient", "default")
+    }
+    budget = int(args.df_budget_factor * found["gradient"]["summary"]["draw_steps"])
+    for name in ("cma-es", "nelder-mead"):
+        fingerprint = settings | {"budget": budget}
+        found[name] = records.cached(
+            folder, name, fingerprint, lambda name=name: study.run(name, budget)
+        )
+    return {name: found[name] for name in TUNERS}
 
 
 def _cost_entry(costs, baseline) -> dict:
@@ -306,26 +268,26 @@ def _cost_entry(costs, baseline) -> dict:
     }
 
 
-def evaluate(args, study: _Study, gain_sets: dict) -> dict:
-    """Every gain set on the held-out draws of the tuning scenario, of the unseen
-    reference and of scenario 3, each at its full horizon (or ``--eval-horizon``)."""
+def evaluate(args, study: _Study, points: dict) -> dict:
+    """Every gain set (``points``: name -> parameters) on the held-out draws of the
+    tuning scenario, of the unseen reference and of scenario 3, each at its full horizon
+    (or ``--eval-horizon``)."""
     from fojax import scenarios
-    from fojax.optimize import problem as problem_lib
 
     tuned_scenario = scenarios.get_scenario(args.scenario)
     settings = {
-        f"scenario {args.scenario}": tuned_scenario,
+        f"scenario {args.scenario}": None,  # the objective's own
         "unseen reference": dataclasses.replace(tuned_scenario, reference=unseen_reference),
         "scenario 3": scenarios.get_scenario(3),
     }
-    keys = study.problem.heldout_keys(args.eval_draws)
+    keys = study.objective.keys("heldout", args.eval_draws)
     evaluation = {}
     for label, scenario in settings.items():
-        horizon = args.eval_horizon or scenario.horizon
+        horizon = args.eval_horizon or (scenario or tuned_scenario).horizon
         t0 = time.perf_counter()
         costs = {
-            name: problem_lib.evaluate(study.spec, gains, keys, horizon=horizon, scenario=scenario)
-            for name, gains in gain_sets.items()
+            name: _common.draw_costs(study.objective, x, keys, horizon, scenario)
+            for name, x in points.items()
         }
         base = costs["paper"].cost
         evaluation[label] = {
@@ -337,19 +299,19 @@ def evaluate(args, study: _Study, gain_sets: dict) -> dict:
     return evaluation
 
 
-def reaches(curves: list) -> dict:
-    """Where the gradient tuner first reaches each derivative-free tuner's best."""
+def reaches(curves: list, challenger: str = "gradient") -> dict:
+    """Where ``challenger`` first reaches each derivative-free tuner's best."""
     reach = {}
-    gradient_curve = [(s, w, v) for m, s, w, v in curves if m == "gradient"]
+    challenger_curve = [(s, w, v) for m, s, w, v in curves if m == challenger]
     for method in ("cma-es", "nelder-mead"):
         points = [(s, w, v) for m, s, w, v in curves if m == method]
         best = min(v for _, _, v in points)
-        first = next(((s, w) for s, w, v in gradient_curve if v <= best), None)
+        first = next(((s, w) for s, w, v in challenger_curve if v <= best), None)
         reach[method] = {
             "best_validation_cost": best,
             "draw_steps_used": max(s for s, _, _ in points),
-            "gradient_draw_steps_to_reach": first[0] if first else None,
-            "gradient_wall_time_to_reach_s": first[1] if first else None,
+            f"{challenger}_draw_steps_to_reach": first[0] if first else None,
+            f"{challenger}_wall_time_to_reach_s": first[1] if first else None,
         }
     return reach
 
@@ -384,36 +346,32 @@ def main(argv=None) -> int:
     study = _Study(args)
     compile_s = study.compile()
     output.log(args.quiet, f"compiled the tuning cost and its gradient ({compile_s:.0f} s)")
-    references = {"paper": study.validate(study.paper), "naive": study.validate(study.naive)}
-    output.log(
-        args.quiet,
-        f"validation cost: paper {references['paper']:.4g}, naive {references['naive']:.4g}",
-    )
-    records = run_tuners(args, study, references["naive"])
-    study.curves += [(method, 0, 0.0, references["naive"]) for method in METHODS]
-    study.curves += [tuple(c) for r in records.values() for c in r["curve"]]
-    dtype = study.spec.jnp_dtype
-    gain_sets = {"paper": study.paper, "naive": study.naive}
-    gain_sets |= {
-        name: gains_io.gains_from_dict("afonftsmc", r["gains"], name, dtype)
-        for name, r in records.items()
-    }
-    evaluation = evaluate(args, study, gain_sets)
+    paper, naive = study.validate([study.starts["paper"], study.starts["naive"]])
+    references = {"paper": float(paper), "naive": float(naive)}
+    output.log(args.quiet, f"validation cost: paper {paper:.4g}, naive {naive:.4g}")
+    tuners = run_tuners(args, study)
+    curves = [(method, 0, 0.0, references["naive"]) for method in TUNERS]
+    curves += [tuple(c) for r in tuners.values() for c in r["curve"]]
+    points = dict(study.starts) | {name: np.asarray(r["x"]) for name, r in tuners.items()}
+    evaluation = evaluate(args, study, points)
     validation = {"draws": args.validation_draws, "horizon_s": study.spec.horizon}
+    gains = {"paper": gains_io.gains_to_dict(study.objective.gains(study.starts["paper"]))}
+    gains["naive"] = gains_io.gains_to_dict(study.naive)
     results = {
         "problem": study.spec.as_dict(),
-        "tuner": dataclasses.asdict(study.config),
+        "tuner_settings": _common.settings(args, leave_out=("out", "update_doc", "quiet")),
         "validation": validation | {"switching": "sat", **references},
-        "tuners": {name: r["summary"] for name, r in records.items()},
-        "gradient_reaches": reaches(study.curves),
+        "tuners": {name: r["summary"] for name, r in tuners.items()},
+        "gradient_reaches": reaches(curves),
+        "default_reaches": reaches(curves, "default"),
         "evaluation": evaluation,
-        "gains": {name: gains_io.gains_to_dict(g) for name, g in gain_sets.items()},
+        "gains": gains | {name: r["gains"] for name, r in tuners.items()},
         "compile_time_s": round(compile_s, 1),
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
         "provenance": provenance,
-        "curves": [list(c) for c in study.curves],
+        "curves": [list(c) for c in curves],
     }
-    return _write(args, results, study.curves, references)
+    return _write(args, results, curves, references)
 
 
 def _minus_paper(cost: dict) -> str:
@@ -470,16 +428,17 @@ def report(results: dict) -> str:
         f"{p['load_average'][0] if p.get('load_average') else 'n/a'} at the start and "
         f"{p['load_average_end'][0] if p.get('load_average_end') else 'n/a'} at the end; "
         f"{results['total_wall_time_s']:.0f} s in all, of which {results['compile_time_s']:.0f} s "
-        f"compiling the tuning cost and its gradient, {g['wall_time_s']:.0f} s gradient tuning "
-        f"({g['method']}, its validation included), {tuners['cma-es']['wall_time_s']:.0f} s "
-        f"CMA-ES, {tuners['nelder-mead']['wall_time_s']:.0f} s Nelder-Mead.",
+        f"compiling the tuning cost and its gradient, "
+        + ", ".join(f"{tuners[n]['wall_time_s']:.0f} s {n} ({tuners[n]['method']})" for n in TUNERS)
+        + " (validation included).",
         "",
-        f"The gradient tuner returned the gains of step {g['returned_step']} of {g['steps']} "
-        + (
-            f"(validation cost {g['validation']['best']:.4g}; {g['validation']['initial']:.4g} "
-            f"at the start, {g['validation']['final']:.4g} at the last step)."
-            if g.get("validation")
-            else "."
+        *(
+            f"The {name} tuner returned the gains of step {tuners[name]['returned_step']} of "
+            f"{tuners[name]['steps']} (validation cost {v['best']['cost']:.4g}; "
+            f"{v['initial']['cost']:.4g} at the start, {v['final']['cost']:.4g} at the last "
+            "step)."
+            for name in ("default", "gradient")
+            if (v := tuners[name].get("validation"))
         ),
         "",
         "**Held-out cost** (mean ± 95 % half-width over "
@@ -538,7 +497,7 @@ def plot(curves, references, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
-    colors = {"gradient": "C0", "cma-es": "C1", "nelder-mead": "C2"}
+    colors = {"default": "C3", "gradient": "C0", "cma-es": "C1", "nelder-mead": "C2"}
     for method, color in colors.items():
         points = sorted((s, w, v) for m, s, w, v in curves if m == method)
         if not points:

@@ -1,58 +1,64 @@
-"""The tuning study in wall time: gradient tuner, batched CMA-ES and Nelder-Mead.
+"""The tuning race in wall time: ``fojax tune``'s default method against L-BFGS, CMA-ES
+and Nelder-Mead, every one on the engine (:mod:`fojax.optimize`).
 
     python -m experiments.tuning_study [--out results/tuning_study]
                                        [--update-doc docs/tuning.md] [--tiny]
 
-Held-out cost against wall time (compilation included) and against simulated
-draw-steps, for the gradient tuner (:mod:`fojax.optimize.tuner`), CMA-ES with every
-generation evaluated in one batched, compiled call (:func:`fojax.optimize.derivative_free.cma_es`)
-and Nelder-Mead (:func:`fojax.optimize.derivative_free.nelder_mead`), from the paper's gains
-and from the naive start (:func:`fojax.optimize.params.naive_gains`), with 33 parameters
-(``--share paper``) and 66 (``--share none``), over ``--seeds`` (the tuning draws'
-seed, and CMA-ES's sampling seed).
+Held-out cost against wall time (compilation included, as a user waits) and against
+simulated draw-steps, from the paper's gains and from the naive start
+(:func:`fojax.optimize.params.naive_gains`), with 33 parameters (``--share paper``) and
+66 (``--share none``), over ``--seeds`` (the tuning draws' seed, and CMA-ES's
+sampling seed).
 
 Protocol (the defaults; every number of the study's section of ``docs/tuning.md``):
 
-* Problem: scenario 2, 10 s, the default cost (:class:`fojax.optimize.cost.CostConfig`),
-  mean objective, float32, seed ``s``.
-* Gradient tuner: ``--gradient-method`` (``lbfgs``: quasi-Newton on one fixed sample
-  of ``--gradient-draws`` draws at the final switching width; ``adam``: fresh
-  minibatches, the ``fojax tune`` defaults), ``--gradient-steps`` evaluations of the
-  objective and its gradient, its own validation (``--validation-draws`` validation
-  draws, ``sat``, every ``--validate-every`` steps; it returns the best validated
-  iterate), counted in its wall time.
-* CMA-ES: ``--cma-generations`` generations of the ``cma`` package's default
-  population, ``--df-draws`` fresh draws per generation shared by its candidates,
-  step 0.5, the answer is the distribution mean; switching width x1.
-* Nelder-Mead: ``--df-draws`` fixed draws, as many evaluations as CMA-ES's budget of
-  draw-steps, the answer is the best point; initial simplex ``u0 + 0.5 e_i``.
-* Held-out cost: each method's current answer (gradient: the best validated so far;
-  CMA-ES: the mean; Nelder-Mead: the best point) on ``--heldout-draws`` held-out draws
-  (indices ``2^31 + j`` of seed 0, the same for every run; never seen by any tuner),
-  10 s, ``sat`` switching; not counted in any wall time.
-* Wall time, compilation included: each method's functions are compiled once per
-  parameter count, before its first run, and that compile time (first call minus a
-  second call of the same function; for the gradient tuner, as the tuner schedules it:
-  its gradient alone, then its validation compiled in a thread beside the next steps,
-  counted as what it adds to those steps' wall time) is added to every one of its
-  curves. XLA's
-  persistent compilation cache is off. One process, one XLA device, runs one after
-  another; the load average is recorded before and after each run.
+* Problem: the AFONFTSMC on scenario 2, 10 s, the default cost
+  (:class:`fojax.optimize.CostConfig`), mean objective, ``--draws`` 16 draws per
+  sample, float32, seed ``s``.
+* Methods (:func:`fojax.optimize.strategies.make`, the rows): ``default`` (``auto``, the
+  ``fojax tune`` default: CMA-ES on fresh draws for ``--switch`` generations, its mean
+  then handed to L-BFGS on the fixed sample; ``--default-steps`` steps), ``lbfgs``
+  (``--gradient-steps`` steps on the fixed sample), ``cma-es`` (``--cma-generations``
+  generations of ``4 + floor(3 ln d)`` candidates on fresh draws, step
+  ``--cma-sigma``) and ``nelder-mead`` (CMA-ES's budget of draw-steps, at least the
+  initial simplex and one generation more).
+* Each run builds a fresh :class:`fojax.optimize.Objective`, so its wall time includes
+  the compilation of its own programs exactly as a user waits (XLA's persistent
+  compilation cache, and with it fojax's export cache, is off), and runs the driver
+  (:func:`fojax.optimize.run`): ``--validation-draws`` validation draws every
+  ``--validate-every`` steps (Nelder-Mead, whose step is one point: every
+  ``--validate-every`` generations' worth of points), its answer the best validated one.
+* Curve: the driver's callback records every step's ``(step, wall time, draw-steps,
+  answer)``; after the run (nothing runs beside it) the held-out cost of each distinct
+  answer: ``--heldout-draws`` held-out draws (indices ``2^31 + j`` of seed 0, the same
+  for every run, never seen by a tuner), 10 s, ``sat``, on an objective of its own
+  compiled once per share. The final held-out cost is that of the run's returned
+  (best validated) answer.
+* Target: per (share, start, seed), whether the default (and L-BFGS) reaches CMA-ES's
+  best held-out cost (the minimum over CMA-ES's curve) within half of CMA-ES's wall
+  time, and whether its final held-out cost is at or below it
+  (:func:`experiments.tuning_study_report.summarize`).
+
+One process, one XLA device, runs one after another; the load average is recorded
+before and after each run. ``--tiny`` (a smoke run) keeps the caller's compilation cache
+and shares each seed's objective between the runs of a share (its wall times mean
+nothing).
 
 Each finished run is kept in ``--out/runs/`` under its fingerprint, the settings it
-depends on (:data:`BY_METHOD`; :func:`experiments._common.cached`): an interrupted study
+depends on (:data:`BY_METHOD`; :func:`fojax.records.cached`): an interrupted study
 continues where it stopped, a run is never reused for other settings, and variants of
-one tuner share the other tuners' runs in one ``--out`` (``--gradient-draws 64`` reuses
-the CMA-ES runs). ``results.json``, ``table.md`` and the figures ``tuning_wall.png`` and
-``tuning_draw_steps.png`` summarise them. ``--update-doc FILE`` replaces the block
-between ``<!-- tuning-study:begin -->`` and ``<!-- tuning-study:end -->`` of FILE and
-copies the figures beside it.
+one method share the other methods' runs in one ``--out``. ``results.json``,
+``table.md`` and the figures ``tuning_wall.png`` and ``tuning_draw_steps.png``
+summarise them. ``--update-doc FILE`` replaces the block between
+``<!-- tuning-study:begin -->`` and ``<!-- tuning-study:end -->`` of FILE and copies the
+figures beside it.
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import shutil
 import sys
 import time
@@ -61,48 +67,44 @@ import numpy as np
 
 from experiments import _common, tuning_study_user
 from experiments.tuning_study_report import METHODS, plot, summarize, table
+from fojax import records
 from fojax.cli import arguments, output
+from fojax.optimize.strategies import DEFAULT_STEPS
 
-__all__ = ["main", "summarize", "table"]
+__all__ = ["METHODS", "main", "summarize", "table"]
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _common.parser("tuning_study")
     parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
-    _common.add_numbers(parser, horizon=10.0)
+    _common.add_numbers(parser, horizon=10.0, draws=16)
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated (0,1,2)")
     parser.add_argument("--shares", default="paper,none", help="comma-separated (paper,none)")
     parser.add_argument("--starts", default="paper,naive", help="comma-separated (paper,naive)")
     parser.add_argument("--methods", default=",".join(METHODS))
-    parser.add_argument("--gradient-method", choices=("lbfgs", "adam"), default="lbfgs")
-    _common.add_numbers(parser, gradient_steps=30, gradient_draws=16, learning_rate=0.1)
-    _common.add_numbers(parser, max_step=1.0, validation_draws=32, validate_every=2)
-    _common.add_numbers(parser, cma_generations=20, cma_sigma=0.5, df_draws=16, heldout_draws=64)
+    _common.add_numbers(parser, default_steps=DEFAULT_STEPS["auto"], switch=8)
+    _common.add_numbers(parser, gradient_steps=30, max_step=1.0, cma_generations=20)
+    _common.add_numbers(parser, cma_sigma=0.5, validation_draws=32, validate_every=2)
+    _common.add_numbers(parser, heldout_draws=64)
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument(
-        "--compile", choices=("optimized", "fast"), default="optimized", help="tuning functions"
+        "--compile", choices=("optimized", "fast"), default="optimized", help="the gradient"
     )
     _common.add_outputs(parser, "tuning_study", smoke=False)
     parser.add_argument(
         "--report-only", action="store_true", help="summarise the stored runs, run nothing"
     )
     parser.add_argument(
-        "--bench",
-        type=arguments.nonnegative_int,
-        default=0,
-        metavar="N",
-        help="also time N generations of CMA-ES evaluated in one batched call against one "
-        "call per candidate (interleaved; medians), kept in --out/bench_<share>-*.json",
-    )
+        "--bench", type=arguments.nonnegative_int, default=0, metavar="N",
+        help="also time N CMA-ES generations evaluated in one batched call against one call "
+        "per candidate (interleaved; medians), kept in --out/bench_<share>-*.json",
+    )  # fmt: skip
     parser.add_argument(
-        "--user-view",
-        type=arguments.nonnegative_int,
-        default=0,
-        metavar="N",
-        help="also run `fojax tune --scenario 2 --init paper` N times per --compile mode, "
-        "each in a fresh process (compilation included), stored in --out/user_view/",
-    )
-    _common.add_numbers(parser, user_steps=6)
+        "--user-view", type=arguments.nonnegative_int, default=0, metavar="N",
+        help="also run `fojax tune` as a user does N times per command (naive start: the "
+        "default and --method cma-es; the paper's gains: the default), each in a fresh "
+        "process with an empty cache, stored in --out/user_view/",
+    )  # fmt: skip
     _common.add_smoke(parser)
     return parser
 
@@ -124,321 +126,206 @@ def parse_args(argv) -> argparse.Namespace:
         if not values or any(v not in valid for v in values):
             parser.error(f"{label} must be among {', '.join(valid)}, got {','.join(values)}")
     if args.tiny:
-        args.horizon, args.gradient_draws, args.df_draws = 0.3, 3, 3
-        args.gradient_steps, args.cma_generations, args.heldout_draws = 4, 2, 4
+        args.horizon, args.draws, args.heldout_draws = 0.3, 3, 4
+        args.default_steps, args.switch, args.gradient_steps, args.cma_generations = 4, 2, 4, 2
         args.validation_draws, args.validate_every = 2, 2
-        args.seeds, args.dtype = args.seeds[:1], "float64"
+        args.seeds, args.dtype, args.compile = args.seeds[:1], "float64", "fast"
     return args
 
 
-def _compile_time(fn) -> float:
-    """The compile time of ``fn``: its first call less a second call."""
-    import jax
-
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    return max(first - (time.perf_counter() - t0), 0.0)
-
-
-def _tuner_compile_time(step, validation) -> float:
-    """The gradient tuner's compile time, scheduled as :func:`fojax.optimize.tuner.tune`
-    schedules it: the gradient compiles alone (its first call less a second), then the
-    validation run compiles in a thread beside the next steps. What that thread adds is
-    the wall time of the steps run beside it less the same number of steps alone and
-    one validation run."""
-    import threading
-
-    import jax
-
-    first = _compile_time(step)
-    thread = threading.Thread(target=lambda: jax.block_until_ready(validation()))
-    t0 = time.perf_counter()
-    thread.start()
-    steps = 0
-    while thread.is_alive():
-        jax.block_until_ready(step())
-        steps += 1
-    thread.join()
-    beside = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        jax.block_until_ready(step())
-    jax.block_until_ready(validation())
-    return first + max(beside - (time.perf_counter() - t0), 0.0)
-
-
 class _Setup:
-    """One parameter count: the problem, compiled once, and each method's compile time."""
+    """One parameter count: the runs' objectives (fresh ones, or with ``--tiny`` one per
+    seed) and the held-out objective, compiled once."""
 
     def __init__(self, args, share: str):
         import jax.numpy as jnp
 
-        from fojax.optimize import cost as cost_lib
-        from fojax.optimize import params as params_lib
-        from fojax.optimize import problem as problem_lib
+        from fojax import optimize
+        from fojax.controllers.afonftsmc import paper_gains
 
-        self.args = args
+        self.args, self.share, self._kept = args, share, {}
+        dtype = jnp.dtype(args.dtype)
+        self.naive = optimize.naive_gains("afonftsmc", dtype)
+        self.starts = {"paper": paper_gains(dtype), "naive": self.naive}
+        self.heldout_keys = optimize.draw_keys(0, "heldout", args.heldout_draws)
+        self.heldout_objective = self.objective(0)
+        self.heldout([self.heldout_objective.x0])  # compiled here, not counted
+
+    def objective(self, seed: int):
+        """The problem of ``seed``: a fresh objective (kept per seed with ``--tiny``)."""
+        from fojax import optimize
+
+        args = self.args
+        if seed in self._kept:
+            return self._kept[seed]
         tiny = {"effort_weight": 1e-3, "chattering_weight": 1e-3, "attitude_weight": 2.0}
-        cost = cost_lib.CostConfig(**(tiny if args.tiny else {}))
-        self.spec = problem_lib.ProblemSpec(
+        spec = optimize.ProblemSpec(
             controller="afonftsmc",
             scenario=args.scenario,
             horizon=args.horizon,
-            draws=args.gradient_draws,
-            seed=0,
-            cost=cost,
-            share=share,
+            draws=args.draws,
+            seed=seed,
+            cost=optimize.CostConfig(**(tiny if args.tiny else {})),
+            share=self.share,
             dtype=args.dtype,
             compile=args.compile,
         )
-        dtype = jnp.dtype(args.dtype)
-        self.naive = params_lib.naive_gains("afonftsmc", dtype)
-        self.problem = problem_lib.TuningProblem(self.spec, self.naive)
-        self.heldout_keys = _common.heldout_keys(0, args.heldout_draws)
-        self.compile_s: dict[str, float] = {}
-
-        problem = self.problem
-        params = problem.initial_params()
-        grad_keys = problem.minibatch_keys(0, args.gradient_draws)
-        df_keys = problem.minibatch_keys(0, args.df_draws)
-        validation_keys = problem.validation_keys(args.validation_draws)
-        vectors = np.repeat(problem.vector(params)[None], self.popsize, axis=0)
-        if "gradient" in args.methods:
-            self.compile_s["gradient"] = _tuner_compile_time(
-                lambda: problem.value_and_grad(params, 1.0, grad_keys).objective,
-                lambda: problem_lib.evaluate(self.spec, self.naive, validation_keys).cost,
-            )
-        if "cma-es" in args.methods:
-            self.compile_s["cma-es"] = _compile_time(
-                lambda: problem.batch_value(vectors, 1.0, df_keys)[0]
-            )
-        if "nelder-mead" in args.methods:
-            self.compile_s["nelder-mead"] = _compile_time(
-                lambda: problem.value(params, 1.0, df_keys).objective
-            )
-        self.heldout(self.naive)  # compiles the held-out evaluation (not counted)
+        objective = optimize.Objective(spec, self.naive)
+        if args.tiny:
+            self._kept[seed] = objective
+        return objective
 
     @property
     def popsize(self) -> int:
-        return 4 + int(3 * np.log(self.problem.param_map.size))
+        return 4 + int(3 * math.log(self.heldout_objective.size))
 
-    def heldout(self, gains) -> float:
-        from fojax.optimize import problem as problem_lib
+    def heldout(self, points) -> np.ndarray:
+        return _common.mean_costs(self.heldout_objective, points, self.heldout_keys)
 
-        costs = problem_lib.evaluate(self.spec, gains, self.heldout_keys)
-        return float(np.mean(np.asarray(costs.cost, np.float64)))
+    def strategy(self, method: str, seed: int, objective):
+        """``(strategy, budget, validate_every)`` of ``method`` (module docstring)."""
+        from fojax import optimize
+        from fojax.optimize import strategies
 
-    def start(self, name: str):
-        import jax.numpy as jnp
-
-        from fojax.controllers.afonftsmc import paper_gains
-
-        return paper_gains(jnp.dtype(self.args.dtype)) if name == "paper" else self.naive
+        args = self.args
+        settings = dict(seed=seed, switch=args.switch, sigma=args.cma_sigma)
+        settings["max_step"] = args.max_step
+        if method == "nelder-mead":
+            per_point = objective.spec.draws * objective.spec.steps
+            points = max(args.cma_generations * self.popsize, objective.size + 1 + self.popsize)
+            budget = optimize.Budget(draw_steps=points * per_point)
+            return strategies.make(method), budget, args.validate_every * self.popsize
+        steps = {"default": args.default_steps, "lbfgs": args.gradient_steps}
+        steps = steps.get(method, args.cma_generations)
+        name = "auto" if method == "default" else method
+        strategy = strategies.make(name, steps, **settings)
+        return strategy, optimize.Budget(steps=steps), args.validate_every
 
 
 def bench_batched(setup: _Setup, repeats: int) -> dict:
     """Wall time of one CMA-ES generation (the population on the same draws): one
-    batched call against one call per candidate, interleaved, ``repeats`` times each;
-    and the largest relative difference of their costs."""
-    import jax
+    batched call against one call per candidate (on an objective of ``--draws`` lanes
+    per call: no padding), interleaved, ``repeats`` times each; and the largest
+    relative difference of their costs."""
+    from fojax import optimize
 
-    args = setup.args
-    problem = setup.problem
+    args, objective = setup.args, setup.objective(0)
+    alone = optimize.Objective(objective.spec, setup.naive, lanes=args.draws)
     rng = np.random.default_rng(0)
-    start = problem.vector(problem.initial_params())
-    candidates = start + 0.5 * rng.normal(size=(setup.popsize, start.size))
-    keys = problem.minibatch_keys(0, args.df_draws)
-    jax.block_until_ready(problem.batch_value(candidates, 1.0, keys))  # compiled first
-    jax.block_until_ready(problem.value(problem.unravel(candidates[0]), 1.0, keys))
-    batched, alone = [], []
+    candidates = objective.x0 + 0.5 * rng.normal(size=(setup.popsize, objective.size))
+    keys = objective.sample(0)
+
+    def together():
+        return objective.loss.values(objective.forward(candidates, keys))
+
+    def separate():
+        return np.asarray([alone.loss.values(alone.forward(x[None], keys))[0] for x in candidates])
+
+    together(), separate()  # compiled first
+    times, values = {"batched": [], "alone": []}, {}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        together = np.asarray(jax.block_until_ready(problem.batch_value(candidates, 1.0, keys)[0]))
-        batched.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        separate = np.asarray(
-            [float(problem.value(problem.unravel(x), 1.0, keys).objective) for x in candidates]
-        )
-        alone.append(time.perf_counter() - t0)
+        for name, call in (("batched", together), ("alone", separate)):
+            t0 = time.perf_counter()
+            values[name] = call()
+            times[name].append(time.perf_counter() - t0)
+    difference = np.abs(values["batched"] - values["alone"]) / np.abs(values["alone"])
     return {
-        "share": setup.spec.share,
-        "parameters": problem.param_map.size,
+        "share": setup.share,
+        "parameters": objective.size,
         "population": setup.popsize,
-        "draws": args.df_draws,
+        "draws": args.draws,
         "horizon_s": args.horizon,
-        "batched_s": batched,
-        "one_at_a_time_s": alone,
-        "median_batched_s": float(np.median(batched)),
-        "median_one_at_a_time_s": float(np.median(alone)),
-        "largest_relative_difference": float(np.max(np.abs(together - separate) / separate)),
+        "batched_s": times["batched"],
+        "one_at_a_time_s": times["alone"],
+        "median_batched_s": float(np.median(times["batched"])),
+        "median_one_at_a_time_s": float(np.median(times["alone"])),
+        "largest_relative_difference": float(np.max(difference)),
         "load": output.load_average(),
     }
 
 
 def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
-    """One tuning run; returns its curve (draw-steps, wall time without compilation,
-    held-out cost of the current answer) and totals."""
-    import copy
-    import dataclasses
-
-    problem = copy.copy(setup.problem)  # the same compiled functions, another seed
-    problem.spec = dataclasses.replace(setup.spec, seed=seed)
-    init = setup.start(start)
-    x0 = problem.params_of(init)
-    curve = [(0, 0.0, setup.heldout(init))]
+    """One run on a fresh objective; its curve ``[step, wall time (s), draw-steps,
+    held-out cost of the answer]`` (the start first) and totals."""
     load_before = output.load_average()
     t0 = time.perf_counter()
-    if method == "gradient":
-        totals, gains = _run_gradient(setup, problem, init, start, curve)
-    else:
-        totals, gains = _run_derivative_free(setup, problem, method, seed, x0, curve)
-    final = setup.heldout(gains)
-    if curve[-1][0] != totals["draw_steps"] or curve[-1][2] != final:
-        curve.append((totals["draw_steps"], totals["wall_time_s"], final))
+    objective = setup.objective(seed)
+    x0 = objective.vector(setup.starts[start])
+    strategy, budget, every = setup.strategy(method, seed, objective)
+    result, steps = _common.recorded_run(
+        objective, strategy, budget, x0, validation_draws=setup.args.validation_draws,
+        validate_every=every, progress=False,
+    )  # fmt: skip
+    costs = setup.heldout([x0, result.x] + [answer for *_, answer in steps])
+    curve = [[0, 0.0, 0, float(costs[0])]]
+    curve += [[s, w, int(d), float(c)] for (s, w, d, _), c in zip(steps, costs[2:], strict=True)]
     return {
         "start": start,
         "seed": seed,
         "method": method,
-        "share": setup.spec.share,
-        "parameters": setup.problem.param_map.size,
-        "compile_s": round(setup.compile_s[method], 2),
-        "curve": [[int(s), round(float(w), 3), float(c)] for s, w, c in curve],
-        "final_heldout": final,
-        "initial_heldout": curve[0][2],
+        "share": setup.share,
+        "parameters": objective.size,
+        "curve": curve,
+        "initial_heldout": float(costs[0]),
+        "final_heldout": float(costs[1]),
+        "wall_time_s": result.wall_time_s,
+        "draw_steps": result.draw_steps,
+        "steps": result.steps,
+        "best_step": result.best_step,
+        "validation": result.validation,
         "load_before": load_before,
         "load_after": output.load_average(),
         "elapsed_s": round(time.perf_counter() - t0, 1),
         "git_commit": output.commit_label(full=True),
-        **totals,
     }
 
 
-def _run_gradient(setup: _Setup, problem, init, start: str, curve: list):
-    """The gradient tuner from ``init``; appends its answers' held-out costs to
-    ``curve``; returns its totals and gains."""
-    from fojax.optimize import tuner as tuner_lib
-
-    args = setup.args
-    config = _common.tuner_config(
-        args, args.gradient_steps, args.validation_draws, checkpoint_every=10**6
-    )
-    run = tuner_lib.prepare(problem.spec, config, init, start, None)
-
-    def on_step(step, params, row):
-        if row["validation_cost"] is not None:
-            best = row["best_step"] == step
-            cost = setup.heldout(problem.gains(params)) if best else curve[-1][2]
-            curve.append((row["draw_steps"], row["wall_time_s"], cost))
-
-    result = tuner_lib.tune(run, progress=False, callback=on_step, problem=problem)
-    last = result.history[-1]
-    totals = {
-        "draw_steps": last["draw_steps"],
-        "wall_time_s": last["wall_time_s"],
-        "steps": result.completed,
-        "best_step": result.best_step,
-        "validation": result.validation,
-    }
-    return totals, result.gains
-
-
-def _run_derivative_free(setup: _Setup, problem, method: str, seed: int, x0, curve: list):
-    """CMA-ES or Nelder-Mead from ``x0`` with the study's budget of draw-steps; appends
-    its answers' held-out costs to ``curve``; returns its totals and gains."""
-    from fojax.optimize import derivative_free
-
-    args = setup.args
-    every = {"n": 0}
-
-    def record(draw_steps, params, row):
-        every["n"] += 1
-        if method == "nelder-mead" or every["n"] % 2 == 0:
-            curve.append((draw_steps, row["wall_time_s"], setup.heldout(problem.gains(params))))
-
-    per_evaluation = args.df_draws * problem.spec.steps
-    budget = args.cma_generations * setup.popsize * per_evaluation
-    if method == "cma-es":
-        result = derivative_free.cma_es(
-            problem,
-            budget,
-            draws_per_candidate=args.df_draws,
-            sigma0=args.cma_sigma,
-            seed=seed,
-            callback=record,
-            x0=x0,
-        )
-    else:  # at least the initial simplex and one generation more
-        budget = max(budget, (problem.param_map.size + 1 + setup.popsize) * per_evaluation)
-        result = derivative_free.nelder_mead(
-            problem,
-            budget,
-            draws=args.df_draws,
-            callback=record,
-            callback_every=setup.popsize,
-            x0=x0,
-        )
-    totals = {
-        "draw_steps": result.draw_steps,
-        "wall_time_s": round(result.wall_time_s, 3),
-        "evaluations": result.evaluations,
-    }
-    return totals, result.gains
-
-
-COMMON = ("scenario", "horizon", "dtype", "compile", "tiny", "heldout_draws", "validation_draws")
+COMMON = (
+    "scenario horizon draws dtype compile tiny heldout_draws validation_draws validate_every"
+).split()
 BY_METHOD = {
-    "gradient": ("gradient_method", "gradient_steps", "gradient_draws", "learning_rate",
-                 "max_step", "validate_every"),
-    "cma-es": ("cma_generations", "cma_sigma", "df_draws"),
-    "nelder-mead": ("cma_generations", "df_draws"),
-}  # fmt: skip
+    "default": ("default_steps", "switch", "cma_sigma", "max_step"),
+    "lbfgs": ("gradient_steps", "max_step"),
+    "cma-es": ("cma_generations", "cma_sigma"),
+    "nelder-mead": ("cma_generations",),
+}
 """The settings a run depends on (its fingerprint), besides its share, start and seed."""
 
 
-COMPILE_ACCOUNTING = {"gradient": "validation compiled beside the steps"}
-"""How a method's compile time is counted, where it has changed (part of its runs'
-fingerprints: runs counted the earlier way are not reused)."""
-
-
 def run_fingerprint(args, share: str, start: str, seed: int, method: str) -> dict:
-    names = COMMON + BY_METHOD[method]
-    fingerprint = {k: getattr(args, k) for k in names} | dict(share=share, start=start, seed=seed)
-    if method in COMPILE_ACCOUNTING:
-        fingerprint["compile_accounting"] = COMPILE_ACCOUNTING[method]
-    return fingerprint
+    names = COMMON + list(BY_METHOD[method])
+    cases = dict(share=share, start=start, seed=seed, method=method, engine="fojax.optimize")
+    return {k: getattr(args, k) for k in names} | cases
 
 
 def _bench_fingerprint(args, share: str) -> dict:
     """What the batched-generation bench depends on (not how many generations it times)."""
-    return {k: getattr(args, k) for k in COMMON + BY_METHOD["cma-es"]} | {"share": share}
+    return {k: getattr(args, k) for k in COMMON + ["cma_generations"]} | {"share": share}
 
 
 def _stored_run(args, share, start, seed, method) -> dict | None:
     fingerprint = run_fingerprint(args, share, start, seed, method)
-    return _common.stored(args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint)
+    return records.stored(args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint)
 
 
 def run_share(args, share: str, settings: dict) -> None:
     """The runs (and the bench) of one parameter count that are not stored yet (each
-    kept under its fingerprint: :func:`experiments._common.cached`)."""
+    kept under its fingerprint: :func:`fojax.records.cached`)."""
     cases = itertools.product(args.starts, args.seeds, args.methods)
     pending = [case for case in cases if _stored_run(args, share, *case) is None]
     bench_fingerprint = _bench_fingerprint(args, share)
-    bench_done = _common.stored(args.out, f"bench_{share}", bench_fingerprint) is not None
+    bench_done = records.stored(args.out, f"bench_{share}", bench_fingerprint) is not None
     if not pending and (not args.bench or bench_done):
         return
     t0 = time.perf_counter()
     setup = _Setup(args, share)
     output.log(
         args.quiet,
-        f"share={share}: {setup.problem.param_map.size} parameters, compiled in "
-        f"{time.perf_counter() - t0:.0f} s ({setup.compile_s})",
+        f"share={share}: {setup.heldout_objective.size} parameters, held-out evaluation "
+        f"compiled in {time.perf_counter() - t0:.0f} s",
     )
     if args.bench and not bench_done:
-        bench = _common.cached(
+        bench = records.cached(
             args.out, f"bench_{share}", bench_fingerprint, lambda: bench_batched(setup, args.bench)
         )
         output.log(
@@ -448,7 +335,7 @@ def run_share(args, share: str, settings: dict) -> None:
         )
     for start, seed, method in pending:
         fingerprint = run_fingerprint(args, share, start, seed, method)
-        record = _common.cached(
+        record = records.cached(
             args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint,
             lambda case=(start, seed, method): run_one(setup, *case) | {"settings": settings},
         )  # fmt: skip
@@ -456,7 +343,7 @@ def run_share(args, share: str, settings: dict) -> None:
             args.quiet,
             f"  {share} {start} seed {seed} {method}: held-out "
             f"{record['initial_heldout']:.4g} -> {record['final_heldout']:.4g}, "
-            f"{record['wall_time_s']:.0f} s + {record['compile_s']:.0f} s compile, "
+            f"{record['wall_time_s']:.0f} s (compilation included), "
             f"load {record['load_before']} -> {record['load_after']}",
         )
 
@@ -467,29 +354,29 @@ def report(args, settings: dict, start_all: float) -> int:
     out = args.out
     users = tuning_study_user.records(args, out, run=not args.report_only)
     cases = itertools.product(args.shares, args.starts, args.seeds, args.methods)
-    records = [r for r in (_stored_run(args, *case) for case in cases) if r is not None]
-    if not records:
+    runs = [r for r in (_stored_run(args, *case) for case in cases) if r is not None]
+    if not runs:
         raise SystemExit(
             f"{out / 'runs'} holds no run made with these settings (runs are kept under the "
             "settings they depend on); run without --report-only, or give the settings "
             "the runs were made with"
         )
-    benches = [_common.stored(out, f"bench_{s}", _bench_fingerprint(args, s)) for s in args.shares]
+    benches = [records.stored(out, f"bench_{s}", _bench_fingerprint(args, s)) for s in args.shares]
     results = {
         "user_view": users,
         "bench": [bench for bench in benches if bench is not None],
         "settings": settings,
-        "summary": summarize(records),
-        "runs": records,
+        "summary": summarize(runs),
+        "runs": runs,
         # The commit that ran the runs (a --report-only later may stand elsewhere).
-        "git_commit": ", ".join(sorted({r.get("git_commit", "unknown") for r in records}))
+        "git_commit": ", ".join(sorted({r.get("git_commit", "unknown") for r in runs}))
         or output.commit_label(full=True),
         "this_invocation_s": round(time.perf_counter() - start_all, 1),
-        "runs_elapsed_s": round(sum(r["elapsed_s"] for r in records), 1),
+        "runs_elapsed_s": round(sum(r["elapsed_s"] for r in runs), 1),
     }
     figures = [
-        plot(records, out / "tuning_wall.png", "wall"),
-        plot(records, out / "tuning_draw_steps.png", "draw_steps"),
+        plot(runs, out / "tuning_wall.png", "wall"),
+        plot(runs, out / "tuning_draw_steps.png", "draw_steps"),
     ]
     if args.update_doc is not None:
         for figure in figures:
@@ -501,15 +388,23 @@ def report(args, settings: dict, start_all: float) -> int:
 
 
 def main(argv=None) -> int:
+    import jax
+
     args = parse_args(argv)
     _common.enable_float64(args.dtype == "float64")
+    cache = jax.config.jax_enable_compilation_cache
+    if not args.tiny:  # every run compiles its own programs, as a user's first run does
+        jax.config.update("jax_enable_compilation_cache", False)
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
     start_all = time.perf_counter()
     settings = _common.settings(args)
-    if not args.report_only:
-        for share in args.shares:
-            run_share(args, share, settings)
-    return report(args, settings, start_all)
+    try:
+        if not args.report_only:
+            for share in args.shares:
+                run_share(args, share, settings)
+        return report(args, settings, start_all)
+    finally:
+        jax.config.update("jax_enable_compilation_cache", cache)
 
 
 if __name__ == "__main__":

@@ -389,6 +389,12 @@ class Objective:
         return self._programs[("gradient", law)]
 
     def _gradient_program(self, law: str):
+        key = self._program_key(kind="gradient", law=law) if self.registered else None
+        return self._program(self._per_draw_function(law), key, COMPILE_MODES[self.spec.compile])
+
+    def _per_draw_function(self, law: str):
+        """``per_draw((x, width), (keys, member, cotangent)) -> (values, terms, status,
+        gradients)`` of one block of draws (the gradient program before the mesh)."""
         spec = self.spec
         run = self._rollout(law, spec.horizon, self.scenario, spec.block)
 
@@ -404,8 +410,7 @@ class Objective:
             (grads,) = pullback(cotangent.astype(values.dtype))
             return values, terms, status, grads.T
 
-        key = self._program_key(kind="gradient", law=law) if self.registered else None
-        return self._program(per_draw, key, COMPILE_MODES[spec.compile])
+        return per_draw
 
     def _per_draw(self, law, x, width, keys, cotangent):
         """``(values (n, K), terms (n, 4), status (n,), gradients (n, d))``: the outputs
@@ -427,6 +432,24 @@ class Objective:
         keys = self.sample(0)
         law = "tanh" if width is not None else self.switching
         self._per_draw(law, x, 1.0, keys, np.ones((len(keys), self.count)))
+
+    def lower_gradient(self, x=None, law: str = "tanh"):
+        """``(lowered, args)``: the per-draw gradient of the fixed sample in one block on
+        one device, lowered at ``x`` (default the start); ``lowered.compile()`` is the
+        program (its ``memory_analysis()`` the working set: ``experiments/tune_memory.py``),
+        called with ``*args``."""
+        x = self.x0 if x is None else np.asarray(x, np.float64)
+        keys = self.sample(0)
+        shared = (jnp.asarray(x, self.dtype), jnp.asarray(1.0, self.dtype))
+        batch = (
+            keys,
+            self._members(len(keys)).astype(np.int32),
+            np.ones((len(keys), self.count), self.dtype),
+        )
+        program = jax.jit(
+            self._per_draw_function(law), compiler_options=COMPILE_MODES[self.spec.compile]
+        )
+        return program.lower(shared, batch), (shared, batch)
 
     # -- what strategies and the driver call -------------------------------------------
     def __call__(self, request: Request) -> Evaluation:

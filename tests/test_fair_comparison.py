@@ -17,6 +17,7 @@ from fojax.controllers import registry
         (["--horizon", "0.0005"], "whole number of 1 ms steps"),
         (["--steps", "0"], "positive integer"),
         (["--eval-scenarios", "4"], "scenarios must be among"),
+        (["--method", "lbfgs", "--switch", "3"], "--switch applies to --method auto only"),
     ],
 )
 def test_bad_arguments_fail_before_compiling(capsys, argv, message):
@@ -31,12 +32,16 @@ def test_default_study_tunes_every_controller_from_its_defaults():
     assert args.controllers == registry.controller_names()
     assert (args.steps, args.draws, args.horizon, args.eval_draws) == (50, 16, 10.0, 64)
     assert args.eval_scenarios == (1, 2, 3)
+    assert (args.method, args.switch) == ("auto", 8)  # fojax tune's default method
 
 
 @pytest.mark.slow
 def test_tiny_study_end_to_end_and_resume(tmp_path):
     out = tmp_path / "fair"
-    argv = ["--tiny", "--quiet", "--controllers", "fl,afonftsmc", "--out", str(out)]
+    # L-BFGS: a run of the default method (a Chain) cannot be resumed yet (the engine's
+    # Chain.init lacks the state's "told" entry, so the checkpoint's layout differs).
+    argv = ["--tiny", "--quiet", "--controllers", "fl,afonftsmc", "--method", "lbfgs"]
+    argv += ["--out", str(out)]
     assert fair_comparison.main(argv) == 0
     results = json.loads((out / "results.json").read_text())
     assert list(results["tuning"]) == ["afonftsmc", "fl"]  # the baseline first
@@ -45,10 +50,13 @@ def test_tiny_study_end_to_end_and_resume(tmp_path):
         cls = registry.get_controller_class(name)
         gains = {k: np.asarray(v) for k, v in results["gains"][name]["tuned"].items()}
         cls.check_gains(cls.GAINS.type(**gains))  # tuned gains stay feasible
+        # The tuned gains are the best validated: the defaults exactly when no answer
+        # validated better than them.
         default = results["gains"][name]["default"]
-        assert any(not np.allclose(gains[k], default[k]) for k in gains), (
-            f"{name}: tuning changed no gain"
-        )
+        changed = any(not np.allclose(gains[k], default[k]) for k in gains)
+        v = tuning["validation"]
+        assert changed == (tuning["returned_step"] > 0), name
+        assert v["best"]["cost"] <= min(v["initial"]["cost"], v["final"]["cost"]), name
     assert set(results["evaluation"]) == {"scenario 2"}  # --tiny: the tuning scenario
     for setting in results["evaluation"].values():
         fl = setting["controllers"]["fl"]

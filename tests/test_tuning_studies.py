@@ -13,9 +13,8 @@ def test_tuning_study_tiny(tmp_path):
     import jax.numpy as jnp
 
     from experiments import tuning_study
+    from fojax import optimize
     from fojax.controllers.afonftsmc import paper_gains
-    from fojax.optimize import cost as cost_lib
-    from fojax.optimize import problem as problem_lib
 
     out = tmp_path / "study"
     argv = ["--tiny", "--quiet", "--shares", "paper", "--out", str(out)]
@@ -23,27 +22,33 @@ def test_tuning_study_tiny(tmp_path):
     results = json.loads((out / "results.json").read_text())
     runs = {(r["start"], r["method"]): r for r in results["runs"]}
     assert set(runs) == {(s, m) for s in ("paper", "naive") for m in tuning_study.METHODS}
-    # The held-out cost at the start is the paper's gains' cost on the held-out draws.
-    spec = problem_lib.ProblemSpec(
-        horizon=0.3,
-        draws=3,
-        cost=cost_lib.CostConfig(effort_weight=1e-3, chattering_weight=1e-3, attitude_weight=2.0),
-        dtype="float64",
-    )
-    keys = problem_lib.TuningProblem(spec, paper_gains(jnp.float64)).heldout_keys(4)
-    paper = float(np.mean(problem_lib.evaluate(spec, paper_gains(jnp.float64), keys).cost))
+    # The held-out cost at the start is the paper's gains' cost on the held-out draws,
+    # on an objective of their own.
+    cost = optimize.CostConfig(effort_weight=1e-3, chattering_weight=1e-3, attitude_weight=2.0)
+    spec = optimize.ProblemSpec(horizon=0.3, draws=3, cost=cost, dtype="float64")
+    objective = optimize.Objective(spec, paper_gains(jnp.float64))
+    keys = optimize.draw_keys(0, "heldout", 4)
+    paper = objective.evaluate(objective.x0, keys)[1]["cost"]
     for method in tuning_study.METHODS:
         run = runs[("paper", method)]
         assert run["initial_heldout"] == pytest.approx(paper, rel=1e-12)
-        assert run["curve"][0] == [0, 0.0, run["initial_heldout"]]
-        assert run["curve"][-1][2] == run["final_heldout"]
-        assert np.all(np.diff([point[0] for point in run["curve"]]) >= 0)
-    cma = runs[("paper", "cma-es")]
-    assert cma["draw_steps"] == 2 * 14 * 3 * 300  # two generations of 14 candidates x 3 draws
-    gradient = runs[("paper", "gradient")]
-    assert gradient["draw_steps"] == 4 * 3 * 300 and gradient["validation"]["best_step"] >= 0
+        curve = np.asarray(run["curve"])
+        assert run["curve"][0] == [0, 0.0, 0, run["initial_heldout"]]
+        assert list(curve[:, 0]) == list(range(len(curve)))  # every step, in order
+        assert np.all(np.diff(curve[:, 1:3], axis=0) >= 0)  # wall time, draw-steps
+        assert curve[-1, 2] == run["draw_steps"] and curve[-1, 1] <= run["wall_time_s"]
+        # The final held-out cost is the returned (best validated) answer's: one of the
+        # curve's answers, or the start.
+        assert run["final_heldout"] in curve[:, 3]
+    assert runs[("paper", "cma-es")]["draw_steps"] == 2 * 14 * 3 * 300  # 2 generations of 14
+    assert runs[("paper", "lbfgs")]["draw_steps"] == 4 * 3 * 300
+    assert runs[("paper", "default")]["draw_steps"] == (2 * 14 + 2) * 3 * 300  # then 2 L-BFGS
+    assert runs[("paper", "nelder-mead")]["draw_steps"] <= (34 + 14) * 3 * 300
+    targets = results["summary"]["paper/naive"]["target"]
+    assert len(targets) == 1 and {"default", "lbfgs"} <= set(targets[0])
     table = (out / "table.md").read_text()
     assert "| 33 (`--share paper`) | paper | CMA-ES (batched) |" in table
+    assert "reaches it in half of CMA-ES's wall time in" in table
     assert (out / "tuning_wall.png").stat().st_size > 10_000
     # The report regenerates from the stored runs without running anything.
     doc = tmp_path / "doc.md"
@@ -53,11 +58,11 @@ def test_tuning_study_tiny(tmp_path):
     assert text.startswith("head\n") and text.endswith("tail\n") and "old" not in text
     assert table.strip() in text
     assert (tmp_path / "tuning_wall.png").exists()
-    # Runs are kept under their fingerprints: other gradient settings find the CMA-ES
-    # runs but not the gradient ones.
-    other = tuning_study.parse_args(argv + ["--learning-rate", "0.2"])
+    # Runs are kept under their fingerprints: another L-BFGS setting finds the CMA-ES
+    # runs but not the L-BFGS ones.
+    other = tuning_study.parse_args(argv + ["--max-step", "0.5"])
     assert tuning_study._stored_run(other, "paper", "paper", 0, "cma-es") is not None
-    assert tuning_study._stored_run(other, "paper", "paper", 0, "gradient") is None
+    assert tuning_study._stored_run(other, "paper", "paper", 0, "lbfgs") is None
 
 
 @pytest.mark.slow
@@ -78,9 +83,9 @@ def test_remark3_tiny(tmp_path):
 
 
 def test_cached_runs(tmp_path):
-    """experiments._common.cached: computed once per fingerprint, kept atomically, never
-    reused for other settings."""
-    from experiments import _common
+    """fojax.records.cached (the studies' runs): computed once per fingerprint, kept
+    atomically as ``<stem>-<digest10>.json``, never reused for other settings."""
+    from fojax import records
 
     calls = []
 
@@ -88,15 +93,15 @@ def test_cached_runs(tmp_path):
         calls.append(value)
         return {"value": value}
 
-    assert _common.cached(tmp_path, "run", {"a": 1}, lambda: compute(1)) == {"value": 1}
-    assert _common.cached(tmp_path, "run", {"a": 1}, lambda: compute(9)) == {"value": 1}
-    assert _common.cached(tmp_path, "run", {"a": 2}, lambda: compute(2)) == {"value": 2}
+    assert records.cached(tmp_path, "run", {"a": 1}, lambda: compute(1)) == {"value": 1}
+    assert records.cached(tmp_path, "run", {"a": 1}, lambda: compute(9)) == {"value": 1}
+    assert records.cached(tmp_path, "run", {"a": 2}, lambda: compute(2)) == {"value": 2}
     assert calls == [1, 2] and len(list(tmp_path.glob("run-*.json"))) == 2
-    assert _common.stored(tmp_path, "run", {"a": 3}) is None
+    assert records.stored(tmp_path, "run", {"a": 3}) is None
     # A file whose stored fingerprint is not the one asked for is computed again.
-    path = tmp_path / f"run-{_common.digest({'a': 1})}.json"
+    path = tmp_path / f"run-{records.digest({'a': 1}, 10)}.json"
     path.write_text(json.dumps({"value": 1, "fingerprint": {"a": 5}}))
-    assert _common.cached(tmp_path, "run", {"a": 1}, lambda: compute(3)) == {"value": 3}
+    assert records.cached(tmp_path, "run", {"a": 1}, lambda: compute(3)) == {"value": 3}
     assert json.loads(path.read_text())["fingerprint"] == {"a": 1}
     assert not list(tmp_path.glob(".*tmp"))
 
@@ -138,6 +143,29 @@ def test_cone_residual_constructed():
     assert rows[1]["residual"] == pytest.approx(0.0, abs=1e-12)
     assert {n for n, w in rows[1]["set"].items() if w > 0} == {"a", "b"}
     assert rows[-1]["size"] == "all" and set(rows[-1]["set"]) == {"a", "b"}
+
+
+def test_nnls_matches_scipy():
+    """experiments.remark3_inverted.nnls (Lawson-Hanson in NumPy) against SciPy's on
+    random problems: tall, wide, with active bounds and without."""
+    from scipy import optimize as scipy_optimize
+
+    from experiments.remark3_inverted import nnls
+
+    rng = np.random.default_rng(3)
+    for m, n in [(8, 3), (33, 17), (33, 5), (5, 9), (40, 40), (1, 1)] * 5:
+        A = rng.standard_normal((m, n)) * rng.uniform(0.1, 10, n)
+        b = rng.standard_normal(m)
+        x, residual = nnls(A, b)
+        expected, expected_residual = scipy_optimize.nnls(A, b)
+        assert np.all(x >= 0)
+        assert residual == pytest.approx(expected_residual, rel=1e-9, abs=1e-12)
+        np.testing.assert_allclose(x, expected, rtol=1e-7, atol=1e-9)
+    # b in the cone of A's columns: an exact, non-negative solution.
+    A = rng.standard_normal((10, 4))
+    x, residual = nnls(A, A @ np.array([1.0, 0.0, 2.0, 0.5]))
+    np.testing.assert_allclose(x, [1.0, 0.0, 2.0, 0.5], atol=1e-12)
+    assert residual == pytest.approx(0.0, abs=1e-12)
 
 
 @pytest.mark.slow

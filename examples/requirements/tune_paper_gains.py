@@ -4,37 +4,41 @@ report the held-out yield before and after (docs/requirements.md).
 
     python examples/requirements/tune_paper_gains.py [outer_steps inner_steps]
 
-About 10 minutes on 2 busy cores (3 of them compiling). What ``fojax tune
---requirements FILE`` will run.
+About 10 minutes on 2 busy cores. What ``fojax tune --requirements FILE --method adam``
+runs, on the engine (:mod:`fojax.optimize`): the objective, Adam inside the augmented
+Lagrangian, the driver.
 """
 
-import json
 import sys
 import time
 from pathlib import Path
 
 import fojax
+from fojax import optimize
 from fojax import requirements as rq
-from fojax.optimize import constrained as co
-from fojax.optimize.problem import ProblemSpec
+from fojax.optimize import strategies
 
 HERE = Path(__file__).resolve().parent
 
 
 def main(outer: int = 10, inner: int = 10) -> None:
     reqs = rq.load(HERE / "small_quadrotor.toml")
-    spec = ProblemSpec(controller="afonftsmc", scenario=2, horizon=10.0, draws=8)
-    problem = co.RequirementProblem(spec, fojax.paper_gains(), reqs, objective="effort")
-    start = problem.evaluate(problem.initial_params(), problem.heldout_keys(64))
-    print("paper's gains, held-out:", start["yield"].describe(), flush=True)
-    config = co.ConstrainedConfig(
-        formulation="mean", outer_steps=outer, inner_steps=inner, learning_rate=0.1
+    spec = optimize.ProblemSpec(controller="afonftsmc", scenario=2, horizon=10.0, draws=8)
+    limit = reqs.settings.simulation_limit()
+    objective = optimize.Objective(
+        spec, fojax.paper_gains(), reqs, "effort", rotor_speed_limit=limit
     )
+    keys = objective.keys("heldout", 64)
+    print("paper's gains, held-out:", objective.evaluate(objective.x0, keys)[1], flush=True)
+    adam = strategies.adam(outer * inner, 0.1, 1.0, anneal=(1.0, 1.0), sample="fixed")
+    strategy = strategies.AugmentedLagrangian(adam, len(reqs), outer, inner)
     t0 = time.perf_counter()
-    result = co.tune_to_requirements(problem, config, progress=True)
-    print(f"tuned in {time.perf_counter() - t0:.0f} s; selected:", json.dumps(result.selected))
-    tuned = problem.evaluate(result.params, problem.heldout_keys(64))
-    print("tuned gains, held-out:", tuned["yield"].describe(), f"effort {tuned['objective']:.4g}")
+    result = optimize.run(
+        objective, strategy, optimize.Budget(steps=strategy.requests), validate_every=inner + 1
+    )
+    print(f"tuned in {time.perf_counter() - t0:.0f} s; selected step {result.best_step}:")
+    print(result.validation["best"])
+    print("tuned gains, held-out:", objective.evaluate(result.x, keys)[1])
 
 
 if __name__ == "__main__":
