@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -124,12 +125,20 @@ def mean_costs(objective, points, keys) -> np.ndarray:
     return np.asarray([means[x.tobytes()] for x in points], np.float64)
 
 
+class DrawCosts(NamedTuple):
+    """Per-draw costs of one point: cost ``(n,)`` (``J``, ``divergence_cost`` where the
+    draw diverged), terms ``(n, 4)`` ``(P, A, E, C)``, status ``(n,)``, diverged ``(n,)``."""
+
+    cost: np.ndarray
+    terms: np.ndarray
+    status: np.ndarray
+    diverged: np.ndarray
+
+
 def draw_costs(objective, x, keys, horizon=None, scenario=None):
     """Per-draw costs of the point ``x`` on ``keys`` at the evaluation law
-    (:class:`fojax.optimize.cost.DrawCosts`: a diverged draw at ``divergence_cost``);
-    ``horizon``, ``scenario``: :meth:`fojax.optimize.Objective.forward`'s."""
-    from fojax.optimize.cost import DrawCosts
-
+    (:class:`DrawCosts`: a diverged draw at ``divergence_cost``); ``horizon``,
+    ``scenario``: :meth:`fojax.optimize.Objective.forward`'s."""
     _, _, out = objective.evaluate(x, keys, horizon, scenario)
     cost = np.where(out.valid, out.values[:, 0], objective.spec.cost.divergence_cost)
     return DrawCosts(cost, out.terms, out.status, ~out.valid)

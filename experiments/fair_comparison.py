@@ -45,7 +45,7 @@ __all__ = ["main", "table"]
 
 BASELINE = "afonftsmc"
 TERMS = ("position", "attitude", "effort", "chattering")
-"""The cost's terms, in the order of :class:`fojax.optimize.cost.DrawCosts` ``terms``."""
+"""The cost's terms, in the order of :class:`experiments._common.DrawCosts` ``terms``."""
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -14,13 +14,12 @@ attitude reference the attitude loop tracks, ``ControlInfo.attitude_reference``)
 * ``J = w_pos P + w_att A + w_effort E + w_chattering C``.
 
 A draw that diverges (status ``nonfinite`` or ``tilt_limit``, or a non-finite ``J``)
-costs ``divergence_cost`` and contributes no gradient. Over a minibatch of ``n``
-draws, ``objective="mean"`` is the mean of ``J``, ``objective="cvar"`` the mean of the
-``ceil(cvar_fraction n)`` largest (the conditional value at risk of the worst tail).
-Gradients are per draw (:func:`per_draw_gradients`: one copy of the gains per draw in
-one batch-last rollout), so one diverged draw cannot poison the others with NaN; the
-objective's gradient is ``sum_i w_i grad J_i`` with the mean's or the tail's weights
-``w_i``.
+costs ``divergence_cost`` and contributes no gradient. Over a sample of ``n`` draws,
+``objective="mean"`` is the mean of ``J``, ``objective="cvar"`` the mean of the
+``ceil(cvar_fraction n)`` largest (the conditional value at risk of the worst tail):
+:class:`fojax.optimize.objective.MeanLoss`. Gradients are per draw
+(:func:`per_draw_gradients`: one copy of the gains per draw in one batch-last rollout),
+so one diverged draw cannot poison the others with NaN.
 """
 
 from __future__ import annotations
@@ -44,10 +43,7 @@ __all__ = [
     "CostConfig",
     "CostObserver",
     "CostTerms",
-    "DrawCosts",
-    "combine",
     "make_batch_cost",
-    "make_draw_cost",
     "per_draw_gradients",
 ]
 
@@ -128,20 +124,6 @@ class CostTerms(NamedTuple):
     started: Array
 
 
-class DrawCosts(NamedTuple):
-    """Costs of a minibatch of ``n`` draws.
-
-    cost: ``(n,)`` ``J`` per draw (``divergence_cost`` for diverged draws).
-    terms: ``(n, 4)`` ``(P, A, E, C)`` per draw (as simulated; may be non-finite).
-    status: ``(n,)`` int32 rollout status bits. diverged: ``(n,)`` bool.
-    """
-
-    cost: Array
-    terms: Array
-    status: Array
-    diverged: Array
-
-
 @dataclasses.dataclass(frozen=True)
 class CostObserver:
     """The cost's running sums as an observer of the rollout (:mod:`fojax.observers`).
@@ -220,24 +202,6 @@ def make_batch_cost(
     return cost
 
 
-def make_draw_cost(
-    controller: Any,
-    scenario: scenarios.Scenario,
-    sim_config: simulator.SimulationConfig,
-    cost_config: CostConfig,
-    dtype: Any = None,
-):
-    """``cost(gains, key) -> (J (), terms (4,), status ())`` of one draw: the batch cost
-    (:func:`make_batch_cost`) of a batch of one."""
-    batch_cost = make_batch_cost(controller, scenario, sim_config, cost_config, dtype)
-
-    def cost(gains, key):
-        j, terms, status = batch_cost(gains, jnp.asarray(key)[None])
-        return j[0], terms[0], status[0]
-
-    return cost
-
-
 def per_draw_gradients(batch_cost, gains: Any, keys: Array):
     """``(J (n,), terms (n, 4), status (n,), gradients)``: the cost of every draw and its
     gradient with respect to ``gains``, per draw (each gains field ``(n,) + shape``).
@@ -256,26 +220,3 @@ def per_draw_gradients(batch_cost, gains: Any, keys: Array):
 
     gradients, (j, terms, status) = jax.grad(total, has_aux=True)(copies)
     return j, terms, status, jax.tree.map(lambda g: jnp.moveaxis(g, -1, 0), gradients)
-
-
-def guard(cost_config: CostConfig, cost: Array, status: Array) -> tuple[Array, Array]:
-    """``(effective cost (n,), diverged (n,))``: diverged draws cost
-    ``divergence_cost``."""
-    diverged = ((status & DIVERGED) != 0) | ~jnp.isfinite(cost)
-    return jnp.where(diverged, cost_config.divergence_cost, cost), diverged
-
-
-def combine(cost_config: CostConfig, cost: Array) -> tuple[Array, Array]:
-    """``(objective (), weights (n,))`` from effective per-draw costs ``(n,)``.
-
-    The objective is ``sum_i weights_i cost_i``: the mean (``1/n``) or the CVaR (``1/k``
-    on the ``k`` largest costs, :meth:`CostConfig.tail_count`; ties broken by index).
-    """
-    n = cost.shape[0]
-    if cost_config.objective == "mean":
-        weights = jnp.full((n,), 1.0 / n, cost.dtype)
-    else:
-        k = cost_config.tail_count(n)
-        _, worst = jax.lax.top_k(cost, k)
-        weights = jnp.zeros((n,), cost.dtype).at[worst].set(1.0 / k)
-    return jnp.sum(weights * cost), weights

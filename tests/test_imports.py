@@ -8,13 +8,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ((ROOT / "fojax", "fojax"), (ROOT / "optimize", "fojax.optimize"))
 
-KNOWN_CIRCLES = {
-    # The tuning engine's, being rewritten (its requirement tuning and the command's
-    # options module import each other): not this layer's to cut.
-    frozenset({"fojax.cli.requirements", "fojax.cli._requirement_tuning"}),
-    frozenset({"fojax.optimize.constrained", "fojax.optimize.derivative_free"}),
-}
-KNOWN_PRIVATE = ("fojax.optimize.",)  # the tuning engine's, being rewritten
+KNOWN_CIRCLES: set = set()
+KNOWN_PRIVATE: tuple = ()
 
 
 def _modules() -> dict[str, Path]:

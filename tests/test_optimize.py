@@ -117,24 +117,6 @@ def test_every_registered_controller_has_a_parameter_map(name):
 # -------------------------------------------------------------------------- cost
 
 
-def test_mean_and_cvar_weights():
-    costs = jnp.asarray([1.0, 5.0, 2.0, 4.0, 3.0, 0.5, 7.0, 6.0])
-    mean, w = cost_lib.combine(cost_lib.CostConfig(), costs)
-    assert float(mean) == pytest.approx(3.5625) and np.allclose(w, 1 / 8)
-    cvar_config = cost_lib.CostConfig(objective="cvar", cvar_fraction=0.25)
-    cvar, w = cost_lib.combine(cvar_config, costs)
-    assert float(cvar) == pytest.approx(6.5)  # mean of the two worst, 7 and 6
-    np.testing.assert_allclose(w, [0, 0, 0, 0, 0, 0, 0.5, 0.5])
-    assert cost_lib.CostConfig(objective="cvar", cvar_fraction=0.3).tail_count(10) == 3
-    guarded, diverged = cost_lib.guard(
-        cost_lib.CostConfig(divergence_cost=99.0),
-        jnp.asarray([1.0, jnp.nan, 2.0]),
-        jnp.asarray([0, 0, 2], jnp.int32),
-    )
-    np.testing.assert_array_equal(guarded, [1.0, 99.0, 99.0])
-    np.testing.assert_array_equal(diverged, [False, True, True])
-
-
 @pytest.mark.parametrize(
     "kwargs, match",
     [

@@ -10,7 +10,7 @@ import pytest
 from fojax import cli
 from fojax import requirements as rq
 from fojax.cli import simulate, tune
-from fojax.optimize import constrained, tuner  # noqa: F401 - imported (jax.jit at import)
+from fojax.optimize import driver, strategies  # noqa: F401 - imported (nothing compiles at import)
 
 TINY = """
 description = "tiny test set"

@@ -15,7 +15,7 @@ Typical use (what ``fojax simulate --requirements FILE`` does)::
   :class:`Requirement`, :class:`RequirementSet`, :func:`parse`, :func:`load`;
 * :mod:`._observer`: :class:`RequirementMetrics` (the observer computing every metric
   in a rollout), :func:`measure`, smooth :func:`violations` for gradient tuners
-  (:mod:`optimize.constrained`), :func:`rotor_speed_limit`;
+  (:class:`fojax.optimize.strategies.AugmentedLagrangian`), :func:`rotor_speed_limit`;
 * :mod:`._yield`: :func:`pass_matrix`, :func:`evaluate` -> :class:`YieldResult`,
   :func:`clopper_pearson`.
 
