@@ -7,7 +7,9 @@ steps, evaluated points, simulated draw-steps and seconds; a request that would 
 a count is not started.
 
 Validation, so that a run never hands back gains worse than its start: the start (step
-0), every ``validate_every`` steps and the last step, the strategy's answer is scored on
+0), every ``validate_every`` steps (default: once the work since the last validation
+reaches :data:`VALIDATION_SHARE` times its own) and the last step, the strategy's
+answer is scored on
 ``validation_draws`` validation draws (disjoint from the tuning and the held-out draws)
 at the evaluation law (:meth:`fojax.optimize.objective.Objective.evaluate`); the run
 returns the best validated answer (the start wins ties), and says which step it came
@@ -46,6 +48,13 @@ from fojax.optimize.spec import VALIDATION_OFFSET
 __all__ = ["CHECKPOINT", "Budget", "Result", "check_resume", "run"]
 
 CHECKPOINT = "checkpoint.npz"
+VALIDATION_SHARE = 8
+"""Without ``validate_every``, a validation once the run's work since the last one (its
+draw-steps, a gradient's counted :data:`GRADIENT_WORK` times) reaches this many times the
+validation's draw-steps: about the same share of every method's time."""
+GRADIENT_WORK = 6
+"""A gradient's cost in forward draw-steps (docs/performance.md: the reverse pass takes
+5.6-6.9 times the forward)."""
 FORMAT = 3
 COLUMNS = (
     "step",
@@ -149,7 +158,7 @@ class _Run:
         self.fingerprint = fingerprint
         self.validation_draws, self.validate_every = validation
         self.state, self.best_x = strategy.init(x0), np.asarray(x0, np.float64)
-        self.used = {"steps": 0, "evaluations": 0, "draw_steps": 0, "wall_time_s": 0.0}
+        self.used = {"steps": 0, "evaluations": 0, "draw_steps": 0, "work": 0, "wall_time_s": 0.0}
         self.history: list[dict] = []
         self.best = {"key": None, "step": 0, "initial": None, "best": None, "final": None}
         if header is not None:
@@ -217,11 +226,20 @@ class _Run:
         if self.progress:
             print(f"  start: validation {_headline(summary)}", file=sys.stderr, flush=True)
 
+    def due(self) -> bool:
+        """Every ``validate_every`` steps; without it, once the work since the last
+        validation reaches :data:`VALIDATION_SHARE` times its own."""
+        if self.validate_every is not None:
+            return self.used["steps"] % self.validate_every == 0
+        own = self.validation_draws * self.objective.spec.steps
+        return self.used["work"] - self.best.get("at", 0) >= VALIDATION_SHARE * own
+
     def validate(self, last: bool) -> dict | None:
         """Validate the answer when due; keep it when it is the best so far."""
         step = self.used["steps"]
-        if not self.validating or not (last or step % self.validate_every == 0):
+        if not self.validating or not (last or self.due()):
             return None
+        self.best["at"] = self.used["work"]
         self.join_start()
         x = self.strategy.answer(self.state)
         key, summary = self.score(x)
@@ -285,23 +303,38 @@ def _number(summary: dict) -> float:
     return summary["yield"] if "yield" in summary else summary["cost"]
 
 
-def _warm(objective: Objective, needs, x0) -> threading.Thread | None:
-    """Compile, in a thread, the gradient programs a later phase needs (``needs``: the
-    strategy's after the first), beside the first phase."""
-    widths = [width for kind, width in needs if kind == "gradient"]
-    if not widths:
-        return None
+def _compile_ahead(objective: Objective, needs) -> threading.Thread:
+    """Compile in a thread what the run will need (``needs``: the strategy's ``(kind,
+    width)`` pairs, in order): the draws' program beside the first phase's program, then
+    a later phase's gradient program beside the first phase's steps."""
 
-    def compile_gradients():
-        for width in dict.fromkeys(widths):
-            try:
-                objective.warm(x0, width)
-            except Exception:  # the phase that needs it reports the error itself
-                pass
+    def compile_all():
+        first = [threading.Thread(target=_quietly(objective.compile, "sampler"), daemon=True)]
+        first.append(threading.Thread(target=_quietly(objective.compile, *needs[0]), daemon=True))
+        for thread in first:
+            thread.start()
+        for thread in first:
+            thread.join()
+        for kind, width in dict.fromkeys(needs[1:]):
+            if kind == "gradient":
+                _quietly(objective.compile, kind, width)()
 
-    thread = threading.Thread(target=compile_gradients, daemon=True)
+    thread = threading.Thread(target=compile_all, daemon=True)
     thread.start()
     return thread
+
+
+def _quietly(fn, *args):
+    """``fn(*args)`` as a thread's target: an error is left to the call that needs the
+    program (it compiles again there and reports it)."""
+
+    def call():
+        try:
+            fn(*args)
+        except Exception:
+            pass
+
+    return call
 
 
 def run(
@@ -311,7 +344,7 @@ def run(
     x0=None,
     *,
     validation_draws: int = 32,
-    validate_every: int = 5,
+    validate_every: int | None = None,
     checkpoint_every: int = 10,
     out: str | Path | None = None,
     fingerprint: dict | None = None,
@@ -332,6 +365,8 @@ def run(
         ("validate_every", validate_every, 1),
         ("checkpoint_every", checkpoint_every, 1),
     ):
+        if label == "validate_every" and value is None:
+            continue
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise ValueError(f"{label} must be an integer >= {low}, got {value!r}")
     x0 = objective.x0 if x0 is None else np.asarray(x0, np.float64)
@@ -350,8 +385,7 @@ def run(
         (validation_draws, validate_every),
         progress,
     )
-    needs = strategy.needs()
-    warming = _warm(objective, needs[1:], x0) if state.used["steps"] == 0 else None
+    warming = _compile_ahead(objective, strategy.needs())
     try:
         last = math.inf if stop_after is None else stop_after
         while state.used["steps"] < last:
@@ -365,6 +399,7 @@ def run(
             state.used["steps"] += 1
             state.used["evaluations"] += points
             state.used["draw_steps"] += evaluation.draw_steps
+            state.used["work"] += evaluation.draw_steps * (GRADIENT_WORK if request.gradient else 1)
             state.start_validation(x0)
             done = not _more(budget, state, strategy)
             validation = state.validate(done)

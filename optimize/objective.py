@@ -63,6 +63,8 @@ __all__ = ["LANES", "Evaluation", "MeanLoss", "Objective", "Outputs", "Request"]
 
 LANES = 64
 """Default lanes (point x draw) per device and forward call."""
+SAMPLE_BLOCK = 16
+"""Keys per call of the draws' program."""
 
 
 def _covering(scenario: scenarios.Scenario, horizon: float) -> scenarios.Scenario:
@@ -278,8 +280,9 @@ class Objective:
         return observers.Chain(cost=cost, requirements=metrics)
 
     def _rollout(self, law: str, horizon: float, scenario, save_every: int):
-        """``run(x (d, L), width, keys (L, 2), member (L,)) -> (values (K, L), terms (4,
-        L), metrics, status (L,))``: one batch-last rollout, one copy of the gains per lane."""
+        """``run(x (d, L), width, draws) -> (values (K, L), terms (4, L), metrics,
+        status (L,))``: one batch-last rollout of ``draws`` (batch first, as
+        :meth:`draws` makes them), one copy of the gains per lane."""
         spec, dtype = self.spec, self.dtype
         config = simulator.SimulationConfig(
             dt=spec.dt,
@@ -292,9 +295,9 @@ class Objective:
         weights = jnp.asarray(spec.cost.weights, dtype)
         model = plant.nominal_params(dtype)
 
-        def run(xs, width, keys, member):
+        def run(xs, width, draws):
             gains = jax.vmap(self._gains_of, in_axes=(-1, None), out_axes=-1)(xs, width)
-            draws = scenarios.sample_draws(scenario, keys, spec.dt, dtype, member)
+            draws = scenarios.batch_last(draws)
             out = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
             terms = out.outputs["cost"]
             f = {"cost": jnp.sum(weights[:, None] * terms, 0), "effort": terms[2]}
@@ -309,6 +312,38 @@ class Objective:
 
     def _members(self, count: int) -> np.ndarray:
         return np.arange(count) % self.members if self.members else np.zeros(count, np.int64)
+
+    def _sampler(self, scenario, registered: bool):
+        """The draws of a block of :data:`SAMPLE_BLOCK` keys (a program of its own,
+        shared by every rollout program: compiled once, beside them)."""
+        key = ("sampler", None if registered else id(scenario))
+        with self._lock:
+            if key not in self._programs:
+                dt, dtype = self.spec.dt, self.dtype
+
+                def sample(keys, member):
+                    draws = scenarios.sample_draws(scenario, keys, dt, dtype, member)
+                    return scenarios.batch_first(draws)
+
+                # Without LLVM's optimisation passes: a tenth of the compile time (its
+                # calls take milliseconds); the draws agree with an optimised program's to
+                # an ulp or two.
+                fast = COMPILE_MODES["fast"]
+                self._programs[key] = _FirstCall(jax.jit(sample, compiler_options=fast))
+        return self._programs[key]
+
+    def draws(self, keys, scenario=None, horizon: float | None = None):
+        """The draws of ``keys`` ``(n, 2)`` (a union's draw ``i`` of member ``i %
+        members``), batch first, on the host: sampled in blocks of :data:`SAMPLE_BLOCK`."""
+        registered = scenario is None and self.registered
+        scenario = _covering(self.scenario if scenario is None else scenario,
+                             self.spec.horizon if horizon is None else horizon)  # fmt: skip
+        keys = np.asarray(keys)
+        member = self._members(len(keys)).astype(np.int32)
+        program = self._sampler(scenario, registered)
+        return blocks.evaluate_in_blocks(
+            lambda shared, batch: program(*batch), None, (keys, member), None, SAMPLE_BLOCK
+        )
 
     def _forward(self, law: str, horizon: float, scenario, registered: bool):
         """The lanes program of ``law`` at ``horizon``, compiled once (cached)."""
@@ -329,8 +364,8 @@ class Objective:
         run = self._rollout(law, horizon, scenario, checkpoint_interval(steps, 100.0))
 
         def lanes(width, batch):  # lanes first in and out
-            xs, keys, member = batch
-            values, terms, metrics, status = run(xs.T, width, keys, member)
+            xs, draws = batch
+            values, terms, metrics, status = run(xs.T, width, draws)
             return values.T, terms.T, metrics, status
 
         key = self._program_key(law=law, horizon=horizon, kind="lanes") if registered else None
@@ -367,8 +402,9 @@ class Objective:
         law = self.switching if width is None else "tanh"
         program = self._forward(law, horizon, scenario, registered)
         count, n = points.shape[0], keys.shape[0]
+        draws = self.draws(keys, None if registered else scenario, horizon)
         xs = np.repeat(points, n, axis=0).astype(self.dtype)
-        batch = (xs, np.tile(keys, (count, 1)), np.tile(self._members(n), count))
+        batch = (xs, jax.tree.map(lambda a: np.tile(a, (count,) + (1,) * (a.ndim - 1)), draws))
         width = jnp.asarray(1.0 if width is None else width, self.dtype)
         out = blocks.evaluate_in_blocks(program, width, batch, self._mesh, self.lanes)
         values, terms, metrics, status = jax.tree.map(_float64, out)
@@ -399,11 +435,11 @@ class Objective:
         run = self._rollout(law, spec.horizon, self.scenario, spec.block)
 
         def per_draw(shared, batch):
-            (x, width), (keys, member, cotangent) = shared, batch
-            copies = jnp.broadcast_to(x[:, None], x.shape + (keys.shape[0],))
+            (x, width), (draws, cotangent) = shared, batch
+            copies = jnp.broadcast_to(x[:, None], x.shape + (cotangent.shape[0],))
 
             def outputs(c):
-                values, terms, _, status = run(c, width, keys, member)
+                values, terms, _, status = run(c, width, draws)
                 return values.T, (terms.T, status)
 
             values, pullback, (terms, status) = jax.vjp(outputs, copies, has_aux=True)
@@ -412,26 +448,44 @@ class Objective:
 
         return per_draw
 
-    def _per_draw(self, law, x, width, keys, cotangent):
+    def _per_draw(self, law, x, width, draws, cotangent):
         """``(values (n, K), terms (n, 4), status (n,), gradients (n, d))``: the outputs
-        of ``x`` on ``keys`` and the per-draw gradients of ``cotangent . outputs``, in
+        of ``x`` on ``draws`` and the per-draw gradients of ``cotangent . outputs``, in
         blocks of ``device_batch`` draws per device (default: the whole sample) over the
         mesh; every mesh gives the same per-draw values, bit for bit, for a given
         ``device_batch`` (:func:`fojax.blocks.evaluate_in_blocks`)."""
         shared = (jnp.asarray(x, self.dtype), jnp.asarray(width, self.dtype))
-        batch = (keys, self._members(len(keys)).astype(np.int32), np.asarray(cotangent, self.dtype))
-        block = self.device_batch or len(keys)
+        batch = (draws, np.asarray(cotangent, self.dtype))
+        block = self.device_batch or len(cotangent)
         out = blocks.evaluate_in_blocks(self._gradient(law), shared, batch, self._mesh, block)
         return jax.tree.map(_float64, out)
 
-    def warm(self, x=None, width: float | None = 1.0) -> None:
-        """Compile the gradient program of the law of ``width`` (an evaluation at ``x``,
-        default the start, with unit cotangents), e.g. in a thread beside a phase that
-        does not need it yet."""
-        x = self.x0 if x is None else np.asarray(x, np.float64)
-        keys = self.sample(0)
+    def compile(self, kind: str, width: float | None = None) -> None:
+        """Compile a program ahead, e.g. in a thread beside another's compilation or a
+        phase that does not need it yet: ``kind`` ``"sampler"`` (the draws'),
+        ``"forward"`` or ``"gradient"`` (of the law of ``width``: ``None`` the evaluation
+        law), the latter two on blank draws (they do not wait for the sampler)."""
+        if kind == "sampler":
+            self.draws(self.sample(0, 1))
+            return
         law = "tanh" if width is not None else self.switching
-        self._per_draw(law, x, 1.0, keys, np.ones((len(keys), self.count)))
+        count = self.lanes * int(self._mesh.devices.size) if kind == "forward" else self.spec.draws
+        structure = jax.eval_shape(
+            self._sampler(self.scenario, self.registered).program,
+            *(
+                jax.ShapeDtypeStruct((SAMPLE_BLOCK,) + s, t)
+                for s, t in (((2,), "uint32"), ((), "int32"))
+            ),
+        )
+        draws = jax.tree.map(lambda a: np.zeros((count,) + a.shape[1:], a.dtype), structure)
+        if kind == "gradient":
+            self._per_draw(law, self.x0, 1.0, draws, np.zeros((count, self.count)))
+        else:
+            program = self._forward(law, self.spec.horizon, self.scenario, self.registered)
+            xs = np.zeros((count, self.size), self.dtype)
+            blocks.evaluate_in_blocks(
+                program, jnp.asarray(1.0, self.dtype), (xs, draws), self._mesh, self.lanes
+            )
 
     def lower_gradient(self, x=None, law: str = "tanh"):
         """``(lowered, args)``: the per-draw gradient of the fixed sample in one block on
@@ -441,11 +495,7 @@ class Objective:
         x = self.x0 if x is None else np.asarray(x, np.float64)
         keys = self.sample(0)
         shared = (jnp.asarray(x, self.dtype), jnp.asarray(1.0, self.dtype))
-        batch = (
-            keys,
-            self._members(len(keys)).astype(np.int32),
-            np.ones((len(keys), self.count), self.dtype),
-        )
+        batch = (self.draws(keys), np.ones((len(keys), self.count), self.dtype))
         program = jax.jit(
             self._per_draw_function(law), compiler_options=COMPILE_MODES[self.spec.compile]
         )
@@ -475,7 +525,9 @@ class Objective:
             draw_steps *= 2
         law = "tanh" if request.width is not None else self.switching
         width = 1.0 if request.width is None else request.width
-        values, terms, status, grads = self._per_draw(law, points[0], width, keys, cotangent)
+        values, terms, status, grads = self._per_draw(
+            law, points[0], width, self.draws(keys), cotangent
+        )
         outputs = Outputs(values, terms, status)
         finite = np.all(np.isfinite(grads), -1)
         usable = finite & outputs.valid

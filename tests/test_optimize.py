@@ -502,7 +502,7 @@ def test_short_tuning_lowers_the_heldout_cost():
     objective = small()
     result = driver.run(
         objective,
-        st.make("auto", 8, switch=3, popsize=6),
+        st.make("cma-lbfgs", 8, switch=3, popsize=6),
         driver.Budget(steps=8),
         validation_draws=4,
         progress=False,

@@ -51,13 +51,13 @@ def _write(path, document):
         # An option that would change nothing (the default method is auto).
         (["--learning-rate", "0.1"], "--learning-rate applies to --method adam only, not to "
          "--method auto"),
+        (["--switch", "2"], "--switch applies to --method cma-lbfgs only"),
+        (["--max-step", "2"], "--max-step applies to --method cma-lbfgs or lbfgs only"),
         (["--method", "lbfgs", "--clip-norm", "2"], "--clip-norm applies to --method adam only"),
         (["--anneal-start", "2"], "--anneal-start applies to --method adam only"),
-        (["--method", "adam", "--max-step", "0.5"], "--max-step applies to --method auto or "
-         "lbfgs only"),
-        (["--method", "cma-es", "--switch", "2"], "--switch applies to --method auto only"),
-        (["--method", "nelder-mead", "--sigma", "1"], "--sigma applies to --method auto or cma-es"),
-        (["--method", "cma-es", "--compile", "fast"], "--compile applies to --method auto or adam"),
+        (["--method", "nelder-mead", "--sigma", "1"], "--sigma applies to --method auto or "
+         "cma-lbfgs or cma-es"),
+        (["--compile", "fast"], "--compile applies to --method cma-lbfgs or adam or lbfgs"),
         (["--cvar-fraction", "0.5"], "--cvar-fraction applies to --objective cvar only"),
         (["--validation-draws", "0", "--validate-every", "2"], "applies with validation draws"),
         (["--eval-draws", "0", "--eval-horizon", "1"], "--eval-draws is 0"),
@@ -66,7 +66,8 @@ def _write(path, document):
         (["--controller", "fl", "--fractional", "gl"], "--fractional does not apply to fl"),
         (["--controller", "bsmc", "--fractional", "soe"], "bsmc, which takes no fractional"),
         (["--controller", "fl", "--eval-switching", "sat"], "--eval-switching does not apply"),
-        (["--controller", "fl", "--anneal-end", "2"], "fl, which has no boundary layer"),
+        (["--controller", "fl", "--method", "lbfgs", "--anneal-end", "2"], "fl, which has no "
+         "boundary layer"),
     ],
 )  # fmt: skip
 def test_bad_arguments_fail_before_anything_is_written(capsys, tmp_path, extra, message):
@@ -116,21 +117,22 @@ def test_initial_gains_files_are_validated(capsys, tmp_path):
 
 def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     out = tmp_path / "run"
-    argv = SMALL + ["--steps", "3", "--switch", "2", "--popsize", "4", "--checkpoint-every",
-                    "1", "--eval-draws", "2", "--validate-every", "2", "--quiet"]  # fmt: skip
+    argv = SMALL + ["--method", "cma-lbfgs", "--steps", "3", "--switch", "2", "--popsize", "4",
+                    "--checkpoint-every", "1", "--eval-draws", "2", "--validate-every", "2",
+                    "--quiet"]  # fmt: skip
     assert cli.main(["tune"] + argv + ["--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "held-out (2 draws" in printed
     name, gains, metadata = gains_io.load_gains(out / "gains.json")
     assert name == "afonftsmc" and metadata["tuned_by"] == "fojax tune"
-    assert metadata["method"] == "auto" and metadata["init"] == "naive"
+    assert metadata["method"] == "cma-lbfgs" and metadata["init"] == "naive"
     assert metadata["settings"]["objective"]["problem"]["draws"] == 3
     rows = (out / "history.csv").read_text().strip().splitlines()
     assert len(rows) == 4 and rows[0].startswith("step,loss,points,")
     # Two CMA-ES generations of 4 candidates, then an L-BFGS step.
     columns = rows[0].split(",")
     table = [dict(zip(columns, row.split(","), strict=True)) for row in rows[1:]]
-    assert [r["phase"] for r in table] == ["cma-es", "cma-es", "lbfgs"]
+    assert [r["phase"] for r in table] == ["cma-lbfgs", "cma-lbfgs", "lbfgs"]
     assert [r["points"] for r in table] == ["4", "4", "1"] and table[2]["grad_norm"]
     # The returned gains are the best validated ones, and say which step they are from.
     validation = metadata["validation"]

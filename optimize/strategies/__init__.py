@@ -34,10 +34,11 @@ Gradient strategies (:mod:`._gradient`): :class:`Optax` (any optax transformatio
 
 from fojax.optimize.strategies._compose import AugmentedLagrangian, Chain
 from fojax.optimize.strategies._gradient import LBFGS, Optax, adam
-from fojax.optimize.strategies._methods import DEFAULT_STEPS, METHODS, make
+from fojax.optimize.strategies._methods import AUTO_DRAWS, DEFAULT_STEPS, METHODS, lanes, make
 from fojax.optimize.strategies._population import CMAES, NelderMead
 
 __all__ = [
+    "AUTO_DRAWS",
     "CMAES",
     "DEFAULT_STEPS",
     "LBFGS",
@@ -47,5 +48,6 @@ __all__ = [
     "NelderMead",
     "Optax",
     "adam",
+    "lanes",
     "make",
 ]
