@@ -16,8 +16,8 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
   (:class:`fojax.optimize.CostConfig`), mean objective, ``--draws`` 16 draws per
   sample, float32, seed ``s``.
 * Methods (:func:`fojax.optimize.strategies.make`, the rows): ``default`` (``auto``, the
-  ``fojax tune`` default: CMA-ES on fresh draws for ``--switch`` generations, its mean
-  then handed to L-BFGS on the fixed sample; ``--default-steps`` steps), ``lbfgs``
+  ``fojax tune`` default: CMA-ES on small fresh samples, ``--default-steps``
+  generations), ``lbfgs``
   (``--gradient-steps`` steps on the fixed sample), ``cma-es`` (``--cma-generations``
   generations of ``4 + floor(3 ln d)`` candidates on fresh draws, step
   ``--cma-sigma``) and ``nelder-mead`` (CMA-ES's budget of draw-steps, at least the
@@ -25,9 +25,9 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
 * Each run builds a fresh :class:`fojax.optimize.Objective`, so its wall time includes
   the compilation of its own programs exactly as a user waits (XLA's persistent
   compilation cache, and with it fojax's export cache, is off), and runs the driver
-  (:func:`fojax.optimize.run`): ``--validation-draws`` validation draws every
-  ``--validate-every`` steps (Nelder-Mead, whose step is one point: every
-  ``--validate-every`` generations' worth of points), its answer the best validated one.
+  (:func:`fojax.optimize.run`): ``--validation-draws`` validation draws as the driver
+  schedules them (by the work since the last validation; ``--validate-every``: every so
+  many steps), its answer the best validated one.
 * Curve: the driver's callback records every step's ``(step, wall time, draw-steps,
   answer)``; after the run (nothing runs beside it) the held-out cost of each distinct
   answer: ``--heldout-draws`` held-out draws (indices ``2^31 + j`` of seed 0, the same
@@ -39,10 +39,11 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
   time, and whether its final held-out cost is at or below it
   (:func:`experiments.tuning_study_report.summarize`).
 
-One process, one XLA device, runs one after another; the load average is recorded
-before and after each run. ``--tiny`` (a smoke run) keeps the caller's compilation cache
-and shares each seed's objective between the runs of a share (its wall times mean
-nothing).
+One process, one XLA device per core (as ``fojax tune`` runs), its lanes per device
+fitted to each method's requests (:func:`fojax.optimize.strategies.lanes`), runs one
+after another; the load average is recorded before and after each run. ``--tiny`` (a
+smoke run) keeps the caller's compilation cache and shares each seed's objective between
+the runs of a share (its wall times mean nothing).
 
 Each finished run is kept in ``--out/runs/`` under its fingerprint, the settings it
 depends on (:data:`BY_METHOD`; :func:`fojax.records.cached`): an interrupted study
@@ -82,9 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--shares", default="paper,none", help="comma-separated (paper,none)")
     parser.add_argument("--starts", default="paper,naive", help="comma-separated (paper,naive)")
     parser.add_argument("--methods", default=",".join(METHODS))
-    _common.add_numbers(parser, default_steps=DEFAULT_STEPS["auto"], switch=8)
+    _common.add_numbers(parser, default_steps=DEFAULT_STEPS["auto"], switch=30)
     _common.add_numbers(parser, gradient_steps=30, max_step=1.0, cma_generations=20)
-    _common.add_numbers(parser, cma_sigma=0.5, validation_draws=32, validate_every=2)
+    _common.add_numbers(parser, cma_sigma=0.5, validation_draws=32)
+    parser.add_argument("--validate-every", type=arguments.positive_int, help="steps between "
+                        "validations (default: the driver's, by the work since the last)")
     _common.add_numbers(parser, heldout_draws=64)
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument(
@@ -128,7 +131,7 @@ def parse_args(argv) -> argparse.Namespace:
     if args.tiny:
         args.horizon, args.draws, args.heldout_draws = 0.3, 3, 4
         args.default_steps, args.switch, args.gradient_steps, args.cma_generations = 4, 2, 4, 2
-        args.validation_draws, args.validate_every = 2, 2
+        args.validation_draws = 2
         args.seeds, args.dtype, args.compile = args.seeds[:1], "float64", "fast"
     return args
 
@@ -151,13 +154,22 @@ class _Setup:
         self.heldout_objective = self.objective(0)
         self.heldout([self.heldout_objective.x0])  # compiled here, not counted
 
-    def objective(self, seed: int):
-        """The problem of ``seed``: a fresh objective (kept per seed with ``--tiny``)."""
-        from fojax import optimize
+    def objective(self, seed: int, strategy=None):
+        """The problem of ``seed``: a fresh objective over every device, its lanes fitted
+        to ``strategy``'s requests (kept per seed with ``--tiny``)."""
+        import jax
+
+        from fojax import optimize, sharding
+        from fojax.optimize import strategies
 
         args = self.args
         if seed in self._kept:
             return self._kept[seed]
+        mesh = sharding.draw_mesh(jax.devices())
+        size = optimize.make_parameter_map("afonftsmc", None, self.share).size
+        lanes = 128
+        if strategy is not None:
+            lanes = strategies.lanes(strategy, size, args.draws, int(mesh.devices.size))
         tiny = {"effort_weight": 1e-3, "chattering_weight": 1e-3, "attitude_weight": 2.0}
         spec = optimize.ProblemSpec(
             controller="afonftsmc",
@@ -170,7 +182,7 @@ class _Setup:
             dtype=args.dtype,
             compile=args.compile,
         )
-        objective = optimize.Objective(spec, self.naive)
+        objective = optimize.Objective(spec, self.naive, mesh=mesh, lanes=lanes)
         if args.tiny:
             self._kept[seed] = objective
         return objective
@@ -182,8 +194,8 @@ class _Setup:
     def heldout(self, points) -> np.ndarray:
         return _common.mean_costs(self.heldout_objective, points, self.heldout_keys)
 
-    def strategy(self, method: str, seed: int, objective):
-        """``(strategy, budget, validate_every)`` of ``method`` (module docstring)."""
+    def strategy(self, method: str, seed: int):
+        """``(strategy, budget)`` of ``method`` (module docstring)."""
         from fojax import optimize
         from fojax.optimize import strategies
 
@@ -191,15 +203,14 @@ class _Setup:
         settings = dict(seed=seed, switch=args.switch, sigma=args.cma_sigma)
         settings["max_step"] = args.max_step
         if method == "nelder-mead":
-            per_point = objective.spec.draws * objective.spec.steps
-            points = max(args.cma_generations * self.popsize, objective.size + 1 + self.popsize)
-            budget = optimize.Budget(draw_steps=points * per_point)
-            return strategies.make(method), budget, args.validate_every * self.popsize
+            size = self.heldout_objective.size
+            per_point = args.draws * self.heldout_objective.spec.steps
+            points = max(args.cma_generations * self.popsize, size + 1 + self.popsize)
+            return strategies.make(method), optimize.Budget(draw_steps=points * per_point)
         steps = {"default": args.default_steps, "lbfgs": args.gradient_steps}
         steps = steps.get(method, args.cma_generations)
         name = "auto" if method == "default" else method
-        strategy = strategies.make(name, steps, **settings)
-        return strategy, optimize.Budget(steps=steps), args.validate_every
+        return strategies.make(name, steps, **settings), optimize.Budget(steps=steps)
 
 
 def bench_batched(setup: _Setup, repeats: int) -> dict:
@@ -249,12 +260,12 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     held-out cost of the answer]`` (the start first) and totals."""
     load_before = output.load_average()
     t0 = time.perf_counter()
-    objective = setup.objective(seed)
+    strategy, budget = setup.strategy(method, seed)
+    objective = setup.objective(seed, strategy)
     x0 = objective.vector(setup.starts[start])
-    strategy, budget, every = setup.strategy(method, seed, objective)
     result, steps = _common.recorded_run(
         objective, strategy, budget, x0, validation_draws=setup.args.validation_draws,
-        validate_every=every, progress=False,
+        validate_every=setup.args.validate_every, progress=False,
     )  # fmt: skip
     costs = setup.heldout([x0, result.x] + [answer for *_, answer in steps])
     curve = [[0, 0.0, 0, float(costs[0])]]
@@ -284,7 +295,7 @@ COMMON = (
     "scenario horizon draws dtype compile tiny heldout_draws validation_draws validate_every"
 ).split()
 BY_METHOD = {
-    "default": ("default_steps", "switch", "cma_sigma", "max_step"),
+    "default": ("default_steps", "cma_sigma"),
     "lbfgs": ("gradient_steps", "max_step"),
     "cma-es": ("cma_generations", "cma_sigma"),
     "nelder-mead": ("cma_generations",),
@@ -292,9 +303,16 @@ BY_METHOD = {
 """The settings a run depends on (its fingerprint), besides its share, start and seed."""
 
 
+def _devices() -> int:
+    import jax
+
+    return jax.device_count()
+
+
 def run_fingerprint(args, share: str, start: str, seed: int, method: str) -> dict:
     names = COMMON + list(BY_METHOD[method])
     cases = dict(share=share, start=start, seed=seed, method=method, engine="fojax.optimize")
+    cases["devices"] = _devices()
     return {k: getattr(args, k) for k in names} | cases
 
 
@@ -388,6 +406,9 @@ def report(args, settings: dict, start_all: float) -> int:
 
 
 def main(argv=None) -> int:
+    from fojax import settings as process_settings
+
+    process_settings.use_host_devices()  # one XLA device per core, as fojax tune runs
     import jax
 
     args = parse_args(argv)

@@ -49,12 +49,10 @@ __all__ = ["CHECKPOINT", "Budget", "Result", "check_resume", "run"]
 
 CHECKPOINT = "checkpoint.npz"
 VALIDATION_SHARE = 8
-"""Without ``validate_every``, a validation once the run's work since the last one (its
-draw-steps, a gradient's counted :data:`GRADIENT_WORK` times) reaches this many times the
-validation's draw-steps: about the same share of every method's time."""
-GRADIENT_WORK = 6
-"""A gradient's cost in forward draw-steps (docs/performance.md: the reverse pass takes
-5.6-6.9 times the forward)."""
+"""Without ``validate_every``, a validation once the run's work since the last one
+(:attr:`fojax.optimize.Evaluation.work`: lane-steps of whole calls, a gradient counted
+six times) reaches this many times the validation's own: about the same share of every
+method's time."""
 FORMAT = 3
 COLUMNS = (
     "step",
@@ -231,7 +229,7 @@ class _Run:
         validation reaches :data:`VALIDATION_SHARE` times its own."""
         if self.validate_every is not None:
             return self.used["steps"] % self.validate_every == 0
-        own = self.validation_draws * self.objective.spec.steps
+        own = self.objective.work(self.validation_draws)
         return self.used["work"] - self.best.get("at", 0) >= VALIDATION_SHARE * own
 
     def validate(self, last: bool) -> dict | None:
@@ -399,7 +397,7 @@ def run(
             state.used["steps"] += 1
             state.used["evaluations"] += points
             state.used["draw_steps"] += evaluation.draw_steps
-            state.used["work"] += evaluation.draw_steps * (GRADIENT_WORK if request.gradient else 1)
+            state.used["work"] += evaluation.work or evaluation.draw_steps
             state.start_validation(x0)
             done = not _more(budget, state, strategy)
             validation = state.validate(done)

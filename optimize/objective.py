@@ -63,6 +63,9 @@ __all__ = ["LANES", "Evaluation", "MeanLoss", "Objective", "Outputs", "Request"]
 
 LANES = 64
 """Default lanes (point x draw) per device and forward call."""
+GRADIENT_WORK = 6
+"""A draw's gradient in forward draw-steps (docs/performance.md: the reverse pass takes
+5.6-6.9 times the forward)."""
 SAMPLE_BLOCK = 16
 """Keys per call of the draws' program."""
 
@@ -117,13 +120,15 @@ class Request(NamedTuple):
 class Evaluation(NamedTuple):
     """values: ``(P,)`` the loss per point. gradient: ``(d,)`` or ``None``. outputs:
     :class:`Outputs` ``(P, n, ...)``. bad_gradients: draws (not diverged) whose gradient
-    was not finite, left out. draw_steps: draws x steps simulated."""
+    was not finite, left out. draw_steps: draws x steps simulated. work: what it cost, in
+    lane-steps of whole calls (:meth:`Objective.work`; ``None``: ``draw_steps``)."""
 
     values: np.ndarray
     gradient: np.ndarray | None
     outputs: Outputs
     bad_gradients: int
     draw_steps: int
+    work: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -460,6 +465,12 @@ class Objective:
         out = blocks.evaluate_in_blocks(self._gradient(law), shared, batch, self._mesh, block)
         return jax.tree.map(_float64, out)
 
+    def work(self, lanes: int, block: int | None = None) -> int:
+        """The cost of ``lanes`` lanes in lane-steps of whole calls: rounded up to the
+        calls of ``block`` (default the objective's lanes) per device over the mesh."""
+        per_call = (block or self.lanes) * int(self._mesh.devices.size)
+        return -(-lanes // per_call) * per_call * self.spec.steps
+
     def compile(self, kind: str, width: float | None = None) -> None:
         """Compile a program ahead, e.g. in a thread beside another's compilation or a
         phase that does not need it yet: ``kind`` ``"sampler"`` (the draws'),
@@ -510,7 +521,8 @@ class Objective:
         draw_steps = points.shape[0] * keys.shape[0] * self.spec.steps
         if not request.gradient:
             outputs = self.forward(points, keys, request.width)
-            return Evaluation(np.asarray(loss.values(outputs)), None, outputs, 0, draw_steps)
+            work = self.work(points.shape[0] * keys.shape[0])
+            return Evaluation(np.asarray(loss.values(outputs)), None, outputs, 0, draw_steps, work)
         if points.shape[0] != 1:
             raise ValueError("a gradient is taken at one point")
         if self.requirements is not None and isinstance(loss, MeanLoss):
@@ -518,11 +530,12 @@ class Objective:
                 "a requirement set is tuned with a constrained loss (an augmented Lagrangian)"
             )
         n = keys.shape[0]
+        work = GRADIENT_WORK * self.work(n, self.device_batch or n)
         if isinstance(loss, MeanLoss):
             cotangent = np.ones((n, 1))
         else:  # the cotangents need the outputs at the point first
             cotangent = loss.cotangents(_first(self.forward(points, keys, request.width)))
-            draw_steps *= 2
+            draw_steps, work = 2 * draw_steps, work + self.work(n)
         law = "tanh" if request.width is not None else self.switching
         width = 1.0 if request.width is None else request.width
         values, terms, status, grads = self._per_draw(
@@ -535,7 +548,9 @@ class Objective:
         gradient = np.sum(np.where(usable[:, None], grads, 0.0) * weights[:, None], 0)
         bad = int(np.sum(~finite & outputs.valid))
         outputs = Outputs(values[None], terms[None], status[None])
-        return Evaluation(np.asarray(loss.values(outputs)), gradient, outputs, bad, draw_steps)
+        return Evaluation(
+            np.asarray(loss.values(outputs)), gradient, outputs, bad, draw_steps, work
+        )
 
     def score(self, outputs: Outputs) -> tuple[tuple, dict]:
         """``(key, summary)`` of one point's outputs ``(n, ...)`` at the evaluation law:

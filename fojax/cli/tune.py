@@ -9,7 +9,7 @@ minimised under it) and the method are independent choices; every method runs on
 one engine (:mod:`fojax.optimize`): the objective (:class:`fojax.optimize.Objective`), a
 strategy (:mod:`fojax.optimize.strategies`; with ``--requirements`` inside the
 augmented Lagrangian) and the driver (:func:`fojax.optimize.run`). ``--method auto``,
-the default, is CMA-ES on small fresh samples (4 draws per generation), measured faster
+the default, is CMA-ES on small fresh samples (8 draws per generation), measured faster
 to a given held-out cost than CMA-ES on 16-draw samples and than the gradient tuners
 (docs/tuning.md).
 
@@ -149,11 +149,11 @@ OPTIONS = (
     Option("--margin", dict(type=arguments.nonnegative_float, help="share of each bound a "
            "draw must beat it by (0.05)"), 0.05, _requirements),
     # the method
-    Option("--method", dict(choices=METHODS, help="auto (default): CMA-ES on 4-draw fresh "
+    Option("--method", dict(choices=METHODS, help="auto (default): CMA-ES on 8-draw fresh "
            "samples; cma-lbfgs: then L-BFGS; adam; lbfgs; cma-es (--draws per generation); "
            "nelder-mead"), "auto"),
-    Option("--steps", dict(type=count, help="steps (generations for cma-es): auto 30, adam 6, "
-           "lbfgs 6, cma-es 20, nelder-mead 300"), lambda a: DEFAULT_STEPS[a.method],
+    Option("--steps", dict(type=count, help="steps (generations for CMA-ES): auto 40, cma-lbfgs "
+           "40, adam 6, lbfgs 6, cma-es 20, nelder-mead 300"), lambda a: DEFAULT_STEPS[a.method],
            lambda a: "is set by --outer-steps and --inner-steps with --requirements"
            if a.requirements else None),
     Option("--seconds", dict(type=real, help="stop after this wall time (none)")),

@@ -1,10 +1,10 @@
 """The named methods of ``fojax tune --method`` and the studies, with their defaults.
 
 ``auto`` (the default): CMA-ES on small fresh samples, :data:`AUTO_DRAWS` draws per
-generation (a new sample every generation, common to its candidates), 50 generations:
-measured to reach the best held-out cost of CMA-ES on 16-draw samples in under half its
-wall time from the paper's gains and from the naive start (docs/tuning.md, "the
-default method"). ``adam``, ``lbfgs``, ``cma-es``, ``nelder-mead``: one strategy each
+generation (a new sample every generation, common to its candidates: a population of
+``4 + 3 ln d`` candidates is then about one efficient call of 112-128 lanes), 40
+generations (docs/tuning.md, "the default method", has the measurements). ``adam``,
+``lbfgs``, ``cma-es``, ``nelder-mead``: one strategy each
 (:mod:`fojax.optimize.strategies`); ``cma-es`` takes the objective's sample size.
 ``cma-lbfgs``: ``auto``'s CMA-ES for ``switch`` generations, its mean then handed to
 L-BFGS at the evaluation law on the fixed sample (the gradient compiled beside the
@@ -20,11 +20,11 @@ from fojax.optimize.strategies._population import CMAES, NelderMead
 __all__ = ["AUTO_DRAWS", "DEFAULT_STEPS", "METHODS", "lanes", "make"]
 
 METHODS = ("auto", "cma-lbfgs", "adam", "lbfgs", "cma-es", "nelder-mead")
-AUTO_DRAWS = 4
-"""Draws per generation of ``auto``."""
+AUTO_DRAWS = 8
+"""Draws per candidate and generation of ``auto``."""
 DEFAULT_STEPS = {
-    "auto": 50,
-    "cma-lbfgs": 45,
+    "auto": 40,
+    "cma-lbfgs": 40,
     "adam": 6,
     "lbfgs": 6,
     "cma-es": 20,
@@ -64,7 +64,11 @@ def make(
         return adam(steps, learning_rate, final_learning_rate, clip_norm, anneal, sample)
     if method in ("auto", "cma-lbfgs"):
         small = CMAES(sigma0=sigma, popsize=popsize, seed=seed, draws=AUTO_DRAWS, name=method)
-        return small if method == "auto" else Chain(small, LBFGS(max_step, None), switch)
+        return (
+            small
+            if method == "auto"
+            else Chain(small, LBFGS(max_step=max_step, width=None), switch)
+        )
     return {"lbfgs": lbfgs, "cma-es": cma, "nelder-mead": NelderMead()}[method]
 
 

@@ -50,7 +50,7 @@ class CMAES:
     inject: tuple[float, ...] = ()
     inject_from: int = 0
     gradient_width: float | None = None
-    draws: int | None = None
+    draws: int | tuple | None = None
     name: str = "cma-es"
 
     def __post_init__(self) -> None:
@@ -107,6 +107,14 @@ class CMAES:
             "gradient": np.zeros(d),
         }
 
+    def sample_size(self, generation: int) -> int | None:
+        """Draws per candidate in ``generation``: ``draws``, or from a schedule
+        ``((first generation, draws), ...)`` the last entry begun (``None``: the
+        objective's)."""
+        if not isinstance(self.draws, tuple):
+            return self.draws
+        return [n for first, n in self.draws if first <= generation][-1]
+
     def _injects(self, state) -> bool:
         return bool(self.inject) and int(state["generation"]) >= self.inject_from
 
@@ -119,7 +127,8 @@ class CMAES:
         d, generation = state["mean"].size, int(state["generation"])
         sample = generation if self.sample == "fresh" else 0
         if self._injects(state) and int(state["phase"]) == 0:  # the gradient at the mean
-            return Request(state["mean"][None], True, sample, self.gradient_width, draws=self.draws)
+            draws = self.sample_size(generation)
+            return Request(state["mean"][None], True, sample, self.gradient_width, draws=draws)
         lam = self.constants(d)["lam"]
         z = np.random.default_rng([self.seed, generation]).standard_normal((lam, d))
         B, D = self._eigen(state["C"])
@@ -131,7 +140,7 @@ class CMAES:
                 points[lam - 1 - i] = (
                     state["mean"] + float(state["sigma"]) * t * math.sqrt(d) * direction
                 )
-        return Request(points, False, sample, self.width, draws=self.draws)
+        return Request(points, False, sample, self.width, draws=self.sample_size(generation))
 
     def tell(self, state, request, evaluation) -> dict:
         if self._injects(state) and int(state["phase"]) == 0:
