@@ -65,7 +65,13 @@ _MONTE_CARLO = (
     "fojax/cli/study.py",
     "fojax/cli/study_files.py",
 )
-_TUNING = (*_CLOSED_LOOP, "optimize", "experiments/_common.py")
+_TUNING = (
+    *_CLOSED_LOOP,
+    "fojax/blocks.py",
+    "fojax/sharding.py",
+    "optimize",
+    "experiments/_common.py",
+)
 _REQUIREMENTS = (*_TUNING, "fojax/requirements", "fojax/cli/requirements.py")
 _REQUIREMENTS_STUDY = (
     *_REQUIREMENTS,
@@ -142,6 +148,13 @@ BLOCKS: dict[str, Block] = {
             _study("tune_paper_gains", "--out", "results/tune_paper_gains", "--update-doc")
             + ("docs/tuning.md",),
             (*_TUNING, "experiments/tune_paper_gains.py"),
+        ),
+        Block(
+            "tune-memory",
+            "docs/tuning.md",
+            _study("tune_memory", "--horizons", "5", "10", "20", "40", "80")
+            + ("--execute-up-to", "10", "--update-doc", "docs/tuning.md"),
+            (*_TUNING, "experiments/tune_memory.py"),
         ),
         Block(
             "remark3",

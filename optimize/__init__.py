@@ -18,8 +18,10 @@ weighted-sum cost.
 from fojax.optimize import strategies
 from fojax.optimize.cost import CostConfig
 from fojax.optimize.driver import CHECKPOINT, Budget, Result, check_resume, describe, run
-from fojax.optimize.objective import Evaluation, MeanLoss, Objective, Outputs, Request
+from fojax.optimize.losses import AlmLoss, MeanLoss
+from fojax.optimize.objective import Objective
 from fojax.optimize.params import make_parameter_map, naive_gains
+from fojax.optimize.requests import Evaluation, Outputs, Request
 from fojax.optimize.spec import (
     HELDOUT_OFFSET,
     VALIDATION_OFFSET,
@@ -32,6 +34,7 @@ __all__ = [
     "CHECKPOINT",
     "HELDOUT_OFFSET",
     "VALIDATION_OFFSET",
+    "AlmLoss",
     "Budget",
     "CostConfig",
     "Evaluation",

@@ -42,6 +42,7 @@ import jax
 import numpy as np
 
 from fojax import records
+from fojax.optimize import checks
 from fojax.optimize.objective import Objective
 from fojax.optimize.spec import VALIDATION_OFFSET
 
@@ -84,11 +85,15 @@ class Budget:
 
     def __post_init__(self) -> None:
         for name in ("steps", "evaluations", "draw_steps"):
-            value = getattr(self, name)
-            if value is not None and (not isinstance(value, int | np.integer) or value < 1):
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if self.seconds is not None and not (math.isfinite(self.seconds) and self.seconds > 0):
-            raise ValueError(f"seconds must be a finite number > 0, got {self.seconds!r}")
+            if getattr(self, name) is not None:
+                checks.integer(
+                    name,
+                    int(getattr(self, name))
+                    if isinstance(getattr(self, name), np.integer)
+                    else getattr(self, name),
+                )
+        if self.seconds is not None:
+            checks.number("seconds", self.seconds)
         if all(getattr(self, f.name) is None for f in dataclasses.fields(self)):
             raise ValueError("a budget needs a limit: steps, evaluations, draw_steps or seconds")
 
@@ -358,15 +363,10 @@ def run(
     time not counted). stop_after: stop once this many steps are done (an interruption,
     for tests; the checkpoint is written). With ``out``: ``checkpoint.npz`` and
     ``history.csv`` there."""
-    for label, value, low in (
-        ("validation_draws", validation_draws, 0),
-        ("validate_every", validate_every, 1),
-        ("checkpoint_every", checkpoint_every, 1),
-    ):
-        if label == "validate_every" and value is None:
-            continue
-        if not isinstance(value, int) or isinstance(value, bool) or value < low:
-            raise ValueError(f"{label} must be an integer >= {low}, got {value!r}")
+    checks.integer("validation_draws", validation_draws, 0)
+    checks.integer("checkpoint_every", checkpoint_every)
+    if validate_every is not None:
+        checks.integer("validate_every", validate_every)
     x0 = objective.x0 if x0 is None else np.asarray(x0, np.float64)
     if fingerprint is None:
         fingerprint = describe(objective, strategy, budget, x0, validation_draws, validate_every)

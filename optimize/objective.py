@@ -40,7 +40,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -51,6 +51,8 @@ from fojax import requirements as rq
 from fojax.controllers import registry
 from fojax.optimize import cost as cost_lib
 from fojax.optimize import params as params_lib
+from fojax.optimize.losses import MeanLoss
+from fojax.optimize.requests import Evaluation, Outputs, Request
 from fojax.optimize.spec import (
     COMPILE_MODES,
     TARGETS,
@@ -59,7 +61,7 @@ from fojax.optimize.spec import (
     draw_keys,
 )
 
-__all__ = ["LANES", "Evaluation", "MeanLoss", "Objective", "Outputs", "Request"]
+__all__ = ["LANES", "Evaluation", "Objective", "Outputs", "Request"]
 
 LANES = 64
 """Default lanes (point x draw) per device and forward call."""
@@ -76,88 +78,6 @@ def _covering(scenario: scenarios.Scenario, horizon: float) -> scenarios.Scenari
     return (
         scenario if horizon <= scenario.horizon else dataclasses.replace(scenario, horizon=horizon)
     )
-
-
-class Outputs(NamedTuple):
-    """Per-draw outputs, on the host (float64), leading axes ``(..., n)``.
-
-    values: ``(..., n, 1 + R)``: the target ``f`` and the ``R`` violations (non-finite
-    where a draw diverged). terms: ``(..., n, 4)`` ``(P, A, E, C)``. status:
-    ``(..., n)`` int32 flags. metrics: requirement metric name -> ``(..., n)`` (with a
-    requirement set), else ``None``.
-    """
-
-    values: np.ndarray
-    terms: np.ndarray
-    status: np.ndarray
-    metrics: dict | None = None
-
-    @property
-    def valid(self) -> np.ndarray:
-        """``(..., n)`` bool: finite outputs and no divergence flag."""
-        finite = np.all(np.isfinite(self.values), -1)
-        return finite & ((self.status & cost_lib.DIVERGED) == 0)
-
-
-class Request(NamedTuple):
-    """What a strategy asks to have evaluated.
-
-    points: ``(P, d)`` float64 parameter vectors (:meth:`Objective.vector` order).
-    gradient: the loss's gradient at the single point (``P = 1``). sample: the tuning
-    sample's index (0: the fixed sample). width: the tuning law's width scale; ``None``:
-    the evaluation law. loss: what turns outputs into numbers (``None``: the objective's
-    :class:`MeanLoss`). draws: the sample's size (``None``: the spec's).
-    """
-
-    points: np.ndarray
-    gradient: bool = False
-    sample: int = 0
-    width: float | None = None
-    loss: Any = None
-    draws: int | None = None
-
-
-class Evaluation(NamedTuple):
-    """values: ``(P,)`` the loss per point. gradient: ``(d,)`` or ``None``. outputs:
-    :class:`Outputs` ``(P, n, ...)``. bad_gradients: draws (not diverged) whose gradient
-    was not finite, left out. draw_steps: draws x steps simulated. work: what it cost, in
-    lane-steps of whole calls (:meth:`Objective.work`; ``None``: ``draw_steps``)."""
-
-    values: np.ndarray
-    gradient: np.ndarray | None
-    outputs: Outputs
-    bad_gradients: int
-    draw_steps: int
-    work: int | None = None
-
-
-@dataclasses.dataclass(frozen=True)
-class MeanLoss:
-    """The weighted-sum objective: mean (or CVaR, :class:`~fojax.optimize.cost.CostConfig`)
-    of ``J`` over the draws, a diverged draw costing ``divergence_cost``; the gradient is
-    the same weights on the per-draw gradients of ``J`` (``pattern``)."""
-
-    config: cost_lib.CostConfig
-
-    def weights(self, outputs: Outputs) -> tuple[np.ndarray, np.ndarray]:
-        """``(loss (...,), weights (..., n))`` of outputs ``(..., n)``."""
-        cost = np.where(outputs.valid, outputs.values[..., 0], self.config.divergence_cost)
-        n = cost.shape[-1]
-        if self.config.objective == "mean":
-            weights = np.full(cost.shape, 1.0 / n)
-        else:  # the k largest, ties broken by index
-            k = self.config.tail_count(n)
-            order = np.argsort(-cost, axis=-1, kind="stable")[..., :k]
-            weights = np.zeros(cost.shape)
-            np.put_along_axis(weights, order, 1.0 / k, axis=-1)
-        return np.sum(weights * cost, -1), weights
-
-    def values(self, outputs: Outputs) -> np.ndarray:
-        return self.weights(outputs)[0]
-
-    def cotangents(self, outputs: Outputs) -> np.ndarray:
-        """``(n, 1)``: every draw's ``J`` with weight 1 (the weights come after)."""
-        return np.ones(outputs.values.shape[:-1] + (1,))
 
 
 class Objective:

@@ -18,6 +18,7 @@ import numpy as np
 
 from fojax import scenarios, simulator
 from fojax.controllers import registry
+from fojax.optimize import checks
 from fojax.optimize import cost as cost_lib
 from fojax.optimize import params as params_lib
 
@@ -98,26 +99,18 @@ class ProblemSpec:
             scenarios.get_scenario(i)
         if isinstance(self.scenario, list):
             object.__setattr__(self, "scenario", tuple(self.scenario))
-        if self.compile not in COMPILE_MODES:
-            raise ValueError(
-                f"compile must be one of {', '.join(COMPILE_MODES)}, got {self.compile!r}"
-            )
+        checks.choice("compile", self.compile, COMPILE_MODES)
         for label in ("horizon", "dt"):
-            value = getattr(self, label)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
+            checks.number(label, getattr(self, label))
         steps = self.horizon / self.dt
         if abs(steps - round(steps)) > 1e-6 * steps or round(steps) < 1:
             raise ValueError(
                 f"the horizon ({self.horizon} s) must be a whole, positive number of steps "
                 f"of {self.dt} s"
             )
-        for label, low in (("draws", 1), ("seed", 0)):
-            value = getattr(self, label)
-            if not isinstance(value, int) or isinstance(value, bool) or value < low:
-                raise ValueError(f"{label} must be an integer >= {low}, got {value!r}")
-        if self.dtype not in DTYPES:
-            raise ValueError(f"dtype must be one of {DTYPES}, got {self.dtype!r}")
+        checks.integer("draws", self.draws)
+        checks.integer("seed", self.seed, 0)
+        checks.choice("dtype", self.dtype, DTYPES)
         if self.save_every is not None and (
             not isinstance(self.save_every, int)
             or self.save_every < 1

@@ -10,9 +10,8 @@ import pytest
 
 from fojax import requirements as rq
 from fojax.controllers import registry
-from fojax.optimize import driver
+from fojax.optimize import Evaluation, Objective, Outputs, Request, driver
 from fojax.optimize import strategies as st
-from fojax.optimize.objective import Evaluation, Objective, Outputs, Request
 from fojax.optimize.spec import ProblemSpec
 
 

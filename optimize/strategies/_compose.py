@@ -32,16 +32,15 @@ full violation (its ``c_j`` term is 1) and adds nothing to ``F`` or the gradient
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 import numpy as np
 
-from fojax.optimize.objective import Outputs, Request
+from fojax.optimize import checks
+from fojax.optimize.losses import FORMULATIONS, AlmLoss
+from fojax.optimize.requests import Request
 
-__all__ = ["FORMULATIONS", "AlmLoss", "AugmentedLagrangian", "Chain"]
-
-FORMULATIONS = ("mean", "chance")
+__all__ = ["AugmentedLagrangian", "Chain"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,8 +53,7 @@ class Chain:
     name: str = "chain"
 
     def __post_init__(self) -> None:
-        if not isinstance(self.switch, int) or self.switch < 1:
-            raise ValueError(f"switch must be a positive integer, got {self.switch!r}")
+        checks.integer("switch", self.switch)
 
     def _active(self, state):
         return (
@@ -119,56 +117,6 @@ class Chain:
         return tuple(dict.fromkeys(self.first.needs() + self.second.needs()))
 
 
-@dataclasses.dataclass(frozen=True)
-class AlmLoss:
-    """The augmented Lagrangian (module docstring) at multipliers ``lam`` ``(R,)``,
-    penalty ``rho`` and scale ``f_0``, as a loss of the objective's outputs."""
-
-    lam: np.ndarray
-    rho: float
-    scale: float
-    formulation: str = "mean"
-    margin: float = 0.05
-    temperature: float = 0.1
-    allowed_share: float = 0.0
-
-    def parts(self, outputs: Outputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(F (...,), c (..., R), per-draw constraint terms (..., n, R))``."""
-        valid = outputs.valid
-        f = np.where(valid, outputs.values[..., 0], 0.0)
-        F = np.sum(f, -1) / np.maximum(np.sum(valid, -1), 1) / self.scale
-        shifted = np.where(valid[..., None], outputs.values[..., 1:], 0.0) + self.margin
-        if self.formulation == "mean":
-            per_draw = np.maximum(shifted, 0.0)
-        else:
-            per_draw = 1.0 / (1.0 + np.exp(-shifted / self.temperature))
-        per_draw = np.where(valid[..., None], per_draw, 1.0)
-        share = self.allowed_share if self.formulation == "chance" else 0.0
-        return F, np.mean(per_draw, -2) - share, per_draw
-
-    def values(self, outputs: Outputs) -> np.ndarray:
-        F, c, _ = self.parts(outputs)
-        shifted = np.maximum(0.0, self.lam + self.rho * c)
-        return F + np.sum(shifted**2 - self.lam**2, -1) / (2.0 * self.rho)
-
-    def cotangents(self, outputs: Outputs) -> np.ndarray:
-        """``(n, 1 + R)``: the derivatives of ``L`` by each draw's outputs (0 for a draw
-        that is not valid)."""
-        valid = outputs.valid
-        n = valid.shape[-1]
-        _, c, per_draw = self.parts(outputs)
-        dL_dc = np.maximum(0.0, self.lam + self.rho * c)
-        shifted = outputs.values[..., 1:] + self.margin
-        if self.formulation == "mean":
-            slope = (shifted > 0).astype(np.float64)
-        else:
-            slope = per_draw * (1 - per_draw) / self.temperature
-        cot = np.empty(outputs.values.shape)
-        cot[..., 0] = valid / max(int(np.sum(valid)), 1) / self.scale
-        cot[..., 1:] = valid[..., None] * slope * dL_dc / n
-        return np.where(np.isfinite(cot), cot, 0.0)
-
-
 _SCALE, _INNER, _MEASURE = range(3)
 
 
@@ -193,20 +141,13 @@ class AugmentedLagrangian:
     name: str = "augmented-lagrangian"
 
     def __post_init__(self) -> None:
-        if self.formulation not in FORMULATIONS:
-            raise ValueError(f"formulation must be one of {FORMULATIONS}, got {self.formulation!r}")
+        checks.choice("formulation", self.formulation, FORMULATIONS)
         for label in ("outer_steps", "inner_steps", "requirements"):
-            value = getattr(self, label)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{label} must be a positive integer, got {value!r}")
+            checks.integer(label, getattr(self, label))
         for label in ("penalty", "penalty_max", "temperature"):
-            value = getattr(self, label)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
-        if not self.penalty_growth >= 1:
-            raise ValueError(f"penalty_growth must be >= 1, got {self.penalty_growth!r}")
-        if not (math.isfinite(self.margin) and self.margin >= 0):
-            raise ValueError(f"margin must be a finite number >= 0, got {self.margin!r}")
+            checks.number(label, getattr(self, label))
+        checks.number("penalty_growth", self.penalty_growth, 1, allow_low=True)
+        checks.number("margin", self.margin, allow_low=True)
         if not 0 <= self.allowed_share < 1:
             raise ValueError(f"allowed_share must be in [0, 1), got {self.allowed_share!r}")
         if self.formulation == "chance" and self.allowed_share == 0:

@@ -30,7 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from fojax.optimize.objective import Request
+from fojax.optimize import checks
+from fojax.optimize.requests import Request
 
 __all__ = ["LBFGS", "Optax", "adam"]
 
@@ -52,10 +53,9 @@ class Optax:
     name: str = "optax"
 
     def __post_init__(self) -> None:
-        if self.sample not in ("fresh", "fixed"):
-            raise ValueError(f"sample must be 'fresh' or 'fixed', got {self.sample!r}")
-        if not all(isinstance(w, int | float) and math.isfinite(w) and w > 0 for w in self.anneal):
-            raise ValueError(f"the anneal widths must be finite numbers > 0, got {self.anneal!r}")
+        checks.choice("sample", self.sample, ("fresh", "fixed"))
+        for width in self.anneal:
+            checks.number("an anneal width", width)
 
     def width(self, step: int) -> float:
         first, last = self.anneal
@@ -134,13 +134,10 @@ def adam(
 ) -> Optax:
     """``clip_by_global_norm(clip_norm)`` then Adam with a cosine-decayed step from
     ``learning_rate`` to ``final_learning_rate`` times it over ``steps``."""
-    for label, value in (("learning_rate", learning_rate), ("clip_norm", clip_norm)):
-        if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-            raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
-    if not 0 <= final_learning_rate <= 1:
-        raise ValueError(f"final_learning_rate must be in [0, 1], got {final_learning_rate!r}")
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps must be a positive integer, got {steps!r}")
+    checks.number("learning_rate", learning_rate)
+    checks.number("clip_norm", clip_norm)
+    checks.number("final_learning_rate", final_learning_rate, allow_low=True, high=1)
+    checks.integer("steps", steps)
     schedule = optax.cosine_decay_schedule(
         learning_rate, max(steps - 1, 1), alpha=final_learning_rate
     )
@@ -168,14 +165,10 @@ class LBFGS:
     name: str = "lbfgs"
 
     def __post_init__(self) -> None:
-        if not isinstance(self.memory, int) or self.memory < 1:
-            raise ValueError(f"memory must be a positive integer, got {self.memory!r}")
-        for label in ("max_step", "width"):
-            value = getattr(self, label)
-            if label == "width" and value is None:
-                continue  # the evaluation law
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
+        checks.integer("memory", self.memory)
+        checks.number("max_step", self.max_step)
+        if self.width is not None:  # None: the evaluation law
+            checks.number("width", self.width)
 
     def init(self, x0) -> dict:
         x0 = np.asarray(x0, np.float64)

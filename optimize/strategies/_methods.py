@@ -13,6 +13,7 @@ generations): a composition, measured beside the default.
 
 from __future__ import annotations
 
+from fojax.optimize import checks
 from fojax.optimize.strategies._compose import Chain
 from fojax.optimize.strategies._gradient import LBFGS, adam
 from fojax.optimize.strategies._population import CMAES, NelderMead
@@ -54,8 +55,7 @@ def make(
     switch: ``cma-lbfgs``'s CMA-ES generations. sigma, popsize: CMA-ES's. max_step:
     L-BFGS's. width: the gradient's (last) width scale. learning_rate, final_learning_rate,
     clip_norm, anneal_start, sample: Adam's."""
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    checks.choice("method", method, METHODS)
     steps = DEFAULT_STEPS[method] if steps is None else steps
     cma = CMAES(sigma0=sigma, popsize=popsize, seed=seed)
     lbfgs = LBFGS(max_step=max_step, width=width)

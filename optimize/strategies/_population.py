@@ -25,14 +25,10 @@ import math
 
 import numpy as np
 
-from fojax.optimize.objective import Request
+from fojax.optimize import checks
+from fojax.optimize.requests import Request
 
 __all__ = ["CMAES", "NelderMead"]
-
-
-def _check_positive(label: str, value) -> None:
-    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-        raise ValueError(f"{label} must be a finite number > 0, got {value!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,18 +43,14 @@ class CMAES:
     seed: int = 0
     sample: str = "fresh"
     width: float | None = None
-    inject: tuple[float, ...] = ()
-    inject_from: int = 0
-    gradient_width: float | None = None
     draws: int | tuple | None = None
     name: str = "cma-es"
 
     def __post_init__(self) -> None:
-        _check_positive("sigma0", self.sigma0)
-        if self.popsize is not None and (not isinstance(self.popsize, int) or self.popsize < 2):
-            raise ValueError(f"popsize must be an integer >= 2, got {self.popsize!r}")
-        if self.sample not in ("fresh", "fixed"):
-            raise ValueError(f"sample must be 'fresh' or 'fixed', got {self.sample!r}")
+        checks.number("sigma0", self.sigma0)
+        if self.popsize is not None:
+            checks.integer("popsize", self.popsize, 2)
+        checks.choice("sample", self.sample, ("fresh", "fixed"))
 
     def constants(self, d: int) -> dict:
         """The tutorial's default constants for dimension ``d``."""
@@ -103,8 +95,6 @@ class CMAES:
             "ps": np.zeros(d),
             "pc": np.zeros(d),
             "generation": np.asarray(0),
-            "phase": np.asarray(0),
-            "gradient": np.zeros(d),
         }
 
     def sample_size(self, generation: int) -> int | None:
@@ -115,9 +105,6 @@ class CMAES:
             return self.draws
         return [n for first, n in self.draws if first <= generation][-1]
 
-    def _injects(self, state) -> bool:
-        return bool(self.inject) and int(state["generation"]) >= self.inject_from
-
     @staticmethod
     def _eigen(C):
         values, vectors = np.linalg.eigh((C + C.T) / 2)
@@ -126,27 +113,13 @@ class CMAES:
     def ask(self, state) -> Request:
         d, generation = state["mean"].size, int(state["generation"])
         sample = generation if self.sample == "fresh" else 0
-        if self._injects(state) and int(state["phase"]) == 0:  # the gradient at the mean
-            draws = self.sample_size(generation)
-            return Request(state["mean"][None], True, sample, self.gradient_width, draws=draws)
         lam = self.constants(d)["lam"]
         z = np.random.default_rng([self.seed, generation]).standard_normal((lam, d))
         B, D = self._eigen(state["C"])
         points = state["mean"] + float(state["sigma"]) * (z * D) @ B.T
-        if self._injects(state):  # steps along -C g, of Mahalanobis length t sqrt(d)
-            g = state["gradient"]
-            direction = -(state["C"] @ g) / max(math.sqrt(float(g @ state["C"] @ g)), 1e-300)
-            for i, t in enumerate(self.inject):
-                points[lam - 1 - i] = (
-                    state["mean"] + float(state["sigma"]) * t * math.sqrt(d) * direction
-                )
         return Request(points, False, sample, self.width, draws=self.sample_size(generation))
 
     def tell(self, state, request, evaluation) -> dict:
-        if self._injects(state) and int(state["phase"]) == 0:
-            gradient = np.asarray(evaluation.gradient, np.float64)
-            gradient = np.where(np.isfinite(gradient), gradient, 0.0)
-            return {**state, "phase": np.asarray(1), "gradient": gradient}
         k = self.constants(state["mean"].size)
         d, sigma, mean = state["mean"].size, float(state["sigma"]), state["mean"]
         values = np.where(np.isfinite(evaluation.values), evaluation.values, np.inf)
@@ -182,8 +155,6 @@ class CMAES:
             "ps": ps,
             "pc": pc,
             "generation": np.asarray(generation),
-            "phase": np.asarray(0),
-            "gradient": state["gradient"],
         }
 
     def answer(self, state) -> np.ndarray:
@@ -199,8 +170,7 @@ class CMAES:
         return {"sigma": float(state["sigma"])}
 
     def needs(self) -> tuple:
-        injected = (("gradient", self.gradient_width),) if self.inject else ()
-        return (("forward", self.width),) + injected
+        return (("forward", self.width),)
 
 
 # Nelder-Mead's phases: the trial(s) a state is waiting for.
@@ -218,7 +188,7 @@ class NelderMead:
     name: str = "nelder-mead"
 
     def __post_init__(self) -> None:
-        _check_positive("step", self.step)
+        checks.number("step", self.step)
 
     def init(self, x0) -> dict:
         x0 = np.asarray(x0, np.float64)
