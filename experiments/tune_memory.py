@@ -3,66 +3,69 @@
     python -m experiments.tune_memory [--horizons 5 10 20 40 80] [--draws 256]
                                       [--execute-up-to 10] [--out results/tune_memory]
 
-For each horizon, in a fresh subprocess: compile the gradient of the mean tuning cost
-(:meth:`fojax.optimize.Objective.lower_gradient`: the per-draw gradient of the fixed
-sample on one device, float32, AFONFTSMC, the paper's gains) and read XLA's
-``memory_analysis()`` (temporary buffers = the peak working set the compiled program
-allocates besides its arguments and outputs); for horizons up to ``--execute-up-to`` s
-also run it once and record the process's peak resident memory (``ru_maxrss``, which
-includes JAX itself and the compiler). Blocks of the rollout (``save_every``) follow
-:func:`fojax.optimize.checkpoint_interval` (about ``0.75 sqrt(steps)`` steps) and, for
-comparison, a fixed 100 steps or one block over the whole horizon (``--blocks auto 100
-full``). Writes ``memory.json`` and prints a table.
+For each horizon, in a fresh process (``multiprocessing``'s ``spawn``): compile the
+gradient of the mean tuning cost (:meth:`fojax.optimize.Objective.lower_gradient`: the
+per-draw gradient of the fixed sample on one device, float32, AFONFTSMC, the paper's
+gains) and read XLA's ``memory_analysis()`` (temporary buffers = the peak working set
+the compiled program allocates besides its arguments and outputs); for horizons up to
+``--execute-up-to`` s also run it once and record the process's peak resident memory
+(``ru_maxrss``, which includes JAX itself and the compiler). Blocks of the rollout
+(``save_every``) follow :func:`fojax.optimize.checkpoint_interval` (about ``0.75
+sqrt(steps)`` steps) and, for comparison, a fixed 100 steps or one block over the whole
+horizon (``--blocks auto 100 full``). Writes ``memory.json`` and prints a table.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import subprocess
+import multiprocessing
 import sys
 from pathlib import Path
 
 from experiments import _common
 from fojax.cli import output
 
-CHILD = r"""
-import json, resource, sys, time
-import jax, jax.numpy as jnp
-from fojax import optimize
-from fojax.controllers.afonftsmc import paper_gains
-horizon, draws = float(sys.argv[1]), int(sys.argv[2])
-block, execute = sys.argv[3], sys.argv[4] == "1"
-steps = round(horizon / 1e-3)
-save_every = None if block == "auto" else steps if block == "full" else int(block)
-spec = optimize.ProblemSpec(horizon=horizon, draws=draws, dtype="float32", save_every=save_every)
-t0 = time.perf_counter()
-lowered, args = optimize.Objective(spec, paper_gains(jnp.float32)).lower_gradient()
-compiled = lowered.compile()
-compile_s = time.perf_counter() - t0
-m = compiled.memory_analysis()
-out = {"horizon_s": horizon, "draws": draws, "steps": spec.steps, "save_every": spec.block,
-       "blocks": spec.steps // spec.block, "temp_mb": m.temp_size_in_bytes / 2**20,
-       "argument_mb": m.argument_size_in_bytes / 2**20, "output_mb": m.output_size_in_bytes / 2**20,
-       "compile_s": round(compile_s, 1), "executed": execute}
-rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-out["rss_before_run_mb"] = rss_before
-if execute:
+
+def _measure(horizon: float, draws: int, block: str, execute: bool) -> dict:
+    """In a process of its own (its peak memory is the measurement): compile the
+    gradient, read its memory analysis, and run it where ``execute``."""
+    import resource
+    import time
+
+    import jax
+    import jax.numpy as jnp
+
+    from fojax import optimize
+    from fojax.controllers.afonftsmc import paper_gains
+
+    steps = round(horizon / 1e-3)
+    save_every = None if block == "auto" else steps if block == "full" else int(block)
+    spec = optimize.ProblemSpec(horizon=horizon, draws=draws, save_every=save_every)
     t0 = time.perf_counter()
-    jax.block_until_ready(compiled(*args))
-    out["run_s"] = round(time.perf_counter() - t0, 1)
-    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print("RESULT " + json.dumps(out))
-"""
+    lowered, args = optimize.Objective(spec, paper_gains(jnp.float32)).lower_gradient()
+    compiled = lowered.compile()
+    compile_s = time.perf_counter() - t0
+    memory = compiled.memory_analysis()
+    out = {
+        "horizon_s": horizon, "draws": draws, "steps": spec.steps, "save_every": spec.block,
+        "blocks": spec.steps // spec.block, "temp_mb": memory.temp_size_in_bytes / 2**20,
+        "argument_mb": memory.argument_size_in_bytes / 2**20, "compile_s": round(compile_s, 1),
+        "executed": execute,
+    }  # fmt: skip
+    if execute:
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        out["run_s"] = round(time.perf_counter() - t0, 1)
+        out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
 
 
 def measure(horizon: float, draws: int, block: str, execute: bool) -> dict:
-    command = [sys.executable, "-c", CHILD, str(horizon), str(draws), block, str(int(execute))]
-    done = subprocess.run(command, capture_output=True, text=True, check=False)
-    for line in done.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return json.loads(line[7:])
-    raise RuntimeError(f"measurement failed for {horizon} s / {block}:\n{done.stderr[-2000:]}")
+    """:func:`_measure` in a fresh process (``spawn``: nothing of this one carried over)."""
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(1) as pool:
+        return pool.apply(_measure, (horizon, draws, block, execute))
 
 
 def main(argv=None) -> int:

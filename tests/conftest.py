@@ -131,3 +131,16 @@ def close_normwise(got, want, err_msg=""):
     scale = max(float(np.max(np.abs(want), initial=0.0)), 1e-6)
     worst = float(np.max(np.abs(got - want), initial=0.0))
     assert worst <= 1e-4 * scale, f"{err_msg}: max difference {worst:.3g} against scale {scale:.3g}"
+
+
+def drive(evaluate, strategy, x0, requests: int):
+    """A strategy's state after ``requests`` requests evaluated by ``evaluate(request) ->
+    Evaluation`` (no driver): the strategies' tests on analytic functions. Import it:
+    ``from conftest import drive``."""
+    import numpy as np
+
+    state = strategy.init(np.asarray(x0, np.float64))
+    for _ in range(requests):
+        request = strategy.ask(state)
+        state = strategy.tell(state, request, evaluate(request))
+    return state

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import drive
 
 from fojax import optimize, scenarios, simulator
 from fojax.controllers import registry
@@ -275,13 +276,6 @@ class _Function:
         )
         return Evaluation(values, gradient, outputs, 0, 0)
 
-    def drive(self, strategy, x0, requests):
-        state = strategy.init(np.asarray(x0, np.float64))
-        for _ in range(requests):
-            request = strategy.ask(state)
-            state = strategy.tell(state, request, self(request))
-        return state
-
 
 def test_lbfgs_minimises_rosenbrock_like_scipy():
     from scipy import optimize as scipy_optimize
@@ -356,7 +350,7 @@ def test_optax_strategy_is_the_optax_transformation():
 
     strategy = st.adam(5, learning_rate=0.1, sample="fixed")
     function = _Function(lambda x: float(x @ x), lambda x: 2 * x)
-    state = function.drive(strategy, np.ones(3), 5)
+    state = drive(function, strategy, np.ones(3), 5)
     tx = optax.chain(
         optax.clip_by_global_norm(1.0), optax.adam(optax.cosine_decay_schedule(0.1, 4, alpha=0.1))
     )

@@ -7,6 +7,7 @@ import functools
 
 import numpy as np
 import pytest
+from conftest import drive
 
 from fojax import requirements as rq
 from fojax.controllers import registry
@@ -46,10 +47,7 @@ class _Toy:
         return Evaluation(values, gradient, outputs, 0, 0)
 
     def drive(self, strategy, x0, requests):
-        state = strategy.init(np.asarray(x0, np.float64))
-        for _ in range(requests):
-            request = strategy.ask(state)
-            state = strategy.tell(state, request, self(request))
+        state = drive(self, strategy, x0, requests)
         return strategy.answer(state), state
 
 

@@ -74,12 +74,13 @@ def make(
 
 def lanes(strategy, size: int, draws: int, devices: int) -> int:
     """Lanes per device and call that fit the strategy's requests: its first request's
-    points x draws over ``devices`` (the inner strategy's, for a wrapper), in ``[8, 128]``
-    (a population in one call where that fits, with no lane padded: a call's time grows
-    far slower than its lanes, docs/tuning.md)."""
+    points (or its ``typical_points``) x draws over ``devices`` (the inner strategy's,
+    for a wrapper), in ``[8, 128]`` (a population in one call where that fits, with no
+    lane padded: a call's time grows far slower than its lanes, docs/tuning.md)."""
     import numpy as np
 
     inner = getattr(strategy, "inner", strategy)
     request = inner.ask(inner.init(np.zeros(size)))
-    per_device = -(-len(request.points) * (request.draws or draws) // devices)
+    points = getattr(inner, "typical_points", len(request.points))
+    per_device = -(-points * (request.draws or draws) // devices)
     return int(min(128, max(8, per_device)))

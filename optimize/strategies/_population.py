@@ -186,6 +186,7 @@ class NelderMead:
     step: float = 0.5
     width: float | None = None
     name: str = "nelder-mead"
+    typical_points = 1  # a class attribute: one trial per request after the simplex
 
     def __post_init__(self) -> None:
         checks.number("step", self.step)
