@@ -10,8 +10,9 @@ baselines whose gains are not published. Here every registered controller starts
 its documented default gains (``docs/model.md``) and gets the same tuning on the engine
 (:mod:`fojax.optimize`): the same problem (scenario ``--scenario``, ``--horizon`` s, the
 cost of :mod:`fojax.optimize.cost` with the ``fojax tune`` defaults, the same draws:
-common random numbers), the same method (``--method``, default ``fojax tune``'s:
-CMA-ES for ``--switch`` generations, then L-BFGS), the same budget (``--steps`` steps of
+common random numbers), the same method (``--method``, default ``fojax tune``'s
+``auto``: CMA-ES on small fresh samples; ``cma-lbfgs`` hands CMA-ES's mean to L-BFGS
+after ``--switch`` generations), the same budget (``--steps`` steps of
 ``--draws`` draws; a CMA-ES generation is one step, its population growing with the
 controller's parameters) and the same validation (the driver's: 32 validation draws
 every 5 steps, the best validated gains returned). Then default and tuned gains of
@@ -60,7 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--method", choices=METHODS, default="auto", help="fojax tune's methods (auto)"
     )
-    _common.add_numbers(parser, switch=(None, "CMA-ES generations before L-BFGS (8; auto)"))
+    _common.add_numbers(
+        parser, switch=(None, "CMA-ES generations before L-BFGS (8; cma-lbfgs only)")
+    )
     _common.add_numbers(parser, learning_rate=(None, "Adam's step (0.1; --method adam only)"))
     parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument("--controllers", help="comma-separated names (default: all registered)")
@@ -91,8 +94,10 @@ def parse_args(argv) -> argparse.Namespace:
         )
     if args.learning_rate is None:
         args.learning_rate = 0.1
-    if args.switch is not None and args.method != "auto":
-        parser.error(f"--switch applies to --method auto only, not to --method {args.method}")
+    if args.switch is not None and args.method != "cma-lbfgs":
+        parser.error(
+            f"--switch applies to --method cma-lbfgs only, not to --method {args.method}"
+        )
     known = registry.controller_names()
     if args.controllers is None:
         args.controllers = tuple(known)
@@ -111,7 +116,7 @@ def parse_args(argv) -> argparse.Namespace:
         args.dtype, args.eval_draws = "float64", 3
         args.eval_horizon = args.eval_horizon or 0.3
         args.eval_scenarios = (args.scenario,)
-        args.switch = args.switch or 1  # both of auto's phases
+        args.switch = args.switch or 1  # both of cma-lbfgs's phases
     args.switch = args.switch or 8
     steps = args.horizon / 1e-3
     if abs(steps - round(steps)) > 1e-6 * steps:

@@ -464,7 +464,7 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
     if tuning["source"] == "fair_comparison here":
         tuning_text = (
             f"`experiments/fair_comparison.py` run here at a reduced budget: {tuning['steps']} "
-            f"steps of `fojax tune`'s default method (CMA-ES, then L-BFGS) x {tuning['draws']} "
+            f"steps of `fojax tune`'s method `{tuning.get('method', 'auto')}` x {tuning['draws']} "
             f"draws x {tuning['horizon_s']:g} s of scenario 2 per controller (the same "
             "problem, method, budget and draws for all five; its full budget is 50 x 16 x 10 s)"
             + (f", {tuning['wall_s']:.0f} s" if tuning.get("wall_s") else "")

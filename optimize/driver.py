@@ -229,6 +229,20 @@ class _Run:
         if self.progress:
             print(f"  start: validation {_headline(summary)}", file=sys.stderr, flush=True)
 
+    def count(self, points: int, evaluation) -> None:
+        """Count one request of ``points`` points and its evaluation."""
+        self.used["steps"] += 1
+        self.used["evaluations"] += points
+        self.used["draw_steps"] += evaluation.draw_steps
+        self.used["work"] += evaluation.work or evaluation.draw_steps
+
+    def call_back(self, callback, row: dict) -> None:
+        """``callback(step, answer, row)``, its time left out of the run's."""
+        if callback is not None:
+            t0 = time.perf_counter()
+            callback(self.used["steps"], self.strategy.answer(self.state), row)
+            self.excluded += time.perf_counter() - t0
+
     def due(self) -> bool:
         """Every ``validate_every`` steps; without it, once the work since the last
         validation reaches :data:`VALIDATION_SHARE` times its own."""
@@ -394,21 +408,14 @@ def run(
                 break
             evaluation = objective(request)
             state.state = strategy.tell(state.state, request, evaluation)
-            state.used["steps"] += 1
-            state.used["evaluations"] += points
-            state.used["draw_steps"] += evaluation.draw_steps
-            state.used["work"] += evaluation.work or evaluation.draw_steps
+            state.count(points, evaluation)
             state.start_validation(x0)
             done = not _more(budget, state, strategy)
-            validation = state.validate(done)
-            row = _row(state, request, evaluation, validation)
+            row = _row(state, request, evaluation, state.validate(done))
             state.history.append(row)
             if progress:
                 _print(row, budget, state)
-            if callback is not None:
-                t0 = time.perf_counter()
-                callback(state.used["steps"], strategy.answer(state.state), row)
-                state.excluded += time.perf_counter() - t0
+            state.call_back(callback, row)
             if state.used["steps"] % checkpoint_every == 0 or done:
                 state.save()
             if done:

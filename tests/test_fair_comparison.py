@@ -17,7 +17,7 @@ from fojax.controllers import registry
         (["--horizon", "0.0005"], "whole number of 1 ms steps"),
         (["--steps", "0"], "positive integer"),
         (["--eval-scenarios", "4"], "scenarios must be among"),
-        (["--method", "lbfgs", "--switch", "3"], "--switch applies to --method auto only"),
+        (["--method", "lbfgs", "--switch", "3"], "--switch applies to --method cma-lbfgs only"),
     ],
 )
 def test_bad_arguments_fail_before_compiling(capsys, argv, message):
