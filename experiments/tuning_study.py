@@ -39,8 +39,9 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
   time, and whether its final held-out cost is at or below it
   (:func:`experiments.tuning_study_report.summarize`).
 
-One process, one XLA device per core (as ``fojax tune`` runs), its lanes per device
-fitted to each method's requests (:func:`fojax.optimize.strategies.lanes`), runs one
+One process, one XLA device per core (``fojax tune`` runs on one device whose kernels
+are threaded over the cores; the user view measures the command as it runs), its lanes
+per device fitted to each method's requests (:func:`fojax.optimize.strategies.lanes`), runs one
 after another; the load average is recorded before and after each run. ``--tiny`` (a
 smoke run) keeps the caller's compilation cache and shares each seed's objective between
 the runs of a share (its wall times mean nothing).

@@ -82,6 +82,8 @@ def _run(args, folder: Path, mode: str, index: int) -> dict:
     cache = tempfile.mkdtemp(prefix="fojax-user-view-cache-")
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     env["XDG_CACHE_HOME"] = cache
+    env["HOME"] = os.path.join(cache, "home")  # cold: nothing of the user's home either
+    os.makedirs(env["HOME"])
     load = output.load_average()
     t0 = time.perf_counter()
     try:
@@ -104,8 +106,8 @@ def _run(args, folder: Path, mode: str, index: int) -> dict:
         "command": " ".join(command[:-2]),
         "total_s": round(total, 1),
         "tuning_s": float(history[-1]["wall_time_s"]),
-        "heldout_initial": evaluation["initial"]["mean_cost"],
-        "heldout_tuned": evaluation["tuned"]["mean_cost"],
+        "heldout_initial": evaluation["initial"]["cost"],
+        "heldout_tuned": evaluation["tuned"]["cost"],
         "heldout_draws": evaluation["draws"],
         "selected_step": gains["selected_step"],
         "validation": gains["validation"],
