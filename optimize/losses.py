@@ -81,9 +81,19 @@ class AlmLoss:
         return F, np.mean(per_draw, -2) - share, per_draw
 
     def values(self, outputs: Outputs) -> np.ndarray:
+        """``L`` per point; a point with diverged draws ranks after every point of the
+        request without one, by its count of them (a diverged draw's violation is
+        capped in ``c``, where a real violation is not: ranked by ``L`` alone, a
+        candidate that diverges everywhere would beat one that violates by much)."""
         F, c, _ = self.parts(outputs)
         shifted = np.maximum(0.0, self.lam + self.rho * c)
-        return F + np.sum(shifted**2 - self.lam**2, -1) / (2.0 * self.rho)
+        loss = F + np.sum(shifted**2 - self.lam**2, -1) / (2.0 * self.rho)
+        diverged = np.sum(~np.asarray(outputs.valid), -1)
+        if not np.any(diverged):
+            return loss
+        finite = loss[(diverged == 0) & np.isfinite(loss)]
+        worst = np.max(finite) if finite.size else np.max(loss[np.isfinite(loss)], initial=0.0)
+        return np.where(diverged > 0, worst + diverged * (1.0 + abs(worst)), loss)
 
     def cotangents(self, outputs: Outputs) -> np.ndarray:
         """``(n, 1 + R)``: the derivatives of ``L`` by each draw's outputs (0 for a draw

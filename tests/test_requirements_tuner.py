@@ -89,6 +89,29 @@ def test_chance_surrogate_is_feasible_and_conservative(toy):
     assert np.all(x >= toy.star - 1e-3) and x @ x < 1.5 * (toy.star @ toy.star)
 
 
+def test_a_point_with_diverged_draws_ranks_after_every_point_without():
+    """A diverged draw's violation is capped at 1 in the constraints, a real one is not:
+    a candidate diverging on every draw must not beat one that violates by much."""
+    from fojax.optimize.losses import AlmLoss
+
+    loss = AlmLoss(lam=np.zeros(1), rho=10.0, scale=1.0)
+    values = np.array(
+        [
+            [[1.0, 50.0], [1.0, 40.0]],  # violates by far, never diverges
+            [[np.nan, np.nan], [np.nan, np.nan]],  # diverges on both draws
+            [[1.0, 0.0], [np.nan, np.nan]],  # diverges on one draw
+            [[2.0, 60.0], [2.0, 60.0]],  # violates by more
+        ]
+    )
+    outputs = Outputs(values, np.zeros((4, 2, 4)), np.zeros((4, 2), np.int32))
+    capped = AlmLoss.parts(loss, outputs)
+    assert np.all(capped[1][1] == 1.0) and capped[1][0, 0] > 1.0  # the cap, and a real one
+    ranked = np.argsort(loss.values(outputs), kind="stable")
+    np.testing.assert_array_equal(ranked, [0, 3, 2, 1])  # by divergences, then by L
+    single = loss.values(Outputs(values[2:3], np.zeros((1, 2, 4)), np.zeros((1, 2), np.int32)))
+    assert np.isfinite(single[0])
+
+
 def test_config_is_checked():
     inner = st.LBFGS()
     with pytest.raises(ValueError, match="formulation"):
