@@ -15,6 +15,7 @@ def test_tuning_study_tiny(tmp_path):
     from experiments import tuning_study
     from fojax import optimize
     from fojax.controllers.afonftsmc import paper_gains
+    from fojax.optimize import strategies
 
     out = tmp_path / "study"
     argv = ["--tiny", "--quiet", "--shares", "paper", "--out", str(out)]
@@ -42,7 +43,8 @@ def test_tuning_study_tiny(tmp_path):
         assert run["final_heldout"] in curve[:, 3]
     assert runs[("paper", "cma-es")]["draw_steps"] == 2 * 14 * 3 * 300  # 2 generations of 14
     assert runs[("paper", "lbfgs")]["draw_steps"] == 4 * 3 * 300
-    assert runs[("paper", "default")]["draw_steps"] == (2 * 14 + 2) * 3 * 300  # then 2 L-BFGS
+    # auto: 4 generations of 14 candidates on its own 8 fresh draws (not --draws)
+    assert runs[("paper", "default")]["draw_steps"] == 4 * 14 * strategies.AUTO_DRAWS * 300
     assert runs[("paper", "nelder-mead")]["draw_steps"] <= (34 + 14) * 3 * 300
     targets = results["summary"]["paper/naive"]["target"]
     assert len(targets) == 1 and {"default", "lbfgs"} <= set(targets[0])

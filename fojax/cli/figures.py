@@ -329,8 +329,9 @@ def plot_convergence(
         if validation_start is not None:
             vx, vy = np.concatenate([[0.0], vx]), np.concatenate([[validation_start], vy])
         if vy.size:
+            # a validation holds until the next one: steps in both panels
             right.plot(vx, vy, color=orange, lw=1.2, marker="s", ms=4, zorder=5,
-                       drawstyle="steps-post" if col else "default")  # fmt: skip
+                       drawstyle="steps-post")  # fmt: skip
         if evaluation and "initial" in evaluation:
             held = [_held_number(evaluation[k]) for k in ("initial", "tuned")]
             where = [0, x[-1]] if col == 0 else [x[-1]]
