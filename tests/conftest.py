@@ -39,7 +39,8 @@ def pytest_addoption(parser):
 # Cases of the slow tier besides the tests marked in their files: each checks again,
 # on another controller, scenario, method or precision, what a case of the default
 # tier checks (the default keeps one golden forward per controller, the AFONFTSMC's
-# golden gradient, the tuner's finite-difference gradient and a float32 union), or
+# golden gradient, the tuner's finite-difference gradient and a float32 union; the
+# augmented Lagrangian's gradient on the toy, its resume in test_requirements_tuner), or
 # compiles a program of its own for one property (cache reuse, device split, batch
 # independence, chunked benches).
 SLOW_CASES = (
@@ -71,6 +72,9 @@ SLOW_CASES = (
     "test_sensitivity.py::test_union_runner_equals_study_run_float64",
     "test_runtime_options.py::test_a_second_run_reads_its_programs_from_the_cache",
     "test_tune_cli.py::test_tuning_study_smoke",
+    "test_requirements_tuner.py::test_a_union_objective_alternates_members",
+    "test_requirements_tuner.py::test_lagrangian_gradient_matches_finite_differences",
+    "test_requirements_cli.py::test_tune_to_requirements_resumes_to_the_uninterrupted_gains",
     "test_performance.py::test_sharded_run_is_identical_to_single_device_run",
     "test_performance.py::test_bench_forward_runs_big_batches_in_chunks",
     "test_performance.py::test_bench_smoke",

@@ -89,6 +89,24 @@ def test_chance_surrogate_is_feasible_and_conservative(toy):
     assert np.all(x >= toy.star - 1e-3) and x @ x < 1.5 * (toy.star @ toy.star)
 
 
+@pytest.mark.parametrize("formulation", ["mean", "chance"])
+def test_lagrangian_cotangents_match_finite_differences_on_the_toy(toy, formulation):
+    """The loss's per-draw cotangents composed with the toy's exact Jacobians against a
+    central difference of the loss's values (the simulator's case is in the slow tier)."""
+    share = 0.05 if formulation == "chance" else 0.0
+    strategy = st.AugmentedLagrangian(st.LBFGS(), 2, formulation=formulation, allowed_share=share)
+    loss = strategy.loss(
+        {"lam": np.array([0.3, 1.5]), "rho": 10.0, "scale": 2.0}
+    )
+    x = np.array([0.9, 0.45])  # some draws violate, some do not
+    gradient = toy(Request(x[None], gradient=True, loss=loss)).gradient
+    eps = 1e-6
+    for direction in np.eye(2):
+        ends = toy(Request(np.stack([x + eps * direction, x - eps * direction]), loss=loss))
+        numeric = (ends.values[0] - ends.values[1]) / (2 * eps)
+        assert gradient @ direction == pytest.approx(numeric, rel=1e-6, abs=1e-9)
+
+
 def test_a_point_with_diverged_draws_ranks_after_every_point_without():
     """A diverged draw's violation is capped at 1 in the constraints, a real one is not:
     a candidate diverging on every draw must not beat one that violates by much."""
