@@ -204,7 +204,9 @@ class _Run:
         return key, summary
 
     def start_validation(self, x0) -> None:
-        """The start's validation, in a thread (joined by :meth:`join_start`)."""
+        """The start's validation, in a thread (joined by :meth:`join_start`); in a
+        multi-process run in line, so that every process runs its programs (and their
+        collectives) in the same order."""
         if not self.validating or self.best["initial"] is not None or self._thread is not None:
             return
 
@@ -215,12 +217,16 @@ class _Run:
                 self._start["error"] = error
 
         self._thread = threading.Thread(target=validate, daemon=True)
-        self._thread.start()
+        if jax.process_count() > 1:
+            validate()
+        else:
+            self._thread.start()
 
     def join_start(self) -> None:
         if self._thread is None:
             return
-        self._thread.join()
+        if self._thread.ident is not None:  # started (not run in line)
+            self._thread.join()
         self._thread = None
         if "error" in self._start:
             raise self._start["error"]
@@ -320,10 +326,14 @@ def _number(summary: dict) -> float:
     return summary["yield"] if "yield" in summary else summary["cost"]
 
 
-def _compile_ahead(objective: Objective, needs) -> threading.Thread:
+def _compile_ahead(objective: Objective, needs) -> threading.Thread | None:
     """Compile in a thread what the run will need (``needs``: the strategy's ``(kind,
     width)`` pairs, in order): the draws' program beside the first phase's program, then
-    a later phase's gradient program beside the first phase's steps."""
+    a later phase's gradient program beside the first phase's steps. Not in a
+    multi-process run (None): compiling ahead runs the programs once, and every process
+    must run its programs, collectives included, in the same order."""
+    if jax.process_count() > 1:
+        return None
 
     def compile_all():
         first = [threading.Thread(target=_quietly(objective.compile, "sampler"), daemon=True)]
