@@ -353,15 +353,13 @@ def _initial_gains(parser, args, dtype):
         return registry.get_controller_class(args.controller).default_gains(dtype), "paper"
     if args.init == "naive":
         return params.naive_gains(args.controller, dtype), "naive"
-    if not Path(args.init).exists():
-        parser.error(
-            f"--init {args.init}: gains file does not exist; give paper, naive or a gains file"
-        )
     try:
         path = arguments.check_input_file(args.init, "gains file")
         name, gains, _ = gains_io.load_gains(path, dtype)
     except ValueError as error:
         text = str(error)
+        if not Path(args.init).exists():
+            text += "; give paper, naive or a gains file"
         parser.error(f"--init: {text}" if args.init in text else f"--init {args.init}: {text}")
     if name != args.controller:
         parser.error(f"--init {args.init} holds gains of {name!r}, not of {args.controller!r}")
