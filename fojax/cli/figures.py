@@ -301,22 +301,15 @@ def _read_progress(history_csv: Path, evaluation: dict | None, start: float | No
     h = _read_history(history_csv)
     if not h.get("step"):
         raise ValueError(f"{history_csv} holds no step")
-    step = np.asarray(h["step"])
+    step, wall = np.asarray(h["step"]), np.asarray(h["wall_time_s"])
     validation = np.asarray(h.get("validation", [math.nan] * len(step)))
     yields = evaluation is not None and "yield" in evaluation.get("initial", {})
     if start is not None:
         yields = yields or (np.nanmax(validation, initial=0) <= 1 and start <= 1)
-    return _Progress(
-        history=h,
-        step=step,
-        wall=np.asarray(h["wall_time_s"]),
-        validation=validation,
-        start=start,
-        yields=yields,
-        lower=[k for k in ("grad_norm", "sigma") if np.isfinite(h.get(k, [math.nan])).any()],
-        show_mean=not np.allclose(h["loss"], h["mean_target"], rtol=1e-6, equal_nan=True),
-        diverged=np.asarray(h.get("diverged", [0] * len(step))) > 0,
-    )
+    lower = [k for k in ("grad_norm", "sigma") if np.isfinite(h.get(k, [math.nan])).any()]
+    show_mean = not np.allclose(h["loss"], h["mean_target"], rtol=1e-6, equal_nan=True)
+    diverged = np.asarray(h.get("diverged", [0] * len(step))) > 0
+    return _Progress(h, step, wall, validation, start, yields, lower, show_mean, diverged)
 
 
 # Colours of plot_convergence (Okabe-Ito).
