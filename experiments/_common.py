@@ -85,6 +85,18 @@ def mean_cell(entry: dict, diverged: str) -> str:
     return f"{cost['mean']:.4g}{half}{count}"
 
 
+def difference_cell(diff: dict, note=lambda low, high: "") -> str:
+    """``mean [low, high]`` of a paired difference (:func:`fojax.statistics.paired_difference`),
+    signed, then ``note(low, high)``; the mean alone without an interval, ``n/a`` without
+    a mean."""
+    if diff["mean"] is None:
+        return "n/a"
+    if not diff["ci95"]:
+        return f"{diff['mean']:+.3g}"
+    low, high = diff["ci95"]
+    return f"{diff['mean']:+.3g} [{low:+.3g}, {high:+.3g}]{note(low, high)}"
+
+
 def table_head(columns: str) -> list[str]:
     """A Markdown table's header row (``columns``: ``"a | b | c"``) and the line below."""
     return [f"| {columns} |", "|" + "---|" * (columns.count("|") + 1)]

@@ -282,18 +282,12 @@ def main(argv=None) -> int:
 
 
 def _difference(diff: dict, fraction: float | None = None) -> str:
-    if diff["mean"] is None:
-        return "n/a"
-    if not diff["ci95"]:
-        return f"{diff['mean']:+.3g}"
-    low, high = diff["ci95"]
-    verdict = "n.s."
-    if low > 0:
-        verdict = "**baseline better**"
-    elif high < 0:
-        verdict = "**baseline worse**"
-    share = "" if fraction is None else f", baseline better on {100 * fraction:.0f} %"
-    return f"{diff['mean']:+.3g} [{low:+.3g}, {high:+.3g}] {verdict}{share}"
+    def verdict(low, high):
+        said = "**baseline better**" if low > 0 else "**baseline worse**" if high < 0 else "n.s."
+        share = "" if fraction is None else f", baseline better on {100 * fraction:.0f} %"
+        return f" {said}{share}"
+
+    return _common.difference_cell(diff, verdict)
 
 
 def table(results: dict) -> str:

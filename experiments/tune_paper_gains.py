@@ -375,13 +375,10 @@ def main(argv=None) -> int:
 
 
 def _minus_paper(cost: dict) -> str:
-    diff, frac = cost["minus_paper"], cost["better_than_paper_fraction"]
-    if diff["mean"] is None:
-        return "n/a"
-    if not diff["ci95"]:
-        return f"{diff['mean']:+.3g}"
-    low, high = diff["ci95"]
-    return f"{diff['mean']:+.3g} [{low:+.3g}, {high:+.3g}], better on {100 * frac:.0f} %"
+    def share(low, high):
+        return f", better on {100 * cost['better_than_paper_fraction']:.0f} %"
+
+    return _common.difference_cell(cost["minus_paper"], share)
 
 
 def table(results: dict) -> str:

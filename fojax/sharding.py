@@ -190,14 +190,7 @@ def distributed_settings(
     return dict.fromkeys(_SETTINGS) | values | {"joined": joined}
 
 
-def initialize(
-    coordinator_address: str | None = None,
-    num_processes: int | None = None,
-    process_id: int | None = None,
-    detect: bool = True,
-    names: dict[str, str] | None = None,
-    settings: process_settings.Settings | None = None,
-) -> dict[str, int]:
+def initialize(**options: Any) -> dict[str, int]:
     """Join a multi-process run through :func:`jax.distributed.initialize`, if there is one.
 
     Joins when any argument is given, when any of ``JAX_COORDINATOR_ADDRESS``,
@@ -206,11 +199,11 @@ def initialize(
     :func:`detect_cluster` finds a cluster job of more than one process (e.g. ``srun``
     with several tasks); otherwise this is a single-process run and nothing is done.
     Incomplete or inconsistent settings are a ``ValueError`` naming the setting, raised
-    before anything starts (:func:`distributed_settings`, whose ``names`` this passes
-    on; ``settings``: the variables, default read now). Call it before any other JAX
-    call that touches devices; a second call after
-    joining does nothing. On CPUs the processes exchange results through JAX's CPU
-    collectives (gloo).
+    before anything starts. ``options``: those of :func:`distributed_settings`
+    (``coordinator_address``, ``num_processes``, ``process_id``, ``detect``, ``names``,
+    ``settings``), which checks them. Call it before any other JAX call that touches
+    devices; a second call after joining does nothing. On CPUs the processes exchange
+    results through JAX's CPU collectives (gloo).
 
     Returns ``{"process_index", "process_count", "device_count", "local_device_count",
     "joined"}`` (``joined``: how the run was joined: ``"arguments"``, ``"environment"``,
@@ -220,9 +213,7 @@ def initialize(
     if jax.distributed.is_initialized():
         joined = "earlier"
     else:
-        chosen = distributed_settings(
-            coordinator_address, num_processes, process_id, detect, names, settings
-        )
+        chosen = distributed_settings(**options)
         if chosen is not None:
             joined = chosen.pop("joined")
             jax.distributed.initialize(**chosen)

@@ -148,3 +148,28 @@ def drive(evaluate, strategy, x0, requests: int):
         request = strategy.ask(state)
         state = strategy.tell(state, request, evaluate(request))
     return state
+
+
+def usage_error(capsys, main, argv) -> str:
+    """stderr of ``main(argv)``, which must exit with argparse's status 2 and no traceback.
+    Import it: ``from conftest import usage_error``."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+def run_python(*args: str, env=None, timeout: float = 600) -> str:
+    """stdout of ``python *args`` (e.g. ``"-c", script``) in a fresh process, which must
+    exit with status 0 (its stderr's end is the failure's message). Import it:
+    ``from conftest import run_python``."""
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, *args], env=env, capture_output=True, text=True, timeout=timeout
+    )
+    assert done.returncode == 0, done.stderr[-4000:]
+    return done.stdout

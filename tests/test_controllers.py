@@ -1,6 +1,6 @@
 """The compared controllers (FL, BSMC, FOBSMC, ANFTSMC): hover, slow tracking,
 constant-disturbance rejection within each one's documented bound, gains checks and
-gradients.
+gradients; the configuration checks of every law (the AFONFTSMC's too).
 
 The closed loop here is the exact nominal plant (no drag variation) with a reference
 and a disturbance passed as traced arguments, so that one compiled function per
@@ -18,6 +18,7 @@ from jax import lax
 
 from fojax import observers, plant, scenarios, simulator
 from fojax.controllers import Bounds, Observation, registry
+from fojax.controllers.afonftsmc import AFONFTSMC
 from fojax.controllers.anftsmc import ANFTSMC
 from fojax.controllers.backstepping import BSMC, FOBSMC
 from fojax.controllers.fl import FL
@@ -244,16 +245,26 @@ def test_bad_gains_are_rejected(name, field, value, match):
         cls.check_gains(cls.default_gains()._replace(**{field: jnp.ones(4)}))
 
 
-def test_bad_configuration_is_rejected():
-    with pytest.raises(ValueError, match="switching"):
-        BSMC(switching="signum")
-    with pytest.raises(ValueError, match="dt"):
-        FL(dt=0.0)
-    with pytest.raises(ValueError, match="filter_frequency"):
-        registry.make_controller("anftsmc", filter_frequency=-1.0)
-    with pytest.raises(ValueError, match="unknown method"):
-        FOBSMC(fractional_method="crone")
-    # An option no controller has is an error that names the likely one.
+@pytest.mark.parametrize(
+    "law, options, match",
+    [
+        (BSMC, {"switching": "signum"}, "switching"),
+        (AFONFTSMC, {"switching": "signum"}, "switching"),
+        (FL, {"dt": 0.0}, "dt"),
+        (AFONFTSMC, {"dt": 0.0}, "dt"),
+        ("anftsmc", {"filter_frequency": -1.0}, "filter_frequency"),  # the cascade's
+        (FOBSMC, {"fractional_method": "crone"}, "unknown method"),
+        (AFONFTSMC, {"fractional_method": "crone"}, "unknown method"),
+    ],
+)
+def test_bad_configuration_is_rejected(law, options, match):
+    """A law class, or a registered name (the whole controller)."""
+    make = functools.partial(registry.make_controller, law) if isinstance(law, str) else law
+    with pytest.raises(ValueError, match=match):
+        make(**options)
+
+
+def test_an_unknown_option_names_the_likely_one():
     with pytest.raises(TypeError, match="did you mean 'switching'"):
         registry.make_controller("afonftsmc", swiching="sat")
 

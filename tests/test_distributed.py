@@ -22,22 +22,9 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 SIMULATE = [
-    "simulate",
-    "--scenario",
-    "3",
-    "--controller",
-    "afonftsmc",
-    "--draws",
-    "120",
-    "--device-batch",
-    "20",
-    "--horizon",
-    "0.2",
-    "--seed",
-    "11",
-    "--quiet",
-    "--no-figures",
-]
+    "simulate", "--scenario", "3", "--controller", "afonftsmc", "--draws", "120",
+    "--device-batch", "20", "--horizon", "0.2", "--seed", "11", "--quiet", "--no-figures",
+]  # fmt: skip
 
 
 def _free_port() -> int:

@@ -2,13 +2,12 @@
 last key; the same numbers as a direct call; a bounded cache of evaluators."""
 
 import dataclasses
-import subprocess
-import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import run_python
 
 from fojax import blocks, metrics, plant, scenarios, sharding, simulator, study
 from fojax.controllers import registry
@@ -78,11 +77,7 @@ print(mesh.devices.size)
 def test_blocks_split_over_two_devices():
     """Two calls of one block per device for 5 draws in blocks of 2 (3 keys of padding),
     each draw where its block puts it."""
-    done = subprocess.run(
-        [sys.executable, "-c", _TWO_DEVICES], capture_output=True, text=True, timeout=300
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.split() == ["2"]
+    assert run_python("-c", _TWO_DEVICES, timeout=300).split() == ["2"]
 
 
 def test_bad_blocks_are_named():

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import usage_error
 
 from experiments import fair_comparison
 from fojax.controllers import registry
@@ -21,10 +22,7 @@ from fojax.controllers import registry
     ],
 )
 def test_bad_arguments_fail_before_compiling(capsys, argv, message):
-    with pytest.raises(SystemExit) as info:
-        fair_comparison.parse_args(argv)
-    assert info.value.code == 2
-    assert message in capsys.readouterr().err
+    assert message in usage_error(capsys, fair_comparison.parse_args, argv)
 
 
 def test_default_study_tunes_every_controller_from_its_defaults():

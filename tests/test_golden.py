@@ -52,15 +52,23 @@ def _options(method: str) -> tuple:
     return SOE_OPTIONS if method == "soe" else ()
 
 
-def _law_options(name: str, switching: str, method: str) -> dict:
-    """The case's switching and fractional settings that law ``name`` takes (the FL
-    takes neither, the BSMC and ANFTSMC no fractional method)."""
+def _setup(case, horizon: float):
+    """The case's scenario, configuration, controller (with the switching and fractional
+    settings that its law takes: the FL neither, the BSMC and ANFTSMC no fractional
+    method) and the controller's default gains in float64."""
+    from fojax import scenarios, simulator
     from fojax.controllers import registry
 
+    name, scenario_id, switching, method = case
     shared = dict(
         switching=switching, fractional_method=method, fractional_options=_options(method)
     )
-    return registry.options_for(name, shared)
+    controller = registry.make_controller(
+        name, dt=1e-3, horizon=horizon, **registry.options_for(name, shared)
+    )
+    config = simulator.SimulationConfig(dt=1e-3, horizon=horizon, save_every=SAVE_EVERY)
+    gains = jax.tree.map(lambda g: jnp.asarray(g, jnp.float64), controller.default_gains())
+    return scenarios.get_scenario(scenario_id), config, controller, gains
 
 
 def _key(kind, case) -> str:
@@ -68,17 +76,10 @@ def _key(kind, case) -> str:
 
 
 def _forward(case) -> dict[str, np.ndarray]:
-    from fojax import scenarios, simulator, study
-    from fojax.controllers import registry
+    from fojax import scenarios, study
 
-    name, scenario_id, switching, method = case
-    scenario = scenarios.get_scenario(scenario_id)
-    config = simulator.SimulationConfig(dt=1e-3, horizon=FORWARD_HORIZON, save_every=SAVE_EVERY)
-    controller = registry.make_controller(
-        name, dt=1e-3, horizon=FORWARD_HORIZON, **_law_options(name, switching, method)
-    )
+    scenario, config, controller, gains = _setup(case, FORWARD_HORIZON)
     runner = study.make_chunk_runner(controller, scenario, config, dtype=jnp.float64)
-    gains = jax.tree.map(lambda g: jnp.asarray(g, jnp.float64), controller.default_gains())
     status, metrics, snapshots = runner(gains, scenarios.draw_keys(SEED, DRAWS))
     out = {"status": np.asarray(status)}
     out.update({f"metric.{k}": np.asarray(v) for k, v in metrics.items()})
@@ -90,20 +91,13 @@ def _forward(case) -> dict[str, np.ndarray]:
 
 
 def _gradient(case) -> dict[str, np.ndarray]:
-    from fojax import scenarios, simulator
-    from fojax.controllers import registry
+    from fojax import scenarios
     from fojax.optimize import cost as cost_lib
 
-    name, scenario_id, switching, method = case
-    scenario = scenarios.get_scenario(scenario_id)
-    config = simulator.SimulationConfig(dt=1e-3, horizon=GRADIENT_HORIZON, save_every=SAVE_EVERY)
-    controller = registry.make_controller(
-        name, dt=1e-3, horizon=GRADIENT_HORIZON, **_law_options(name, switching, method)
-    )
+    scenario, config, controller, gains = _setup(case, GRADIENT_HORIZON)
     batch_cost = cost_lib.make_batch_cost(
         controller, scenario, config, cost_lib.CostConfig(), jnp.float64
     )
-    gains = jax.tree.map(lambda g: jnp.asarray(g, jnp.float64), controller.default_gains())
     # Per-draw gradients as the tuner takes them: one batch-last rollout, one copy of the
     # gains per draw.
     grad = jax.jit(lambda g, keys: cost_lib.per_draw_gradients(batch_cost, g, keys))

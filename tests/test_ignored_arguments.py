@@ -13,6 +13,7 @@ import json
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import usage_error
 
 from fojax import metrics, scenarios, simulator, study
 from fojax.controllers import FL, gains_io, make_controller, paper_gains
@@ -160,10 +161,8 @@ def test_metadata_that_is_not_an_object_is_an_error(tmp_path, metadata):
 def test_fair_comparison_refuses_adams_step_for_lbfgs(capsys):
     from experiments import fair_comparison
 
-    with pytest.raises(SystemExit) as info:
-        fair_comparison.parse_args(["--learning-rate", "0.2"])
-    assert info.value.code == 2
-    assert "--learning-rate applies to --method adam only" in capsys.readouterr().err
+    err = usage_error(capsys, fair_comparison.parse_args, ["--learning-rate", "0.2"])
+    assert "--learning-rate applies to --method adam only" in err
     args = fair_comparison.parse_args(["--method", "adam", "--learning-rate", "0.2"])
     assert args.learning_rate == 0.2
     assert fair_comparison.parse_args([]).learning_rate == 0.1

@@ -4,11 +4,10 @@ save time; the commands do not), for the AFONFTSMC and the FOBSMC (whose dots XL
 CPU library kernels round according to a draw's place in its batch)."""
 
 import os
-import subprocess
-import sys
 import textwrap
 
 import pytest
+from conftest import run_python
 
 _SCRIPT = textwrap.dedent(
     """
@@ -50,8 +49,5 @@ def test_draws_are_bit_identical_across_draw_counts_and_devices():
     flags = env.get("XLA_FLAGS", "").replace("--xla_backend_optimization_level=0", "")
     env["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count=2".strip()
     env["JAX_PLATFORMS"] = "cpu"
-    done = subprocess.run(
-        [sys.executable, "-c", _SCRIPT], env=env, capture_output=True, text=True, timeout=900
-    )
-    assert done.returncode == 0, done.stderr[-4000:]
-    assert done.stdout.count("IDENTICAL") == 3, done.stdout
+    out = run_python("-c", _SCRIPT, env=env, timeout=900)
+    assert out.count("IDENTICAL") == 3, out

@@ -5,14 +5,13 @@ No test here asserts a speed; speed lives in ``fojax bench``.
 
 import json
 import os
-import subprocess
-import sys
 import textwrap
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import run_python
 from jax import lax
 
 from fojax import fractional, observers, plant, scenarios, sharding, simulator
@@ -154,15 +153,7 @@ def test_sharded_run_is_identical_to_single_device_run():
     # Keep the suite's flags (conftest), add the four host devices.
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"
     env["JAX_PLATFORMS"] = "cpu"
-    done = subprocess.run(
-        [sys.executable, "-c", _SHARDED_SCRIPT],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert done.returncode == 0, done.stderr[-4000:]
-    assert "IDENTICAL" in done.stdout
+    assert "IDENTICAL" in run_python("-c", _SHARDED_SCRIPT, env=env)
 
 
 def test_sharding_validates_before_placing():

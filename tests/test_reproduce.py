@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import usage_error
 from scipy import stats
 
 from fojax import cli
@@ -12,13 +13,6 @@ from fojax.cli import output, reproduce
 from fojax.cli.reproduce import figures as paper_figures
 from fojax.controllers import registry
 from fojax.controllers.afonftsmc import AFONFTSMC
-
-
-def _error(capsys, argv):
-    with pytest.raises(SystemExit) as info:
-        reproduce.parse_args(argv)
-    assert info.value.code == 2
-    return capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -38,7 +32,7 @@ def _error(capsys, argv):
     ],
 )
 def test_bad_arguments_fail_before_compiling(capsys, tmp_path, argv, message):
-    assert message in _error(capsys, argv + ["--out", str(tmp_path)])
+    assert message in usage_error(capsys, reproduce.parse_args, argv + ["--out", str(tmp_path)])
 
 
 def test_default_run_covers_every_scenario_and_controller(tmp_path):

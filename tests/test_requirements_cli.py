@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import usage_error
 
 from fojax import cli
 from fojax import requirements as rq
@@ -44,15 +45,6 @@ def tiny(tmp_path_factory):
     return path
 
 
-def _exit_2(capsys, run, argv):
-    with pytest.raises(SystemExit) as info:
-        run(argv)
-    assert info.value.code == 2
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    return err
-
-
 BAD_FILES = [
     ('[[requirements]]\nname = "a"\nmetric = "overshoot"\nmax = 1\nunit = "m"\n',
      "unknown metric 'overshoot'"),
@@ -82,26 +74,22 @@ def test_bad_requirement_file_exits_2_before_compiling(
     out = tmp_path / "out"
     base = BASE_SIMULATE if command == "simulate" else BASE_TUNE
     argv = [command, *base, "--requirements", str(path), "--out", str(out)]
-    with pytest.raises(SystemExit) as info:
-        cli.main(argv)
-    assert info.value.code == 2
-    err = capsys.readouterr().err
+    err = usage_error(capsys, cli.main, argv)
     assert "argument --requirements" in err and message in err
-    assert "Traceback" not in err
     assert not out.exists()
 
 
 def test_missing_file_and_bad_rotor_limit(tmp_path, capsys, tiny):
     out = ["--out", str(tmp_path / "o")]
-    err = _exit_2(
+    err = usage_error(
         capsys,
         simulate.parse_args,
         [*BASE_SIMULATE, "--requirements", str(tmp_path / "none.toml"), *out],
     )
     assert "requirement file" in err and "does not exist" in err
-    err = _exit_2(capsys, simulate.parse_args, [*BASE_SIMULATE, "--rotor-limit", "1", *out])
+    err = usage_error(capsys, simulate.parse_args, [*BASE_SIMULATE, "--rotor-limit", "1", *out])
     assert "argument --rotor-limit" in err and "cannot hover" in err
-    err = _exit_2(capsys, tune.parse_args, [*BASE_TUNE, "--rotor-limit", "abc", *out])
+    err = usage_error(capsys, tune.parse_args, [*BASE_TUNE, "--rotor-limit", "abc", *out])
     assert "argument --rotor-limit" in err
 
 
@@ -121,7 +109,7 @@ def test_missing_file_and_bad_rotor_limit(tmp_path, capsys, tiny):
 )
 def test_tune_options_that_do_not_apply_with_requirements(tmp_path, capsys, tiny, extra, message):
     argv = [*BASE_TUNE, "--requirements", str(tiny), *extra, "--out", str(tmp_path / "o")]
-    err = _exit_2(capsys, tune.parse_args, argv)
+    err = usage_error(capsys, tune.parse_args, argv)
     assert message in err
     assert err.strip().splitlines()[-1].startswith("fojax tune: error:")
 
@@ -136,7 +124,7 @@ def test_tune_options_that_do_not_apply_with_requirements(tmp_path, capsys, tiny
 )
 def test_requirement_options_without_requirements(tmp_path, capsys, extra, message):
     argv = [*BASE_TUNE, *extra, "--out", str(tmp_path / "o")]
-    assert message in _exit_2(capsys, tune.parse_args, argv)
+    assert message in usage_error(capsys, tune.parse_args, argv)
 
 
 def test_tune_defaults_with_requirements(tmp_path, tiny):
@@ -205,7 +193,7 @@ def test_tune_to_requirements_resumes_to_the_uninterrupted_gains(tmp_path, tuned
         ]  # fmt: skip
 
     assert cli.main(argv(1)) == 0
-    assert "holds the checkpoint of an earlier run" in _exit_2(capsys, cli.main, argv(2))
+    assert "holds the checkpoint of an earlier run" in usage_error(capsys, cli.main, argv(2))
     assert cli.main(argv(2, "--resume")) == 0
     got = json.loads((out / "gains.json").read_text())
     want = json.loads((tuned / "gains.json").read_text())
@@ -214,9 +202,9 @@ def test_tune_to_requirements_resumes_to_the_uninterrupted_gains(tmp_path, tuned
     history = (out / "history.csv").read_text().splitlines()
     assert history == (tuned / "history.csv").read_text().splitlines() or len(history) == 8
     assert len(json.loads((out / "run.json").read_text())["sessions"]) == 2
-    changed = _exit_2(capsys, cli.main, argv(2, "--resume", "--margin", "0.1"))
+    changed = usage_error(capsys, cli.main, argv(2, "--resume", "--margin", "0.1"))
     assert "differs in:" in changed and "strategy.margin: checkpoint 0.05, now 0.1" in changed
-    missing = _exit_2(capsys, cli.main, argv(1, "--resume", folder=tmp_path / "none"))
+    missing = usage_error(capsys, cli.main, argv(1, "--resume", folder=tmp_path / "none"))
     assert "nothing to resume" in missing
 
 

@@ -2,11 +2,10 @@
 default, a flag and a variable to turn it off) and joining a multi-process run."""
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_python, usage_error
 
 from fojax import cli
 from fojax.cli import arguments, reproduce, simulate, tune
@@ -44,11 +43,8 @@ def test_cache_folder_follows_xdg_and_the_variable(monkeypatch, tmp_path):
 def test_bad_distributed_options_exit_2_with_a_message(capsys, monkeypatch, argv, message):
     for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"):
         monkeypatch.delenv(name, raising=False)
-    with pytest.raises(SystemExit) as info:
-        arguments.setup_runtime(argv, "fojax simulate")
-    assert info.value.code == 2
-    err = capsys.readouterr().err
-    assert message in err and "Traceback" not in err
+    err = usage_error(capsys, lambda argv: arguments.setup_runtime(argv, "fojax simulate"), argv)
+    assert message in err
 
 
 def test_every_command_has_the_runtime_options():
@@ -112,10 +108,8 @@ def test_bad_distributed_variables_exit_2_with_a_message(capsys, monkeypatch, va
     _clean(monkeypatch)
     for name, value in variables.items():
         monkeypatch.setenv(name, value)
-    with pytest.raises(SystemExit) as info:
-        arguments.setup_runtime([], "fojax simulate")
-    assert info.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    err = usage_error(capsys, lambda argv: arguments.setup_runtime(argv, "fojax simulate"), [])
+    err = err.strip().splitlines()
     assert message in err[-1] and len(err) == 3  # usage (2 lines), then one line
 
 
@@ -205,15 +199,8 @@ sys.exit(status)
 def _simulate(tmp_path, name, env, *extra):
     argv = ["simulate", "--scenario", "3", "--controller", "fl", "--draws", "2"]
     argv += ["--horizon", "0.05", "--no-figures", "--quiet", "--out", str(tmp_path / name)]
-    done = subprocess.run(
-        [sys.executable, "-c", _COUNT_CACHE, *argv, *extra],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    hits, misses = (int(v) for v in done.stdout.split("CACHE")[1].split())
+    out = run_python("-c", _COUNT_CACHE, *argv, *extra, env=env)
+    hits, misses = (int(v) for v in out.split("CACHE")[1].split())
     return hits, misses
 
 

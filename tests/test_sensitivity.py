@@ -4,11 +4,10 @@ against ``fojax.study.run``, the report's logic, one tiny end-to-end run."""
 import dataclasses
 import json
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from conftest import run_python, usage_error
 
 from experiments import sensitivity, sensitivity_report
 
@@ -124,10 +123,7 @@ def test_run_keys_are_the_same_in_another_process():
         "p = s.make_plan(s.SETTINGS[:4], 0.2, 3, 2, 0); "
         "print(' '.join(s.run_key(r, None, 0) for r in p.runs))"
     )
-    other = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True
-    ).stdout.split()
-    assert other == keys
+    assert run_python("-c", code).split() == keys
 
 
 # --------------------------------------------------------------------------- runner
@@ -292,10 +288,7 @@ def test_document_keeps_the_text_above_the_marker(tmp_path):
     ],
 )
 def test_bad_arguments(capsys, argv, message):
-    with pytest.raises(SystemExit) as info:
-        sensitivity.parse_args(argv)
-    assert info.value.code == 2
-    assert message in capsys.readouterr().err
+    assert message in usage_error(capsys, sensitivity.parse_args, argv)
 
 
 def test_a_setting_brings_its_reference():

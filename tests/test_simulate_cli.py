@@ -2,11 +2,10 @@
 
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from conftest import run_python, usage_error
 
 from fojax import cli
 from fojax.cli import arguments, simulate
@@ -14,13 +13,6 @@ from fojax.controllers import gains_io
 from fojax.controllers.afonftsmc import paper_gains
 
 BASE = ["--scenario", "2", "--controller", "afonftsmc", "--draws", "3"]
-
-
-def _error(capsys, argv):
-    with pytest.raises(SystemExit) as info:
-        simulate.parse_args(argv)
-    assert info.value.code == 2
-    return capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -40,7 +32,7 @@ def _error(capsys, argv):
     ],
 )
 def test_bad_arguments_fail_before_compiling(capsys, tmp_path, argv, message):
-    err = _error(capsys, argv + ["--out", str(tmp_path)])
+    err = usage_error(capsys, simulate.parse_args, argv + ["--out", str(tmp_path)])
     assert message in err
 
 
@@ -58,7 +50,11 @@ def test_an_option_the_controller_does_not_take_is_an_error(
     capsys, tmp_path, controller, extra, message
 ):
     argv = ["--scenario", "2", "--controller", controller, "--draws", "3", *extra]
-    last = _error(capsys, argv + ["--out", str(tmp_path)]).strip().splitlines()[-1]
+    last = (
+        usage_error(capsys, simulate.parse_args, argv + ["--out", str(tmp_path)])
+        .strip()
+        .splitlines()[-1]
+    )
     assert last.startswith("fojax simulate: error: ") and message in last, last
 
 
@@ -118,13 +114,17 @@ def test_gains_files_are_validated(capsys, tmp_path):
     }
     for label, (document, message) in cases.items():
         path = _write(tmp_path / f"{label}.json", document)
-        err = _error(capsys, BASE + ["--gains", str(path), "--out", str(tmp_path)])
+        err = usage_error(
+            capsys, simulate.parse_args, BASE + ["--gains", str(path), "--out", str(tmp_path)]
+        )
         assert message in err, (label, err)
     broken = tmp_path / "broken.json"
     broken.write_text("{not json")
-    assert "not valid JSON" in _error(capsys, BASE + ["--gains", str(broken), "--out", "x"])
-    assert "does not exist" in _error(
-        capsys, BASE + ["--gains", str(tmp_path / "no.json"), "--out", "x"]
+    assert "not valid JSON" in usage_error(
+        capsys, simulate.parse_args, BASE + ["--gains", str(broken), "--out", "x"]
+    )
+    assert "does not exist" in usage_error(
+        capsys, simulate.parse_args, BASE + ["--gains", str(tmp_path / "no.json"), "--out", "x"]
     )
 
 
@@ -148,27 +148,10 @@ def test_simulate_end_to_end_tiny(tmp_path, capsys, monkeypatch):
     gains_io.save_gains(gains_path, "afonftsmc", paper_gains())
     out = tmp_path / "run"
     argv = [
-        "simulate",
-        "--scenario",
-        "3",
-        "--controller",
-        "afonftsmc",
-        "--draws",
-        "3",
-        "--device-batch",
-        "2",
-        "--horizon",
-        "0.2",
-        "--seed",
-        "5",
-        "--switching",
-        "sat",
-        "--gains",
-        str(gains_path),
-        "--out",
-        str(out),
-        "--quiet",
-    ]
+        "simulate", "--scenario", "3", "--controller", "afonftsmc", "--draws", "3",
+        "--device-batch", "2", "--horizon", "0.2", "--seed", "5", "--switching", "sat",
+        "--gains", str(gains_path), "--out", str(out), "--quiet",
+    ]  # fmt: skip
     assert cli.main(argv) == 0
     summary = json.loads((out / "summary.json").read_text())
     entry = summary["controllers"]["afonftsmc"]
@@ -277,16 +260,8 @@ print(jax.local_device_count(), "XLA_FLAGS" in os.environ)
 def test_host_devices_are_set_before_jax_starts_and_never_after():
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env["JAX_PLATFORMS"] = "cpu"
-    done = subprocess.run(
-        [sys.executable, "-c", _HOST_DEVICES_SCRIPT],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.split()[0] == "3"
-    assert done.stdout.split()[1] == "False"  # through jax.config, not the environment
+    out = run_python("-c", _HOST_DEVICES_SCRIPT, env=env, timeout=120).split()
+    assert out[:2] == ["3", "False"]  # through jax.config, not the environment
     # In this process JAX has started: the flag is left as it is.
     import jax
 

@@ -136,12 +136,7 @@ def test_bad_gains_are_rejected(field, value, match):
 
 
 def test_bad_configuration_is_rejected():
-    with pytest.raises(ValueError, match="switching"):
-        AFONFTSMC(switching="signum")
-    with pytest.raises(ValueError, match="dt"):
-        AFONFTSMC(dt=0.0)
-    with pytest.raises(ValueError, match="unknown method"):
-        AFONFTSMC(fractional_method="crone")
+    # The laws' own settings: tests/test_controllers.py.
     with pytest.raises(ValueError, match="horizon"):
         simulator.SimulationConfig(horizon=-1.0)
     with pytest.raises(ValueError, match="dt"):

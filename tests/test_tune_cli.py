@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import usage_error
 
 from fojax import cli
 from fojax.cli import simulate, tune
@@ -18,13 +19,6 @@ SMALL = [
     "--seed", "5", "--dtype", "float64", "--effort-weight", "1e-3",
     "--chattering-weight", "1e-3", "--attitude-weight", "2", "--init", "naive",
 ]  # fmt: skip
-
-
-def _error(capsys, argv):
-    with pytest.raises(SystemExit) as info:
-        tune.parse_args(argv)
-    assert info.value.code == 2
-    return capsys.readouterr().err
 
 
 def _write(path, document):
@@ -73,7 +67,7 @@ def _write(path, document):
 def test_bad_arguments_fail_before_anything_is_written(capsys, tmp_path, extra, message):
     out = tmp_path / "run"
     argv = SMALL + ["--steps", "2"] + extra + ["--out", str(out)]  # later options win
-    err = _error(capsys, argv)
+    err = usage_error(capsys, tune.parse_args, argv)
     assert message in err, err
     assert not out.exists()
 
@@ -106,10 +100,16 @@ def test_initial_gains_files_are_validated(capsys, tmp_path):
     }
     for label, (document, message) in cases.items():
         path = _write(tmp_path / f"{label}.json", document)
-        err = _error(capsys, SMALL + ["--steps", "2", "--init", str(path), "--out", str(out)])
+        err = usage_error(
+            capsys,
+            tune.parse_args,
+            SMALL + ["--steps", "2", "--init", str(path), "--out", str(out)],
+        )
         assert message in err, (label, err)
-    err = _error(
-        capsys, SMALL + ["--steps", "2", "--init", str(tmp_path / "no.json"), "--out", str(out)]
+    err = usage_error(
+        capsys,
+        tune.parse_args,
+        SMALL + ["--steps", "2", "--init", str(tmp_path / "no.json"), "--out", str(out)],
     )
     assert "does not exist" in err
     assert not out.exists()
@@ -167,12 +167,16 @@ def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     checkpoint = out / "checkpoint.npz"
     before = checkpoint.read_bytes()
     # A fresh start over the checkpoint, or a resume with other settings, is refused.
-    err = _error(capsys, argv + ["--out", str(out)])
+    err = usage_error(capsys, tune.parse_args, argv + ["--out", str(out)])
     assert "pass --resume" in err
-    err = _error(capsys, argv + ["--resume", "--max-step", "0.5", "--out", str(out)])
+    err = usage_error(
+        capsys, tune.parse_args, argv + ["--resume", "--max-step", "0.5", "--out", str(out)]
+    )
     assert "another configuration" in err
     assert "strategy.second.max_step: checkpoint 1.0, now 0.5" in err
-    err = _error(capsys, argv + ["--resume", "--objective", "cvar", "--out", str(out)])
+    err = usage_error(
+        capsys, tune.parse_args, argv + ["--resume", "--objective", "cvar", "--out", str(out)]
+    )
     assert 'objective.problem.cost.objective: checkpoint "mean", now "cvar"' in err
     assert checkpoint.read_bytes() == before
     # Resuming a finished run changes nothing (its sessions are logged in run.json).

@@ -8,6 +8,12 @@ import numpy as np
 import pytest
 
 
+def _tiny_results(module, out) -> dict:
+    """results.json of ``module``'s seconds-long version, run into ``out``."""
+    assert module.main(["--tiny", "--quiet", "--out", str(out)]) == 0
+    return json.loads((out / "results.json").read_text())
+
+
 @pytest.mark.slow
 def test_tuning_study_tiny(tmp_path):
     import jax.numpy as jnp
@@ -72,8 +78,7 @@ def test_remark3_tiny(tmp_path):
     from experiments import remark3
 
     out = tmp_path / "remark3"
-    assert remark3.main(["--tiny", "--quiet", "--out", str(out)]) == 0
-    results = json.loads((out / "results.json").read_text())
+    results = _tiny_results(remark3, out)
     point = results["paper_point"]
     # The reverse-mode gradient agrees with a central finite difference along it.
     assert point["finite_difference"] == pytest.approx(point["directional_derivative"], rel=1e-4)
@@ -175,8 +180,7 @@ def test_remark3_inverted_tiny(tmp_path):
     from experiments import remark3_inverted
 
     out = tmp_path / "inverted"
-    assert remark3_inverted.main(["--tiny", "--quiet", "--out", str(out)]) == 0
-    results = json.loads((out / "results.json").read_text())
+    results = _tiny_results(remark3_inverted, out)
     # Every Jacobian row agrees with a central finite difference (surrogates excepted).
     check = results["finite_difference_check"]
     assert max(e["relative_error"] for e in check.values()) < 1e-4

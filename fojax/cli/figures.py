@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -282,6 +283,99 @@ def _read_history(path: Path) -> dict[str, list[float]]:
     return columns
 
 
+class _Progress(NamedTuple):
+    """What a tuning run's ``history.csv`` shows, read for :func:`plot_convergence`."""
+
+    history: dict[str, list[float]]
+    step: np.ndarray
+    wall: np.ndarray
+    validation: np.ndarray  # NaN where a step has none
+    start: float | None  # the validation score at the start (step 0)
+    yields: bool  # the validation score is a yield (a right axis from 0 to 1)
+    lower: list[str]  # the columns of the lower panels: grad_norm and/or sigma
+    show_mean: bool  # the sample's mean target differs from the loss
+    diverged: np.ndarray  # steps with diverged draws
+
+
+def _read_progress(history_csv: Path, evaluation: dict | None, start: float | None) -> _Progress:
+    h = _read_history(history_csv)
+    if not h.get("step"):
+        raise ValueError(f"{history_csv} holds no step")
+    step, wall = np.asarray(h["step"]), np.asarray(h["wall_time_s"])
+    validation = np.asarray(h.get("validation", [math.nan] * len(step)))
+    yields = evaluation is not None and "yield" in evaluation.get("initial", {})
+    if start is not None:
+        yields = yields or (np.nanmax(validation, initial=0) <= 1 and start <= 1)
+    lower = [k for k in ("grad_norm", "sigma") if np.isfinite(h.get(k, [math.nan])).any()]
+    show_mean = not np.allclose(h["loss"], h["mean_target"], rtol=1e-6, equal_nan=True)
+    diverged = np.asarray(h.get("diverged", [0] * len(step))) > 0
+    return _Progress(h, step, wall, validation, start, yields, lower, show_mean, diverged)
+
+
+# Colours of plot_convergence (Okabe-Ito).
+_DARK, _BLUE, _RED, _ORANGE, _GREEN = "#333333", "#0072B2", "#D55E00", "#E69F00", "#009E73"
+
+
+def _draw_progress(top, bottom, col: int, x: np.ndarray, p: _Progress, evaluation) -> None:
+    """One column of :func:`plot_convergence`: the run against ``x`` (step or wall time)."""
+    h = p.history
+    top.plot(x, h["loss"], color=_DARK, lw=1.4, marker="o", ms=2.5, zorder=4)
+    if p.show_mean:
+        top.plot(x, h["mean_target"], color=_BLUE, lw=0.9)
+    top.plot(x, h["max_target"], color=_BLUE, lw=0.8, ls=":")
+    if p.diverged.any():
+        top.scatter(
+            x[p.diverged], np.asarray(h["loss"])[p.diverged], marker="x", color=_RED, zorder=5
+        )
+    right = top.twinx() if p.yields else top
+    known = np.isfinite(p.validation)
+    vx, vy = x[known], p.validation[known]
+    if p.start is not None:
+        vx, vy = np.concatenate([[0.0], vx]), np.concatenate([[p.start], vy])
+    if vy.size:
+        # a validation holds until the next one: steps in both panels
+        right.plot(vx, vy, color=_ORANGE, lw=1.2, marker="s", ms=4, zorder=5,
+                   drawstyle="steps-post")  # fmt: skip
+    if evaluation and "initial" in evaluation:
+        held = [_held_number(evaluation[k]) for k in ("initial", "tuned")]
+        where = [0, x[-1]] if col == 0 else [x[-1]]
+        right.plot(where, held if col == 0 else held[1:], ls="none", marker="D", ms=7,
+                   mfc="white", mec=_GREEN, mew=2, zorder=6)  # fmt: skip
+    if p.yields:
+        right.set_ylim(-0.02, 1.02)
+        right.set_ylabel("yield (validation, held-out)" if col else "")
+    for key, color in zip(p.lower, (_DARK, _GREEN), strict=False):
+        bottom.plot(x, h[key], color=color, lw=1.2, marker="o", ms=2.5)
+
+
+_LOWER_NAMES = {"grad_norm": "gradient norm", "sigma": "CMA-ES step size"}
+
+
+def _progress_handles(p: _Progress, evaluation) -> list:
+    """The legend of :func:`plot_convergence`."""
+    from matplotlib.lines import Line2D
+
+    best = p.history.get("best_step", [math.nan])[-1]
+    handles = [
+        Line2D([], [], color=_DARK, lw=1.4, marker="o", ms=2.5, label="loss (best point)"),
+        *([Line2D([], [], color=_BLUE, lw=0.9, label="sample mean target")] if p.show_mean else []),
+        Line2D([], [], color=_BLUE, lw=0.8, ls=":", label="sample worst target"),
+        Line2D([], [], color=_ORANGE, lw=1.2, marker="s", ms=4,
+               label=f"validation {'yield' if p.yields else 'cost'} (returned: step {best:.0f})"),
+    ]  # fmt: skip
+    if p.diverged.any():
+        handles.append(Line2D([], [], ls="none", marker="x", color=_RED, label="diverged draws"))
+    if evaluation and "initial" in evaluation:
+        label = (f"held-out, initial and tuned ({evaluation['draws']} draws, "
+                 f"{evaluation['switching']}, {evaluation['horizon_s']:g} s)")  # fmt: skip
+        handles.append(Line2D([], [], ls="none", marker="D", ms=7, mfc="white", mec=_GREEN,
+                              mew=2, label=label))  # fmt: skip
+    return handles + [
+        Line2D([], [], color=color, lw=1.2, marker="o", ms=2.5, label=_LOWER_NAMES[key])
+        for key, color in zip(p.lower, (_DARK, _GREEN), strict=False)
+    ]
+
+
 def plot_convergence(
     history_csv: Path,
     path: Path,
@@ -296,67 +390,12 @@ def plot_convergence(
     against step (left) and wall time (right). Steps with diverged draws are marked; the
     held-out score of the initial and the tuned gains is drawn where ``evaluation`` has
     it."""
-    from matplotlib.lines import Line2D
-
-    h = _read_history(history_csv)
-    if not h.get("step"):
-        raise ValueError(f"{history_csv} holds no step")
-    step, wall = np.asarray(h["step"]), np.asarray(h["wall_time_s"])
-    validation = np.asarray(h.get("validation", [math.nan] * len(step)))
-    yields = evaluation is not None and "yield" in evaluation.get("initial", {})
-    if validation_start is not None:
-        yields = yields or (np.nanmax(validation, initial=0) <= 1 and validation_start <= 1)
-    plt = style.pyplot()
-    fig = plt.figure(figsize=(11, 7), layout="constrained")
+    p = _read_progress(history_csv, evaluation, validation_start)
+    h, lower = p.history, p.lower
+    fig = style.pyplot().figure(figsize=(11, 7), layout="constrained")
     axes = fig.subplots(2, 2, sharex="col", sharey="row")
-    dark, blue, red, orange, green = "#333333", "#0072B2", "#D55E00", "#E69F00", "#009E73"
-    lower = [k for k in ("grad_norm", "sigma") if np.isfinite(h.get(k, [math.nan])).any()]
-    show_mean = not np.allclose(h["loss"], h["mean_target"], rtol=1e-6, equal_nan=True)
-    diverged = np.asarray(h.get("diverged", [0] * len(step))) > 0
-    for col, x in enumerate((step, wall)):
-        top = axes[0, col]
-        top.plot(x, h["loss"], color=dark, lw=1.4, marker="o", ms=2.5, zorder=4)
-        if show_mean:
-            top.plot(x, h["mean_target"], color=blue, lw=0.9)
-        top.plot(x, h["max_target"], color=blue, lw=0.8, ls=":")
-        if diverged.any():
-            top.scatter(
-                x[diverged], np.asarray(h["loss"])[diverged], marker="x", color=red, zorder=5
-            )
-        right = top.twinx() if yields else top
-        known = np.isfinite(validation)
-        vx, vy = x[known], validation[known]
-        if validation_start is not None:
-            vx, vy = np.concatenate([[0.0], vx]), np.concatenate([[validation_start], vy])
-        if vy.size:
-            # a validation holds until the next one: steps in both panels
-            right.plot(vx, vy, color=orange, lw=1.2, marker="s", ms=4, zorder=5,
-                       drawstyle="steps-post")  # fmt: skip
-        if evaluation and "initial" in evaluation:
-            held = [_held_number(evaluation[k]) for k in ("initial", "tuned")]
-            where = [0, x[-1]] if col == 0 else [x[-1]]
-            right.plot(where, held if col == 0 else held[1:], ls="none", marker="D", ms=7,
-                       mfc="white", mec=green, mew=2, zorder=6)  # fmt: skip
-        if yields:
-            right.set_ylim(-0.02, 1.02)
-            right.set_ylabel("yield (validation, held-out)" if col else "")
-        for key, color in zip(lower, (dark, green), strict=False):
-            axes[1, col].plot(x, h[key], color=color, lw=1.2, marker="o", ms=2.5)
-    handles = [
-        Line2D([], [], color=dark, lw=1.4, marker="o", ms=2.5, label="loss (best point)"),
-        *([Line2D([], [], color=blue, lw=0.9, label="sample mean target")] if show_mean else []),
-        Line2D([], [], color=blue, lw=0.8, ls=":", label="sample worst target"),
-        Line2D([], [], color=orange, lw=1.2, marker="s", ms=4,
-               label=f"validation {'yield' if yields else 'cost'} (returned: step "
-               f"{h.get('best_step', [math.nan])[-1]:.0f})"),
-    ]  # fmt: skip
-    if diverged.any():
-        handles.append(Line2D([], [], ls="none", marker="x", color=red, label="diverged draws"))
-    if evaluation and "initial" in evaluation:
-        label = (f"held-out, initial and tuned ({evaluation['draws']} draws, "
-                 f"{evaluation['switching']}, {evaluation['horizon_s']:g} s)")  # fmt: skip
-        handles.append(Line2D([], [], ls="none", marker="D", ms=7, mfc="white", mec=green,
-                              mew=2, label=label))  # fmt: skip
+    for col, x in enumerate((p.step, p.wall)):
+        _draw_progress(axes[0, col], axes[1, col], col, x, p, evaluation)
     for ax in axes.flat:
         ax.grid(alpha=0.3, which="both")
     loss = np.asarray(h["loss"])
@@ -364,16 +403,13 @@ def plot_convergence(
     if loss.size and np.all(loss > 0) and loss.max() > 10 * loss.min():
         axes[0, 0].set_yscale("log")
     axes[0, 0].set_ylabel("loss, cost")
-    names = {"grad_norm": "gradient norm", "sigma": "CMA-ES step size"}
-    for key, color in zip(lower, (dark, green), strict=False):
-        handles.append(Line2D([], [], color=color, lw=1.2, marker="o", ms=2.5, label=names[key]))
     if lower and max(np.nanmax(h[k]) for k in lower) > 30 * min(np.nanmin(h[k]) for k in lower):
         axes[1, 0].set_yscale("log")
-    axes[1, 0].set_ylabel(" and ".join(names[k] for k in lower))
+    axes[1, 0].set_ylabel(" and ".join(_LOWER_NAMES[k] for k in lower))
     axes[1, 0].set_xlabel("step")
-    axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {wall[0]:.1f} s, compilation included")
+    axes[1, 1].set_xlabel(f"wall time (s); step 1 ended at {p.wall[0]:.1f} s, compilation included")
     fig.suptitle(title, fontsize=10)
-    style.legend_below(fig, handles, ncol=3)
+    style.legend_below(fig, _progress_handles(p, evaluation), ncol=3)
     return style.save(fig, path)
 
 

@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 import functools
-import math
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from fojax.fractional._common import Array, check_order, check_positive_finite, float_dtype
+from fojax.fractional._common import (
+    Array,
+    check_finite,
+    check_order,
+    check_positive_finite,
+    float_dtype,
+)
 from fojax.fractional._gl import GrunwaldLetnikov
 from fojax.fractional._oustaloup import Oustaloup
 from fojax.fractional._soe import SumOfExponentials
@@ -32,16 +37,9 @@ def _check_options(method: str, options: dict[str, Any]) -> None:
             f"unknown option(s) {sorted(unknown)} for method {method!r}; valid: {sorted(valid)}"
         )
     for key, value in options.items():
-        values = value if isinstance(value, tuple | list) else (value,)
-        for v in values:
-            if isinstance(v, bool):
-                continue
-            try:
-                fv = float(v)
-            except (TypeError, ValueError):
-                raise TypeError(f"option {key}={value!r} must be numeric") from None
-            if not math.isfinite(fv):
-                raise ValueError(f"option {key}={value!r} must be finite")
+        for v in value if isinstance(value, tuple | list) else (value,):
+            if not isinstance(v, bool):
+                check_finite(f"option {key}", v)
 
 
 def make_operator(method: str, dt: float, horizon: float = 80.0, **options: Any):

@@ -20,13 +20,18 @@ def is_concrete(x: Any) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def check_positive_finite(name: str, value: Any) -> float:
+def check_finite(name: str, value: Any) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
         raise TypeError(f"{name} must be a real number, got {value!r}") from None
     if not math.isfinite(v):
         raise ValueError(f"{name} must be finite, got {v}")
+    return v
+
+
+def check_positive_finite(name: str, value: Any) -> float:
+    v = check_finite(name, value)
     if v <= 0:
         raise ValueError(f"{name} must be > 0, got {v}")
     return v

@@ -441,10 +441,8 @@ def run(
     layout = batch_layout(draws, batch, mesh)
     keep = int(min(max(keep, 0), draws))
     lead = jax.process_index() == 0
-    chunk_store = None
-    if store is not None and lead:
-        fields = (controller, gains, scenario, config, seed, dtype, metrics_config, batch)
-        chunk_store = ChunkStore(Path(store), fingerprint(*fields, member=member))
+    fields = (controller, gains, scenario, config, seed, dtype, metrics_config, batch)
+    chunk_store = _open_store(store, lead, fields, member)
     segments, calls = plan_calls(chunk_store, draws, keep, batch, layout["devices"], mesh)
     if runner is None and calls:
         runner = make_chunk_runner(controller, scenario, config, metrics_config, dtype, mesh)
@@ -456,6 +454,14 @@ def run(
     wall = time.perf_counter() - start_time
     result = run_result(segments, chunk_store, dispatch.computed, batch, keep, mesh, call_times)
     return _monte_carlo_result(controller.name, result, wall, layout, len(calls), draws)
+
+
+def _open_store(store, lead: bool, fields: tuple, member) -> ChunkStore | None:
+    """:func:`run`'s chunk store in folder ``store``, under the :func:`fingerprint` of
+    ``fields`` and ``member``; process 0 (``lead``) keeps it, the others have None."""
+    if store is None or not lead:
+        return None
+    return ChunkStore(Path(store), fingerprint(*fields, member=member))
 
 
 def _check_run(controller, gains, scenario, draws, seed, device_batch, keep, member):
