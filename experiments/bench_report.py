@@ -193,6 +193,9 @@ def render(result: dict, source: str | None = None) -> str:
     repeats = {len(e.get("run_s_all") or [None]) for e in result["forward"]}
     created = (result.get("provenance") or {}).get("created_utc")
     head = []
+    command = str((result.get("provenance") or {}).get("command") or "")
+    if "--small" in command.split():
+        head.append("**Made with `fojax bench --small`, a smoke test: its figures mean nothing.**")
     if source is not None:
         head.append(f"Rendered by `{source}`" + (f"; measured {created}." if created else "."))
     end = machine.get("load_average_end")

@@ -122,6 +122,9 @@ def test_a_stored_json_is_rendered_with_the_label_it_records(tmp_path, result):
     ) in lines
     assert "| 64 | 1.60e5 (0.25 s) | 4.10e6 (4 s) | 25.6x |" in lines
     assert "median of 3 timed runs" in text and "crazyflow" not in text
+    assert "smoke test" not in text
+    result["provenance"]["command"] = "fojax bench --small --json x.json"
+    assert "`fojax bench --small`, a smoke test" in _render(tmp_path, result)[1]
 
 
 def test_a_json_without_a_commit_needs_one_given(tmp_path, result):
