@@ -79,6 +79,17 @@ _REQUIREMENTS_STUDY = (
 )
 
 
+_BENCH = (
+    *_CLOSED_LOOP,
+    "fojax/settings.py",
+    "fojax/sharding.py",
+    "fojax/cli/bench.py",
+    "fojax/cli/bench_measure.py",
+    "fojax/cli/numpy_reference.py",
+    "experiments/bench_report.py",
+)
+
+
 def _study(module: str, *options: str) -> tuple[str, ...]:
     return ("python", "-m", f"experiments.{module}", *options)
 
@@ -86,6 +97,13 @@ def _study(module: str, *options: str) -> tuple[str, ...]:
 BLOCKS: dict[str, Block] = {
     block.name: block
     for block in (
+        Block(  # fojax bench's default sizes, run here
+            "bench",
+            "docs/performance.md",
+            _study("bench_report", "--json", "results/bench/bench.json")
+            + ("--update-doc", "docs/performance.md"),
+            _BENCH,
+        ),
         Block(
             "reproduction",
             "docs/reproduction.md",
@@ -188,6 +206,13 @@ BLOCKS: dict[str, Block] = {
                 "experiments/remark3_inverted.py",
                 "experiments/remark3_inverted_report.py",
             ),
+        ),
+        Block(  # rendered from the JSON of a run on a GPU machine (last: it runs nothing)
+            "bench-gpu",
+            "docs/performance.md",
+            _study("bench_report", "--from", "docs/data/bench_gpu.json", "--name", "bench-gpu")
+            + ("--update-doc", "docs/performance.md"),
+            _BENCH,
         ),
     )
 }

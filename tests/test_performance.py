@@ -14,8 +14,9 @@ import pytest
 from conftest import run_python
 from jax import lax
 
+from experiments import bench_report, blocks
 from fojax import fractional, observers, plant, scenarios, sharding, simulator
-from fojax.cli import bench, numpy_reference
+from fojax.cli import bench, bench_measure, numpy_reference, output
 from fojax.controllers.afonftsmc import AFONFTSMC, paper_gains
 
 SCENARIO_2 = scenarios.get_scenario(2)
@@ -192,6 +193,64 @@ def test_bench_smoke(tmp_path):
     assert gradient["gradient_draw_steps_per_s"] > 0
     assert gradient["gradient_memory"].get("peak_bytes", 1) > 0
     assert result["forward"][0]["draws"] == forward["draws"]
+    assert set(forward["compile_phases_s"]) == {"trace_s", "lower_s", "xla_s"}
+    assert forward["loop_kernels"][0] > 0 and gradient["gradient_loop_kernels"][0] > 0
+    machine = stored["machine"]
+    assert machine["cpu_model"] == output.cpu_model() and machine["cores"] >= 1
+    assert len(machine["load_average"]) == len(machine["load_average_end"]) == 3
+    # experiments/bench_report.py renders it, labelled from the JSON
+    doc = tmp_path / "performance.md"
+    doc.write_text("<!-- bench:begin -->\n<!-- bench:end -->\n")
+    assert bench_report.main(["--from", str(out), "--update-doc", str(doc)]) == 0
+    text = blocks.block_text(doc.read_text(), blocks.Block("bench", "d", ("python",), ()))
+    label = blocks.read_label(text)
+    assert label["commit"] == stored["provenance"]["fojax_git"]["commit"]
+    assert label["command"] == stored["provenance"]["command"]
+    assert f"| {forward['draws']} | {forward['horizon_s']:g} s |" in text
+
+
+_HLO = """HloModule m
+
+%inner (p: (s32[], f32[4])) -> (s32[], f32[4]) {
+  %p = (s32[], f32[4]{0}) parameter(0)
+  %i = s32[] get-tuple-element(%p), index=0
+  %x = f32[4]{0} get-tuple-element(%p), index=1
+  %one = s32[] constant(1)
+  %j = s32[] add(%i, %one)
+  %y = f32[4]{0} fusion(%x), kind=kLoop, calls=%f
+  %z = f32[4]{0} copy(%y)
+  %b = f32[4]{0} bitcast(%z)
+  ROOT %t = (s32[], f32[4]{0}) tuple(%j, %b)
+}
+
+%outer (q: (s32[], f32[4])) -> (s32[], f32[4]) {
+  %q = (s32[], f32[4]{0}) parameter(0)
+  %c = f32[4]{0} copy(%q)
+  ROOT %w = (s32[], f32[4]{0}) while(%q), condition=%cond, body=%inner
+}
+
+ENTRY %main (a: f32[4]) -> f32[4] {
+  %a = f32[4]{0} parameter(0)
+  %v = (s32[], f32[4]{0}) while(%a), condition=%cond, body=%outer
+  ROOT %r = f32[4]{0} get-tuple-element(%v), index=1
+}
+"""
+
+
+def test_loop_kernels_counts_the_innermost_loops_instructions():
+    class Compiled:
+        def as_text(self):
+            return _HLO
+
+    # add, fusion and copy in the inner loop; the outer loop holds a loop
+    assert bench_measure.loop_kernels(Compiled()) == [3]
+
+    def scan(x):
+        return lax.scan(lambda c, _: (jnp.sin(c) * 2.0 + c, None), x, None, length=8)[0]
+
+    compiled = jax.jit(scan).lower(jnp.ones(4)).compile()
+    counts = bench_measure.loop_kernels(compiled)
+    assert counts and counts[0] >= 1
 
 
 def test_bench_forward_runs_big_batches_in_chunks():

@@ -20,6 +20,13 @@ exponentials), RK4, 1 ms, float32. Measured in one run, on every device JAX sees
   (:mod:`fojax.cli.numpy_reference`) and the ratio JAX / NumPy;
 * crazyflow's simulator at the same world counts, where it is installed.
 
+Each compile time is also given by phase (tracing, lowering, XLA), and each compiled
+program's kernels per iteration of its innermost loops (the time loop's step; one per
+pass of the gradient): on XLA's CPU backend a step's cost follows its kernel count.
+The machine (CPU model, cores, devices and their kind, load average at the start and
+the end) is recorded with the provenance, so that a report of the JSON can be labelled
+from it alone (``experiments/bench_report.py``).
+
 Big batches run a shorter horizon (``--long-horizon`` for at most ``--long-max-draws``
 draws, ``--short-horizon`` above): cost is linear in the horizon (``--scaling``
 measures it), and the horizon used is printed and stored with each figure. On a CPU
@@ -37,7 +44,7 @@ import platform
 import resource
 import sys
 
-from fojax.cli import arguments
+from fojax.cli import arguments, output
 from fojax.cli import study as study_layer
 from fojax.cli.bench_measure import (
     measure_crazyflow,
@@ -119,7 +126,12 @@ UNITS = {
     "draw_steps_per_s": "draw-steps per second (draws x plant/controller steps / wall time)",
     "gradient_draw_steps_per_s": "draw-steps per second of the reverse-mode gradient",
     "drone_steps_per_s": "drone-steps per second (crazyflow)",
-    "compile_s": "seconds, lowering + XLA compilation",
+    "compile_s": "seconds, tracing + lowering + XLA compilation",
+    "*_phases_s": "the compile time by phase: trace_s (to a jaxpr), lower_s (to StableHLO), "
+    "xla_s (XLA's optimisation and code generation), seconds",
+    "*loop_kernels": "kernels per iteration of each innermost loop of the compiled program "
+    "(optimised HLO), largest first: the time loop's step, one per pass under grad",
+    "load_average": "1, 5 and 15-minute load averages at the start (load_average_end: at the end)",
     "run_s": "seconds of wall time, median of the timed runs",
     "horizon_s": "simulated seconds",
     "steps": "steps of 1 ms",
@@ -205,8 +217,12 @@ def main(argv=None) -> dict:
         "machine": {
             "backend": backend,
             "devices": [str(d) for d in mesh.devices.flat],
+            "device_kind": mesh.devices.flat[0].device_kind,
             "device_count": int(mesh.devices.size),
+            "cpu_model": output.cpu_model(),
             "cpu_count": os.cpu_count(),
+            "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+            "load_average": output.load_average(),
             "platform": platform.platform(),
             "processor": platform.processor(),
             "jax": jax.__version__,
@@ -222,6 +238,7 @@ def main(argv=None) -> dict:
         "crazyflow": None,
     }
     _measure(args, result, mesh)
+    result["machine"]["load_average_end"] = output.load_average()
     result["process_max_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     _print_summary(result)
     if args.json is not None:

@@ -6,6 +6,7 @@ and crazyflow, each timed apart from its compilation."""
 from __future__ import annotations
 
 import math
+import re
 import time
 
 
@@ -81,10 +82,59 @@ def _padded_count(count: int, devices: int) -> int:
     return count if count % devices == 0 else count + (-count % devices)
 
 
-def _compile(fn, *args):
+def _compile(fn, *args) -> tuple:
+    """``fn`` compiled for ``args``, its compile time (s) and that time by phase:
+    ``{"trace_s", "lower_s", "xla_s"}`` (tracing to a jaxpr, lowering to StableHLO,
+    XLA's optimisation and code generation)."""
     start = time.perf_counter()
-    compiled = fn.lower(*args).compile()
-    return compiled, time.perf_counter() - start
+    traced = fn.trace(*args)
+    traced_at = time.perf_counter()
+    lowered = traced.lower()
+    lowered_at = time.perf_counter()
+    compiled = lowered.compile()
+    end = time.perf_counter()
+    phases = {
+        "trace_s": traced_at - start,
+        "lower_s": lowered_at - traced_at,
+        "xla_s": end - lowered_at,
+    }
+    return compiled, end - start, phases
+
+
+_NOT_KERNELS = frozenset({"parameter", "get-tuple-element", "tuple", "constant", "bitcast"})
+_INSTRUCTION = re.compile(r"=\s*(?:\([^=]*?\)|\S+)\s+([a-z][\w-]*)\(")
+_WHILE_BODY = re.compile(r"\swhile\(.*?body=%?([\w.-]+)")
+
+
+def loop_kernels(compiled) -> list[int]:
+    """The kernels in the body of each innermost loop of ``compiled``'s optimised HLO,
+    largest first: the instructions of the loop's body other than parameters, tuples,
+    their elements, constants and bitcasts (each remaining instruction, a fusion, copy,
+    library call or collective, runs as one kernel per iteration). The time loop's step
+    is the largest; a reverse-mode program has one per pass (sweep, rematerialisation,
+    backward step). ``[]`` where the backend gives no HLO text."""
+    try:
+        text = compiled.as_text()
+    except Exception:  # not every backend gives it
+        return []
+    bodies: dict[str, list[str]] = {}
+    name = None
+    for line in text.splitlines():
+        if line.endswith("{") and not line.startswith(" "):
+            name = line.removeprefix("ENTRY ").split()[0].lstrip("%")
+            bodies[name] = []
+        elif line.startswith("}"):
+            name = None
+        elif name is not None:
+            found = _INSTRUCTION.search(line)
+            if found:
+                bodies[name].append(found.group(1))
+    counts = []
+    for body in set(_WHILE_BODY.findall(text)):
+        ops = bodies.get(body, [])
+        if ops and "while" not in ops:
+            counts.append(sum(op not in _NOT_KERNELS for op in ops))
+    return sorted(counts, reverse=True)
 
 
 def _memory(compiled) -> dict:
@@ -135,7 +185,7 @@ def measure_forward(
         )
 
     chunks = [place(i * padded_chunk, padded_chunk) for i in range(n_chunks)]
-    compiled, compile_s = _compile(run, gains, chunks[0])
+    compiled, compile_s, phases = _compile(run, gains, chunks[0])
     jax.block_until_ready(compiled(gains, chunks[0]))  # warm
 
     def run_all():
@@ -151,6 +201,8 @@ def measure_forward(
         "horizon_s": horizon,
         "steps": steps,
         "compile_s": compile_s,
+        "compile_phases_s": phases,
+        "loop_kernels": loop_kernels(compiled),
         "run_s": run_s,
         "run_s_all": times,
         "draw_steps_per_s": count * steps / run_s,
@@ -158,7 +210,7 @@ def measure_forward(
     if n_chunks > 1:
         padded = _padded_count(count, devices)
         whole = place(0, padded)
-        one_call, one_compile_s = _compile(run, gains, whole)
+        one_call, one_compile_s, _ = _compile(run, gains, whole)
         jax.block_until_ready(one_call(gains, whole))
         one_s, _ = _median_time(lambda: one_call(gains, whole), repeats)
         entry.update(
@@ -197,8 +249,8 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
 
     forward_jit = jax.jit(forward)
     gradient_jit = jax.jit(jax.grad(forward))
-    forward_c, forward_compile_s = _compile(forward_jit, gains, draws)
-    gradient_c, gradient_compile_s = _compile(gradient_jit, gains, draws)
+    forward_c, forward_compile_s, forward_phases = _compile(forward_jit, gains, draws)
+    gradient_c, gradient_compile_s, gradient_phases = _compile(gradient_jit, gains, draws)
     jax.block_until_ready(forward_c(gains, draws))
     jax.block_until_ready(gradient_c(gains, draws))
     # Interleaved, so that a load that comes and goes falls on both alike; the ratio is
@@ -231,6 +283,10 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
         "gradient_draw_steps_per_s": count * steps / gradient_s,
         "forward_compile_s": forward_compile_s,
         "gradient_compile_s": gradient_compile_s,
+        "forward_compile_phases_s": forward_phases,
+        "gradient_compile_phases_s": gradient_phases,
+        "forward_loop_kernels": loop_kernels(forward_c),
+        "gradient_loop_kernels": loop_kernels(gradient_c),
         "gradient_memory": _memory(gradient_c),
         "forward_memory": _memory(forward_c),
     }

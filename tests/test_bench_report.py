@@ -1,0 +1,177 @@
+"""``experiments/bench_report.py``: a ``fojax bench`` JSON rendered into a labelled block
+of a document, the label taken from the JSON (not from the machine rendering it)."""
+
+import copy
+import json
+
+import pytest
+
+from experiments import bench_report, blocks
+from fojax.cli import output
+
+COMMIT = "0123456789abcdef0123456789abcdef01234567"
+COMMAND = "fojax bench --json bench_gpu.json --draws 64,4096 --chunk 1024"
+
+
+def _forward(draws, horizon, rate, calls=1, **extra):
+    steps = round(horizon / 1e-3)
+    return {
+        "draws": draws, "draws_computed": draws, "chunk": min(draws, 1024), "calls": calls,
+        "horizon_s": horizon, "steps": steps, "compile_s": 3.3,
+        "compile_phases_s": {"trace_s": 0.31, "lower_s": 0.12, "xla_s": 2.87},
+        "loop_kernels": [129, 20, 9, 5], "run_s": draws * steps / rate,
+        "run_s_all": [1.0, 1.1, 1.2], "draw_steps_per_s": rate, **extra,
+    }  # fmt: skip
+
+
+def _gradient(draws, horizon, rate, ratio, peak):
+    return {
+        "draws": draws, "draws_computed": draws, "horizon_s": horizon,
+        "steps": round(horizon / 1e-3), "save_every": 25, "forward_s": 0.01,
+        "gradient_s": 0.06, "gradient_over_forward": ratio,
+        "gradient_over_forward_all": [ratio], "gradient_over_forward_cpu_time": ratio + 0.25,
+        "gradient_draw_steps_per_s": rate, "forward_compile_s": 3.0, "gradient_compile_s": 14.04,
+        "forward_compile_phases_s": {"trace_s": 0.3, "lower_s": 0.1, "xla_s": 2.6},
+        "gradient_compile_phases_s": {"trace_s": 1.7, "lower_s": 0.5, "xla_s": 11.84},
+        "forward_loop_kernels": [129, 9, 5],
+        "gradient_loop_kernels": [306, 268, 164, 129, 121, 9, 5, 4],
+        "gradient_memory": {"peak_bytes": peak}, "forward_memory": {"peak_bytes": 1000},
+    }  # fmt: skip
+
+
+@pytest.fixture
+def result():
+    """A bench result shaped like ``fojax bench --json``'s, measured on a GPU machine."""
+    return {
+        "workload": {
+            "scenario": 2, "controller": "afonftsmc", "fractional_method": "soe",
+            "integrator": "rk4", "dt_s": 1e-3, "dtype": "float32",
+            "switching_forward": "sat", "switching_gradient": "tanh",
+        },
+        "machine": {
+            "backend": "gpu", "devices": ["cuda:0"], "device_kind": "NVIDIA H200",
+            "device_count": 1, "cpu_model": "Test CPU (family 1, model 2)", "cpu_count": 16,
+            "cores": 16, "load_average": [0.5, 0.25, 0.1], "load_average_end": [1.5, 0.5, 0.2],
+            "platform": "Linux", "processor": "", "jax": "0.10.2", "numpy": "2.4.6",
+        },
+        "provenance": {
+            "command": COMMAND, "fojax_git": {"commit": COMMIT, "dirty": False},
+            "python": "3.12.1", "jax": "0.10.2", "jaxlib": "0.10.2", "optax": "0.2.8",
+            "numpy": "2.4.6", "created_utc": "2026-12-04T10:00:00+00:00",
+        },
+        "forward": [
+            _forward(64, 4.0, 4.1e6),
+            _forward(4096, 1.0, 6.123e6, calls=4, one_call_draw_steps_per_s=5.9e6),
+        ],
+        "gradient": [_gradient(64, 1.0, 7.3e5, 5.58, 4.8 * 2**20)],
+        "numpy": [{"draws": 64, "horizon_s": 0.25, "steps": 250, "run_s": 1.0,
+                   "draw_steps_per_s": 1.6e5}],
+        "comparison": [{"draws": 64, "jax_over_numpy": 4.1e6 / 1.6e5}],
+        "scaling": {}, "crazyflow": {"skipped": "crazyflow is not installed"},
+    }  # fmt: skip
+
+
+def _document(tmp_path):
+    doc = tmp_path / "performance.md"
+    doc.write_text("# Performance\n\n<!-- bench-gpu:begin -->\n<!-- bench-gpu:end -->\n\ntail\n")
+    return doc
+
+
+def _render(tmp_path, result, *options):
+    source = tmp_path / "bench_gpu.json"
+    source.write_text(json.dumps(result))
+    doc = _document(tmp_path)
+    argv = ["--from", str(source), "--name", "bench-gpu", "--update-doc", str(doc), *options]
+    assert bench_report.main(argv) == 0
+    block = blocks.Block("bench-gpu", "performance.md", ("python",), ())
+    content = doc.read_text()
+    assert content.startswith("# Performance\n\n<!-- bench-gpu:begin -->\n" + output.LABEL_PREFIX)
+    assert content.endswith("<!-- bench-gpu:end -->\n\ntail\n")
+    text = blocks.block_text(content, block)
+    return blocks.read_label(text), text
+
+
+def test_a_stored_json_is_rendered_with_the_label_it_records(tmp_path, result):
+    label, text = _render(tmp_path, result)
+    assert label["command"] == COMMAND
+    assert label["commit"] == COMMIT and label["dirty"] is False
+    assert label["cpu"] == "Test CPU (family 1, model 2)" and label["cores"] == 16
+    assert label["load"] == [0.5, 0.25, 0.1]
+    assert label["device_kind"] == "NVIDIA H200" and label["backend"] == "gpu"
+    assert {k: label[k] for k in ("python", *output.VERSIONED)} == {
+        "python": "3.12.1", "jax": "0.10.2", "jaxlib": "0.10.2", "optax": "0.2.8",
+        "numpy": "2.4.6",
+    }  # fmt: skip
+    reader = text.strip().split("\n")[1]
+    assert reader == (
+        f"*Generated by `{COMMAND}` at commit 0123456 (clean) on Test CPU (family 1, model 2), "
+        "16 cores, 1 gpu device(s) (NVIDIA H200), load average 0.5, 0.25, 0.1 at the start; "
+        "Python 3.12.1, jax 0.10.2, jaxlib 0.10.2, optax 0.2.8, numpy 2.4.6.*"
+    )
+    lines = text.split("\n")
+    assert f"Rendered by `python -m experiments.bench_report --from {tmp_path}" in text
+    assert "1 gpu device(s) (NVIDIA H200); load average at the end 1.5, 0.5, 0.2." in text
+    assert "| 64 | 4 s | 4.10e6 | 3.3 s (0.3 + 0.1 + 2.9) | 129 |" in lines
+    assert (
+        "| 4096 | 1 s | 6.12e6 (4 calls of 1024; as one call 5.90e6) | 3.3 s (0.3 + 0.1 + 2.9) "
+        "| 129 |"
+    ) in lines
+    assert (
+        "| 64 | 1 s | 7.30e5 | 5.58x (5.83x) | 14.0 s (1.7 + 0.5 + 11.8) "
+        "| 306 + 268 + 164 + 129 + 121 | 4.8 MiB |"
+    ) in lines
+    assert "| 64 | 1.60e5 (0.25 s) | 4.10e6 (4 s) | 25.6x |" in lines
+    assert "median of 3 timed runs" in text and "crazyflow" not in text
+    assert "smoke test" not in text
+    result["provenance"]["command"] = "fojax bench --small --json x.json"
+    assert "`fojax bench --small`, a smoke test" in _render(tmp_path, result)[1]
+
+
+def test_a_json_without_a_commit_needs_one_given(tmp_path, result):
+    result["provenance"]["fojax_git"] = None
+    label, text = _render(tmp_path, result)
+    assert label["commit"] is None  # and so blocks.problems reports it
+    label, text = _render(tmp_path, result, "--commit", COMMIT)
+    assert label["commit"] == COMMIT and label["dirty"] is False and label["commit_given"]
+    assert "at commit 0123456 (clean), the commit as given with --commit" in text
+    recorded = copy.deepcopy(result)
+    recorded["provenance"]["fojax_git"] = {"commit": "f" * 40, "dirty": False}
+    with pytest.raises(SystemExit):  # a commit other than the one recorded
+        _render(tmp_path, recorded, "--commit", COMMIT)
+
+
+def test_an_older_json_renders_what_it_has(tmp_path, result):
+    for entry in result["forward"]:
+        del entry["compile_phases_s"], entry["loop_kernels"]
+    for entry in result["gradient"]:
+        del entry["gradient_compile_phases_s"], entry["gradient_loop_kernels"]
+    for key in ("cpu_model", "cores", "device_kind", "load_average", "load_average_end"):
+        del result["machine"][key]
+    result["machine"]["processor"] = "x86_64"
+    result["crazyflow"] = [{"worlds": 64, "steps": 1000, "run_s": 1.0, "drone_steps_per_s": 6.4e4}]
+    label, text = _render(tmp_path, result)
+    assert label["cpu"] == "x86_64" and label["cores"] == 16 and label["load"] == []
+    assert "| 64 | 4 s | 4.10e6 | 3.3 s | n/a |" in text.split("\n")
+    assert "| 64 | 1 s | 7.30e5 | 5.58x (5.83x) | 14.0 s | n/a | 4.8 MiB |" in text.split("\n")
+    assert "drone-steps/s: 64 worlds 6.40e4." in text
+
+
+def test_from_runs_nothing_and_refuses_what_it_would_ignore(tmp_path, result):
+    doc = _document(tmp_path)
+    missing = tmp_path / "absent.json"
+    with pytest.raises(SystemExit):
+        bench_report.main(["--from", str(missing), "--update-doc", str(doc)])
+    source = tmp_path / "bench.json"
+    source.write_text(json.dumps(result))
+    with pytest.raises(SystemExit):
+        bench_report.main(["--from", str(source), "--draws", "1"])
+    with pytest.raises(SystemExit):
+        bench_report.main(["--commit", COMMIT])  # --commit only with --from
+    with pytest.raises(ValueError, match="no <!-- bench:begin -->"):
+        bench_report.main(["--from", str(source), "--update-doc", str(doc)])
+
+
+def test_step_loops_are_the_large_innermost_loops():
+    assert bench_report.step_loops([306, 268, 164, 129, 121, 9, 5, 4]) == [306, 268, 164, 129, 121]
+    assert bench_report.step_loops([141, 20, 9]) == [141]
+    assert bench_report.step_loops([]) == [] and bench_report.step_loops(None) == []
