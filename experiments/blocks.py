@@ -214,6 +214,13 @@ BLOCKS: dict[str, Block] = {
             + ("--update-doc", "docs/performance.md"),
             _BENCH,
         ),
+        Block(
+            "bench-gpu-large",
+            "docs/performance.md",
+            _study("bench_report", "--from", "docs/data/bench_gpu_large.json")
+            + ("--name", "bench-gpu-large", "--update-doc", "docs/performance.md"),
+            _BENCH,
+        ),
     )
 }
 
