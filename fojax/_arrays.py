@@ -47,7 +47,7 @@ def reverse_pass_boundary(values):
     Without the boundary XLA's CPU backend fuses a cheap chain (an RK4 stage's
     arithmetic and its transpose) into every kernel that reads its result, recomputing
     it in each: measured, three kernels of 600-700 operations per draw-step recomputed
-    the RK4 stages' cotangents (docs/performance.md, round 7). The forward pass is
+    the RK4 stages' cotangents (docs/performance.md, design choices). The forward pass is
     unaffected: outside ``grad`` both marks are the identity.
     """
     return _cotangent_barrier(jax.tree.map(lambda v: checkpoint_name(v, KEPT), values))

@@ -169,8 +169,8 @@ def use_host_devices(requested: int | None = None, settings: Settings | None = N
     unless JAX has started.
 
     XLA's CPU backend runs one program on one device; with several host devices
-    :mod:`fojax.sharding` splits the draws over the cores (about 1.5-1.8x the
-    throughput of one device on 2 cores, ``docs/performance.md``). Only the CPU
+    :mod:`fojax.sharding` splits the draws over the cores (``docs/performance.md``,
+    design choices). Only the CPU
     platform is affected: on a GPU machine the GPUs stay the default devices. Returns
     the count set, or None when JAX had already started (then nothing changes), or
     when ``XLA_FLAGS`` or an earlier ``jax_num_cpu_devices`` already sets it.

@@ -324,7 +324,7 @@ def _contract(table: Array, values: Array) -> Array:
     it to its matrix-product library, which streams the modes once for all ``k`` rows;
     written as sums over the mode axis they became ``k`` library reductions several
     times slower, and written as explicit additions they were fused into (and
-    recomputed by) every kernel reading them (docs/performance.md, round 4)."""
+    recomputed by) every kernel reading them (docs/performance.md, designs tried and not kept)."""
     return jnp.tensordot(table, values, axes=1)
 
 

@@ -12,7 +12,7 @@ devices and the processes; its numbers are the same bit for bit. (XLA compiles a
 into code that depends on its size, and on the CPU some of it, e.g. the library
 kernels it hands dots and large reductions to, also rounds a draw according to where it
 sits in the batch: measured, per-device batches of 8, 16, 20, 50 and 2048 draws give
-up to four different roundings of the same draw; see ``docs/performance.md``.) The
+up to four different roundings of the same draw.) The
 block size is therefore a setting of the run, part of its fingerprint like the seed:
 runs with another ``device_batch`` round differently. The last block of a run is
 completed with the draws that follow (real draws, kept in the store).
