@@ -173,22 +173,12 @@ class LBFGS:
     def init(self, x0) -> dict:
         x0 = np.asarray(x0, np.float64)
         d, m = x0.size, self.memory
-        zero = _scalar(0.0)
-        return {
-            "trial": x0.copy(),
-            "x": x0.copy(),
-            "f": zero,
-            "g": np.zeros(d),
-            "s": np.zeros((m, d)),
-            "y": np.zeros((m, d)),
-            "pairs": _scalar(0, np.int64),
-            "direction": np.zeros(d),
-            "alpha": zero,
-            "backtracks": _scalar(0, np.int64),
-            "accepted": _scalar(0, np.int64),
-            "started": _scalar(False, bool),
-            "moved": _scalar(False, bool),
-        }
+        zero, none, no = _scalar(0.0), _scalar(0, np.int64), _scalar(False, bool)
+        return dict(
+            trial=x0.copy(), x=x0.copy(), f=zero, g=np.zeros(d), s=np.zeros((m, d)),
+            y=np.zeros((m, d)), pairs=none, direction=np.zeros(d), alpha=zero, backtracks=none,
+            accepted=none, started=no, moved=no,
+        )  # fmt: skip
 
     def ask(self, state) -> Request:
         return Request(state["trial"][None], True, 0, self.width)

@@ -73,29 +73,15 @@ class CMAES:
         )
         chi = math.sqrt(d) * (1 - 1 / (4 * d) + 1 / (21 * d * d))
         return dict(
-            lam=lam,
-            mu=mu,
-            weights=weights,
-            mueff=mueff,
-            cc=cc,
-            cs=cs,
-            c1=c1,
-            cmu=cmu,
-            damps=damps,
+            lam=lam, mu=mu, weights=weights, mueff=mueff, cc=cc, cs=cs, c1=c1, cmu=cmu, damps=damps,
             chi=chi,
-        )
+        )  # fmt: skip
 
     def init(self, x0) -> dict:
         x0 = np.asarray(x0, np.float64)
         d = x0.size
-        return {
-            "mean": x0.copy(),
-            "sigma": np.asarray(float(self.sigma0)),
-            "C": np.eye(d),
-            "ps": np.zeros(d),
-            "pc": np.zeros(d),
-            "generation": np.asarray(0),
-        }
+        return dict(mean=x0.copy(), sigma=np.asarray(float(self.sigma0)), C=np.eye(d),
+                    ps=np.zeros(d), pc=np.zeros(d), generation=np.asarray(0))  # fmt: skip
 
     def sample_size(self, generation: int) -> int | None:
         """Draws per candidate in ``generation``: ``draws``, or from a schedule
@@ -148,14 +134,9 @@ class CMAES:
         C = (1 + k["c1"] * delta - k["c1"] - k["cmu"] * k["weights"].sum()) * state["C"]
         C = C + k["c1"] * np.outer(pc, pc) + k["cmu"] * (y.T * weights) @ y
         sigma = sigma * math.exp(min(1.0, (k["cs"] / k["damps"]) * (norm / k["chi"] - 1)))
-        return {
-            "mean": mean,
-            "sigma": np.asarray(sigma),
-            "C": (C + C.T) / 2,
-            "ps": ps,
-            "pc": pc,
-            "generation": np.asarray(generation),
-        }
+        C = (C + C.T) / 2
+        return dict(mean=mean, sigma=np.asarray(sigma), C=C, ps=ps, pc=pc,
+                    generation=np.asarray(generation))  # fmt: skip
 
     def answer(self, state) -> np.ndarray:
         return state["mean"].copy()
@@ -204,9 +185,8 @@ class NelderMead:
 
     def restart(self, state) -> dict:
         s = state
-        return self._wait(
-            s["simplex"], s["values"], _INIT, s["simplex"], s["reflected"], s["reflected_value"]
-        )
+        return self._wait(s["simplex"], s["values"], _INIT, s["simplex"], s["reflected"],
+                          s["reflected_value"])  # fmt: skip
 
     def settings(self) -> dict:
         return dataclasses.asdict(self)
@@ -268,12 +248,8 @@ class NelderMead:
         points = np.atleast_2d(points)
         pending = np.zeros_like(sim)
         pending[: len(points)] = points
-        return {
-            "simplex": sim,
-            "values": np.asarray(fsim, np.float64),
-            "pending": pending,
-            "count": np.asarray(len(points)),
-            "phase": np.asarray(phase),
-            "reflected": np.asarray(xr, np.float64),
-            "reflected_value": np.asarray(float(fxr)),
-        }
+        return dict(
+            simplex=sim, values=np.asarray(fsim, np.float64), pending=pending,
+            count=np.asarray(len(points)), phase=np.asarray(phase),
+            reflected=np.asarray(xr, np.float64), reflected_value=np.asarray(float(fxr)),
+        )  # fmt: skip
