@@ -149,12 +149,11 @@ def _number(summary: dict) -> float:
 class _Run:
     """A run's state between steps (what a checkpoint holds), its validation and steps."""
 
-    def __init__(self, objective, strategy, budget, x0, out, fingerprint, header, **options):
+    def __init__(self, objective, strategy, budget, x0, out, fingerprint, header, options):
         self.objective, self.strategy, self.budget = objective, strategy, budget
         self.x0, self.out, self.fingerprint = x0, None if out is None else Path(out), fingerprint
-        self.validation_draws, self.validate_every = options["validation_draws"], options["every"]
-        self.checkpoint_every, self.progress = options["checkpoint_every"], options["progress"]
-        self.callback = options["callback"]
+        (self.validation_draws, self.validate_every, self.checkpoint_every, self.progress,
+         self.callback) = options  # fmt: skip
         self.state, self.best_x = strategy.init(x0), np.asarray(x0, np.float64)
         self.used = {"steps": 0, "evaluations": 0, "draw_steps": 0, "work": 0, "wall_time_s": 0.0}
         self.history: list[dict] = []
@@ -164,9 +163,8 @@ class _Run:
         self.wall_before, self.first_step = self.used["wall_time_s"], self.used["steps"]
         self.session, self.excluded = time.perf_counter(), 0.0
         self.keys = objective.keys("validation", self.validation_draws) if self.validating else None
-        self._last: dict = {}
+        self._last, self._start = {}, {}  # the last validation; the start's
         self._thread: threading.Thread | None = None
-        self._start: dict = {}
 
     def _restore(self, header: dict) -> None:
         arrays, _ = records.read_arrays(self.out / CHECKPOINT)
@@ -431,9 +429,8 @@ def run(
     header = check_resume(out, fingerprint, resume)
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
-    options = dict(validation_draws=validation_draws, every=validate_every, progress=progress,
-                   checkpoint_every=checkpoint_every, callback=callback)  # fmt: skip
-    state = _Run(objective, strategy, budget, x0, out, fingerprint, header, **options)
+    options = (validation_draws, validate_every, checkpoint_every, progress, callback)
+    state = _Run(objective, strategy, budget, x0, out, fingerprint, header, options)
     warming = _compile_ahead(objective, strategy.needs())
     try:
         while state.used["steps"] < (math.inf if stop_after is None else stop_after):

@@ -109,14 +109,6 @@ class FieldMap:
             return self.shape
         return (len(self.groups), *self.shape[1:])
 
-    @property
-    def group_index(self) -> np.ndarray:
-        """``(6,)`` group of each axis."""
-        index = np.zeros(len(AXIS_NAMES), np.int32)
-        for g, axes in enumerate(self.groups):
-            index[list(axes)] = g
-        return index
-
     def labels(self) -> list[str]:
         """One readable name per scalar parameter, in ``ravel`` order."""
         if self.groups is None:
@@ -157,7 +149,10 @@ class FieldMap:
         share the group's value)."""
         if self.groups is None:
             return grouped
-        return jnp.take(grouped, jnp.asarray(self.group_index), axis=0)
+        index = np.zeros(len(AXIS_NAMES), np.int32)  # the group of each axis
+        for g, axes in enumerate(self.groups):
+            index[list(axes)] = g
+        return jnp.take(grouped, jnp.asarray(index), axis=0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -101,10 +101,8 @@ def actuators_record(limit: float | None, args) -> dict:
         return {"rotor_limited": False}
     ratio, source = args.rotor_limit, "--rotor-limit"
     if ratio is None:
-        ratio, source = (
-            args.requirements.settings.thrust_to_weight,
-            "the requirement file's settings",
-        )
+        source = "the requirement file's settings"
+        ratio = args.requirements.settings.thrust_to_weight
     if ratio is None:
         ratio = (limit / rq.rotor_speed_limit(1.0)) ** 2
     return {"rotor_limited": True, "rotor_speed_limit_rad_s": limit, "source": source,
@@ -119,23 +117,6 @@ def configure_study(parser, args, study):
     if limit is None:
         return study
     return dataclasses.replace(study, rotor_speed_limit=limit)
-
-
-def measure_study(study, reqs) -> dict:
-    """Per controller of ``study``: ``(metrics, status)`` of every requirement metric on
-    the study's draws (same keys, controllers, gains and actuators)."""
-    import numpy as np
-
-    from fojax import requirements as rq
-    from fojax import scenarios
-    from fojax.cli import study as study_layer
-
-    _, scenario, config, dtype, runs = study_layer.prepare_runs(study)
-    keys = np.asarray(scenarios.draw_keys(study.seed, np.arange(study.draws)))
-    out = {}
-    for name, (controller, gains) in runs.items():
-        out[name] = rq.measure(controller, gains, scenario, reqs, keys, config, dtype=dtype)
-    return out
 
 
 def report_simulate(study, args, out: Path, summary: dict, figures: bool = True) -> dict:
@@ -161,7 +142,7 @@ def report_simulate(study, args, out: Path, summary: dict, figures: bool = True)
         write_json(out / "summary.json", summary)
         return summary
     start = time.perf_counter()
-    results, arrays = _yields(measure_study(study, reqs), reqs, summary)
+    results, arrays = _yields(study, reqs, summary)
     summary["requirements"] = {
         **reqs.to_dict(),
         "names": list(reqs.names),
@@ -195,15 +176,21 @@ def report_simulate(study, args, out: Path, summary: dict, figures: bool = True)
     return summary
 
 
-def _yields(measured: dict, reqs, summary: dict) -> tuple[dict, dict]:
-    """``({name: YieldResult}, per-draw arrays)`` of the measured metrics; each result in
+def _yields(study, reqs, summary: dict) -> tuple[dict, dict]:
+    """``({name: YieldResult}, per-draw arrays)`` of every requirement metric measured on
+    the study's draws (same keys, controllers, gains and actuators); each result in
     ``summary["controllers"][name]["requirements"]``."""
     import numpy as np
 
     from fojax import requirements as rq
+    from fojax import scenarios
+    from fojax.cli import study as study_layer
 
+    _, scenario, config, dtype, runs = study_layer.prepare_runs(study)
+    keys = np.asarray(scenarios.draw_keys(study.seed, np.arange(study.draws)))
     results, arrays = {}, {}
-    for name, (metrics, status) in measured.items():
+    for name, (controller, gains) in runs.items():
+        metrics, status = rq.measure(controller, gains, scenario, reqs, keys, config, dtype=dtype)
         valid = (status & rq.DIVERGED) == 0
         result = rq.evaluate(reqs, metrics, valid=valid)
         results[name] = result

@@ -143,8 +143,8 @@ OPTIONS = (
     Option("--method", dict(choices=METHODS, help="auto (default): CMA-ES on 8-draw fresh "
            "samples; cma-lbfgs: then L-BFGS; adam; lbfgs; cma-es (--draws per generation); "
            "nelder-mead"), "auto"),
-    Option("--steps", dict(type=count, help="steps (generations for CMA-ES): auto 40, cma-lbfgs "
-           "40, adam 6, lbfgs 6, cma-es 20, nelder-mead 300"), lambda a: DEFAULT_STEPS[a.method],
+    Option("--steps", dict(type=count, help="steps (generations for CMA-ES): " + ", ".join(
+           f"{m} {n}" for m, n in DEFAULT_STEPS.items())), lambda a: DEFAULT_STEPS[a.method],
            lambda a: "is set by --outer-steps and --inner-steps with --requirements"
            if a.requirements else None),
     Option("--seconds", dict(type=real, help="stop after this wall time (none)")),
@@ -167,7 +167,7 @@ OPTIONS = (
     Option("--validation-draws", dict(type=whole, help="draws scoring the answer; the best "
            "validated gains are returned (32; 0: the last)"), 32),
     Option("--validate-every", dict(type=count, help="steps between validations (default: "
-           "once 4 times the validation's draw-steps are simulated; with --requirements every "
+           "once the work since the last is 8 times a validation's; with --requirements every "
            "multiplier update)"), lambda a: a.inner_steps + 1 if a.requirements else None,
            lambda a: "applies with validation draws only" if a.validation_draws == 0 else None),
     Option("--eval-draws", dict(type=whole, help="held-out draws (32; 128 with --requirements; "
