@@ -144,15 +144,12 @@ class Objective:
     def vector(self, gains: Any) -> np.ndarray:
         """``(d,)`` float64 parameters of ``gains``; ``ValueError`` when a field the
         objective does not tune differs from the base gains (it would be lost)."""
-        tuned = set(self.param_map.names)
+        tuned, base = set(self.param_map.names), self.base_gains
         different = [
-            name
-            for name in self.base_gains._fields
-            if name not in tuned
-            and not np.array_equal(
-                np.asarray(getattr(gains, name), np.float64),
-                np.asarray(getattr(self.base_gains, name), np.float64),
-            )
+            n
+            for n in base._fields
+            if n not in tuned
+            and not np.array_equal(*(np.asarray(getattr(g, n), np.float64) for g in (gains, base)))
         ]
         if different:
             raise ValueError(
@@ -180,11 +177,12 @@ class Objective:
         return gains._replace(**{w: getattr(self.base_gains, w) * width for w in self._widths})
 
     def _observer(self, config):
-        cost = cost_lib.CostObserver(self.spec.cost, self.spec.dt)
-        if self.requirements is None:
-            return observers.Chain(cost=cost)
-        metrics = rq.RequirementMetrics.for_requirements(self.requirements, config)
-        return observers.Chain(cost=cost, requirements=metrics)
+        chain = {"cost": cost_lib.CostObserver(self.spec.cost, self.spec.dt)}
+        if self.requirements is not None:
+            chain["requirements"] = rq.RequirementMetrics.for_requirements(
+                self.requirements, config
+            )
+        return observers.Chain(**chain)
 
     def _rollout(self, law: str, horizon: float, scenario, save_every: int):
         """``run(x (d, L), width, draws) -> (values (K, L), terms (4, L), metrics,
@@ -504,5 +502,4 @@ class _FirstCall:
 
 def _first(outputs: Outputs) -> Outputs:
     """The outputs of the first point of ``(P, n, ...)`` outputs."""
-    metrics = None if outputs.metrics is None else {k: v[0] for k, v in outputs.metrics.items()}
-    return Outputs(outputs.values[0], outputs.terms[0], outputs.status[0], metrics)
+    return jax.tree.map(lambda a: a[0], outputs)

@@ -199,8 +199,7 @@ class ParameterMap:
         """
         registry.get_controller_class(self.controller).check_gains(gains)
         dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
-        problems = []
-        params = {}
+        problems, params = [], {}
         for f in self.fields:
             value = np.asarray(getattr(gains, f.name), np.float64)
             if f.groups is not None:
