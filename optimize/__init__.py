@@ -31,25 +31,8 @@ from fojax.optimize.spec import (
 )
 
 __all__ = [
-    "CHECKPOINT",
-    "HELDOUT_OFFSET",
-    "VALIDATION_OFFSET",
-    "AlmLoss",
-    "Budget",
-    "CostConfig",
-    "Evaluation",
-    "MeanLoss",
-    "Objective",
-    "Outputs",
-    "ProblemSpec",
-    "Request",
-    "Result",
-    "check_resume",
-    "checkpoint_interval",
-    "describe",
-    "draw_keys",
-    "make_parameter_map",
-    "naive_gains",
-    "run",
-    "strategies",
-]
+    "CHECKPOINT", "HELDOUT_OFFSET", "VALIDATION_OFFSET", "AlmLoss", "Budget", "CostConfig",
+    "Evaluation", "MeanLoss", "Objective", "Outputs", "ProblemSpec", "Request", "Result",
+    "check_resume", "checkpoint_interval", "describe", "draw_keys", "make_parameter_map",
+    "naive_gains", "run", "strategies",
+]  # fmt: skip

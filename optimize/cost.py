@@ -17,9 +17,9 @@ A draw that diverges (status ``nonfinite`` or ``tilt_limit``, or a non-finite ``
 costs ``divergence_cost`` and contributes no gradient. Over a sample of ``n`` draws,
 ``objective="mean"`` is the mean of ``J``, ``objective="cvar"`` the mean of the
 ``ceil(cvar_fraction n)`` largest (the conditional value at risk of the worst tail):
-:class:`fojax.optimize.objective.MeanLoss`. Gradients are per draw
-(:func:`per_draw_gradients`: one copy of the gains per draw in one batch-last rollout),
-so one diverged draw cannot poison the others with NaN.
+:class:`fojax.optimize.MeanLoss`. :func:`make_batch_cost` and :func:`per_draw_gradients`
+compute ``J`` and its per-draw gradients by the gains directly (the references the tests
+check the objective against).
 """
 
 from __future__ import annotations
@@ -33,19 +33,14 @@ import jax.numpy as jnp
 
 from fojax import observers, plant, scenarios, simulator
 from fojax._arrays import unstack
+from fojax.optimize import checks
 
 Array = jax.Array
 
 __all__ = [
-    "DIVERGED",
-    "ERRORS",
-    "OBJECTIVES",
-    "CostConfig",
-    "CostObserver",
-    "CostTerms",
-    "make_batch_cost",
-    "per_draw_gradients",
-]
+    "DIVERGED", "ERRORS", "OBJECTIVES", "CostConfig", "CostObserver", "CostTerms",
+    "make_batch_cost", "per_draw_gradients",
+]  # fmt: skip
 
 ERRORS = ("ise", "itae")
 OBJECTIVES = ("mean", "cvar")
@@ -77,31 +72,18 @@ class CostConfig:
             raise ValueError(f"unknown error measure {self.error!r}; choose one of {ERRORS}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"unknown objective {self.objective!r}; choose one of {OBJECTIVES}")
-        weights = self.weights
-        for label, value in zip(
-            ("position_weight", "attitude_weight", "effort_weight", "chattering_weight"),
-            weights,
-            strict=True,
-        ):
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{label} must be a finite number >= 0, got {value!r}")
-        if not any(w > 0 for w in weights):
+        for term in ("position", "attitude", "effort", "chattering"):
+            checks.number(f"{term}_weight", getattr(self, f"{term}_weight"), allow_low=True)
+        if not any(w > 0 for w in self.weights):
             raise ValueError("at least one cost weight must be > 0")
         if not (isinstance(self.cvar_fraction, int | float) and 0 < self.cvar_fraction <= 1):
             raise ValueError(f"cvar_fraction must be in (0, 1], got {self.cvar_fraction!r}")
-        if not (math.isfinite(self.divergence_cost) and self.divergence_cost > 0):
-            raise ValueError(
-                f"divergence_cost must be a finite number > 0, got {self.divergence_cost!r}"
-            )
+        checks.number("divergence_cost", self.divergence_cost)
 
     @property
     def weights(self) -> tuple[float, float, float, float]:
-        return (
-            self.position_weight,
-            self.attitude_weight,
-            self.effort_weight,
-            self.chattering_weight,
-        )
+        return (self.position_weight, self.attitude_weight, self.effort_weight,
+                self.chattering_weight)  # fmt: skip
 
     def tail_count(self, draws: int) -> int:
         """Draws averaged by the CVaR objective out of ``draws``."""
@@ -179,15 +161,9 @@ def make_batch_cost(
     dtype: Any = None,
 ):
     """``cost(gains, keys) -> (J (n,), terms (n, 4), status (n,))`` of the draws ``keys``
-    ``(n, 2)`` (:func:`fojax.scenarios.draw_keys`), run as one batch-last rollout.
-
-    ``gains``: shared by the draws (each field with its declared shape) or one copy per
-    draw (the draws' axis last: per-draw gradients, :func:`per_draw_gradients`).
-    ``controller`` is built for the run (its ``horizon`` should equal
-    ``sim_config.horizon``); the controller's nominal model is
-    :func:`fojax.plant.nominal_params`. ``J`` is the raw weighted sum (non-finite when
-    a draw diverged; :func:`guard` handles that). Pure.
-    """
+    ``(n, 2)`` in one batch-last rollout; ``gains`` shared by the draws or one copy per draw
+    (the draws' axis last). ``controller`` is built for ``sim_config.horizon``. ``J`` is
+    the raw weighted sum (non-finite when a draw diverged). Pure."""
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     model = plant.nominal_params(dtype)
     observer = CostObserver(cost_config, sim_config.dt)
@@ -204,13 +180,9 @@ def make_batch_cost(
 
 def per_draw_gradients(batch_cost, gains: Any, keys: Array):
     """``(J (n,), terms (n, 4), status (n,), gradients)``: the cost of every draw and its
-    gradient with respect to ``gains``, per draw (each gains field ``(n,) + shape``).
-
-    One batch-last rollout with one copy of the gains per draw, differentiated once: each
-    draw's cost depends on its own copy only, so the gradient of the sum of the costs
-    with respect to the copies is the stack of the per-draw gradients, and a draw that
-    diverges (non-finite cost or gradient) does not touch the others'.
-    """
+    gradient by ``gains`` (each field ``(n,) + shape``): one batch-last rollout with one
+    copy of the gains per draw, differentiated once (each draw's cost depends on its own
+    copy only, so a diverged draw does not touch the others' gradients)."""
     n = keys.shape[0]
     copies = jax.tree.map(lambda g: jnp.broadcast_to(g[..., None], g.shape + (n,)), gains)
 

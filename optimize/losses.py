@@ -1,14 +1,7 @@
 """Losses: how a request's per-draw outputs become one number per point, and the
 cotangents of that number by each draw's outputs (what the per-draw reverse pass of
-:class:`fojax.optimize.Objective` weights).
-
-* :class:`MeanLoss`: the weighted-sum objective, the mean (or CVaR) of ``J`` over the
-  draws, a diverged draw at ``divergence_cost``; its gradient is the same weights on the
-  per-draw gradients of ``J`` (no forward pass first).
-* :class:`AlmLoss`: the augmented Lagrangian of the requirements
-  (:class:`fojax.optimize.strategies.AugmentedLagrangian`, whose docstring has the
-  formulation).
-"""
+:class:`fojax.optimize.Objective` weights): :class:`MeanLoss` (the weighted sum) and
+:class:`AlmLoss` (the requirements' augmented Lagrangian)."""
 
 from __future__ import annotations
 
@@ -27,8 +20,8 @@ FORMULATIONS = ("mean", "chance")
 @dataclasses.dataclass(frozen=True)
 class MeanLoss:
     """The weighted-sum objective: mean (or CVaR, :class:`~fojax.optimize.cost.CostConfig`)
-    of ``J`` over the draws, a diverged draw costing ``divergence_cost``; the gradient is
-    the same weights on the per-draw gradients of ``J`` (``pattern``)."""
+    of ``J`` over the draws, a diverged draw costing ``divergence_cost``; its gradient is
+    the same weights on the per-draw gradients of ``J`` (no forward pass first)."""
 
     config: cost_lib.CostConfig
 
@@ -55,8 +48,9 @@ class MeanLoss:
 
 @dataclasses.dataclass(frozen=True)
 class AlmLoss:
-    """The augmented Lagrangian (module docstring) at multipliers ``lam`` ``(R,)``,
-    penalty ``rho`` and scale ``f_0``, as a loss of the objective's outputs."""
+    """The augmented Lagrangian (:class:`fojax.optimize.strategies.AugmentedLagrangian`,
+    whose docstring has the formulation) at multipliers ``lam`` ``(R,)``, penalty ``rho``
+    and scale ``f_0``, as a loss of the objective's outputs."""
 
     lam: np.ndarray
     rho: float

@@ -1,9 +1,8 @@
-"""The tuning objective: one controller on one scenario (or a union of scenarios), its
-weighted-sum cost or a requirement set, the draws, the actuators and the precision,
-compiled once; every tuner (:mod:`fojax.optimize.strategies`) and every study calls it.
-
-Draws: the three ranges of :mod:`fojax.optimize.spec` (tuning samples, validation,
-held-out); a union's draw ``i`` is of member ``i % members``.
+"""The tuning objective (:class:`Objective`): a :class:`ProblemSpec` (controller,
+scenario or union, cost), optionally a requirement set, the actuators and the evaluation
+law, compiled once; every tuner (:mod:`fojax.optimize.strategies`) and every study calls
+it. Draws: the three ranges of :mod:`fojax.optimize.spec`; a union's draw ``i`` is of
+member ``i % members``.
 
 Laws. A request with a width ``w`` runs the *tuning law*: the sliding-mode controllers
 switch with ``tanh(S / (w b))``, ``b`` the gains' boundary layer (the field of role
@@ -12,20 +11,13 @@ with ``b``): the gains scored as they are used (validation and held-out draws al
 run it). Both have gradients (``sat`` is piecewise linear, differentiable almost
 everywhere; the paper's ``sign`` has none worth taking).
 
-Outputs per draw (:class:`Outputs`): ``values[..., 0]`` the target ``f`` (the
-weighted sum ``J`` of :mod:`fojax.optimize.cost`, or with a requirement set its
-``target``: ``effort`` ``E`` or ``tracking`` ``P + A``), ``values[..., 1:]`` the
-normalised violations ``v_j`` of the requirements (:func:`fojax.requirements.violations`,
-``<= 0`` where the draw meets requirement ``j``), the cost terms, the status flags.
-
-A loss turns outputs into one number per point. The weighted-sum objective's own,
-:class:`MeanLoss`, is the mean (or CVaR) of ``J`` with a diverged draw costing
-``divergence_cost``; its gradient is ``sum_i w_i grad J_i`` over the draws whose
-gradient is finite (per-draw gradients: one copy of the parameters per draw in one
-batch-last reverse pass, so a diverged draw cannot poison the others). Another loss
-(the augmented Lagrangian of :mod:`fojax.optimize.strategies`) gives per-draw
-cotangents of the outputs from a forward pass at the same point, then the same
-per-draw reverse pass.
+Outputs per draw (:class:`Outputs`): ``values[..., 0]`` the target ``f`` (the weighted
+sum ``J`` of :mod:`fojax.optimize.cost`, or with a requirement set ``E`` or ``P + A``),
+``values[..., 1:]`` the normalised violations ``v_j`` (:func:`fojax.requirements.violations`,
+``<= 0`` where the draw meets requirement ``j``), the cost terms, the status flags. A loss
+(:mod:`fojax.optimize.losses`) turns them into one number per point; its gradient is the
+loss's cotangents on each draw's outputs through one batch-last reverse pass with one copy
+of the parameters per draw (a diverged draw cannot poison the others).
 
 Programs: a *lane* is one point on one draw; a request of ``P`` points on ``n`` draws is
 ``P n`` lanes, run in blocks of ``lanes`` per device and call over the mesh (the last
@@ -53,13 +45,7 @@ from fojax.optimize import cost as cost_lib
 from fojax.optimize import params as params_lib
 from fojax.optimize.losses import MeanLoss
 from fojax.optimize.requests import Evaluation, Outputs, Request
-from fojax.optimize.spec import (
-    COMPILE_MODES,
-    TARGETS,
-    ProblemSpec,
-    checkpoint_interval,
-    draw_keys,
-)
+from fojax.optimize.spec import COMPILE_MODES, TARGETS, ProblemSpec, checkpoint_interval, draw_keys
 
 __all__ = ["LANES", "Evaluation", "Objective", "Outputs", "Request"]
 
@@ -122,7 +108,7 @@ class Objective:
         cls = registry.get_controller_class(spec.controller)
         base_gains = type(base_gains)(*(jnp.asarray(g, self.dtype) for g in base_gains))
         cls.check_gains(base_gains)
-        self.base_gains = base_gains
+        self.base_gains, self._widths = base_gains, cls.GAINS.with_role("smoothing")
         self.param_map = params_lib.make_parameter_map(spec.controller, spec.fields, spec.share)
         template = self.param_map.to_params(base_gains, self.dtype)
         x0, self._unravel = self.param_map.ravel(template)
@@ -130,12 +116,8 @@ class Objective:
         self.registered = scenario is None
         self.scenario = spec.scenario_object() if scenario is None else scenario
         self.members = len(self.scenario.members) if self.scenario.members else 0
-        self.mesh = mesh
-        self._mesh = mesh or sharding.one_device_mesh()
-        self.device_batch = device_batch
-        self.lanes = int(lanes)
-        self._widths = cls.GAINS.with_role("smoothing")
-        self.loss = MeanLoss(spec.cost)
+        self.mesh, self._mesh = mesh, mesh or sharding.one_device_mesh()
+        self.device_batch, self.lanes, self.loss = device_batch, int(lanes), MeanLoss(spec.cost)
         self._programs: dict = {}
         self._lock = threading.Lock()
 
@@ -162,15 +144,12 @@ class Objective:
     def vector(self, gains: Any) -> np.ndarray:
         """``(d,)`` float64 parameters of ``gains``; ``ValueError`` when a field the
         objective does not tune differs from the base gains (it would be lost)."""
-        tuned = set(self.param_map.names)
+        tuned, base = set(self.param_map.names), self.base_gains
         different = [
-            name
-            for name in self.base_gains._fields
-            if name not in tuned
-            and not np.array_equal(
-                np.asarray(getattr(gains, name), np.float64),
-                np.asarray(getattr(self.base_gains, name), np.float64),
-            )
+            n
+            for n in base._fields
+            if n not in tuned
+            and not np.array_equal(*(np.asarray(getattr(g, n), np.float64) for g in (gains, base)))
         ]
         if different:
             raise ValueError(
@@ -198,11 +177,12 @@ class Objective:
         return gains._replace(**{w: getattr(self.base_gains, w) * width for w in self._widths})
 
     def _observer(self, config):
-        cost = cost_lib.CostObserver(self.spec.cost, self.spec.dt)
-        if self.requirements is None:
-            return observers.Chain(cost=cost)
-        metrics = rq.RequirementMetrics.for_requirements(self.requirements, config)
-        return observers.Chain(cost=cost, requirements=metrics)
+        chain = {"cost": cost_lib.CostObserver(self.spec.cost, self.spec.dt)}
+        if self.requirements is not None:
+            chain["requirements"] = rq.RequirementMetrics.for_requirements(
+                self.requirements, config
+            )
+        return observers.Chain(**chain)
 
     def _rollout(self, law: str, horizon: float, scenario, save_every: int):
         """``run(x (d, L), width, draws) -> (values (K, L), terms (4, L), metrics,
@@ -238,24 +218,26 @@ class Objective:
     def _members(self, count: int) -> np.ndarray:
         return np.arange(count) % self.members if self.members else np.zeros(count, np.int64)
 
+    def _cached(self, key, make):
+        """The program under ``key``, made by ``make()`` the first time (under a lock)."""
+        with self._lock:
+            if key not in self._programs:
+                self._programs[key] = make()
+        return self._programs[key]
+
     def _sampler(self, scenario, registered: bool):
         """The draws of a block of :data:`SAMPLE_BLOCK` keys (a program of its own,
         shared by every rollout program: compiled once, beside them)."""
+        dt, dtype = self.spec.dt, self.dtype
+
+        def sample(keys, member):
+            return scenarios.batch_first(scenarios.sample_draws(scenario, keys, dt, dtype, member))
+
+        # Without LLVM's optimisation passes: a tenth of the compile time (its calls take
+        # milliseconds); the draws agree with an optimised program's to an ulp or two.
+        fast = COMPILE_MODES["fast"]
         key = ("sampler", None if registered else id(scenario))
-        with self._lock:
-            if key not in self._programs:
-                dt, dtype = self.spec.dt, self.dtype
-
-                def sample(keys, member):
-                    draws = scenarios.sample_draws(scenario, keys, dt, dtype, member)
-                    return scenarios.batch_first(draws)
-
-                # Without LLVM's optimisation passes: a tenth of the compile time (its
-                # calls take milliseconds); the draws agree with an optimised program's to
-                # an ulp or two.
-                fast = COMPILE_MODES["fast"]
-                self._programs[key] = _FirstCall(jax.jit(sample, compiler_options=fast))
-        return self._programs[key]
+        return self._cached(key, lambda: _FirstCall(jax.jit(sample, compiler_options=fast)))
 
     def draws(self, keys, scenario=None, horizon: float | None = None):
         """The draws of ``keys`` ``(n, 2)`` (a union's draw ``i`` of member ``i %
@@ -271,37 +253,32 @@ class Objective:
         )
 
     def _forward(self, law: str, horizon: float, scenario, registered: bool):
-        """The lanes program of ``law`` at ``horizon``, compiled once (cached)."""
-        key = ("forward", law, horizon, id(scenario) if not registered else None)
-        with self._lock:
-            if key not in self._programs:
-                self._programs[key] = self._lanes_program(law, horizon, scenario, registered)
-        return self._programs[key]
+        """The lanes program of ``law`` at ``horizon`` (lanes first in and out) over the
+        mesh, compiled once."""
 
-    def _program_key(self, **kind) -> dict:
-        """What a program closes over (its key in :mod:`fojax.export_cache`)."""
-        gains = {k: np.asarray(v).tolist() for k, v in self.base_gains._asdict().items()}
-        return {**self.describe(), "base_gains": gains, **kind}
+        def make():
+            steps = int(round(horizon / self.spec.dt))
+            run = self._rollout(law, horizon, scenario, checkpoint_interval(steps, 100.0))
 
-    def _lanes_program(self, law: str, horizon: float, scenario, registered: bool):
-        """The lanes program (lanes first in and out) over the mesh."""
-        steps = int(round(horizon / self.spec.dt))
-        run = self._rollout(law, horizon, scenario, checkpoint_interval(steps, 100.0))
+            def lanes(width, batch):
+                xs, draws = batch
+                values, terms, metrics, status = run(xs.T, width, draws)
+                return values.T, terms.T, metrics, status
 
-        def lanes(width, batch):  # lanes first in and out
-            xs, draws = batch
-            values, terms, metrics, status = run(xs.T, width, draws)
-            return values.T, terms.T, metrics, status
+            key = dict(law=law, horizon=horizon, kind="lanes") if registered else None
+            return self._program(lanes, key, None)
 
-        key = self._program_key(law=law, horizon=horizon, kind="lanes") if registered else None
-        return self._program(lanes, key, None)
+        return self._cached(("forward", law, horizon, None if registered else id(scenario)), make)
 
-    def _program(self, fn, key, options):
+    def _program(self, fn, kind: dict | None, options):
         """``fn(shared, batch)`` compiled for one block per device of the mesh (kept
-        across processes under ``key``, :mod:`fojax.export_cache`); its first call
-        holds a lock, so that two threads never compile it twice."""
+        across processes under what it closes over and ``kind``,
+        :mod:`fojax.export_cache`); its first call holds a lock, so that two threads never
+        compile it twice."""
         program = sharding.sharded_batch(fn, self._mesh, (False, True), options)
-        if key is not None:
+        if kind is not None:
+            gains = {k: np.asarray(v).tolist() for k, v in self.base_gains._asdict().items()}
+            key = {**self.describe(), "base_gains": gains, **kind}
             program = export_cache.reusable(program, key["kind"], key, options)
         return _FirstCall(program)
 
@@ -344,14 +321,11 @@ class Objective:
 
     def _gradient(self, law: str = "tanh"):
         """The per-draw gradient program of ``law``, compiled once."""
-        with self._lock:
-            if ("gradient", law) not in self._programs:
-                self._programs[("gradient", law)] = self._gradient_program(law)
-        return self._programs[("gradient", law)]
-
-    def _gradient_program(self, law: str):
-        key = self._program_key(kind="gradient", law=law) if self.registered else None
-        return self._program(self._per_draw_function(law), key, COMPILE_MODES[self.spec.compile])
+        kind = dict(kind="gradient", law=law) if self.registered else None
+        options = COMPILE_MODES[self.spec.compile]
+        return self._cached(
+            ("gradient", law), lambda: self._program(self._per_draw_function(law), kind, options)
+        )
 
     def _per_draw_function(self, law: str):
         """``per_draw((x, width), (keys, member, cotangent)) -> (values, terms, status,
@@ -401,13 +375,11 @@ class Objective:
             return
         law = "tanh" if width is not None else self.switching
         count = self.lanes * int(self._mesh.devices.size) if kind == "forward" else self.spec.draws
-        structure = jax.eval_shape(
-            self._sampler(self.scenario, self.registered).program,
-            *(
-                jax.ShapeDtypeStruct((SAMPLE_BLOCK,) + s, t)
-                for s, t in (((2,), "uint32"), ((), "int32"))
-            ),
-        )
+        blank = [
+            jax.ShapeDtypeStruct((SAMPLE_BLOCK,) + s, t)
+            for s, t in (((2,), "uint32"), ((), "int32"))
+        ]
+        structure = jax.eval_shape(self._sampler(self.scenario, self.registered).program, *blank)
         draws = jax.tree.map(lambda a: np.zeros((count,) + a.shape[1:], a.dtype), structure)
         if kind == "gradient":
             self._per_draw(law, self.x0, 1.0, draws, np.zeros((count, self.count)))
@@ -530,5 +502,4 @@ class _FirstCall:
 
 def _first(outputs: Outputs) -> Outputs:
     """The outputs of the first point of ``(P, n, ...)`` outputs."""
-    metrics = None if outputs.metrics is None else {k: v[0] for k, v in outputs.metrics.items()}
-    return Outputs(outputs.values[0], outputs.terms[0], outputs.status[0], metrics)
+    return jax.tree.map(lambda a: a[0], outputs)

@@ -42,21 +42,12 @@ from fojax.controllers.gains import Bounds
 Array = jax.Array
 
 __all__ = [
-    "AXIS_NAMES",
-    "SHARING",
-    "TUNED_ROLES",
-    "FieldMap",
-    "ParameterMap",
-    "default_fields",
-    "make_parameter_map",
-    "naive_gains",
-]
+    "AXIS_NAMES", "SHARING", "TUNED_ROLES", "FieldMap", "ParameterMap", "default_fields",
+    "make_parameter_map", "naive_gains",
+]  # fmt: skip
 
 AXIS_NAMES = ("x", "y", "z", "phi", "theta", "psi")
-SHARING = {
-    "paper": ((0, 1), (2,), (3, 4, 5)),
-    "none": ((0,), (1,), (2,), (3,), (4,), (5,)),
-}
+SHARING = {"paper": ((0, 1), (2,), (3, 4, 5)), "none": ((0,), (1,), (2,), (3,), (4,), (5,))}
 """Axis groups of each sharing mode (indices into :data:`AXIS_NAMES`)."""
 
 TUNED_ROLES = ("design",)
@@ -68,15 +59,31 @@ U_MAX = 30.0
 """Unconstrained parameters are clipped to ``[-U_MAX, U_MAX]``."""
 
 
+_MAPS = {  # kind: (forward(u, low, high), inverse(g, low, high), naive_gains' value)
+    "log": (
+        lambda u, low, high: low + jnp.exp(u),
+        lambda g, low, high: np.log(g - low),
+        lambda low, high: low + 1.0,
+    ),
+    "logit": (
+        lambda u, low, high: low + (high - low) * jax.nn.sigmoid(u),
+        lambda g, low, high: np.log((g - low) / (high - low)) - np.log1p(-(g - low) / (high - low)),
+        lambda low, high: 0.5 * (low + high),
+    ),
+    "neglog": (
+        lambda u, low, high: high - jnp.exp(u),
+        lambda g, low, high: np.log(high - g),
+        lambda low, high: high - 1.0,
+    ),
+    "identity": (lambda u, low, high: u, lambda g, low, high: g, lambda low, high: 0.0),
+}
+
+
 def _kind(bounds: Bounds) -> str:
-    low_finite, high_finite = math.isfinite(bounds.low), math.isfinite(bounds.high)
-    if low_finite and high_finite:
-        return "logit"
-    if low_finite:
-        return "log"
-    if high_finite:
-        return "neglog"
-    return "identity"
+    finite = (math.isfinite(bounds.low), math.isfinite(bounds.high))
+    return {(True, True): "logit", (True, False): "log", (False, True): "neglog"}.get(
+        finite, "identity"
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,14 +108,6 @@ class FieldMap:
         if self.groups is None:
             return self.shape
         return (len(self.groups), *self.shape[1:])
-
-    @property
-    def group_index(self) -> np.ndarray:
-        """``(6,)`` group of each axis."""
-        index = np.zeros(len(AXIS_NAMES), np.int32)
-        for g, axes in enumerate(self.groups):
-            index[list(axes)] = g
-        return index
 
     def labels(self) -> list[str]:
         """One readable name per scalar parameter, in ``ravel`` order."""
@@ -136,41 +135,24 @@ class FieldMap:
     def forward(self, u: Array) -> Array:
         """Unconstrained ``u`` -> feasible values (same shape)."""
         u = jnp.clip(u, -U_MAX, U_MAX)
-        low, high = self.bounds.low, self.bounds.high
-        kind = self.kind
-        if kind == "log":
-            value = low + jnp.exp(u)
-        elif kind == "logit":
-            value = low + (high - low) * jax.nn.sigmoid(u)
-        elif kind == "neglog":
-            value = high - jnp.exp(u)
-        else:
-            value = u
-        return self._interior(value)
+        return self._interior(_MAPS[self.kind][0](u, self.bounds.low, self.bounds.high))
 
     def inverse(self, value: np.ndarray) -> np.ndarray:
         """Feasible values -> unconstrained (NumPy float64, before tracing)."""
-        value = np.asarray(value, np.float64)
-        low, high = self.bounds.low, self.bounds.high
-        kind = self.kind
         with np.errstate(divide="ignore", invalid="ignore"):
-            if kind == "log":
-                u = np.log(value - low)
-            elif kind == "logit":
-                s = (value - low) / (high - low)
-                u = np.log(s) - np.log1p(-s)
-            elif kind == "neglog":
-                u = np.log(high - value)
-            else:
-                u = value
-        return u
+            return _MAPS[self.kind][1](
+                np.asarray(value, np.float64), self.bounds.low, self.bounds.high
+            )
 
     def expand(self, grouped: Array) -> Array:
         """Parameters of shape ``param_shape`` -> the field's shape (axes of a group
         share the group's value)."""
         if self.groups is None:
             return grouped
-        return jnp.take(grouped, jnp.asarray(self.group_index), axis=0)
+        index = np.zeros(len(AXIS_NAMES), np.int32)  # the group of each axis
+        for g, axes in enumerate(self.groups):
+            index[list(axes)] = g
+        return jnp.take(grouped, jnp.asarray(index), axis=0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,8 +199,7 @@ class ParameterMap:
         """
         registry.get_controller_class(self.controller).check_gains(gains)
         dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
-        problems = []
-        params = {}
+        problems, params = [], {}
         for f in self.fields:
             value = np.asarray(getattr(gains, f.name), np.float64)
             if f.groups is not None:
@@ -298,14 +279,6 @@ def naive_gains(controller: str, dtype: Any = None) -> Any:
         if name not in spec.with_role(*TUNED_ROLES):
             continue
         reference = jnp.asarray(getattr(template, name))
-        kind = _kind(bounds)
-        if kind == "logit":
-            fill = 0.5 * (bounds.low + bounds.high)
-        elif kind == "log":
-            fill = bounds.low + 1.0
-        elif kind == "neglog":
-            fill = bounds.high - 1.0
-        else:
-            fill = 0.0
+        fill = _MAPS[_kind(bounds)][2](bounds.low, bounds.high)
         values[name] = jnp.full(reference.shape, fill, reference.dtype)
     return template._replace(**values)

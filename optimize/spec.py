@@ -23,15 +23,9 @@ from fojax.optimize import cost as cost_lib
 from fojax.optimize import params as params_lib
 
 __all__ = [
-    "COMPILE_MODES",
-    "DTYPES",
-    "HELDOUT_OFFSET",
-    "TARGETS",
-    "VALIDATION_OFFSET",
-    "ProblemSpec",
-    "checkpoint_interval",
-    "draw_keys",
-]
+    "COMPILE_MODES", "DTYPES", "HELDOUT_OFFSET", "TARGETS", "VALIDATION_OFFSET", "ProblemSpec",
+    "checkpoint_interval", "draw_keys",
+]  # fmt: skip
 
 VALIDATION_OFFSET = 2**30
 HELDOUT_OFFSET = 2**31
@@ -111,11 +105,8 @@ class ProblemSpec:
         checks.integer("draws", self.draws)
         checks.integer("seed", self.seed, 0)
         checks.choice("dtype", self.dtype, DTYPES)
-        if self.save_every is not None and (
-            not isinstance(self.save_every, int)
-            or self.save_every < 1
-            or self.steps % self.save_every
-        ):
+        every = self.save_every
+        if every is not None and (not isinstance(every, int) or every < 1 or self.steps % every):
             raise ValueError(
                 f"save_every must be a positive divisor of the {self.steps} steps, got "
                 f"{self.save_every!r}"
@@ -123,12 +114,12 @@ class ProblemSpec:
         if self.fields is not None:
             object.__setattr__(self, "fields", tuple(self.fields))
         params_lib.make_parameter_map(self.controller, self.fields, self.share)  # validates
-        if "fractional_method" not in registry.controller_options(self.controller):
-            if self.fractional != "soe":
-                raise ValueError(
-                    f"fractional={self.fractional!r} does not apply to {self.controller}, "
-                    "which has no fractional operator; leave fractional at its default 'soe'"
-                )
+        options = registry.controller_options(self.controller)
+        if "fractional_method" not in options and self.fractional != "soe":
+            raise ValueError(
+                f"fractional={self.fractional!r} does not apply to {self.controller}, "
+                "which has no fractional operator; leave fractional at its default 'soe'"
+            )
         self.make_controller("tanh", self.horizon)  # validates the fractional method
 
     @property
@@ -148,8 +139,8 @@ class ProblemSpec:
     def make_controller(self, switching: str, horizon: float):
         """The controller over ``horizon`` with ``switching`` and the fractional method,
         each where the controller has one (the FL has neither)."""
-        options = dict(dt=self.dt, horizon=horizon, fractional_method=self.fractional)
-        options["switching"] = switching
+        options = dict(dt=self.dt, horizon=horizon, fractional_method=self.fractional,
+                       switching=switching)  # fmt: skip
         return registry.make_controller(
             self.controller, **registry.options_for(self.controller, options)
         )

@@ -1,23 +1,20 @@
 """``--requirements FILE`` and ``--rotor-limit T`` of ``fojax simulate`` and ``fojax tune``
 (docs/requirements.md, "Commands").
 
-``fojax simulate --requirements FILE`` measures, after the Monte Carlo runs, every metric
-of :data:`fojax.requirements.METRICS` on the same draws (the study's seed, controllers,
-gains and actuators; :func:`fojax.requirements.measure`) and reports per controller the
-yield (draws meeting every requirement) with its 95 % Clopper-Pearson interval, the
-failures per requirement and the one failing most often: printed, in ``summary.json``
+``fojax simulate --requirements FILE`` measures every metric of
+:data:`fojax.requirements.METRICS` on the study's own draws, controllers, gains and
+actuators (:func:`fojax.requirements.measure`) and reports per controller the yield
+(draws meeting every requirement) with its 95 % Clopper-Pearson interval, the failures
+per requirement and the one failing most often: printed, in ``summary.json``
 (``summary["requirements"]``: the set, once; ``summary["controllers"][NAME]
 ["requirements"]``: :meth:`fojax.requirements.YieldResult.to_dict`), the per-draw metrics
-in ``requirements.npz`` and the figure ``requirements.png``.
-
-``fojax tune --requirements FILE`` (:mod:`fojax.cli.tune`) shares the two option types
-(:func:`requirements_file`, :func:`thrust_to_weight`) and how the file and
-``--rotor-limit`` resolve into actuators (:func:`resolve_requirements`).
+in ``requirements.npz`` and the figure ``requirements.png``. ``fojax tune`` shares the
+option types and :func:`resolve_requirements`.
 
 Actuators are rotor-limited (squared rotor speeds clipped to ``[0, w_max^2]``) when the
 file's ``[settings]`` ask for it, or with ``--rotor-limit T`` (thrust-to-weight ratio at
 ``w_max``; it replaces the file's limit). A file that cannot be used is an error (exit
-status 2) before anything compiles, as is an option that applies to the other tuner.
+status 2) before anything compiles.
 """
 
 from __future__ import annotations
@@ -31,16 +28,9 @@ from pathlib import Path
 from fojax.cli import arguments
 
 __all__ = [
-    "actuators_record",
-    "add_simulate_options",
-    "configure_study",
-    "report_simulate",
-    "requirements_file",
-    "resolve_requirements",
-    "thrust_to_weight",
-]
-
-# ------------------------------------------------------------------ argument types
+    "actuators_record", "add_simulate_options", "configure_study", "report_simulate",
+    "requirements_file", "resolve_requirements", "thrust_to_weight",
+]  # fmt: skip
 
 
 def requirements_file(text: str):
@@ -69,7 +59,8 @@ def thrust_to_weight(text: str) -> float:
     return value
 
 
-def _add_common(parser: argparse.ArgumentParser) -> None:
+def add_simulate_options(parser: argparse.ArgumentParser) -> None:
+    """``--requirements FILE`` and ``--rotor-limit T`` of ``fojax simulate``."""
     parser.add_argument(
         "--requirements",
         type=requirements_file,
@@ -91,48 +82,31 @@ def resolve_requirements(args):
     applied, and the rotor speed limit the simulation uses (None: ideal actuators)."""
     from fojax import requirements as rq
 
-    reqs = args.requirements
-    if args.rotor_limit is not None:
-        if reqs is not None:
-            settings = dataclasses.replace(
-                reqs.settings,
-                thrust_to_weight=args.rotor_limit,
-                rotor_speed_limit=None,
-                rotor_limited=True,
-            )
-            reqs = dataclasses.replace(reqs, settings=settings)
-        return reqs, rq.rotor_speed_limit(args.rotor_limit)
+    reqs, ratio = args.requirements, args.rotor_limit
+    if ratio is None:
+        return reqs, None if reqs is None else reqs.settings.simulation_limit()
     if reqs is not None:
-        return reqs, reqs.settings.simulation_limit()
-    return None, None
+        settings = dataclasses.replace(
+            reqs.settings, thrust_to_weight=ratio, rotor_speed_limit=None, rotor_limited=True
+        )
+        reqs = dataclasses.replace(reqs, settings=settings)
+    return reqs, rq.rotor_speed_limit(ratio)
 
 
 def actuators_record(limit: float | None, args) -> dict:
+    """The actuators of ``limit`` (``w_max``, ``None``: ideal) and where it comes from."""
     from fojax import requirements as rq
 
     if limit is None:
         return {"rotor_limited": False}
-    ratio = args.rotor_limit
-    source = "--rotor-limit"
+    ratio, source = args.rotor_limit, "--rotor-limit"
     if ratio is None:
         source = "the requirement file's settings"
-        settings = args.requirements.settings
-        ratio = settings.thrust_to_weight
-    out = {"rotor_limited": True, "rotor_speed_limit_rad_s": limit, "source": source}
-    if ratio is not None:
-        out["thrust_to_weight"] = ratio
-    else:
-        w_max_ratio = (limit / rq.rotor_speed_limit(1.0)) ** 2
-        out["thrust_to_weight"] = w_max_ratio
-    return out
-
-
-# ------------------------------------------------------------------------ simulate
-
-
-def add_simulate_options(parser: argparse.ArgumentParser) -> None:
-    """``--requirements FILE`` and ``--rotor-limit T`` of ``fojax simulate``."""
-    _add_common(parser)
+        ratio = args.requirements.settings.thrust_to_weight
+    if ratio is None:
+        ratio = (limit / rq.rotor_speed_limit(1.0)) ** 2
+    return {"rotor_limited": True, "rotor_speed_limit_rad_s": limit, "source": source,
+            "thrust_to_weight": ratio}  # fmt: skip
 
 
 def configure_study(parser, args, study):
@@ -143,23 +117,6 @@ def configure_study(parser, args, study):
     if limit is None:
         return study
     return dataclasses.replace(study, rotor_speed_limit=limit)
-
-
-def measure_study(study, reqs) -> dict:
-    """Per controller of ``study``: ``(metrics, status)`` of every requirement metric on
-    the study's draws (same keys, controllers, gains and actuators)."""
-    import numpy as np
-
-    from fojax import requirements as rq
-    from fojax import scenarios
-    from fojax.cli import study as study_layer
-
-    _, scenario, config, dtype, runs = study_layer.prepare_runs(study)
-    keys = np.asarray(scenarios.draw_keys(study.seed, np.arange(study.draws)))
-    out = {}
-    for name, (controller, gains) in runs.items():
-        out[name] = rq.measure(controller, gains, scenario, reqs, keys, config, dtype=dtype)
-    return out
 
 
 def report_simulate(study, args, out: Path, summary: dict, figures: bool = True) -> dict:
@@ -185,7 +142,7 @@ def report_simulate(study, args, out: Path, summary: dict, figures: bool = True)
         write_json(out / "summary.json", summary)
         return summary
     start = time.perf_counter()
-    results, arrays = _yields(measure_study(study, reqs), reqs, summary)
+    results, arrays = _yields(study, reqs, summary)
     summary["requirements"] = {
         **reqs.to_dict(),
         "names": list(reqs.names),
@@ -219,15 +176,21 @@ def report_simulate(study, args, out: Path, summary: dict, figures: bool = True)
     return summary
 
 
-def _yields(measured: dict, reqs, summary: dict) -> tuple[dict, dict]:
-    """``({name: YieldResult}, per-draw arrays)`` of the measured metrics; each result in
+def _yields(study, reqs, summary: dict) -> tuple[dict, dict]:
+    """``({name: YieldResult}, per-draw arrays)`` of every requirement metric measured on
+    the study's draws (same keys, controllers, gains and actuators); each result in
     ``summary["controllers"][name]["requirements"]``."""
     import numpy as np
 
     from fojax import requirements as rq
+    from fojax import scenarios
+    from fojax.cli import study as study_layer
 
+    _, scenario, config, dtype, runs = study_layer.prepare_runs(study)
+    keys = np.asarray(scenarios.draw_keys(study.seed, np.arange(study.draws)))
     results, arrays = {}, {}
-    for name, (metrics, status) in measured.items():
+    for name, (controller, gains) in runs.items():
+        metrics, status = rq.measure(controller, gains, scenario, reqs, keys, config, dtype=dtype)
         valid = (status & rq.DIVERGED) == 0
         result = rq.evaluate(reqs, metrics, valid=valid)
         results[name] = result

@@ -1,17 +1,9 @@
 """``fojax tune``: tune a controller's gains over Monte Carlo draws of a scenario.
 
-    fojax tune --scenario {1,2,3} --controller NAME [--init paper|naive|FILE]
-               [--objective mean|cvar] [--requirements FILE [--objective effort|tracking]]
-               [--method auto|cma-lbfgs|adam|lbfgs|cma-es|nelder-mead] [--resume] --out DIR
-
 The objective (the weighted-sum cost's mean or CVaR, or a requirement set with what is
-minimised under it) and the method are independent choices; every method runs on the
-one engine (:mod:`fojax.optimize`): the objective (:class:`fojax.optimize.Objective`), a
-strategy (:mod:`fojax.optimize.strategies`; with ``--requirements`` inside the
-augmented Lagrangian) and the driver (:func:`fojax.optimize.run`). ``--method auto``,
-the default, is CMA-ES on small fresh samples (8 draws per generation), measured faster
-to a given held-out cost than CMA-ES on 16-draw samples and than the gradient tuners
-(docs/tuning.md).
+minimised under it) and the method are independent choices, both run on the engine
+(:mod:`fojax.optimize`): an :class:`~fojax.optimize.Objective`, a strategy (inside the
+augmented Lagrangian with ``--requirements``) and :func:`fojax.optimize.run`.
 
 Writes to ``DIR``: ``gains.json`` (what ``fojax simulate --gains`` reads: the best
 validated gains, the start's on a tie, with the run's settings, the step they come from
@@ -22,11 +14,10 @@ uninterrupted run gives), ``evaluation.json`` (the initial and the tuned gains o
 (and ``.pdf``) and ``run.json`` (the initial gains and, per session, the command line,
 versions, backend and devices).
 
-Each option is declared once, below, with its default and what it applies to; argv is
-parsed once and every option is checked before anything is compiled or written. An
-option that would change nothing (another method's, the other objective's, validation
-or held-out settings without draws, a law's option for a controller without it) is an
-error naming what it applies to.
+Each option is declared once in :data:`OPTIONS`, with its default and what it applies
+to; argv is parsed once and every option is checked before anything is compiled or
+written. An option that would change nothing (another method's, the other objective's, a
+law's option for a controller without it, ...) is an error naming what it applies to.
 """
 
 from __future__ import annotations
@@ -52,7 +43,7 @@ __all__ = ["METHODS", "OPTIONS", "Run", "build_parser", "main", "parse_args"]
 WEIGHTED, CONSTRAINED = ("mean", "cvar"), ("effort", "tracking")
 TERMS = ("position", "attitude", "effort", "chattering")
 GRADIENT = ("cma-lbfgs", "adam", "lbfgs")
-BUILT_IN_INIT = {"paper": "defaults", "naive": "naive"}
+BUILT_IN = {"paper": "defaults", "naive": "naive"}
 
 
 class Option(NamedTuple):
@@ -152,8 +143,8 @@ OPTIONS = (
     Option("--method", dict(choices=METHODS, help="auto (default): CMA-ES on 8-draw fresh "
            "samples; cma-lbfgs: then L-BFGS; adam; lbfgs; cma-es (--draws per generation); "
            "nelder-mead"), "auto"),
-    Option("--steps", dict(type=count, help="steps (generations for CMA-ES): auto 40, cma-lbfgs "
-           "40, adam 6, lbfgs 6, cma-es 20, nelder-mead 300"), lambda a: DEFAULT_STEPS[a.method],
+    Option("--steps", dict(type=count, help="steps (generations for CMA-ES): " + ", ".join(
+           f"{m} {n}" for m, n in DEFAULT_STEPS.items())), lambda a: DEFAULT_STEPS[a.method],
            lambda a: "is set by --outer-steps and --inner-steps with --requirements"
            if a.requirements else None),
     Option("--seconds", dict(type=real, help="stop after this wall time (none)")),
@@ -176,7 +167,7 @@ OPTIONS = (
     Option("--validation-draws", dict(type=whole, help="draws scoring the answer; the best "
            "validated gains are returned (32; 0: the last)"), 32),
     Option("--validate-every", dict(type=count, help="steps between validations (default: "
-           "once 4 times the validation's draw-steps are simulated; with --requirements every "
+           "once the work since the last is 8 times a validation's; with --requirements every "
            "multiplier update)"), lambda a: a.inner_steps + 1 if a.requirements else None,
            lambda a: "applies with validation draws only" if a.validation_draws == 0 else None),
     Option("--eval-draws", dict(type=whole, help="held-out draws (32; 128 with --requirements; "
@@ -198,7 +189,6 @@ OPTIONS = (
     Option("--checkpoint-every", dict(type=count, help="steps between checkpoints (10)"), 10),
     Option("--out", dict(type=arguments.output_directory, required=True, metavar="DIR")),
 )  # fmt: skip
-FLAGS = ("--resume", "--quiet")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -213,8 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-@dataclasses.dataclass
-class Run:
+class Run(NamedTuple):
     """``fojax tune``'s arguments, checked: the objective, the strategy, the budget, the
     start, the run's fingerprint and what it writes."""
 
@@ -239,8 +228,6 @@ def parse_args(argv) -> Run:
         args.controller = registry.get_controller_class(args.controller).name
     except (TypeError, ValueError) as error:
         parser.error(str(error))
-    if args.method is None:
-        args.method = "auto"
     if args.requirements is None and args.objective in CONSTRAINED:
         parser.error(f"--objective {args.objective} applies with --requirements FILE only")
     if args.requirements is not None and args.objective in WEIGHTED:
@@ -265,11 +252,15 @@ def parse_args(argv) -> Run:
 
 def _build(parser, args) -> Run:
     """The objective, strategy, budget and fingerprint of checked arguments."""
-    from fojax import optimize
+    import jax
+
+    from fojax import optimize, sharding
+    from fojax.controllers import registry
     from fojax.optimize import strategies as st
 
-    dtype = _dtype(args)
-    fields = _fields(args)
+    arguments.enable_dtype(args.dtype)
+    fields = {"default": None, "all": registry.get_controller_class(args.controller).GAINS.names}
+    fields = fields.get(args.fields, tuple(f.strip() for f in args.fields.split(",") if f.strip()))
     weights = {f"{t}_weight": getattr(args, f"{t}_weight") for t in TERMS}
     reduction = args.objective if args.objective in WEIGHTED else "mean"
     cost = optimize.CostConfig(args.error, objective=reduction,
@@ -277,19 +268,27 @@ def _build(parser, args) -> Run:
     take = ("controller", "scenario", "horizon", "dt", "draws", "seed", "share", "fractional",
             "dtype", "compile")  # fmt: skip
     spec = optimize.ProblemSpec(cost=cost, fields=fields, **{k: getattr(args, k) for k in take})
-    if args.eval_horizon is not None:  # a whole number of steps
+    if args.eval_horizon is not None:  # checked: a whole number of steps
         dataclasses.replace(spec, horizon=args.eval_horizon)
-    gains, label = _initial_gains(parser, args, dtype)
+    gains, label = _initial_gains(parser, args)
     reqs, limit = requirements_cli.resolve_requirements(args)
     args.requirement_set, args.rotor_speed_limit = reqs, limit
-    target = args.objective if reqs is not None else "cost"
-    strategy, steps, mesh = _strategy(args), args.steps, _mesh()
+    steps = args.inner_steps if reqs is not None else args.steps  # a fresh Adam per outer step
+    strategy = st.make(
+        args.method, steps, seed=args.seed, switch=args.switch, sigma=args.sigma,
+        popsize=args.popsize, max_step=args.max_step, width=args.anneal_end,
+        learning_rate=args.learning_rate, final_learning_rate=1.0 if reqs else 0.1,
+        clip_norm=args.clip_norm, anneal_start=args.anneal_start,
+        sample="fixed" if reqs else "fresh",
+    )  # fmt: skip
+    mesh = sharding.draw_mesh(jax.devices())
     size = optimize.make_parameter_map(args.controller, fields, args.share).size
     lanes = st.lanes(strategy, size, args.draws, int(mesh.devices.size))
+    target = args.objective if reqs is not None else "cost"
     objective = optimize.Objective(spec, gains, reqs, target, rotor_speed_limit=limit,
                                    switching=args.eval_switching, mesh=mesh,
                                    device_batch=args.device_batch, lanes=lanes)  # fmt: skip
-    x0 = objective.vector(gains)
+    x0, steps = objective.vector(gains), args.steps
     if reqs is not None:
         share = 0.05 if args.formulation == "chance" else 0.0
         strategy = st.AugmentedLagrangian(strategy, len(reqs), args.outer_steps, args.inner_steps,
@@ -305,50 +304,14 @@ def _build(parser, args) -> Run:
     return Run(args, objective, strategy, budget, x0, label, gains, fingerprint)
 
 
-def _dtype(args):
+def _initial_gains(parser, args):
+    """``(gains, label)`` of ``--init``; a bad file is a ``parser.error``."""
     import jax.numpy as jnp
 
-    arguments.enable_dtype(args.dtype)
-    return jnp.dtype(args.dtype)
-
-
-def _fields(args):
-    from fojax.controllers import registry
-
-    if args.fields == "default":
-        return None
-    if args.fields == "all":
-        return registry.get_controller_class(args.controller).GAINS.names
-    return tuple(f.strip() for f in args.fields.split(",") if f.strip())
-
-
-def _mesh():
-    import jax
-
-    from fojax import sharding
-
-    return sharding.draw_mesh(jax.devices())
-
-
-def _strategy(args):
-    """The method's strategy (the inner one with ``--requirements``)."""
-    from fojax.optimize import strategies as st
-
-    steps = args.inner_steps if args.requirements else args.steps  # a fresh Adam per outer step
-    return st.make(
-        args.method, steps, seed=args.seed, switch=args.switch, sigma=args.sigma,
-        popsize=args.popsize, max_step=args.max_step, width=args.anneal_end,
-        learning_rate=args.learning_rate, final_learning_rate=1.0 if args.requirements else 0.1,
-        clip_norm=args.clip_norm, anneal_start=args.anneal_start,
-        sample="fixed" if args.requirements else "fresh",
-    )  # fmt: skip
-
-
-def _initial_gains(parser, args, dtype):
-    """``(gains, label)`` of ``--init``; a bad file is a ``parser.error``."""
     from fojax.controllers import gains_io, registry
     from fojax.optimize import params
 
+    dtype = jnp.dtype(args.dtype)
     if args.init == "paper":
         return registry.get_controller_class(args.controller).default_gains(dtype), "paper"
     if args.init == "naive":
@@ -366,16 +329,6 @@ def _initial_gains(parser, args, dtype):
     return gains, str(Path(args.init).resolve())
 
 
-def init_record(gains, label: str) -> dict:
-    """The initial gains' values and their source (the file, ``defaults`` or ``naive``)."""
-    from fojax.cli import study as study_layer
-
-    record = study_layer.gains_record(gains, None if label in BUILT_IN_INIT else label)
-    if label in BUILT_IN_INIT:
-        record["source"] = BUILT_IN_INIT[label]
-    return record
-
-
 # ----------------------------------------------------------------------------- run
 
 
@@ -391,24 +344,17 @@ def main(argv=None) -> int:
     session = output.provenance(["fojax", "tune", *argv])
     session["device_batch"] = args.device_batch or args.draws
     record = _record_session(run, out, session) if lead else None
-    earlier = _finished_gains(run, out)
+    earlier = out / "gains.json"  # a finished run resumed keeps it as it was
+    earlier = earlier.read_text() if args.resume and earlier.is_file() else None
     if not args.quiet and lead:
         print(_announce(run), file=sys.stderr, flush=True)
     start = time.perf_counter()
     try:
         result = optimize.run(
-            objective,
-            run.strategy,
-            run.budget,
-            run.x0,
-            validation_draws=args.validation_draws,
-            validate_every=args.validate_every,
-            checkpoint_every=args.checkpoint_every,
-            out=out,
-            fingerprint=run.fingerprint,
-            resume=args.resume,
-            progress=not args.quiet and lead,
-        )
+            objective, run.strategy, run.budget, run.x0, validation_draws=args.validation_draws,
+            validate_every=args.validate_every, checkpoint_every=args.checkpoint_every, out=out,
+            fingerprint=run.fingerprint, resume=args.resume, progress=not args.quiet and lead,
+        )  # fmt: skip
     except KeyboardInterrupt:
         return 130
     if not lead:
@@ -440,37 +386,28 @@ def _private_copy(out: Path, resume: bool) -> Path:
 
 
 def _record_session(run: Run, out: Path, session: dict) -> dict:
-    """``run.json``: the initial gains, the settings and one provenance entry per session."""
-    path = out / "run.json"
+    """``run.json``: the initial gains (their values and source: the file, ``defaults`` or
+    ``naive``), the settings and one provenance entry per session."""
+    from fojax.cli import study as study_layer
+
+    path, label = out / "run.json", run.init_label
     record = json.loads(path.read_text()) if run.args.resume and path.is_file() else {}
-    record.update(
-        controller=run.args.controller,
-        init=run.init_label,
-        init_gains=init_record(run.init_gains, run.init_label),
-        settings=run.fingerprint,
-    )
+    init_gains = study_layer.gains_record(run.init_gains, None if label in BUILT_IN else label)
+    if label in BUILT_IN:
+        init_gains["source"] = BUILT_IN[label]
+    record.update(controller=run.args.controller, init=label, init_gains=init_gains,
+                  settings=run.fingerprint)  # fmt: skip
     record["sessions"] = list(record.get("sessions", [])) + [session]
     out.mkdir(parents=True, exist_ok=True)
     output.write_json(path, record)
     return record
 
 
-def _finished_gains(run: Run, out: Path) -> str | None:
-    """``gains.json`` as it was when a finished run is resumed (kept as it is)."""
-    path = out / "gains.json"
-    return path.read_text() if run.args.resume and path.is_file() else None
-
-
 def _announce(run: Run) -> str:
-    args, spec = run.args, run.objective.spec
-    what = (
-        "the weighted-sum cost"
-        if args.requirement_set is None
-        else (
-            f"{args.objective} under {len(args.requirement_set)} requirements "
-            f"({', '.join(args.requirement_set.names)})"
-        )
-    )
+    args, spec, reqs = run.args, run.objective.spec, run.args.requirement_set
+    what = "the weighted-sum cost"
+    if reqs is not None:
+        what = f"{args.objective} under {len(reqs)} requirements ({', '.join(reqs.names)})"
     return (
         f"tuning {spec.controller} on scenario {spec.scenario}: {what}, {args.method}, "
         f"{spec.draws} draws x {spec.horizon:g} s, {run.objective.size} parameters"
@@ -479,32 +416,22 @@ def _announce(run: Run) -> str:
 
 def _summary(run: Run, result, wall: float) -> str:
     """What the run did and which gains it returned."""
-    args = run.args
+    from fojax.optimize.driver import headline
+
+    args, v = run.args, result.validation
     text = (
         f"tuned {args.controller} on scenario {args.scenario} ({args.method}): {result.steps} "
         f"steps, {result.draw_steps:.3g} draw-steps ({wall:.0f} s)"
     )
-    v = result.validation
     if v is not None and v["best"] is not None:
-        chosen = (
-            "the start's (no answer validated better)"
-            if result.best_step == 0
-            else (f"step {result.best_step}'s")
-        )
+        step = result.best_step
+        chosen = "the start's (no answer validated better)" if step == 0 else f"step {step}'s"
         text += (
-            f"\nreturned {chosen} gains: validation {_score(v['best'])} against "
-            f"{_score(v['initial'])} at the start and {_score(v['final'])} at the last "
+            f"\nreturned {chosen} gains: validation {headline(v['best'])} against "
+            f"{headline(v['initial'])} at the start and {headline(v['final'])} at the last "
             f"step ({v['draws']} validation draws, {v['switching']}, {v['horizon_s']:g} s)"
         )
     return text
-
-
-def _score(summary: dict | None) -> str:
-    if summary is None:
-        return "n/a"
-    if "yield" in summary:
-        return f"yield {summary['yield']:.1%} ({summary['passed']}/{summary['draws']})"
-    return f"cost {summary['cost']:.5g}"
 
 
 def _save_gains(run: Run, result, record: dict, earlier: str | None) -> None:
@@ -512,13 +439,13 @@ def _save_gains(run: Run, result, record: dict, earlier: str | None) -> None:
     keeps its file as it was)."""
     from fojax.controllers import gains_io
 
-    path = Path(run.args.out) / "gains.json"
+    args, path = run.args, Path(run.args.out) / "gains.json"
     if earlier is not None and result.steps == json.loads(earlier)["metadata"].get("steps"):
         records.atomic_write(path, earlier)
         return
     metadata = {
         "tuned_by": "fojax tune",
-        "method": run.args.method,
+        "method": args.method,
         "init": run.init_label,
         "steps": result.steps,
         "selected_step": result.best_step,
@@ -530,20 +457,20 @@ def _save_gains(run: Run, result, record: dict, earlier: str | None) -> None:
         "init_gains": record["init_gains"],
         "provenance": record["sessions"][-1],
     }
-    if run.args.requirement_set is not None:
-        args = run.args
+    if args.requirement_set is not None:
         metadata.update(
             tuned_to="requirements",
             objective=args.objective,
             requirements=args.requirement_set.to_dict(),
             actuators=requirements_cli.actuators_record(args.rotor_speed_limit, args),
         )
-    gains_io.save_gains(path, run.args.controller, run.objective.gains(result.x), metadata)
+    gains_io.save_gains(path, args.controller, run.objective.gains(result.x), metadata)
 
 
 def _heldout(run: Run, result, session: dict) -> dict:
     """``evaluation.json``: the initial and the tuned gains on the held-out draws."""
     from fojax.optimize import HELDOUT_OFFSET
+    from fojax.optimize.driver import headline
 
     args, objective = run.args, run.objective
     horizon = args.eval_horizon or objective.spec.horizon
@@ -560,7 +487,7 @@ def _heldout(run: Run, result, session: dict) -> dict:
     document["provenance"] = session
     print(
         f"held-out ({args.eval_draws} draws, {horizon:g} s, {args.eval_switching}): initial "
-        f"{_score(document['initial'])}, tuned {_score(document['tuned'])}"
+        f"{headline(document['initial'])}, tuned {headline(document['tuned'])}"
     )
     return document
 

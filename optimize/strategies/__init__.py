@@ -4,25 +4,17 @@ A strategy is a static object (settled before anything runs) with pure functions
 state that is a dict of NumPy arrays of fixed shapes (checkpointed as it is, so a
 resumed run continues exactly), in the style of optax's transformations:
 
-``init(x0 (d,)) -> state``
-    The state before the first request.
-``ask(state) -> Request``
-    What to evaluate next (:class:`fojax.optimize.objective.Request`: points, whether a
-    gradient is needed, which tuning sample, which law, which loss).
-``tell(state, request, evaluation) -> state``
-    Consume the evaluation of that request.
-``answer(state) -> (d,)``
-    The current best guess (what the driver validates).
-``restart(state) -> state``
-    The loss changed (an outer iteration of :class:`AugmentedLagrangian`): forget what
-    depended on it.
-``settings() -> dict``
-    JSON-ready description (part of a run's fingerprint).
-``row(state) -> dict``
-    What the strategy adds to the run's history after a request.
-``needs() -> tuple``
-    The programs it will ask for, in order: ``(kind, width)`` pairs, ``kind``
-    ``"forward"`` or ``"gradient"``, ``width`` the law's (``None``: the evaluation law).
+* ``init(x0 (d,)) -> state``: the state before the first request;
+* ``ask(state) -> Request``: what to evaluate next (:class:`fojax.optimize.Request`:
+  points, whether a gradient is needed, which tuning sample, which law, which loss);
+* ``tell(state, request, evaluation) -> state``: consume the evaluation of that request;
+* ``answer(state) -> (d,)``: the current best guess (what the driver validates);
+* ``restart(state) -> state``: the loss changed (an outer iteration of
+  :class:`AugmentedLagrangian`): forget what depended on it;
+* ``settings() -> dict``: JSON-ready description (part of a run's fingerprint);
+* ``row(state) -> dict``: what the strategy adds to the run's history after a request;
+* ``needs() -> tuple``: the programs it will ask for, in order: ``(kind, width)`` pairs,
+  ``kind`` ``"forward"`` or ``"gradient"``, ``width`` the law's (``None``: evaluation).
 
 Gradient strategies (:mod:`._gradient`): :class:`Optax` (any optax transformation;
 :func:`adam` is fojax's setting) and :class:`LBFGS`. Population strategies
@@ -38,16 +30,6 @@ from fojax.optimize.strategies._methods import AUTO_DRAWS, DEFAULT_STEPS, METHOD
 from fojax.optimize.strategies._population import CMAES, NelderMead
 
 __all__ = [
-    "AUTO_DRAWS",
-    "CMAES",
-    "DEFAULT_STEPS",
-    "LBFGS",
-    "METHODS",
-    "AugmentedLagrangian",
-    "Chain",
-    "NelderMead",
-    "Optax",
-    "adam",
-    "lanes",
-    "make",
-]
+    "AUTO_DRAWS", "CMAES", "DEFAULT_STEPS", "LBFGS", "METHODS", "AugmentedLagrangian", "Chain",
+    "NelderMead", "Optax", "adam", "lanes", "make",
+]  # fmt: skip

@@ -55,24 +55,19 @@ class Chain:
     def __post_init__(self) -> None:
         checks.integer("switch", self.switch)
 
-    def _active(self, state):
-        return (
-            (self.first, state["first"])
-            if int(state["phase"]) == 0
-            else (self.second, state["second"])
-        )
+    def _active(self, state, key: str = "phase"):
+        """``(name, strategy, its state)`` of the phase (``key="told"``: of the last
+        request)."""
+        name = ("first", "second")[int(state[key])]
+        return name, getattr(self, name), state[name]
 
     def init(self, x0) -> dict:
-        return {
-            "phase": np.asarray(0),
-            "count": np.asarray(0),
-            "told": np.asarray(0),
-            "first": self.first.init(x0),
-            "second": self.second.init(x0),
-        }
+        zero = np.asarray(0)
+        return dict(phase=zero, count=zero, told=zero, first=self.first.init(x0),
+                    second=self.second.init(x0))  # fmt: skip
 
     def ask(self, state) -> Request:
-        strategy, inner = self._active(state)
+        _, strategy, inner = self._active(state)
         return strategy.ask(inner)
 
     def tell(self, state, request, evaluation) -> dict:
@@ -89,28 +84,20 @@ class Chain:
         return state
 
     def answer(self, state) -> np.ndarray:
-        strategy, inner = self._active(state)
+        _, strategy, inner = self._active(state)
         return strategy.answer(inner)
 
     def restart(self, state) -> dict:
-        key = "first" if int(state["phase"]) == 0 else "second"
-        strategy, inner = self._active(state)
-        return {**state, key: strategy.restart(inner)}
+        name, strategy, inner = self._active(state)
+        return {**state, name: strategy.restart(inner)}
 
     def settings(self) -> dict:
-        return {
-            "name": self.name,
-            "switch": self.switch,
-            "first": self.first.settings(),
-            "second": self.second.settings(),
-        }
+        first, second = self.first.settings(), self.second.settings()
+        return {"name": self.name, "switch": self.switch, "first": first, "second": second}
 
     def row(self, state) -> dict:
         """The row of the strategy that took the last request."""
-        told = int(state["told"])
-        strategy, inner = (
-            (self.first, state["first"]) if told == 0 else (self.second, state["second"])
-        )
+        _, strategy, inner = self._active(state, "told")
         return {"phase": strategy.name, **strategy.row(inner)}
 
     def needs(self) -> tuple:
@@ -164,30 +151,16 @@ class AugmentedLagrangian:
         return 1 + self.outer_steps * (self.inner_steps + 1)
 
     def loss(self, state) -> AlmLoss:
-        return AlmLoss(
-            np.asarray(state["lam"]),
-            float(state["rho"]),
-            float(state["scale"]),
-            self.formulation,
-            self.margin,
-            self.temperature,
-            self.allowed_share,
-        )
+        shape = (self.formulation, self.margin, self.temperature, self.allowed_share)
+        return AlmLoss(np.asarray(state["lam"]), float(state["rho"]), float(state["scale"]), *shape)
 
     def init(self, x0) -> dict:
-        zero = np.asarray(0.0)
-        return {
-            "inner": self.inner.init(x0),
-            "lam": np.zeros(self.requirements),
-            "rho": np.asarray(float(self.penalty)),
-            "scale": np.asarray(1.0),
-            "phase": np.asarray(_SCALE),
-            "outer": np.asarray(0),
-            "count": np.asarray(0),
-            "previous": np.asarray(np.inf),
-            "c": np.zeros(self.requirements),
-            "F": zero,
-        }
+        R, zero = self.requirements, np.asarray(0)
+        return dict(
+            inner=self.inner.init(x0), lam=np.zeros(R), rho=np.asarray(float(self.penalty)),
+            scale=np.asarray(1.0), phase=np.asarray(_SCALE), outer=zero, count=zero,
+            previous=np.asarray(np.inf), c=np.zeros(R), F=np.asarray(0.0),
+        )  # fmt: skip
 
     def ask(self, state) -> Request:
         phase = int(state["phase"])

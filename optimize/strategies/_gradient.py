@@ -73,8 +73,9 @@ class Optax:
         return Request(state["x"][None].astype(np.float64), True, sample, self.width(step))
 
     def tell(self, state, request, evaluation) -> dict:
-        x, opt = _update(self.transformation, state["x"], state["opt"], evaluation.gradient)
-        return {"x": x, "opt": opt, "step": state["step"] + 1}
+        gradient = jnp.asarray(evaluation.gradient, np.asarray(state["x"]).dtype)
+        x, opt = _compiled(self.transformation)(gradient, state["opt"], state["x"])
+        return {"x": np.asarray(x), "opt": jax.tree.map(np.asarray, opt), "step": state["step"] + 1}
 
     def answer(self, state) -> np.ndarray:
         return np.asarray(state["x"], np.float64)
@@ -84,44 +85,34 @@ class Optax:
         return self.init(state["x"])
 
     def settings(self) -> dict:
-        return {
-            "name": self.name,
-            "steps": self.steps,
-            "sample": self.sample,
-            "anneal": list(self.anneal),
-            **dict(self.description),
-        }
+        return {"name": self.name, "steps": self.steps, "sample": self.sample,
+                "anneal": list(self.anneal), **dict(self.description)}  # fmt: skip
 
     def row(self, state) -> dict:
-        return {"step_length": _learning_rate(self, int(state["step"]) - 1)}
+        """The step length of the last step: a cosine decay's (:func:`adam`), if any."""
+        description = dict(self.description)
+        if "learning_rate" not in description:
+            return {"step_length": None}
+        rate, final = description["learning_rate"], description.get("final_learning_rate", 1.0)
+        last = max(self.steps - 1, 1)
+        fraction = min(max(int(state["step"]) - 1, 0), last) / last
+        return {
+            "step_length": rate * ((1 - final) * 0.5 * (1 + math.cos(math.pi * fraction)) + final)
+        }
 
     def needs(self) -> tuple:
         return (("gradient", self.anneal[1]),)
 
 
-def _learning_rate(strategy: Optax, step: int) -> float | None:
-    rate = dict(strategy.description).get("learning_rate")
-    final = dict(strategy.description).get("final_learning_rate", 1.0)
-    if rate is None:
-        return None
-    fraction = min(max(step, 0), max(strategy.steps - 1, 1)) / max(strategy.steps - 1, 1)
-    return rate * ((1 - final) * 0.5 * (1 + math.cos(math.pi * fraction)) + final)
-
-
 @functools.lru_cache(maxsize=8)
 def _compiled(transformation):
+    """One optax step ``(gradient, opt, x) -> (x, opt)``, compiled once per transformation."""
+
     def step(gradient, opt, x):
         updates, opt = transformation.update(gradient, opt, x)
         return optax.apply_updates(x, updates), opt
 
     return jax.jit(step)
-
-
-def _update(transformation, x, opt, gradient):
-    """One optax step on the host's state (compiled once per transformation)."""
-    gradient = jnp.asarray(gradient, np.asarray(x).dtype)
-    x, opt = _compiled(transformation)(gradient, opt, x)
-    return np.asarray(x), jax.tree.map(np.asarray, opt)
 
 
 def adam(
@@ -142,11 +133,8 @@ def adam(
         learning_rate, max(steps - 1, 1), alpha=final_learning_rate
     )
     transformation = optax.chain(optax.clip_by_global_norm(clip_norm), optax.adam(schedule))
-    description = (
-        ("learning_rate", learning_rate),
-        ("final_learning_rate", final_learning_rate),
-        ("clip_norm", clip_norm),
-    )
+    description = (("learning_rate", learning_rate), ("final_learning_rate", final_learning_rate),
+                   ("clip_norm", clip_norm))  # fmt: skip
     return Optax(transformation, steps, description, sample, tuple(anneal), "adam")
 
 
@@ -173,22 +161,12 @@ class LBFGS:
     def init(self, x0) -> dict:
         x0 = np.asarray(x0, np.float64)
         d, m = x0.size, self.memory
-        zero = _scalar(0.0)
-        return {
-            "trial": x0.copy(),
-            "x": x0.copy(),
-            "f": zero,
-            "g": np.zeros(d),
-            "s": np.zeros((m, d)),
-            "y": np.zeros((m, d)),
-            "pairs": _scalar(0, np.int64),
-            "direction": np.zeros(d),
-            "alpha": zero,
-            "backtracks": _scalar(0, np.int64),
-            "accepted": _scalar(0, np.int64),
-            "started": _scalar(False, bool),
-            "moved": _scalar(False, bool),
-        }
+        zero, none, no = _scalar(0.0), _scalar(0, np.int64), _scalar(False, bool)
+        return dict(
+            trial=x0.copy(), x=x0.copy(), f=zero, g=np.zeros(d), s=np.zeros((m, d)),
+            y=np.zeros((m, d)), pairs=none, direction=np.zeros(d), alpha=zero, backtracks=none,
+            accepted=none, started=no, moved=no,
+        )  # fmt: skip
 
     def ask(self, state) -> Request:
         return Request(state["trial"][None], True, 0, self.width)

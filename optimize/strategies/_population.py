@@ -73,29 +73,15 @@ class CMAES:
         )
         chi = math.sqrt(d) * (1 - 1 / (4 * d) + 1 / (21 * d * d))
         return dict(
-            lam=lam,
-            mu=mu,
-            weights=weights,
-            mueff=mueff,
-            cc=cc,
-            cs=cs,
-            c1=c1,
-            cmu=cmu,
-            damps=damps,
+            lam=lam, mu=mu, weights=weights, mueff=mueff, cc=cc, cs=cs, c1=c1, cmu=cmu, damps=damps,
             chi=chi,
-        )
+        )  # fmt: skip
 
     def init(self, x0) -> dict:
         x0 = np.asarray(x0, np.float64)
         d = x0.size
-        return {
-            "mean": x0.copy(),
-            "sigma": np.asarray(float(self.sigma0)),
-            "C": np.eye(d),
-            "ps": np.zeros(d),
-            "pc": np.zeros(d),
-            "generation": np.asarray(0),
-        }
+        return dict(mean=x0.copy(), sigma=np.asarray(float(self.sigma0)), C=np.eye(d),
+                    ps=np.zeros(d), pc=np.zeros(d), generation=np.asarray(0))  # fmt: skip
 
     def sample_size(self, generation: int) -> int | None:
         """Draws per candidate in ``generation``: ``draws``, or from a schedule
@@ -121,6 +107,7 @@ class CMAES:
 
     def tell(self, state, request, evaluation) -> dict:
         k = self.constants(state["mean"].size)
+        cs, cc, c1, cmu, mueff, chi = (k[n] for n in ("cs", "cc", "c1", "cmu", "mueff", "chi"))
         d, sigma, mean = state["mean"].size, float(state["sigma"]), state["mean"]
         values = np.where(np.isfinite(evaluation.values), evaluation.values, np.inf)
         order = np.argsort(values, kind="stable")
@@ -129,33 +116,22 @@ class CMAES:
         inv_sqrt = (B / D) @ B.T
         step = k["weights"][: k["mu"]] @ y[: k["mu"]]
         mean = mean + sigma * step
-        ps = (1 - k["cs"]) * state["ps"] + math.sqrt(k["cs"] * (2 - k["cs"]) * k["mueff"]) * (
-            inv_sqrt @ step
-        )
+        ps = (1 - cs) * state["ps"] + math.sqrt(cs * (2 - cs) * mueff) * (inv_sqrt @ step)
         generation = int(state["generation"]) + 1
         norm = float(np.linalg.norm(ps))
-        hsig = (
-            norm / math.sqrt(1 - (1 - k["cs"]) ** (2 * generation)) < (1.4 + 2 / (d + 1)) * k["chi"]
-        )
-        pc = (1 - k["cc"]) * state["pc"] + hsig * math.sqrt(
-            k["cc"] * (2 - k["cc"]) * k["mueff"]
-        ) * step
+        hsig = norm / math.sqrt(1 - (1 - cs) ** (2 * generation)) < (1.4 + 2 / (d + 1)) * chi
+        pc = (1 - cc) * state["pc"] + hsig * math.sqrt(cc * (2 - cc) * mueff) * step
         weights = k["weights"].copy()
         negative = weights < 0
         mahalanobis = np.sum((y @ inv_sqrt.T) ** 2, 1)
         weights[negative] *= d / np.maximum(mahalanobis[negative], 1e-300)
-        delta = (1 - hsig) * k["cc"] * (2 - k["cc"])
-        C = (1 + k["c1"] * delta - k["c1"] - k["cmu"] * k["weights"].sum()) * state["C"]
-        C = C + k["c1"] * np.outer(pc, pc) + k["cmu"] * (y.T * weights) @ y
-        sigma = sigma * math.exp(min(1.0, (k["cs"] / k["damps"]) * (norm / k["chi"] - 1)))
-        return {
-            "mean": mean,
-            "sigma": np.asarray(sigma),
-            "C": (C + C.T) / 2,
-            "ps": ps,
-            "pc": pc,
-            "generation": np.asarray(generation),
-        }
+        delta = (1 - hsig) * cc * (2 - cc)
+        C = (1 + c1 * delta - c1 - cmu * k["weights"].sum()) * state["C"]
+        C = C + c1 * np.outer(pc, pc) + cmu * (y.T * weights) @ y
+        C = (C + C.T) / 2
+        sigma = sigma * math.exp(min(1.0, (cs / k["damps"]) * (norm / chi - 1)))
+        return dict(mean=mean, sigma=np.asarray(sigma), C=C, ps=ps, pc=pc,
+                    generation=np.asarray(generation))  # fmt: skip
 
     def answer(self, state) -> np.ndarray:
         return state["mean"].copy()
@@ -204,9 +180,8 @@ class NelderMead:
 
     def restart(self, state) -> dict:
         s = state
-        return self._wait(
-            s["simplex"], s["values"], _INIT, s["simplex"], s["reflected"], s["reflected_value"]
-        )
+        return self._wait(s["simplex"], s["values"], _INIT, s["simplex"], s["reflected"],
+                          s["reflected_value"])  # fmt: skip
 
     def settings(self) -> dict:
         return dataclasses.asdict(self)
@@ -268,12 +243,8 @@ class NelderMead:
         points = np.atleast_2d(points)
         pending = np.zeros_like(sim)
         pending[: len(points)] = points
-        return {
-            "simplex": sim,
-            "values": np.asarray(fsim, np.float64),
-            "pending": pending,
-            "count": np.asarray(len(points)),
-            "phase": np.asarray(phase),
-            "reflected": np.asarray(xr, np.float64),
-            "reflected_value": np.asarray(float(fxr)),
-        }
+        return dict(
+            simplex=sim, values=np.asarray(fsim, np.float64), pending=pending,
+            count=np.asarray(len(points)), phase=np.asarray(phase),
+            reflected=np.asarray(xr, np.float64), reflected_value=np.asarray(float(fxr)),
+        )  # fmt: skip
