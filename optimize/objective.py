@@ -52,8 +52,8 @@ __all__ = ["LANES", "Evaluation", "Objective", "Outputs", "Request"]
 LANES = 64
 """Default lanes (point x draw) per device and forward call."""
 GRADIENT_WORK = 6
-"""A draw's gradient in forward draw-steps (docs/performance.md: the reverse pass takes
-5.6-6.9 times the forward)."""
+"""A draw's gradient in forward draw-steps (on a CPU: the "gradient / forward" column of
+docs/performance.md's bench block)."""
 SAMPLE_BLOCK = 16
 """Keys per call of the draws' program."""
 
