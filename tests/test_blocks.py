@@ -52,7 +52,7 @@ def test_splice_starts_every_block_with_its_label(tmp_path):
     content = doc.read_text()
     assert content.count(output.LABEL_PREFIX) == 2 and "old" not in content
     assert content.startswith("# Doc\n\n<!-- table:begin -->\n" + output.LABEL_PREFIX)
-    git, versions = output.git_commit(), output.versions()
+    git, versions = output.git_commit(exclude=output.DOCUMENTS), output.versions()
     for block, body in ((named, "| a | 1 |"), (below, "report")):
         text = blocks.block_text(content, block)
         label = blocks.read_label(text)
@@ -104,6 +104,18 @@ def repo(tmp_path):
 
 
 STUDY = blocks.Block("study", "docs/study.md", tuple(shlex.split(COMMAND)), ("src",))
+
+
+def test_a_label_is_clean_with_documents_changed_and_dirty_with_code_changed(repo):
+    """A generator writes figures and documents before its label: changes under docs/
+    leave the label clean, a change anywhere else makes it dirty."""
+    (repo / "docs" / "study.md").write_text("# Study, edited\n")
+    (repo / "docs" / "figure.png").write_bytes(b"\x89PNG")
+    _git(repo, "add", "docs/figure.png")
+    assert blocks.read_label(output.block_label(COMMAND, root=repo))["dirty"] is False
+    assert output.git_commit(repo)["dirty"] is True
+    (repo / "notes.txt").write_text("b\n")
+    assert blocks.read_label(output.block_label(COMMAND, root=repo))["dirty"] is True
 
 
 def test_a_current_block_has_no_problem_until_its_sources_change(repo):
