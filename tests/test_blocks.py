@@ -52,7 +52,7 @@ def test_splice_starts_every_block_with_its_label(tmp_path):
     content = doc.read_text()
     assert content.count(output.LABEL_PREFIX) == 2 and "old" not in content
     assert content.startswith("# Doc\n\n<!-- table:begin -->\n" + output.LABEL_PREFIX)
-    git, versions = output.git_commit(exclude=output.DOCUMENTS), output.versions()
+    git, versions = output.git_commit(), output.versions()
     for block, body in ((named, "| a | 1 |"), (below, "report")):
         text = blocks.block_text(content, block)
         label = blocks.read_label(text)
@@ -113,7 +113,8 @@ def test_a_label_is_clean_with_documents_changed_and_dirty_with_code_changed(rep
     (repo / "docs" / "figure.png").write_bytes(b"\x89PNG")
     _git(repo, "add", "docs/figure.png")
     assert blocks.read_label(output.block_label(COMMAND, root=repo))["dirty"] is False
-    assert output.git_commit(repo)["dirty"] is True
+    assert output.git_commit(repo)["dirty"] is False
+    assert output.git_commit(repo, exclude=())["dirty"] is True
     (repo / "notes.txt").write_text("b\n")
     assert blocks.read_label(output.block_label(COMMAND, root=repo))["dirty"] is True
 

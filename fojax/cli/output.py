@@ -62,10 +62,16 @@ def _checkout() -> Path:
     return Path(fojax.__file__).resolve().parent.parent
 
 
-def git_commit(root: Path | None = None, exclude: tuple[str, ...] = ()) -> dict:
+DOCUMENTS = ("docs", "README.md")
+"""Where generated blocks and their figures are written. No result depends on them, so
+changes there do not make a checkout dirty (a generator writes its figures and
+documents before its label, and one regeneration writes several blocks)."""
+
+
+def git_commit(root: Path | None = None, exclude: tuple[str, ...] = DOCUMENTS) -> dict:
     """``{"commit", "dirty"}`` of the git checkout ``root`` (default: the one holding
     fojax), or ``{}`` (not one). ``dirty``: uncommitted changes to tracked files, outside
-    the paths ``exclude`` (relative to the checkout's root)."""
+    the paths ``exclude`` (relative to the checkout's root; default :data:`DOCUMENTS`)."""
     root = _checkout() if root is None else Path(root)
     if not (root / ".git").exists():
         return {}
@@ -218,22 +224,16 @@ def invocation() -> str:
     return shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])
 
 
-DOCUMENTS = ("docs", "README.md")
-"""Where generated blocks and their figures are written: changes there leave a block's
-label clean (the numbers depend on the code, not on the documents)."""
-
-
 def block_label(command: str | None = None, root: Path | None = None) -> str:
     """The first two lines of every generated block of the docs (:func:`splice`).
 
     A comment holding, as JSON, the command (default :func:`invocation`), the commit of
     the checkout ``root`` (default: the one holding fojax) and whether it had
-    uncommitted changes (outside :data:`DOCUMENTS`: a generator writes its figures and
-    documents before its label, and one run may regenerate several blocks), the CPU
-    model, the cores this process may use, the load average and :func:`versions`; then
-    the same in a line for the reader.
+    uncommitted changes (:func:`git_commit`: outside :data:`DOCUMENTS`), the CPU model,
+    the cores this process may use, the load average and :func:`versions`; then the
+    same in a line for the reader.
     """
-    git = git_commit(root, exclude=DOCUMENTS)
+    git = git_commit(root)
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:
