@@ -12,10 +12,12 @@ its documented default gains (``docs/model.md``) and gets the same tuning on the
 cost of :mod:`fojax.optimize.cost` with the ``fojax tune`` defaults, the same draws:
 common random numbers), the same method (``--method``, default ``fojax tune``'s
 ``auto``: CMA-ES on small fresh samples; ``cma-lbfgs`` hands CMA-ES's mean to L-BFGS
-after ``--switch`` generations), the same budget (``--steps`` steps of
-``--draws`` draws; a CMA-ES generation is one step, its population growing with the
-controller's parameters) and the same validation (the driver's: 32 validation draws
-every 5 steps, the best validated gains returned). Then default and tuned gains of
+after ``--switch`` generations), the same budget (``--steps`` steps; a CMA-ES
+generation is one step, its population growing with the controller's parameters; a
+sample is ``--draws`` draws, except under ``auto``, which draws its own 8 fresh ones
+per generation) and the same validation (the driver's: 32 validation draws, scheduled
+by the work done since the last validation and at the last step, the best validated
+gains returned). Then default and tuned gains of
 every controller are evaluated with ``sat`` switching (the gains' boundary layers) on
 the same ``--eval-draws`` held-out draws at each scenario's full horizon, on scenarios
 1, 2 and 3, and every controller's tuned cost is compared with the tuned AFONFTSMC's
@@ -55,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     _common.add_numbers(
         parser,
         horizon=(10.0, "tuning horizon (s)"),
-        draws=(16, "draws per sample"),
+        draws=(16, "draws per sample (auto: 8 fresh ones per generation)"),
         steps=(50, "steps (CMA-ES: generations)"),
     )
     parser.add_argument(

@@ -464,9 +464,10 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
     if tuning["source"] == "fair_comparison here":
         tuning_text = (
             f"`experiments/fair_comparison.py` run here at a reduced budget: {tuning['steps']} "
-            f"steps of `fojax tune`'s method `{tuning.get('method', 'auto')}` x {tuning['draws']} "
-            f"draws x {tuning['horizon_s']:g} s of scenario 2 per controller (the same "
-            "problem, method, budget and draws for all five; its full budget is 50 x 16 x 10 s)"
+            f"steps of `fojax tune`'s method `{tuning.get('method', 'auto')}` at "
+            f"{tuning['horizon_s']:g} s of scenario 2 per controller, {tuning['draws']} draws per "
+            "sample (`auto`: its own 8 fresh draws per generation; the same problem, method, "
+            "steps and draws for all five; its defaults are 50 steps of 10 s)"
             + (f", {tuning['wall_s']:.0f} s" if tuning.get("wall_s") else "")
         )
     else:
@@ -495,8 +496,9 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
         f"{meta['rotor_speed_limit']:.2f} rad/s, where the four rotors give "
         f"{meta['thrust_to_weight']:g} times the nominal "
         "weight (hover at 24.6 rad/s), thrust and torques recomputed from the clipped "
-        f"speeds. Tuned gains: {tuning_text}; the tuning's smooth switching is annealed "
-        "towards `sat`, the gains are flown here under the default `sgn`.",
+        f"speeds. Tuned gains: {tuning_text}; tuned for `sat` switching (CMA-ES scores its "
+        "candidates with it; the gradient methods anneal `tanh` towards it), flown here "
+        "under the default `sgn`.",
         "",
         "## Verdict matrix",
         "",
