@@ -16,8 +16,8 @@ Protocol (every number in ``docs/tuning.md`` comes from this script):
    :func:`fojax.optimize.params.naive_gains`.
 2. Tuners (:func:`fojax.optimize.strategies.make`), same problem, same start, each run
    by :func:`fojax.optimize.run`:
-   * default (``auto``, ``fojax tune``'s: CMA-ES for ``--switch`` generations, then
-     L-BFGS), ``--default-steps`` steps;
+   * default (``auto``, ``fojax tune``'s: CMA-ES on 8 fresh draws per generation, at the
+     evaluation law), ``--default-steps`` generations;
    * gradient (``--gradient-method``: ``lbfgs``, quasi-Newton on the fixed sample;
      ``adam``, a fresh sample every step), ``--steps`` steps;
    * CMA-ES (each generation in one batched call, on fresh draws, at the evaluation
@@ -47,11 +47,10 @@ replaces the block between ``<!-- tune-paper-gains:begin -->`` and
 it as ``tuning.png``.
 
 Reproducibility: on one machine a rerun gives the same numbers (XLA's CPU code is
-deterministic; wall times aside). The float32 rounding of the gradient depends on the
+deterministic; wall times aside). The float32 rounding of every rollout depends on the
 code and on the instructions XLA picks for the CPU, and a tuner's path amplifies
-rounding differences (docs/tuning.md measures by how much), so the gradient row is
-reproduced exactly only by the same commit on the same kind of CPU; ``results.json``
-records both.
+rounding differences, so every tuned row is reproduced exactly only by the same commit
+on the same kind of CPU; ``results.json`` records both.
 """
 
 from __future__ import annotations
