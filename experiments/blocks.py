@@ -31,15 +31,17 @@ ROOT = Path(__file__).resolve().parent.parent
 class Block:
     """One generated block: ``name``, the ``document`` holding it (relative to the
     repository root), the ``command`` that regenerates it (run from the root), the
-    ``sources`` (files or folders) its numbers depend on, and ``marker``: for a block
-    that is everything below a marker line, that line (otherwise the block is between
-    ``<!-- name:begin -->`` and ``<!-- name:end -->``)."""
+    ``sources`` (files or folders) its numbers depend on, ``marker``: for a block that
+    is everything below a marker line, that line (otherwise the block is between
+    ``<!-- name:begin -->`` and ``<!-- name:end -->``), and ``results``: the folder
+    where its command keeps results that a later run reuses (``None``: none)."""
 
     name: str
     document: str
     command: tuple[str, ...]
     sources: tuple[str, ...]
     marker: str | None = None
+    results: str | None = None
 
 
 # What the numbers depend on: the pinned versions and the closed loop; Monte Carlo
@@ -110,6 +112,7 @@ BLOCKS: dict[str, Block] = {
             _study("regenerate_reproduction", "--only", "sign"),
             (*_MONTE_CARLO, "fojax/cli/reproduce", "experiments/regenerate_reproduction.py"),
             regenerate_reproduction.MARKER,
+            "results/reproduce",
         ),
         Block(
             "reproduction-sat",
@@ -117,6 +120,7 @@ BLOCKS: dict[str, Block] = {
             _study("regenerate_reproduction", "--only", "sat"),
             (*_MONTE_CARLO, "fojax/cli/reproduce", "experiments/regenerate_reproduction.py"),
             regenerate_reproduction.MARKER,
+            "results/reproduce_sat",
         ),
         Block(
             "sensitivity",
@@ -133,6 +137,7 @@ BLOCKS: dict[str, Block] = {
                 "experiments/sensitivity_report.py",
             ),
             sensitivity_report.MARKER,
+            "results/sensitivity",
         ),
         Block(  # reuses the tuning of the sensitivity study (its --out)
             "fair-comparison",
@@ -143,6 +148,7 @@ BLOCKS: dict[str, Block] = {
                 *("--horizon", "5", "--update-doc", "docs/tuning.md"),
             ),
             (*_TUNING, "experiments/fair_comparison.py"),
+            results="results/sensitivity/tuning",
         ),
         Block(
             "tuning-study",
@@ -159,6 +165,7 @@ BLOCKS: dict[str, Block] = {
                 "experiments/tuning_study_report.py",
                 "experiments/tuning_study_user.py",
             ),
+            results="results/tuning_study",
         ),
         Block(
             "tune-paper-gains",
@@ -166,6 +173,7 @@ BLOCKS: dict[str, Block] = {
             _study("tune_paper_gains", "--out", "results/tune_paper_gains", "--update-doc")
             + ("docs/tuning.md",),
             (*_TUNING, "experiments/tune_paper_gains.py"),
+            results="results/tune_paper_gains",
         ),
         Block(
             "tune-memory",
@@ -185,6 +193,7 @@ BLOCKS: dict[str, Block] = {
             "docs/requirements.md",
             _study("requirements_study", "--update-doc"),
             _REQUIREMENTS_STUDY,
+            results="results/requirements_study",
         ),
         Block(
             "requirements-study-union",
@@ -195,6 +204,7 @@ BLOCKS: dict[str, Block] = {
                 *("--out", "results/requirements_union", "--update-doc"),
             ),
             _REQUIREMENTS_STUDY,
+            results="results/requirements_union",
         ),
         Block(
             "remark3-inverted",
@@ -206,6 +216,7 @@ BLOCKS: dict[str, Block] = {
                 "experiments/remark3_inverted.py",
                 "experiments/remark3_inverted_report.py",
             ),
+            results="results/remark3_inverted",
         ),
         Block(  # rendered from the JSON of a run on a GPU machine (last: it runs nothing)
             "bench-gpu",
@@ -220,6 +231,18 @@ BLOCKS: dict[str, Block] = {
             _study("bench_report", "--from", "docs/data/bench_gpu_large.json")
             + ("--name", "bench-gpu-large", "--update-doc", "docs/performance.md"),
             _BENCH,
+        ),
+        Block(  # README's two commands from a fresh clone (its own processes, ~10 min)
+            "setup",
+            "README.md",
+            _study("setup_timing", "--update-doc"),
+            ("constraints.txt", "pyproject.toml", "fojax", "tests", "experiments/setup_timing.py"),
+        ),
+        Block(  # each block's last regeneration time (rewritten after every block)
+            "regeneration",
+            "README.md",
+            _study("regenerate_docs", "--render"),
+            ("experiments/blocks.py", "experiments/regenerate_docs.py"),
         ),
     )
 }

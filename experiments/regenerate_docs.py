@@ -1,26 +1,38 @@
 """Regenerate the generated blocks of README.md and docs/ (:mod:`experiments.blocks`).
 
-    python -m experiments.regenerate_docs [--only NAME] [--list] [--stale]
+    python -m experiments.regenerate_docs [--only NAME] [--list] [--stale] [--render]
 
 Runs the command of every block (or of ``--only NAME``) from the repository root, in
 the order of :data:`experiments.blocks.BLOCKS`, each in a process of its own, and
 prints how long each took and the total; stops at the first command that fails, with
-its exit status. ``--list`` prints each block's document, command and sources;
-``--stale`` lists the blocks to regenerate (no label, generated with uncommitted
-changes, a commit not in the history, or sources changed since their commit) and
-exits with status 1 when there are any. Commit before regenerating: a block records
-the commit it was generated at.
+its exit status. Each block's time is kept in ``docs/data/regeneration.json`` (with the
+commit, the machine, the load at its start and whether its results folder already held
+results a run reuses), and README.md's ``regeneration`` block lists them with their sum
+(:func:`render`; ``--render`` rewrites that block alone). ``--list`` prints each
+block's document, command and sources; ``--stale`` lists the blocks to regenerate (no
+label, generated with uncommitted changes, a commit not in the history, or sources
+changed since their commit) and exits with status 1 when there are any. Commit before
+regenerating: a block records the commit it was generated at.
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
+import json
+import os
 import shlex
 import subprocess
 import sys
 import time
 
 from experiments import blocks
+from fojax import records
+from fojax.cli import output
+
+TIMES = blocks.ROOT / "docs" / "data" / "regeneration.json"
+README = blocks.ROOT / "README.md"
+COMMAND = "python -m experiments.regenerate_docs"
 
 
 def _run(block: blocks.Block) -> tuple[int, float]:
@@ -30,15 +42,87 @@ def _run(block: blocks.Block) -> tuple[int, float]:
     return done.returncode, time.perf_counter() - start
 
 
+def _reused(block: blocks.Block) -> bool:
+    """Whether ``block``'s results folder holds files a run would reuse."""
+    folder = blocks.ROOT / block.results if block.results else None
+    return folder is not None and folder.is_dir() and any(p.is_file() for p in folder.rglob("*"))
+
+
+def _times() -> dict:
+    return json.loads(TIMES.read_text()) if TIMES.is_file() else {}
+
+
+def record(block: blocks.Block, seconds: float, reused: bool, load: list[float]) -> None:
+    """Keep ``block``'s regeneration time (``seconds``) in :data:`TIMES`."""
+    git = output.git_commit(blocks.ROOT)
+    times = _times()
+    times[block.name] = {
+        "seconds": round(seconds, 1),
+        "commit": git.get("commit"),
+        "dirty": git.get("dirty"),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "cpu": output.cpu_model(),
+        "cores": len(os.sched_getaffinity(0)),
+        "load_at_start": load,
+        "results_present": reused,
+    }
+    records.write_json(TIMES, times)
+
+
+def render(times: dict) -> str:
+    """README's ``regeneration`` block: each block's last regeneration from ``times``
+    (:data:`TIMES`) and the sum of those timed."""
+    rows = [
+        "| block | document | time | at commit | load at its start | results already present |",
+        "|---|---|---|---|---|---|",
+    ]
+    total = 0.0
+    for block in blocks.BLOCKS.values():
+        if block.name == "regeneration":
+            continue
+        entry = times.get(block.name)
+        if entry is None:
+            rows.append(f"| {block.name} | {block.document} | not timed | | | |")
+            continue
+        total += entry["seconds"]
+        load = ", ".join(f"{x:g}" for x in entry["load_at_start"]) or "unknown"
+        commit = (entry["commit"] or "unknown")[:7] + (" (dirty)" if entry["dirty"] else "")
+        present = "yes" if entry["results_present"] else "no"
+        rows.append(
+            f"| {block.name} | {block.document} | {entry['seconds']:.0f} s | {commit} | "
+            f"{load} | {present} |"
+        )
+    timed = sum(name in times for name in blocks.BLOCKS)
+    count = len(blocks.BLOCKS) - 1
+    head = (
+        f"Each block's last regeneration by `{COMMAND}` (`--only NAME` or a full run), "
+        f"from `docs/data/regeneration.json`: {timed} of {count} blocks timed, "
+        f"{total:.0f} s ({total / 3600:.1f} h) in all. \"Results already present\": the "
+        "block's results folder held results of an earlier run, which a run reuses where "
+        "their settings match (a fresh clone has none). Machine of each: "
+        + "; ".join(sorted({f"{e['cpu']}, {e['cores']} cores" for e in times.values()}))
+        + "."
+    )
+    return head + "\n\n" + "\n".join(rows)
+
+
+def _rerender() -> None:
+    output.splice(README, render(_times()), name="regeneration", command=COMMAND)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m experiments.regenerate_docs",
+        prog=COMMAND,
         description="Regenerate the docs' generated blocks, list them, or list the stale ones.",
     )
     parser.add_argument("--only", choices=list(blocks.BLOCKS), metavar="NAME", help="one block")
     parser.add_argument("--list", action="store_true", help="each block, command and sources")
     parser.add_argument("--stale", action="store_true", help="the blocks to regenerate")
+    parser.add_argument("--render", action="store_true", help="README's regeneration block")
     args = parser.parse_args(argv)
+    if args.render:
+        _rerender()
+        return 0
     chosen = [b for b in blocks.BLOCKS.values() if args.only in (None, b.name)]
     if args.list:
         for block in chosen:
@@ -51,11 +135,17 @@ def main(argv=None) -> int:
         return 1 if found else 0
     total = time.perf_counter()
     for block in chosen:
+        if block.name == "regeneration" and args.only is None:
+            continue  # rewritten after every block
         print(f"{block.name}: {shlex.join(block.command)}", flush=True)
+        reused, load = _reused(block), output.load_average()
         status, seconds = _run(block)
         print(f"{block.name}: {seconds:.0f} s" + (f", exit status {status}" if status else ""))
         if status:
             return status
+        if block.name != "regeneration":
+            record(block, seconds, reused, load)
+        _rerender()
     print(f"{len(chosen)} block(s) regenerated in {time.perf_counter() - total:.0f} s")
     return 0
 
