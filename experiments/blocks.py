@@ -206,6 +206,17 @@ BLOCKS: dict[str, Block] = {
             _REQUIREMENTS_STUDY,
             results="results/requirements_union",
         ),
+        Block(  # fojax tune --requirements per method, each cold in a fresh process
+            "requirements-methods",
+            "docs/requirements.md",
+            _study("requirements_methods", "--update-doc"),
+            (
+                *_REQUIREMENTS,
+                "fojax/cli/tune.py",
+                "examples/requirements/small_quadrotor.toml",
+                "experiments/requirements_methods.py",
+            ),
+        ),
         Block(
             "remark3-inverted",
             "docs/requirements.md",

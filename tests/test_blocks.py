@@ -3,14 +3,16 @@
 regenerates them (experiments/regenerate_docs.py)."""
 
 import importlib.machinery
+import json
 import shlex
 import subprocess
 import sys
 import types
 
 import pytest
+from conftest import usage_error
 
-from experiments import blocks, regenerate_docs
+from experiments import blocks, regenerate_docs, requirements_methods, setup_timing
 from fojax.cli import output
 
 COMMAND = "python -m experiments.study --update-doc docs/study.md"
@@ -198,7 +200,13 @@ def test_every_block_of_the_docs_is_labelled_and_current():
     assert blocks.check_docs() == []
 
 
-def test_regenerate_runs_the_commands_in_order_and_times_them(monkeypatch, capsys, repo):
+def test_regenerate_runs_the_commands_in_order_and_times_them(
+    monkeypatch, capsys, repo, tmp_path
+):
+    times, readme = tmp_path / "regeneration.json", tmp_path / "README.md"
+    readme.write_text("# r\n<!-- regeneration:begin -->\n<!-- regeneration:end -->\n")
+    monkeypatch.setattr(regenerate_docs, "TIMES", times)
+    monkeypatch.setattr(regenerate_docs, "README", readme)
     python = ("python", "-c")
     registry = {
         "one": blocks.Block("one", "d.md", (*python, "print('first')"), ()),
@@ -209,6 +217,12 @@ def test_regenerate_runs_the_commands_in_order_and_times_them(monkeypatch, capsy
     assert regenerate_docs.main(["--only", "one"]) == 0
     out = capsys.readouterr().out
     assert "one: " in out and "1 block(s) regenerated in" in out
+    recorded = json.loads(times.read_text())
+    assert list(recorded) == ["one"] and recorded["one"]["seconds"] >= 0
+    assert recorded["one"]["results_present"] is False
+    table = readme.read_text()
+    assert table.count("generated-block") == 1 and "1 of 3 blocks timed" in table
+    assert "| one | d.md | " in table and "| two | d.md | not timed |" in table
     assert regenerate_docs.main([]) == 3
     out = capsys.readouterr().out
     assert "one: python -c" in out and ", exit status 3" in out and "three" not in out
@@ -222,3 +236,21 @@ def test_regenerate_runs_the_commands_in_order_and_times_them(monkeypatch, capsy
     _commit(repo, "change the model")
     assert regenerate_docs.main(["--stale"]) == 1
     assert "study: stale" in capsys.readouterr().out
+
+
+def test_the_setup_block_times_the_two_commands_the_readme_gives():
+    readme = (blocks.ROOT / "README.md").read_text()
+    found = setup_timing.commands(readme)
+    assert list(found) == ["main job", "tests"]
+    for command in found.values():
+        assert f"```bash\n{command}\n```" in readme
+        assert command.startswith("python3 -m venv .venv && ") and "-c constraints.txt" in command
+    assert found["main job"].endswith("fojax reproduce --out results/reproduce")
+    assert found["tests"].endswith("pytest -q")
+    with pytest.raises(SystemExit, match="no bash block"):
+        setup_timing.commands("Install and run the tests: none")
+
+
+def test_the_requirement_methods_study_rejects_an_unknown_method_before_running(capsys):
+    err = usage_error(capsys, requirements_methods.main, ["--methods", "auto,newton"])
+    assert "newton" in err and "cma-es" in err
