@@ -101,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _common.parser("tune_paper_gains")
     number = functools.partial(_common.add_numbers, parser, int, float)
     number(scenario=2, horizon=(10.0, "tuning horizon (s)"), draws=(16, "draws per sample"))
-    number(steps=(50, "gradient steps"), default_steps=DEFAULT_STEPS["auto"], switch=8)
+    number(steps=(50, "gradient steps"), default_steps=DEFAULT_STEPS["auto"])
     parser.add_argument("--gradient-method", choices=("lbfgs", "adam"), default="lbfgs")
     number(learning_rate=(0.1, "Adam's"), max_step=(1.0, "L-BFGS's"), tuner_validation_draws=32)
     number(seed=0)
@@ -120,7 +120,7 @@ def parse_args(argv) -> argparse.Namespace:
     if args.tiny:
         # The small problem of the tests (shares their compiled code).
         args.horizon, args.draws, args.steps = 0.3, 3, 2
-        args.default_steps, args.switch = 3, 1
+        args.default_steps = 3
         args.seed, args.dtype = 5, "float64"
         args.effort_weight, args.chattering_weight, args.attitude_weight = 1e-3, 1e-3, 2.0
         args.validation_draws, args.validate_every, args.eval_draws = 2, 1, 2
@@ -188,7 +188,7 @@ class _Study:
             else (args.gradient_method, args.steps)
         )
         strategy = strategies.make(
-            method, steps, seed=args.seed, switch=args.switch, sigma=args.cma_sigma,
+            method, steps, seed=args.seed, sigma=args.cma_sigma,
             max_step=args.max_step, learning_rate=args.learning_rate,
         )  # fmt: skip
         return strategy, optimize.Budget(steps=steps), args.tuner_validation_draws
