@@ -106,21 +106,16 @@ BLOCKS: dict[str, Block] = {
             + ("--update-doc", "docs/performance.md"),
             _BENCH,
         ),
-        Block(
-            "reproduction",
-            "docs/reproduction.md",
-            _study("regenerate_reproduction", "--only", "sign"),
-            (*_MONTE_CARLO, "fojax/cli/reproduce", "experiments/regenerate_reproduction.py"),
-            regenerate_reproduction.MARKER,
-            "results/reproduce",
-        ),
-        Block(
-            "reproduction-sat",
-            "docs/reproduction_sat.md",
-            _study("regenerate_reproduction", "--only", "sat"),
-            (*_MONTE_CARLO, "fojax/cli/reproduce", "experiments/regenerate_reproduction.py"),
-            regenerate_reproduction.MARKER,
-            "results/reproduce_sat",
+        *(  # the example reports, one per switching function
+            Block(
+                document.replace("_", "-"),
+                f"docs/{document}.md",
+                _study("regenerate_reproduction", "--only", switching),
+                (*_MONTE_CARLO, "fojax/cli/reproduce", "experiments/regenerate_reproduction.py"),
+                regenerate_reproduction.MARKER,
+                f"results/{folder}",
+            )
+            for switching, (folder, _, document) in regenerate_reproduction.RUNS.items()
         ),
         Block(
             "sensitivity",
