@@ -117,6 +117,13 @@ BLOCKS: dict[str, Block] = {
             )
             for switching, (folder, _, document) in regenerate_reproduction.RUNS.items()
         ),
+        Block(  # fojax accuracy: every fractional method against exact results
+            "accuracy",
+            "docs/fractional.md",
+            _study("accuracy_report", "--update-doc"),
+            ("constraints.txt", "fojax/fractional", "fojax/cli/accuracy.py")
+            + ("experiments/accuracy_report.py",),
+        ),
         Block(
             "sensitivity",
             "docs/sensitivity.md",
