@@ -124,6 +124,12 @@ BLOCKS: dict[str, Block] = {
             ("constraints.txt", "fojax/fractional", "fojax/cli/accuracy.py")
             + ("experiments/accuracy_report.py",),
         ),
+        Block(  # one process against two jax.distributed processes on this machine
+            "distributed",
+            "docs/distributed.md",
+            _study("distributed_timing", "--update-doc"),
+            (*_MONTE_CARLO, "fojax/cli/arguments.py", "experiments/distributed_timing.py"),
+        ),
         Block(
             "sensitivity",
             "docs/sensitivity.md",
