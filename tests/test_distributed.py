@@ -311,7 +311,7 @@ def test_two_processes_take_the_tuning_steps_of_one(tmp_path, cache):
     """Adam steps (fresh draws each step), compiled as the suite compiles (unoptimised):
     bit for bit. The default L-BFGS was checked by hand compiled optimised, as a user's
     run is (equal bit for bit); unoptimised, its 1- and 2-device gradient programs
-    round apart by 1e-7 relative (docs/distributed.md), and compiling the gradient
+    round apart in their last digits (docs/distributed.md), and compiling the gradient
     optimised twice would double this test's time."""
     env = _env(cache)
     one, two = tmp_path / "one", tmp_path / "two"
