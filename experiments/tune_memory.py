@@ -88,6 +88,10 @@ def main(argv=None) -> int:
     rows = []
     for horizon in args.horizons:
         for block in args.blocks:
+            if block.isdigit() and any(
+                (r["horizon_s"], r["save_every"]) == (horizon, int(block)) for r in rows
+            ):
+                continue  # the same block size as an earlier choice of this horizon
             row = measure(horizon, args.draws, block, horizon <= args.execute_up_to)
             rows.append(row)
             print(
@@ -110,6 +114,10 @@ def main(argv=None) -> int:
     return 0
 
 
+def _number(value) -> str:
+    return "-" if value is None else f"{value:.0f}"
+
+
 def table(rows: list[dict], draws: int) -> str:
     """The block: per horizon and block size, the compiled gradient's working set, and
     where it ran, the process's peak resident memory and the run's time."""
@@ -126,7 +134,7 @@ def table(rows: list[dict], draws: int) -> str:
     for r in sorted(rows, key=lambda r: (r["horizon_s"], r["save_every"])):
         lines.append(
             f"| {r['horizon_s']:g} | {r['steps']} | {r['save_every']} | {r['temp_mb']:.0f} | "
-            f"{r['compile_s']:.0f} | {r.get('peak_rss_mb', float('nan')):.0f} | "
+            f"{r['compile_s']:.0f} | {_number(r.get('peak_rss_mb'))} | "
             f"{r.get('run_s', '-')} |"
         )
     return "\n".join(lines)
