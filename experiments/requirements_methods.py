@@ -115,7 +115,7 @@ def table(runs: list[dict]) -> str:
         )
     heldout = runs[0]["heldout"]
     return (
-        f"Each method's `{runs[0]['command'].replace('--method auto', '--method M')}` in a "
+        f"Each method's `{' '.join(command('M', Path('DIR')))}` in a "
         "fresh process with a fresh HOME and XDG_CACHE_HOME, one after another; the "
         f"held-out yield on {heldout['draws']} draws x {heldout['horizon_s']:g} s:\n\n"
         + "\n".join(rows)
