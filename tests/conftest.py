@@ -39,10 +39,10 @@ def pytest_addoption(parser):
 # Cases of the slow tier besides the tests marked in their files: each checks again,
 # on another controller, scenario, method or precision, what a case of the default
 # tier checks (the default keeps one golden forward per controller, the AFONFTSMC's
-# golden gradient, the tuner's finite-difference gradient and a float32 union; the
-# augmented Lagrangian's gradient on the toy, its resume in test_requirements_tuner), or
-# compiles a program of its own for one property (cache reuse, device split, batch
-# independence, chunked benches).
+# golden gradient, the tuner's finite-difference gradient, the driver's resume; the
+# augmented Lagrangian on the toy problem), compiles a program of its own for one
+# property (cache reuse, device split, batch independence, chunked benches, a union's
+# members), or runs a command or a tuner whole.
 SLOW_CASES = (
     "test_golden.py::test_forward_matches_saved[f/afonftsmc/s1",
     "test_golden.py::test_forward_matches_saved[f/afonftsmc/s3",
@@ -79,6 +79,18 @@ SLOW_CASES = (
     "test_performance.py::test_bench_forward_runs_big_batches_in_chunks",
     "test_performance.py::test_bench_smoke",
     "test_performance.py::test_numpy_reference_agrees_with_jax_rollout[tanh]",
+    "test_evaluate_in_blocks.py::test_blocks_give_a_direct_calls_numbers_in_float64",
+    # Whole runs of a command or of a tuner on the simulator (each compiles its forward
+    # and gradient programs); their parts are checked in the default tier.
+    "test_tune_cli.py::test_tune_end_to_end_resume_and_refusals",
+    "test_requirements_cli.py::test_tune_to_requirements_writes_gains_and_heldout_yield",
+    "test_requirements_cli.py::test_simulate_requirements_yield_matches_per_draw_metrics",
+    "test_requirements_tuner.py::test_tuning_raises_the_heldout_yield_from_a_failing_start",
+    "test_requirements_tuner.py::test_the_run_returns_its_best_validated_iterate",
+    "test_requirements_tuner.py::test_an_interrupted_lagrangian_run_resumes_to_the_uninterrupted_result",
+    "test_simulate_cli.py::test_simulate_end_to_end_tiny",
+    "test_reproduce.py::test_a_controller_compared_with_itself_is_equivalent_end_to_end",
+    "test_scenarios.py::test_a_union_runs_each_member_as_it_runs_alone[float32]",
 )
 
 

@@ -154,6 +154,17 @@ def small() -> Objective:
     return Objective(SPEC, NAIVE)
 
 
+@functools.cache
+def reference_cost():
+    """``cost(gains, keys)`` of :data:`SPEC`'s problem at the tuning law, composed from
+    the simulator's functions without the engine, compiled once."""
+    config = simulator.SimulationConfig(dt=SPEC.dt, horizon=HORIZON, save_every=10)
+    controller = SPEC.make_controller("tanh", HORIZON)
+    return jax.jit(
+        cost_lib.make_batch_cost(controller, scenarios.get_scenario(2), config, COST, jnp.float64)
+    )
+
+
 def test_outputs_equal_the_rollout_and_do_not_depend_on_the_request():
     objective = small()
     rng = np.random.default_rng(3)
@@ -162,10 +173,7 @@ def test_outputs_equal_the_rollout_and_do_not_depend_on_the_request():
     together = objective.forward(points, keys, width=2.0)
     assert together.values.shape == (4, 3, 1) and together.terms.shape == (4, 3, 4)
     assert np.ptp(together.values[:, :, 0].mean(1)) > 1e-3  # the points differ
-    config = simulator.SimulationConfig(dt=SPEC.dt, horizon=HORIZON, save_every=10)
-    batch = cost_lib.make_batch_cost(
-        SPEC.make_controller("tanh", HORIZON), scenarios.get_scenario(2), config, COST, jnp.float64
-    )
+    batch = reference_cost()
     for i, x in enumerate(points):
         gains = objective.gains(x)
         gains = gains._replace(boundary_layer=gains.boundary_layer * 2.0)
@@ -188,10 +196,7 @@ def test_gradient_is_the_mean_of_the_per_draw_gradients_and_finite_differences()
     keys = objective.sample(0)
     evaluation = objective(Request(x[None], gradient=True, width=2.0))
     assert evaluation.bad_gradients == 0 and evaluation.gradient.shape == (objective.size,)
-    config = simulator.SimulationConfig(dt=SPEC.dt, horizon=HORIZON, save_every=10)
-    batch = cost_lib.make_batch_cost(
-        SPEC.make_controller("tanh", HORIZON), scenarios.get_scenario(2), config, COST, jnp.float64
-    )
+    batch = reference_cost()
     _, unravel = objective.param_map.ravel(objective.param_map.to_params(NAIVE, jnp.float64))
 
     def mean_cost(vector):  # an independent composition of the same functions
@@ -199,7 +204,7 @@ def test_gradient_is_the_mean_of_the_per_draw_gradients_and_finite_differences()
         gains = gains._replace(boundary_layer=NAIVE.boundary_layer * 2.0)
         return jnp.mean(batch(gains, keys)[0])
 
-    value, gradient = jax.value_and_grad(mean_cost)(jnp.asarray(x))
+    value, gradient = jax.jit(jax.value_and_grad(mean_cost))(jnp.asarray(x))
     assert float(evaluation.values[0]) == pytest.approx(float(value), rel=1e-13)
     np.testing.assert_allclose(evaluation.gradient, gradient, rtol=1e-9, atol=1e-12)
     direction = np.random.default_rng(0).normal(size=x.size)
