@@ -7,11 +7,16 @@ ends with (``results.json``, ``table.md``, a document's block). Held-out draws a
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import shutil
+import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
+from fojax import settings as process_settings
 from fojax.cli import arguments, output
 
 
@@ -52,12 +57,27 @@ def listed(text: str) -> tuple[str, ...]:
     return tuple(s.strip() for s in text.split(",") if s.strip())
 
 
+@contextlib.contextmanager
+def cold_environment(prefix: str):
+    """The environment of a child process that starts as on a fresh machine: a new,
+    empty folder as ``HOME`` and its ``.cache`` as ``XDG_CACHE_HOME`` (no compiled
+    program, no pip cache), without this process's compilation cache
+    (``JAX_COMPILATION_CACHE_DIR``, ``FOJAX_COMPILE_CACHE``), ``XLA_FLAGS`` or virtual
+    environment; the folder (named ``prefix...``) is removed after the ``with`` block."""
+    home = Path(tempfile.mkdtemp(prefix=prefix))
+    drop = ("JAX_COMPILATION_CACHE_DIR", process_settings.CACHE_VARIABLE, "XLA_FLAGS")
+    env = {k: v for k, v in os.environ.items() if k not in drop + ("VIRTUAL_ENV",)}
+    env.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"))
+    try:
+        yield env
+    finally:
+        shutil.rmtree(home, ignore_errors=True)
+
+
 def enable_float64(on: bool = True) -> None:
     """Turn on ``jax_enable_x64`` (before any array is made) where ``on``."""
     if on:
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
+        process_settings.enable_float64()
 
 
 def finish(out: Path, results: dict, text: str, doc=None, block=None, doc_text=None, wrote=None):

@@ -18,7 +18,6 @@ import argparse
 import os
 import shlex
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -26,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fojax import sharding
 from fojax.cli import output
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -34,12 +34,6 @@ COMMAND = (
     "simulate --scenario 2 --controller afonftsmc --draws 200 --horizon 20 --seed 3 "
     "--no-figures --no-compile-cache --quiet"
 ).split()
-
-
-def _port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def run(processes: int, out: Path) -> float:
@@ -51,7 +45,7 @@ def run(processes: int, out: Path) -> float:
     env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
     env["JAX_PLATFORMS"] = "cpu"
     base = [sys.executable, "-m", "fojax.cli", *COMMAND, "--out", str(out)]
-    port = _port()
+    port = sharding.free_port()
     commands = [base] if processes == 1 else [
         base + ["--coordinator", f"127.0.0.1:{port}", "--num-processes", str(processes),
                 "--process-id", str(index)]

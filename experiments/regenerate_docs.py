@@ -77,9 +77,7 @@ def render(times: dict) -> str:
         "|---|---|---|---|---|---|",
     ]
     total = 0.0
-    for block in blocks.BLOCKS.values():
-        if block.name == "regeneration":
-            continue
+    for block in (b for b in blocks.BLOCKS.values() if b.timed):
         entry = times.get(block.name)
         if entry is None:
             rows.append(f"| {block.name} | {block.document} | not timed | | | |")
@@ -93,7 +91,7 @@ def render(times: dict) -> str:
             f"{load} | {present} |"
         )
     timed = sum(name in times for name in blocks.BLOCKS)
-    count = sum(name != "regeneration" for name in blocks.BLOCKS)
+    count = sum(block.timed for block in blocks.BLOCKS.values())
     head = (
         f"Each block's last regeneration by `{COMMAND}` (`--only NAME` or a full run), "
         f"from `docs/data/regeneration.json`: {timed} of {count} blocks timed, "
@@ -135,7 +133,7 @@ def main(argv=None) -> int:
         return 1 if found else 0
     total = time.perf_counter()
     for block in chosen:
-        if block.name == "regeneration" and args.only is None:
+        if not block.timed and args.only is None:
             continue  # rewritten after every block
         print(f"{block.name}: {shlex.join(block.command)}", flush=True)
         reused, load = _reused(block), output.load_average()
@@ -143,7 +141,7 @@ def main(argv=None) -> int:
         print(f"{block.name}: {seconds:.0f} s" + (f", exit status {status}" if status else ""))
         if status:
             return status
-        if block.name != "regeneration":
+        if block.timed:
             record(block, seconds, reused, load)
         _rerender()
     print(f"{len(chosen)} block(s) regenerated in {time.perf_counter() - total:.0f} s")

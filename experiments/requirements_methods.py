@@ -20,11 +20,9 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -50,16 +48,11 @@ def run_method(method: str, out: Path) -> dict:
     """Run ``method`` cold in a process of its own; its wall time and what it wrote."""
     if out.exists():
         shutil.rmtree(out)
-    home = Path(tempfile.mkdtemp(prefix="fojax-requirements-methods-"))
-    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-    env.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"))
-    load, start = output.load_average(), time.perf_counter()
-    try:
+    with _common.cold_environment("fojax-requirements-methods-") as env:
+        load, start = output.load_average(), time.perf_counter()
         argv = [sys.executable, "-m", "fojax.cli", *command(method, out)[1:]]
         subprocess.run(argv, check=True, env=env, cwd=ROOT, stdout=subprocess.DEVNULL)
-    finally:
         seconds = time.perf_counter() - start
-        shutil.rmtree(home, ignore_errors=True)
     metadata = json.loads((out / "gains.json").read_text())["metadata"]
     evaluation = json.loads((out / "evaluation.json").read_text())
     with open(out / "history.csv", newline="") as handle:

@@ -15,7 +15,6 @@ load at the start, the block the load at the end.
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import subprocess
 import sys
@@ -23,6 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from experiments import _common
 from fojax.cli import output
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -49,12 +49,10 @@ def _summary(log: str) -> str:
     return lines[-1].strip(" =") if lines else ""
 
 
-def run_job(command: str, clone: Path, home: Path) -> dict:
-    """Run ``command``'s ``&&`` parts in turn in ``clone`` with ``home`` as HOME and
-    cache; each part's wall time, the exit status, and the output's tail."""
-    env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache")}
-    env.pop("VIRTUAL_ENV", None)
-    env.pop("XLA_FLAGS", None)
+def run_job(command: str, clone: Path, env: dict) -> dict:
+    """Run ``command``'s ``&&`` parts in turn in ``clone`` in the environment ``env``
+    (:func:`experiments._common.cold_environment`'s); each part's wall time, the exit
+    status, and the output's tail."""
     parts, times, log = command.split(" && "), [], ""
     for part in parts:
         start = time.perf_counter()
@@ -85,8 +83,7 @@ def table(results: dict) -> str:
     return (
         "README's two commands above, run as written from a fresh clone of the commit in "
         "the label with a fresh HOME and XDG_CACHE_HOME (packages downloaded, nothing "
-        f"compiled yet), one after the other; load average at the end {load}.\n\n"
-        + "\n".join(rows)
+        f"compiled yet), one after the other; load average at the end {load}.\n\n" + "\n".join(rows)
     )
 
 
@@ -99,10 +96,10 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="fojax-setup-") as folder:
         for job, command in jobs.items():
             print(f"{job}: {command}", flush=True)
-            clone, home = (Path(folder) / f"{part}-{job.replace(' ', '-')}" for part in "ch")
+            clone = Path(folder) / job.replace(" ", "-")
             subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
-            home.mkdir()
-            result = run_job(command, clone, home)
+            with _common.cold_environment("fojax-setup-home-") as env:
+                result = run_job(command, clone, env)
             result["summary"] = _summary(result["log"]) if job == "tests" else ""
             if result["status"]:
                 print(result["log"][-4000:], file=sys.stderr)

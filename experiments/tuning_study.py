@@ -14,7 +14,8 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
 
 * Problem: the AFONFTSMC on scenario 2, 10 s, the default cost
   (:class:`fojax.optimize.CostConfig`), mean objective, ``--draws`` 16 draws per
-  sample, float32, seed ``s``.
+  sample, float32, seed ``s``, the tuners at the simulator's 1 ms step (``--dt`` another;
+  held-out costs stay at 1 ms).
 * Methods (:func:`fojax.optimize.strategies.make`, the rows): ``default`` (``auto``, the
   ``fojax tune`` default: CMA-ES on small fresh samples, ``--default-steps``
   generations), ``lbfgs``
@@ -59,6 +60,7 @@ figures beside it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import math
 import shutil
@@ -80,6 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _common.parser("tuning_study")
     parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
     _common.add_numbers(parser, horizon=10.0, draws=16)
+    _common.add_numbers(parser, dt=(1e-3, "the tuners' step (s); held-out costs stay at 1 ms"))
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated (0,1,2)")
     parser.add_argument("--shares", default="paper,none", help="comma-separated (paper,none)")
     parser.add_argument("--starts", default="paper,naive", help="comma-separated (paper,naive)")
@@ -155,17 +158,17 @@ class _Setup:
         self.heldout_objective = self.objective(0)
         self.heldout([self.heldout_objective.x0])  # compiled here, not counted
 
-    def objective(self, seed: int, strategy=None):
-        """The problem of ``seed``: a fresh objective over every device, its lanes fitted
-        to ``strategy``'s requests (kept per seed with ``--tiny``)."""
+    def objective(self, seed: int, strategy=None, dt: float = 1e-3):
+        """The problem of ``seed`` at step ``dt``: a fresh objective over every device, its
+        lanes fitted to ``strategy``'s requests (kept per seed with ``--tiny``)."""
         import jax
 
         from fojax import optimize, sharding
         from fojax.optimize import strategies
 
         args = self.args
-        if seed in self._kept:
-            return self._kept[seed]
+        if (seed, dt) in self._kept:
+            return self._kept[seed, dt]
         mesh = sharding.draw_mesh(jax.devices())
         size = optimize.make_parameter_map("afonftsmc", None, self.share).size
         lanes = 128
@@ -176,6 +179,7 @@ class _Setup:
             controller="afonftsmc",
             scenario=args.scenario,
             horizon=args.horizon,
+            dt=dt,
             draws=args.draws,
             seed=seed,
             cost=optimize.CostConfig(**(tiny if args.tiny else {})),
@@ -185,7 +189,7 @@ class _Setup:
         )
         objective = optimize.Objective(spec, self.naive, mesh=mesh, lanes=lanes)
         if args.tiny:
-            self._kept[seed] = objective
+            self._kept[seed, dt] = objective
         return objective
 
     @property
@@ -262,7 +266,7 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     load_before = output.load_average()
     t0 = time.perf_counter()
     strategy, budget = setup.strategy(method, seed)
-    objective = setup.objective(seed, strategy)
+    objective = setup.objective(seed, strategy, setup.args.dt)
     x0 = objective.vector(setup.starts[start])
     result, steps = _common.recorded_run(
         objective, strategy, budget, x0, validation_draws=setup.args.validation_draws,
@@ -293,7 +297,7 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
 
 
 COMMON = (
-    "scenario horizon draws dtype compile tiny heldout_draws validation_draws validate_every"
+    "scenario horizon dt draws dtype compile tiny heldout_draws validation_draws validate_every"
 ).split()
 BY_METHOD = {
     "default": ("default_steps", "cma_sigma"),
@@ -410,23 +414,17 @@ def main(argv=None) -> int:
     from fojax import settings as process_settings
 
     process_settings.use_host_devices()  # one XLA device per core, as fojax tune runs
-    import jax
-
     args = parse_args(argv)
     _common.enable_float64(args.dtype == "float64")
-    cache = jax.config.jax_enable_compilation_cache
-    if not args.tiny:  # every run compiles its own programs, as a user's first run does
-        jax.config.update("jax_enable_compilation_cache", False)
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
     start_all = time.perf_counter()
     settings = _common.settings(args)
-    try:
+    # Every run compiles its own programs, as a user's first run does (--tiny: reused).
+    with contextlib.nullcontext() if args.tiny else process_settings.without_compile_cache():
         if not args.report_only:
             for share in args.shares:
                 run_share(args, share, settings)
         return report(args, settings, start_all)
-    finally:
-        jax.config.update("jax_enable_compilation_cache", cache)
 
 
 if __name__ == "__main__":

@@ -200,7 +200,7 @@ def _bench_line(bench: dict) -> str:
 
 SETTINGS = (
     "default_steps switch gradient_steps cma_generations draws validation_draws "
-    "validate_every heldout_draws horizon dtype"
+    "validate_every heldout_draws horizon dt dtype"
 ).split()
 """The settings the table's last line states."""
 

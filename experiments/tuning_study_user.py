@@ -11,14 +11,13 @@ from __future__ import annotations
 import csv
 import functools
 import json
-import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
+from experiments import _common
 from experiments.tuning_study_report import USER_MODES
 from fojax import records as kept
 from fojax.cli import output
@@ -79,23 +78,11 @@ def _run(args, folder: Path, mode: str, index: int) -> dict:
     if run_dir.exists():
         shutil.rmtree(run_dir)
     command = user_command(args, mode, run_dir)
-    cache = tempfile.mkdtemp(prefix="fojax-user-view-cache-")
-    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-    env["XDG_CACHE_HOME"] = cache
-    env["HOME"] = os.path.join(cache, "home")  # cold: nothing of the user's home either
-    os.makedirs(env["HOME"])
-    load = output.load_average()
-    t0 = time.perf_counter()
-    try:
-        subprocess.run(
-            [sys.executable, "-m", "fojax.cli", *command[1:], "--quiet"],
-            check=True,
-            env=env,
-            stdout=subprocess.DEVNULL,
-        )
-    finally:
+    with _common.cold_environment("fojax-user-view-") as env:
+        load, t0 = output.load_average(), time.perf_counter()
+        argv = [sys.executable, "-m", "fojax.cli", *command[1:], "--quiet"]
+        subprocess.run(argv, check=True, env=env, stdout=subprocess.DEVNULL)
         total = time.perf_counter() - t0
-        shutil.rmtree(cache, ignore_errors=True)
     evaluation = json.loads((run_dir / "evaluation.json").read_text())
     gains = json.loads((run_dir / "gains.json").read_text())["metadata"]
     with open(run_dir / "history.csv", newline="") as handle:

@@ -26,11 +26,13 @@ The variables (an empty one counts as unset):
 
 The JAX options (``jax.config``) fojax sets are set here only: 64-bit mode
 (:func:`enable_float64`), the persistent compilation cache
-(:func:`enable_compile_cache`) and the host device count (:func:`use_host_devices`).
+(:func:`enable_compile_cache`; :func:`without_compile_cache` for a block of code) and
+the host device count (:func:`use_host_devices`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import sys
@@ -48,6 +50,7 @@ __all__ = [
     "enable_float64",
     "read",
     "use_host_devices",
+    "without_compile_cache",
 ]
 
 CACHE_VARIABLE = "FOJAX_COMPILE_CACHE"
@@ -192,6 +195,20 @@ def enable_float64() -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+
+
+@contextlib.contextmanager
+def without_compile_cache():
+    """The persistent compilation cache off inside the ``with`` block (every program is
+    compiled as a first run on a fresh machine compiles it), as it was after."""
+    import jax
+
+    before = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_compilation_cache", before)
 
 
 def default_cache_dir(settings: Settings | None = None) -> Path:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import re
+import socket
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -45,6 +46,7 @@ __all__ = [
     "default_mesh",
     "detect_cluster",
     "distributed_settings",
+    "free_port",
     "one_device_mesh",
     "initialize",
     "pad_draws",
@@ -63,6 +65,14 @@ JAX_VARIABLES = process_settings.DISTRIBUTED_VARIABLES
 
 _SETTINGS = ("coordinator_address", "num_processes", "process_id")
 _VARIABLE = dict(zip(_SETTINGS, JAX_VARIABLES, strict=True))
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free on ``host`` now: the coordinator's of processes on one machine
+    (``--coordinator 127.0.0.1:PORT``)."""
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        return sock.getsockname()[1]
 
 
 def detect_cluster(settings: process_settings.Settings | None = None) -> tuple[str, int] | None:

@@ -10,7 +10,6 @@ import os
 import re
 import shlex
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -19,18 +18,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fojax import sharding
+
 ROOT = Path(__file__).resolve().parent.parent
 
 SIMULATE = [
     "simulate", "--scenario", "3", "--controller", "afonftsmc", "--draws", "120",
     "--device-batch", "20", "--horizon", "0.2", "--seed", "11", "--quiet", "--no-figures",
 ]  # fmt: skip
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def _env(cache: Path) -> dict:
@@ -68,7 +63,7 @@ def _start(argv, processes: int, env: dict, slow: bool = False):
     """Start ``processes`` processes of ``fojax argv`` (one alone when 1)."""
     commands = [_command(argv, slow)]
     if processes > 1:
-        port = _free_port()
+        port = sharding.free_port()
         commands = [
             _command(
                 argv
@@ -145,7 +140,7 @@ def _doc_commands(marker: str) -> list[tuple[dict, list[str]]]:
 def _run_doc_commands(marker: str, cwd: Path, env: dict):
     """docs/distributed.md's lines as written (in ``cwd``), on a free port instead of
     the document's 12355, every process started at once."""
-    port = str(_free_port())
+    port = str(sharding.free_port())
     started = []
     for variables, argv in _doc_commands(marker):
         argv = [word.replace("12355", port) for word in argv]
@@ -232,7 +227,7 @@ def test_two_processes_of_a_slurm_job_simulate_the_draws_of_one(tmp_path, cache,
         "SLURM_JOB_ID": "4242",
         "SLURM_STEP_NODELIST": "127.0.0.1",
         "SLURM_NTASKS": "2",
-        "JAX_COORDINATOR_PORT": str(_free_port()),
+        "JAX_COORDINATOR_PORT": str(sharding.free_port()),
     }
     out = tmp_path / "run"
     command = _command([w for w in SIMULATE if w != "--quiet"] + ["--out", str(out)])

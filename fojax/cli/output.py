@@ -27,6 +27,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from fojax import settings
 from fojax.records import atomic_write, write_csv, write_json, write_npz
 
 __all__ = [
@@ -165,7 +166,7 @@ def provenance(command: list[str] | None = None, gains: dict | None = None) -> d
         "process_count": jax.process_count(),
         "devices": [str(d) for d in jax.local_devices()],
         "jax_enable_x64": bool(jax.config.jax_enable_x64),
-        "xla_flags": os.environ.get("XLA_FLAGS") or None,
+        "xla_flags": settings.read().xla_flags or None,
         "platform": platform.platform(),
         "cpu_count": os.cpu_count(),
         "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
