@@ -90,15 +90,15 @@ def render(times: dict) -> str:
             f"| {block.name} | {block.document} | {entry['seconds']:.0f} s | {commit} | "
             f"{load} | {present} |"
         )
-    timed = sum(name in times for name in blocks.BLOCKS)
+    timed = [name for name in blocks.BLOCKS if name in times]
     count = sum(block.timed for block in blocks.BLOCKS.values())
     head = (
         f"Each block's last regeneration by `{COMMAND}` (`--only NAME` or a full run), "
-        f"from `docs/data/regeneration.json`: {timed} of {count} blocks timed, "
+        f"from `docs/data/regeneration.json`: {len(timed)} of {count} blocks timed, "
         f"{total:.0f} s ({total / 3600:.1f} h) in all. \"Results already present\": the "
         "block's results folder held results of an earlier run, which a run reuses where "
         "their settings match (a fresh clone has none). Machine of each: "
-        + "; ".join(sorted({f"{e['cpu']}, {e['cores']} cores" for e in times.values()}))
+        + "; ".join(sorted({f"{times[n]['cpu']}, {times[n]['cores']} cores" for n in timed}))
         + "."
     )
     return head + "\n\n" + "\n".join(rows)
