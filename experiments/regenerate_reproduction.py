@@ -4,7 +4,9 @@
 
 Runs ``fojax reproduce`` at its default size twice (the paper's ``sgn``, then
 ``--switching sat``) into ``DIR/reproduce`` and ``DIR/reproduce_sat`` (default
-``results/``; finished chunks there are reused), then, in each document, replaces
+``results/``), each afresh (``--overwrite``: draws kept there by an earlier run, of
+this code or another, are discarded, so that a document shows one run of the code at
+its label), then, in each document, replaces
 everything below the line :data:`MARKER` with the new ``report.md`` (figure links
 pointed at ``docs/reproduction/`` resp. ``docs/reproduction_sat/``) and copies the
 figures there. The text above the marker (the command and the reading of the run) is
@@ -50,7 +52,7 @@ def main(argv=None) -> int:
         if args.only and args.only != switching:
             continue
         out = args.results / name
-        status = command.main(["--out", str(out), *extra])
+        status = command.main(["--out", str(out), "--overwrite", *extra])
         if status:
             return status
         figures = DOCS / doc_name

@@ -424,9 +424,11 @@ def report(results: dict) -> str:
         f"{p['load_average'][0] if p.get('load_average') else 'n/a'} at the start and "
         f"{p['load_average_end'][0] if p.get('load_average_end') else 'n/a'} at the end; "
         f"{results['total_wall_time_s']:.0f} s in all, of which {results['compile_time_s']:.0f} s "
-        f"compiling the tuning cost and its gradient, "
+        "compiling the tuning cost and its gradient. Each tuner's wall time as it ran "
+        "(validation included; a tuner kept in `--out/runs` with the same settings is "
+        "reused, not run again): "
         + ", ".join(f"{tuners[n]['wall_time_s']:.0f} s {n} ({tuners[n]['method']})" for n in TUNERS)
-        + " (validation included).",
+        + ".",
         "",
         *(
             f"The {name} tuner returned the gains of step {tuners[name]['returned_step']} of "
