@@ -333,14 +333,17 @@ def requirements_found(study: _Quantities, paper: dict, analysis: dict):
     )
 
 
-def tune_requirements(study: _Quantities, reqs, start: str, args) -> dict:
-    """The augmented Lagrangian from the gains ``start`` (``"naive"`` or ``"paper"``) to
-    ``reqs``, objective effort: its record (cached in ``--out/tuned``) and gains."""
+def tune_requirements(study: _Quantities, objective, start: str, args) -> dict:
+    """The augmented Lagrangian from the gains ``start`` (``"naive"`` or ``"paper"``) on
+    ``objective`` (:meth:`_Quantities.objective` of the requirement set: the starts
+    share its compiled programs), objective effort: its record (cached in
+    ``--out/tuned``) and gains."""
     from fojax.controllers import gains_io
+
+    reqs = objective.requirements
 
     def run() -> dict:
         began = time.perf_counter()
-        objective = study.objective(reqs)
         result = _common.to_requirements(
             objective, study.vector_of(getattr(study, start)), "adam", args.outer_steps,
             args.inner_steps, validation_draws=1, margin=0.0, progress=not args.quiet,
@@ -425,7 +428,8 @@ def main(argv=None) -> int:
     analysis = {k: analyse(p, study.names) for k, p in points.items()}
     reqs = requirements_found(study, points["paper"], analysis["paper"])
     output.log(args.quiet, "tuning from naive, then paper, to: " + ", ".join(reqs.names))
-    tuned = {k: tune_requirements(study, reqs, k, args) for k in ("naive", "paper")}
+    objective = study.objective(reqs)
+    tuned = {k: tune_requirements(study, objective, k, args) for k in ("naive", "paper")}
     gain_sets = {"naive": study.naive, "paper": study.paper}
     gain_sets |= {f"tuned from {k}": t["gains"] for k, t in tuned.items()}
     for label in list(gain_sets)[2:]:

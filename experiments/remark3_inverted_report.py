@@ -114,7 +114,8 @@ def table(results: dict) -> str:
     )
     lines += [
         "",
-        f"Requirement tuning (objective effort): {runs}; the paper's gains meet "
+        f"Requirement tuning (objective effort; the second start reuses the first's "
+        f"compiled programs): {runs}; the paper's gains meet "
         f"{tuning['paper']['paper']['passed']}/1. Jacobian: {t['jacobian']:.1f} s (first, "
         f"with compilation, {t['first_jacobian_with_compile']:.0f} s); {t['total']:.0f} s in "
         f"all, load average at the end {results['load_average']}.",
