@@ -1,13 +1,14 @@
 """What several studies share: their command lines (numeric options, the output and
 smoke-run options, the gradient tuner's settings), float64, and the files every study
 ends with (``results.json``, ``table.md``, a document's block). Held-out draws are
-:func:`fojax.optimize.draw_keys`'s (``"heldout"``); a run kept under its fingerprint is
-:func:`fojax.records.cached`'s."""
+:func:`fojax.optimize.draw_keys`'s (``"heldout"``); a run kept under its fingerprint and
+the studies' code is :func:`cached`'s."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import os
 import shutil
 import tempfile
@@ -16,6 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from fojax import records
 from fojax import settings as process_settings
 from fojax.cli import arguments, output
 
@@ -72,6 +74,24 @@ def cold_environment(prefix: str):
         yield env
     finally:
         shutil.rmtree(home, ignore_errors=True)
+
+
+@functools.lru_cache(maxsize=1)
+def code() -> str:
+    """Digest of the code a study's numbers come from: fojax's source
+    (:func:`fojax.records.source_roots`) and experiments/, once per process."""
+    return records.source_digest(*records.source_roots(), Path(__file__).resolve().parent)
+
+
+def cached(folder, stem: str, fingerprint, compute):
+    """:func:`fojax.records.cached` keyed by the studies' :func:`code` too: a run kept
+    by other code is run again."""
+    return records.cached(folder, stem, fingerprint, compute, code=code())
+
+
+def stored(folder, stem: str, fingerprint) -> dict | None:
+    """The run :func:`cached` keeps for ``fingerprint`` and this code, or ``None``."""
+    return records.stored(folder, stem, fingerprint, code=code())
 
 
 def enable_float64(on: bool = True) -> None:

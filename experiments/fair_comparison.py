@@ -26,7 +26,9 @@ draw by draw (95 % Student-t).
 
 Each controller's tuning run checkpoints under ``--out/tuning/<name>/`` (the driver's
 checkpoint): an interrupted study started again with the same command continues where
-it stopped, to the result the uninterrupted run gives.
+it stopped, to the result the uninterrupted run gives; a checkpoint of other settings or
+other code (``fojax.optimize.run``'s ``resume="if-same"``) is run again from the start.
+``results.json`` records the studies' code digest (:func:`experiments._common.code`).
 
 Writes ``results.json`` and ``table.md`` to ``--out``.
 """
@@ -150,16 +152,17 @@ def tune(args, index: int, name: str):
         learning_rate=args.learning_rate,
     )  # fmt: skip
     run_dir = args.out / "tuning" / name
-    resume = (run_dir / optimize.CHECKPOINT).exists()
+    found = (run_dir / optimize.CHECKPOINT).exists()
     output.log(
         args.quiet,
         f"[{index}/{len(args.controllers)}] tuning {name} ({args.method}): {args.steps} steps "
-        f"x {spec.draws} draws x {spec.horizon:g} s" + (" (resumed)" if resume else ""),
+        f"x {spec.draws} draws x {spec.horizon:g} s"
+        + (" (its checkpoint goes on if of these settings and code)" if found else ""),
     )
     t0 = time.perf_counter()
     budget = optimize.Budget(steps=args.steps)
     result = optimize.run(
-        objective, strategy, budget, out=run_dir, resume=resume, progress=not args.quiet
+        objective, strategy, budget, out=run_dir, resume="if-same", progress=not args.quiet
     )
     record = {
         "draw_steps": result.draw_steps,
@@ -274,6 +277,7 @@ def main(argv=None) -> int:
             for name, p in points.items()
         },
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
+        "code": _common.code(),
     }
     text = table(results)
     doc_text = None if args.update_doc is None else _doc_head(argv, results) + "\n\n" + text

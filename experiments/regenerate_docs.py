@@ -1,6 +1,7 @@
 """Regenerate the generated blocks of README.md and docs/ (:mod:`experiments.blocks`).
 
-    python -m experiments.regenerate_docs [--only NAME] [--list] [--stale] [--render]
+    python -m experiments.regenerate_docs [--only NAME | --only-stale] [--list] [--stale]
+                                          [--render]
 
 Runs the command of every block (or of ``--only NAME``) from the repository root, in
 the order of :data:`experiments.blocks.BLOCKS`, each in a process of its own, and
@@ -11,7 +12,9 @@ results a run reuses), and README.md's ``regeneration`` block lists them with th
 (:func:`render`; ``--render`` rewrites that block alone). ``--list`` prints each
 block's document, command and sources; ``--stale`` lists the blocks to regenerate (no
 label, generated with uncommitted changes, a commit not in the history, or sources
-changed since their commit) and exits with status 1 when there are any. Commit before
+changed since their commit) and exits with status 1 when there are any;
+``--only-stale`` regenerates those alone (a full run that was interrupted goes on with it:
+the studies keep their finished runs under their settings and code). Commit before
 regenerating: a block records the commit it was generated at.
 """
 
@@ -97,7 +100,7 @@ def render(times: dict) -> str:
         f"from `docs/data/regeneration.json`: {len(timed)} of {count} blocks timed, "
         f"{total:.0f} s ({total / 3600:.1f} h) in all. \"Results already present\": the "
         "block's results folder held results of an earlier run, which a run reuses where "
-        "their settings match (a fresh clone has none). Machine of each: "
+        "their settings and code match (a fresh clone has none). Machine of each: "
         + "; ".join(sorted({f"{times[n]['cpu']}, {times[n]['cores']} cores" for n in timed}))
         + "."
     )
@@ -113,7 +116,11 @@ def main(argv=None) -> int:
         prog=COMMAND,
         description="Regenerate the docs' generated blocks, list them, or list the stale ones.",
     )
-    parser.add_argument("--only", choices=list(blocks.BLOCKS), metavar="NAME", help="one block")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--only", choices=list(blocks.BLOCKS), metavar="NAME", help="one block")
+    which.add_argument(
+        "--only-stale", action="store_true", help="the blocks --stale lists, regenerated"
+    )
     parser.add_argument("--list", action="store_true", help="each block, command and sources")
     parser.add_argument("--stale", action="store_true", help="the blocks to regenerate")
     parser.add_argument("--render", action="store_true", help="README's regeneration block")
@@ -122,6 +129,8 @@ def main(argv=None) -> int:
         _rerender()
         return 0
     chosen = [b for b in blocks.BLOCKS.values() if args.only in (None, b.name)]
+    if args.only_stale:
+        chosen = [b for b in chosen if blocks.problems(b, blocks.ROOT)]
     if args.list:
         for block in chosen:
             print(f"{block.name} ({block.document}): {shlex.join(block.command)}")
@@ -133,7 +142,7 @@ def main(argv=None) -> int:
         return 1 if found else 0
     total = time.perf_counter()
     for block in chosen:
-        if not block.timed and args.only is None:
+        if not block.timed and len(chosen) > 1:
             continue  # rewritten after every block
         print(f"{block.name}: {shlex.join(block.command)}", flush=True)
         reused, load = _reused(block), output.load_average()

@@ -60,7 +60,6 @@ import numpy as np
 from experiments import _common
 from experiments import remark3 as remark3_study
 from experiments.remark3_inverted_report import SURROGATES, figure, table
-from fojax import records
 from fojax.cli import output
 
 __all__ = ["best_subsets", "cone_residual", "main"]
@@ -361,7 +360,7 @@ def tune_requirements(study: _Quantities, objective, start: str, args) -> dict:
     settings = _common.settings(args, ("out", "update_doc", "quiet", "requirements"))
     fingerprint = {"settings": settings, "requirements": reqs.to_dict(), "start": start}
     fingerprint["engine"] = "fojax.optimize"
-    record = records.cached(args.out / "tuned", start, fingerprint, run)
+    record = _common.cached(args.out / "tuned", start, fingerprint, run)
     return {"record": record, "gains": gains_io.gains_from_dict("afonftsmc", record["gains"])}
 
 

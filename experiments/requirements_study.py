@@ -40,7 +40,6 @@ import time
 from pathlib import Path
 
 from experiments import _common
-from fojax import records
 from fojax.cli import arguments, output
 from fojax.optimize.strategies import METHODS
 
@@ -188,7 +187,7 @@ def _rows(name: str, record: dict, switchings, budget: dict, reqs, args) -> list
                        switching, args.draws, args.horizon]  # fmt: skip
         stem = f"{name}-{label}-s{scenario_id}-{switching}"
         evaluate = functools.partial(evaluate_one, name, gains, scenario_id, switching, reqs, args)
-        row = records.cached(args.out / "yield", stem, fingerprint, evaluate)
+        row = _common.cached(args.out / "yield", stem, fingerprint, evaluate)
         where = {"scenario": scenario_id, "switching": switching or "-"}
         rows.append({"controller": name, "gains": label, **where, **row})
         print(f"{name} {label} scenario {scenario_id} {switching or '-'}: "
@@ -234,7 +233,7 @@ def main(argv=None) -> int:
     budget = _budget(args, reqs)
     rows, tuned_records = [], {}
     for name in controllers:
-        record = records.cached(
+        record = _common.cached(
             args.out / "tuned", name, budget, lambda n=name: tune_one(n, reqs, args)
         )
         tuned_records[name] = record

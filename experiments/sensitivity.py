@@ -34,7 +34,8 @@ loaded 2-core machine, running 32 draws x 30 s takes a few seconds), so:
 * the programs compile in the background while the previous one runs, in ``--workers``
   processes (float64 in a process of its own, with ``jax_enable_x64``), next to the
   gain tuning of ``experiments/fair_comparison.py`` (``--tune-*``, or ``--tuned-gains``
-  to take the gains of an earlier fair-comparison run).
+  to take the gains of an earlier fair-comparison run); its ``OUT/tuning/results.json``
+  is reused when the same code wrote it (its ``code``), else tuned again.
 
 Every run (one controller, one scenario, one set of gains, one program) is a
 :func:`fojax.study.run` of the program's union member, stored as soon as it finishes
@@ -397,6 +398,12 @@ def _start_tuning(args, directory: Path, log) -> subprocess.Popen:
     )
 
 
+def _tuned_here(path: Path) -> bool:
+    """Whether ``path`` (the fair comparison's ``results.json``) holds gains tuned by
+    this code (its ``code``: :func:`experiments._common.code`)."""
+    return json.loads(path.read_text()).get("code") == _common.code()
+
+
 def _wait_for_tuning(tuning, tuned_path: Path, started: float, log) -> float:
     """Wait for the gain tuning; on failure, leave ``FAILED`` for the lanes that wait for
     its gains. Its wall time (s)."""
@@ -488,6 +495,8 @@ def main(argv=None) -> int:
         f"lanes {', '.join(f'{k}: {len(v)} programs' for k, v in lanes.items())}"
     )
     tuning, tuning_wall = None, None
+    if args.tuned_gains is None and tuned_path.exists() and not _tuned_here(tuned_path):
+        tuned_path.unlink()  # tuned by other code: tuned again
     if any(s.gains == "tuned" for s in plan.settings) and not tuned_path.exists():
         tuning, tuning_start = _start_tuning(args, tuned_path.parent, log), time.perf_counter()
     lane_argv = [a for a in argv if a != "--quiet"] + (["--quiet"] if args.quiet else [])

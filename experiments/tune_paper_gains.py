@@ -67,7 +67,6 @@ from pathlib import Path
 import numpy as np
 
 from experiments import _common
-from fojax import records
 from fojax.cli import output
 from fojax.optimize.strategies import DEFAULT_STEPS
 
@@ -238,13 +237,13 @@ def run_tuners(args, study: _Study) -> dict:
     settings["engine"] = "fojax.optimize"
     folder = args.out / "runs"
     found = {
-        name: records.cached(folder, name, settings, lambda name=name: study.run(name))
+        name: _common.cached(folder, name, settings, lambda name=name: study.run(name))
         for name in ("gradient", "default")
     }
     budget = int(args.df_budget_factor * found["gradient"]["summary"]["draw_steps"])
     for name in ("cma-es", "nelder-mead"):
         fingerprint = settings | {"budget": budget}
-        found[name] = records.cached(
+        found[name] = _common.cached(
             folder, name, fingerprint, lambda name=name: study.run(name, budget)
         )
     return {name: found[name] for name in TUNERS}

@@ -48,7 +48,7 @@ smoke run) keeps the caller's compilation cache and shares each seed's objective
 the runs of a share (its wall times mean nothing).
 
 Each finished run is kept in ``--out/runs/`` under its fingerprint, the settings it
-depends on (:data:`BY_METHOD`; :func:`fojax.records.cached`): an interrupted study
+depends on (:data:`BY_METHOD`; :func:`experiments._common.cached`): an interrupted study
 continues where it stopped, a run is never reused for other settings, and variants of
 one method share the other methods' runs in one ``--out``. ``results.json``,
 ``table.md`` and the figures ``tuning_wall.png`` and ``tuning_draw_steps.png``
@@ -71,7 +71,6 @@ import numpy as np
 
 from experiments import _common, tuning_study_user
 from experiments.tuning_study_report import METHODS, plot, summarize, table
-from fojax import records
 from fojax.cli import arguments, output
 from fojax.optimize.strategies import DEFAULT_STEPS
 
@@ -328,16 +327,16 @@ def _bench_fingerprint(args, share: str) -> dict:
 
 def _stored_run(args, share, start, seed, method) -> dict | None:
     fingerprint = run_fingerprint(args, share, start, seed, method)
-    return records.stored(args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint)
+    return _common.stored(args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint)
 
 
 def run_share(args, share: str, settings: dict) -> None:
     """The runs (and the bench) of one parameter count that are not stored yet (each
-    kept under its fingerprint: :func:`fojax.records.cached`)."""
+    kept under its fingerprint: :func:`experiments._common.cached`)."""
     cases = itertools.product(args.starts, args.seeds, args.methods)
     pending = [case for case in cases if _stored_run(args, share, *case) is None]
     bench_fingerprint = _bench_fingerprint(args, share)
-    bench_done = records.stored(args.out, f"bench_{share}", bench_fingerprint) is not None
+    bench_done = _common.stored(args.out, f"bench_{share}", bench_fingerprint) is not None
     if not pending and (not args.bench or bench_done):
         return
     t0 = time.perf_counter()
@@ -348,7 +347,7 @@ def run_share(args, share: str, settings: dict) -> None:
         f"compiled in {time.perf_counter() - t0:.0f} s",
     )
     if args.bench and not bench_done:
-        bench = records.cached(
+        bench = _common.cached(
             args.out, f"bench_{share}", bench_fingerprint, lambda: bench_batched(setup, args.bench)
         )
         output.log(
@@ -358,7 +357,7 @@ def run_share(args, share: str, settings: dict) -> None:
         )
     for start, seed, method in pending:
         fingerprint = run_fingerprint(args, share, start, seed, method)
-        record = records.cached(
+        record = _common.cached(
             args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint,
             lambda case=(start, seed, method): run_one(setup, *case) | {"settings": settings},
         )  # fmt: skip
@@ -384,7 +383,7 @@ def report(args, settings: dict, start_all: float) -> int:
             "settings they depend on); run without --report-only, or give the settings "
             "the runs were made with"
         )
-    benches = [records.stored(out, f"bench_{s}", _bench_fingerprint(args, s)) for s in args.shares]
+    benches = [_common.stored(out, f"bench_{s}", _bench_fingerprint(args, s)) for s in args.shares]
     results = {
         "user_view": users,
         "bench": [bench for bench in benches if bench is not None],

@@ -1,6 +1,6 @@
 """The tuning study's user view (:mod:`experiments.tuning_study`): ``fojax tune`` as a
 new user runs it, in a fresh process with an empty cache, timed as a whole, each run
-kept under its fingerprint (:func:`fojax.records.cached`). The commands
+kept under its fingerprint (:func:`experiments._common.cached`). The commands
 (:data:`experiments.tuning_study_report.USER_MODES`): from the naive start the default
 method and ``--method cma-es`` (does the default end at or below CMA-ES's held-out cost
 in at most its wall time?), and from the paper's gains the default (does it halve the
@@ -19,7 +19,6 @@ from pathlib import Path
 
 from experiments import _common
 from experiments.tuning_study_report import USER_MODES
-from fojax import records as kept
 from fojax.cli import output
 
 
@@ -68,7 +67,7 @@ def user_view(args, out: Path) -> list[dict]:
         for mode in USER_MODES:
             fingerprint = user_fingerprint(args, mode, index)
             run = functools.partial(_run, args, out / "user_view", mode, index)
-            found.append(kept.cached(out / "user_view", f"{mode}_{index}", fingerprint, run))
+            found.append(_common.cached(out / "user_view", f"{mode}_{index}", fingerprint, run))
     return found
 
 

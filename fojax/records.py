@@ -14,7 +14,8 @@
   :func:`describe` says them one per line, :func:`check` raises a ``ValueError`` that
   names them.
 * :func:`cached`: a record computed once and kept under its fingerprint
-  (``folder/<stem>-<digest>.json``); :func:`stored` reads it back.
+  (``folder/<stem>-<digest>.json``) and the digest of the code that computed it;
+  :func:`stored` reads it back, and neither returns a record of other code.
 """
 
 from __future__ import annotations
@@ -250,24 +251,40 @@ def _record_path(folder: str | os.PathLike, stem: str, fingerprint: Any) -> Path
     return Path(folder) / f"{stem}-{digest(fingerprint, 10)}.json"
 
 
-def stored(folder: str | os.PathLike, stem: str, fingerprint: Any) -> dict | None:
-    """The record :func:`cached` keeps for ``stem`` and ``fingerprint``, or ``None``."""
+def stored(
+    folder: str | os.PathLike, stem: str, fingerprint: Any, code: str | None = None
+) -> dict | None:
+    """The record :func:`cached` keeps for ``stem`` and ``fingerprint``, or ``None``
+    (also where it was computed by other code: ``code``, default :func:`code_digest`)."""
     path = _record_path(folder, stem, fingerprint)
     if not path.is_file():
         return None
     record = json.loads(path.read_text())
-    kept = record.pop("fingerprint", None)
+    kept, kept_code = record.pop("fingerprint", None), record.pop("code", None)
+    if kept_code != (code_digest() if code is None else code):
+        return None
     return record if kept is None or not differences(kept, fingerprint) else None
 
 
-def cached(folder: str | os.PathLike, stem: str, fingerprint: Any, compute: Callable[[], dict]):
+def cached(
+    folder: str | os.PathLike,
+    stem: str,
+    fingerprint: Any,
+    compute: Callable[[], dict],
+    code: str | None = None,
+):
     """A run computed once: ``folder/<stem>-<digest of fingerprint>.json`` holds the
-    record ``compute()`` returned, with ``fingerprint`` beside it. A later call with the
-    same fingerprint reads it back; other settings are another file, so runs of several
-    settings share a folder and none is reused for settings it was not made with.
-    Written atomically: an interrupted study loses only the run in progress."""
-    record = stored(folder, stem, fingerprint)
+    record ``compute()`` returned, with ``fingerprint`` and ``code`` beside it. A later
+    call with the same fingerprint and code reads it back; other settings are another
+    file, so runs of several settings share a folder and none is reused for settings it
+    was not made with. ``code`` (default :func:`code_digest`, fojax's source; a study
+    adds its own, :func:`source_digest`): a record computed by other code is computed
+    again and replaced, so no number outlives the code that made it. Written
+    atomically: an interrupted study loses only the run in progress."""
+    code = code_digest() if code is None else code
+    record = stored(folder, stem, fingerprint, code)
     if record is None:
         record = compute()
-        write_json(_record_path(folder, stem, fingerprint), {**record, "fingerprint": fingerprint})
+        document = {**record, "fingerprint": fingerprint, "code": code}
+        write_json(_record_path(folder, stem, fingerprint), document)
     return record

@@ -19,8 +19,9 @@ Checkpoint: every ``checkpoint_every`` steps, at the end and on Ctrl-C, ``DIR/ch
 holds the strategy's state (a pytree of arrays), the best validated point, the counters,
 the history and the run's fingerprint, written atomically. A resumed run reloads them and
 asks the same requests, so it ends where the uninterrupted run ends, bit for bit; its
-record keeps the true start's validation. A checkpoint of another fingerprint is refused
-with the list of what differs; nothing is written before every check has passed.
+record keeps the true start's validation. A checkpoint of another fingerprint (other
+settings, or other code: it holds the digest of fojax's source) is refused with the list
+of what differs; nothing is written before every check has passed.
 """
 
 from __future__ import annotations
@@ -107,18 +108,30 @@ class Result(NamedTuple):
     state: Any
 
 
-def check_resume(out: str | Path | None, fingerprint: dict, resume: bool) -> dict | None:
-    """Before anything compiles: the checkpoint's header when resuming (``ValueError`` when
-    there is none, or it was written with another fingerprint), else ``None``
-    (``ValueError`` when ``out`` holds a checkpoint: it is never overwritten)."""
+def check_resume(out: str | Path | None, fingerprint: dict, resume: bool | str) -> dict | None:
+    """Before anything compiles: the checkpoint's header when resuming, else ``None``.
+
+    ``resume=True``: ``ValueError`` when there is no checkpoint, or it was written with
+    another fingerprint (other settings, or other code: its ``code`` field). ``False``:
+    ``ValueError`` when ``out`` holds a checkpoint (it is never overwritten).
+    ``"if-same"`` (a study's runs): resume a checkpoint of this fingerprint, start afresh
+    where there is none or it is of another (replaced by this run's)."""
+    if resume not in (True, False, "if-same"):
+        raise ValueError(f"resume must be True, False or 'if-same', got {resume!r}")
     if out is None:
-        if resume:
+        if resume is True:
             raise ValueError("resume needs an output directory")
         return None
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} exists and is not a directory")
     path = out / CHECKPOINT
+    if resume == "if-same":
+        if not path.exists():
+            return None
+        _, header = records.read_arrays(path)
+        same = not records.differences(header.get("fingerprint") or {}, fingerprint)
+        return header if same else None
     if not resume:
         if path.exists():
             raise ValueError(
@@ -129,7 +142,13 @@ def check_resume(out: str | Path | None, fingerprint: dict, resume: bool) -> dic
     if not path.exists():
         raise ValueError(f"nothing to resume: {path} does not exist")
     _, header = records.read_arrays(path)
-    records.check(header.get("fingerprint") or {}, fingerprint, str(path), earlier="checkpoint")
+    advice = (
+        "rerun with the original options, or choose another --out (a different `code` is "
+        "fojax's source changed since the checkpoint: its run cannot be continued exactly)"
+    )
+    records.check(
+        header.get("fingerprint") or {}, fingerprint, str(path), advice, earlier="checkpoint"
+    )
     return header
 
 
@@ -407,7 +426,7 @@ def run(
     checkpoint_every: int = 10,
     out: str | Path | None = None,
     fingerprint: dict | None = None,
-    resume: bool = False,
+    resume: bool | str = False,
     progress: bool = True,
     callback: Callable[[int, np.ndarray, dict], None] | None = None,
     stop_after: int | None = None,
@@ -461,4 +480,5 @@ def describe(objective, strategy, budget, x0, validation_draws, validate_every) 
         "strategy": strategy.settings(),
         "start": np.asarray(x0, np.float64).tolist(),
         "validation": {"draws": validation_draws, "every": validate_every},
+        "code": records.code_digest(),
     }

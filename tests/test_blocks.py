@@ -2,6 +2,7 @@
 (experiments/blocks.py), the checks of a label against git, and the command that
 regenerates them (experiments/regenerate_docs.py)."""
 
+import dataclasses
 import importlib.machinery
 import json
 import shlex
@@ -232,14 +233,20 @@ def test_regenerate_runs_the_commands_in_order_and_times_them(
     assert "one: python -c" in out and ", exit status 3" in out and "three" not in out
     assert regenerate_docs.main(["--list"]) == 0
     assert "three (d.md): python -c " in capsys.readouterr().out
-    monkeypatch.setattr(blocks, "BLOCKS", {"study": STUDY})
+    study = dataclasses.replace(STUDY, command=(*python, "print('regenerated')"))
+    monkeypatch.setattr(blocks, "BLOCKS", {"study": study})
     monkeypatch.setattr(blocks, "ROOT", repo)
     assert regenerate_docs.main(["--stale"]) == 0
     assert "every block is labelled and current" in capsys.readouterr().out
+    assert regenerate_docs.main(["--only-stale"]) == 0
+    assert "0 block(s) regenerated" in capsys.readouterr().out
     (repo / "src" / "model.py").write_text("x = 2\n")
     _commit(repo, "change the model")
     assert regenerate_docs.main(["--stale"]) == 1
     assert "study: stale" in capsys.readouterr().out
+    assert regenerate_docs.main(["--only-stale"]) == 0
+    out = capsys.readouterr().out
+    assert "study: python -c" in out and "1 block(s) regenerated" in out
 
 
 def test_the_setup_block_times_the_two_commands_the_readme_gives():

@@ -36,8 +36,8 @@ def test_default_study_tunes_every_controller_from_its_defaults():
 @pytest.mark.slow
 def test_tiny_study_end_to_end_and_resume(tmp_path):
     out = tmp_path / "fair"
-    # L-BFGS: a run of the default method (a Chain) cannot be resumed yet (the engine's
-    # Chain.init lacks the state's "told" entry, so the checkpoint's layout differs).
+    # L-BFGS: one point per step on the same draws, so every controller's budget is the
+    # same number of draw-steps (the default's CMA-ES population grows with the gains).
     argv = ["--tiny", "--quiet", "--controllers", "fl,afonftsmc", "--method", "lbfgs"]
     argv += ["--out", str(out)]
     assert fair_comparison.main(argv) == 0

@@ -487,6 +487,27 @@ def test_failed_starts_never_write_or_overwrite(tmp_path):
     assert checkpoint.read_bytes() == before
 
 
+def test_a_study_goes_on_from_a_checkpoint_of_its_own_settings_and_code(tmp_path, monkeypatch):
+    def steps_run(out, **kw):
+        seen = []
+        result = _run(out, st.LBFGS(max_step=0.5), 4, callback=lambda s, x, r: seen.append(s), **kw)
+        return result, seen
+
+    full, _ = steps_run(tmp_path / "full")
+    steps_run(tmp_path / "same", stop_after=2)
+    went_on, seen = steps_run(tmp_path / "same", resume="if-same")
+    assert seen == [3, 4] and _rows(went_on) == _rows(full)
+    with monkeypatch.context() as m:  # a checkpoint written by other code
+        m.setattr(driver.records, "code_digest", lambda: "0123456789abcdef")
+        steps_run(tmp_path / "other", stop_after=2)
+    with pytest.raises(ValueError, match=r"(?s)code: checkpoint \"0123456789abcdef\".*source"):
+        steps_run(tmp_path / "other", resume=True)
+    again, seen = steps_run(tmp_path / "other", resume="if-same")
+    assert seen == [1, 2, 3, 4] and _rows(again) == _rows(full)
+    with pytest.raises(ValueError, match="resume must be True, False or 'if-same'"):
+        steps_run(tmp_path / "other", resume="yes")
+
+
 def test_short_tuning_lowers_the_heldout_cost():
     objective = small()
     result = driver.run(

@@ -94,6 +94,22 @@ def test_a_record_is_computed_once_per_fingerprint(tmp_path):
     assert len(list(tmp_path.glob("run-*.json"))) == 2
 
 
+def test_a_record_of_other_code_is_computed_again(tmp_path):
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"value": len(calls)}
+
+    assert records.cached(tmp_path, "run", {"seed": 1}, compute, code="old") == {"value": 1}
+    assert records.stored(tmp_path, "run", {"seed": 1}, code="old") == {"value": 1}
+    assert records.stored(tmp_path, "run", {"seed": 1}, code="new") is None
+    assert records.stored(tmp_path, "run", {"seed": 1}) is None  # default: fojax's source
+    assert records.cached(tmp_path, "run", {"seed": 1}, compute, code="new") == {"value": 2}
+    assert records.stored(tmp_path, "run", {"seed": 1}, code="old") is None  # replaced
+    assert len(list(tmp_path.glob("run-*.json"))) == 1
+
+
 def test_manifest_differences_before_anything_runs(tmp_path):
     fingerprint = {"seed": 3, "dtype": "float64"}
     assert study.manifest_differences(tmp_path, fingerprint) is None
