@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import itertools
 import json
 import shutil
 import subprocess
@@ -24,16 +25,18 @@ from fojax.cli import output
 
 def records(args, out: Path, run: bool = True) -> list[dict]:
     """The user-view records of these settings: run (or read back) ``args.user_view``
-    per command where ``run``, else those already stored under ``out/user_view``."""
+    per command where ``run``, else those already stored under ``out/user_view`` for
+    these settings and this code (:func:`experiments._common.stored`), run by run."""
     if run and args.user_view:
         return user_view(args, out)
-    found = [json.loads(p.read_text()) for p in sorted((out / "user_view").glob("*.json"))]
-    return [
-        {k: v for k, v in r.items() if k != "fingerprint"}
-        for r in found
-        if r.get("mode") in USER_MODES
-        and r.get("fingerprint") == user_fingerprint(args, r["mode"], r["run"])
-    ]
+    found = []
+    for index in itertools.count():
+        stems = {mode: f"{mode}_{index}" for mode in USER_MODES}
+        fingerprints = {mode: user_fingerprint(args, mode, index) for mode in USER_MODES}
+        kept = [_common.stored(out / "user_view", stems[m], fingerprints[m]) for m in USER_MODES]
+        if not any(kept):
+            return found
+        found += [record for record in kept if record is not None]
 
 
 def user_command(args, mode: str, out: Path) -> list[str]:

@@ -113,6 +113,30 @@ def test_cached_runs(tmp_path):
     assert not list(tmp_path.glob(".*tmp"))
 
 
+def test_user_view_read_back_run_by_run_and_only_of_this_code(tmp_path, monkeypatch):
+    import types
+
+    from experiments import _common, tuning_study_user
+    from experiments.tuning_study_report import USER_MODES
+
+    args = types.SimpleNamespace(scenario=2, tiny=True, horizon=0.3)
+    folder = tmp_path / "user_view"
+
+    def keep(mode, index):
+        fingerprint = tuning_study_user.user_fingerprint(args, mode, index)
+        _common.cached(folder, f"{mode}_{index}", fingerprint, lambda: {"mode": mode, "run": index})
+
+    for index in (1, 0):
+        for mode in USER_MODES:
+            keep(mode, index)
+    keep(USER_MODES[0], 3)  # after a gap: not one of the runs 0, 1, ...
+    found = tuning_study_user.records(args, tmp_path, run=False)
+    assert [(r["mode"], r["run"]) for r in found] == [(m, i) for i in (0, 1) for m in USER_MODES]
+    assert all(set(r) == {"mode", "run"} for r in found)
+    monkeypatch.setattr(_common, "code", lambda: "other code")
+    assert tuning_study_user.records(args, tmp_path, run=False) == []
+
+
 def test_tuning_study_report_without_runs_says_so(tmp_path):
     from experiments import tuning_study
 
