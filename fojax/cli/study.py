@@ -102,10 +102,8 @@ _FLAGS = {
 
 
 def _flag(field: str) -> str:
-    for prefix in sorted(_FLAGS, key=len, reverse=True):
-        if field == prefix or field.startswith(prefix + "."):
-            return _FLAGS[prefix]
-    return ""
+    matches = [prefix for prefix in _FLAGS if field == prefix or field.startswith(prefix + ".")]
+    return _FLAGS[max(matches, key=len)] if matches else ""
 
 
 def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None:

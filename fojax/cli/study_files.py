@@ -136,9 +136,7 @@ def _controller_entries(study: Study, results: dict, summary: dict) -> dict:
             entry["draws_from_store"] = result.layout["loaded"]
         summary["controllers"][name] = entry
         arrays[f"{name}.status"] = result.status
-        for metric, values in result.per_draw.items():
-            arrays[f"{name}.{metric}"] = values
-        for metric, values in bounds.items():
+        for metric, values in {**result.per_draw, **bounds}.items():
             arrays[f"{name}.{metric}"] = values
     return arrays
 
@@ -169,16 +167,13 @@ def _first_trajectories(results: dict) -> dict:
         if tr is None:
             continue
         few = slice(0, min(8, tr.time.shape[0]))
-        trajectories[f"{name}.time"] = tr.time[few]
-        trajectories[f"{name}.state"] = tr.state[few]
-        trajectories[f"{name}.reference"] = tr.reference[few]
-        trajectories[f"{name}.inputs"] = tr.inputs[few]
-        for field in ("inputs_low", "inputs_high"):
-            if getattr(tr, field, None) is not None:
-                trajectories[f"{name}.{field}"] = getattr(tr, field)[few]
-        trajectories[f"{name}.attitude_reference"] = tr.info.attitude_reference[few]
-        trajectories[f"{name}.surfaces"] = tr.info.surfaces[few]
-        trajectories[f"{name}.adaptive"] = tr.info.adaptive[few]
+        fields = ("time", "state", "reference", "inputs", "inputs_low", "inputs_high")
+        info = ("attitude_reference", "surfaces", "adaptive")
+        arrays = [(field, getattr(tr, field, None)) for field in fields]
+        arrays += [(field, getattr(tr.info, field)) for field in info]
+        for field, values in arrays:
+            if values is not None:
+                trajectories[f"{name}.{field}"] = values[few]
     return trajectories
 
 

@@ -35,6 +35,7 @@ __all__ = [
     "scenario_of",
     "snapshot_interval",
     "store_fingerprint",
+    "stored_differences",
 ]
 
 
@@ -152,14 +153,20 @@ def check_stores(
     longer run extends the stored one. ``union``: the study runs as a member of it.
     ``hint(field)``, ``advice``: the message's, as :class:`fojax.study.StoreMismatch`
     takes them (e.g. the command's option that sets a field)."""
-    _, scenario, config, dtype, runs = prepare_runs(study, union)
-    member = None if union is None else union.member
-    problems = []
-    for name, (controller, gains) in runs.items():
-        store = Path(out) / "chunks" / name
-        found = store_fingerprint(controller, gains, scenario, config, study, dtype, member)
-        differences = manifest_differences(store, found)
-        if differences:
-            problems.append((store, differences))
+    problems = [(store, found) for store, found in stored_differences(study, out, union) if found]
     if problems:
         raise StoreMismatch(*problems[0], stores=problems, hint=hint, advice=advice)
+
+
+def stored_differences(study: Study, out: str | os.PathLike, union: UnionMember | None = None):
+    """``[(out/chunks/<controller>, differences), ...]``: each controller's
+    :func:`fojax.study.manifest_differences` (None: nothing stored) of the study's
+    fingerprint (``union``: run as a member of it)."""
+    _, scenario, config, dtype, runs = prepare_runs(study, union)
+    member = None if union is None else union.member
+    found = []
+    for name, (controller, gains) in runs.items():
+        store = Path(out) / "chunks" / name
+        fingerprint = store_fingerprint(controller, gains, scenario, config, study, dtype, member)
+        found.append((store, manifest_differences(store, fingerprint)))
+    return found

@@ -6,6 +6,7 @@ multi-process run, process 0's plan and result sent to the others."""
 from __future__ import annotations
 
 import io
+import itertools
 import sys
 import time
 
@@ -59,18 +60,11 @@ def plan_calls(chunk_store, draws: int, keep: int, batch: int, devices: int, mes
     """The plan: ``segments`` (:func:`fojax.study._store.plan`: what is read from the
     store, what is computed) and ``calls``, the blocks to compute, ``devices`` per call
     (process 0's plan in a multi-process run: it alone reads the store)."""
+    segments = [("compute", 0, draws, None)]
     if chunk_store is not None:
         segments = plan(chunk_store.ranges(), draws, keep)
-    else:
-        segments = [("compute", 0, draws, None)]
-    blocks = sorted(
-        {
-            k
-            for kind, start, stop, _ in segments
-            if kind == "compute"
-            for k in range(start // batch, (stop - 1) // batch + 1)
-        }
-    )
+    computing = [(a, b) for kind, a, b, _ in segments if kind == "compute"]
+    blocks = sorted({k for a, b in computing for k in range(a // batch, (b - 1) // batch + 1)})
     if _multiprocess(mesh):
         lead = jax.process_index() == 0
         message = {"blocks": np.asarray(blocks, np.int64)} if lead else None
@@ -106,8 +100,8 @@ class Dispatch:
         shared = (self.gains,)
         if self.scenario.members:  # a union's member index, shared by every draw
             shared = (self.gains, np.asarray(self.member, np.int32))
-        run = blocks.evaluate_in_blocks(self._runner, shared, keys, self.mesh, batch)
-        status, values, snapshots = run
+        evaluate = blocks.evaluate_in_blocks
+        status, values, snapshots = evaluate(self._runner, shared, keys, self.mesh, batch)
         flat = flatten_snapshot(snapshots)
         if self.member_blocks is not None:
             flat = {name: v[:, : self.member_blocks] for name, v in flat.items()}
@@ -127,10 +121,17 @@ class Dispatch:
             int(np.sum((c[0][: max(0, draws - k * batch)] & DIVERGED) > 0))
             for k, c in self.computed.items()
         )
-        _print_progress(
-            name, done, draws, diverged, len(self.computed) * batch, steps, call_times,
-            self.start_time, self.per_call,
-        )  # fmt: skip
+        elapsed = time.perf_counter() - self.start_time
+        steady = np.median(call_times[1:]) if len(call_times) > 1 else None
+        eta = f", about {(draws - done) / self.per_call * steady:.0f} s left" if steady else ""
+        rate = len(self.computed) * batch * steps / max(sum(call_times), 1e-9)
+        print(
+            f"\r  {name}: {done}/{draws} draws, {elapsed:.0f} s{eta}, {rate:.3g} draw-steps/s, "
+            f"diverged {diverged}   ",
+            end="",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def run_result(segments, chunk_store, computed, batch, keep, mesh, call_times):
@@ -154,13 +155,8 @@ def run_result(segments, chunk_store, computed, batch, keep, mesh, call_times):
 
 def save_blocks(chunk_store: ChunkStore, call: list[int], computed: dict, batch: int) -> None:
     """Store the call's blocks, consecutive ones in one file (indices below 2**32)."""
-    runs: list[list[int]] = []
-    for k in sorted(set(call)):
-        if runs and runs[-1][-1] == k - 1:
-            runs[-1].append(k)
-        else:
-            runs.append([k])
-    for run_blocks in runs:
+    consecutive = itertools.groupby(enumerate(sorted(set(call))), lambda p: p[1] - p[0])
+    for run_blocks in ([k for _, k in group] for _, group in consecutive):
         first = run_blocks[0] * batch
         n = min(len(run_blocks) * batch, MAX_DRAWS - first)
         if n <= 0:
@@ -210,17 +206,3 @@ def _split(flat: dict[str, np.ndarray]):
     per_draw = {k[2:]: v for k, v in flat.items() if k.startswith("m.")}
     kept = {k[2:]: v for k, v in flat.items() if k.startswith("s.")}
     return flat["status"], per_draw, kept
-
-
-def _print_progress(name, done, draws, diverged, computed, steps, call_times, start, per_call):
-    elapsed = time.perf_counter() - start
-    steady = np.median(call_times[1:]) if len(call_times) > 1 else None
-    eta = f", about {(draws - done) / per_call * steady:.0f} s left" if steady else ""
-    rate = computed * steps / max(sum(call_times), 1e-9)
-    print(
-        f"\r  {name}: {done}/{draws} draws, {elapsed:.0f} s{eta}, {rate:.3g} draw-steps/s, "
-        f"diverged {diverged}   ",
-        end="",
-        file=sys.stderr,
-        flush=True,
-    )

@@ -5,6 +5,7 @@ worker thread while earlier runs compute, runs with one program sharing it
 from __future__ import annotations
 
 import concurrent.futures
+import itertools
 import os
 import shutil
 from pathlib import Path
@@ -46,8 +47,7 @@ class Job:
         scenario in (:mod:`fojax.simulator`): runs of several scenarios share one when
         they run as members of one union (:func:`fojax.study.plan_unions`), whose
         member index is an argument of the program."""
-        batch = self.study.device_batch or _run.default_device_batch()
-        per_call = batch * (1 if self.mesh is None else int(self.mesh.devices.size))
+        per_call = _run.batch_layout(1, self.study.device_batch, self.mesh)["draws_per_call"]
         shapes = tuple((tuple(g.shape), str(g.dtype)) for g in self.gains)
         settings = (self.controller, self.scenario, self.config, self.metrics_config)
         return (*settings, str(self.dtype), per_call, shapes)
@@ -188,9 +188,8 @@ def run_studies(
     results: dict = {}
     try:
         if programs.executor is not None:  # every program that will be needed, in run order
-            for index in range(len(jobs)):
-                if pending[index]:
-                    programs.request(index)
+            for index in itertools.compress(range(len(jobs)), pending):
+                programs.request(index)
         for index, job in enumerate(jobs):
             if job.name == job.study.controllers[0] and announce is not None:
                 announce(job.study)

@@ -114,16 +114,12 @@ class MonteCarloResult(NamedTuple):
         return (self.status & DIVERGED) == 0
 
 
-def _devices(mesh) -> int:
-    return 1 if mesh is None else int(mesh.devices.size)
-
-
 def batch_layout(draws: int, device_batch: int | None = None, mesh=None) -> dict:
     """``{"processes", "devices", "device_batch", "draws_per_call", "blocks", "calls"}``
     of a run of ``draws`` draws in blocks of ``device_batch`` (default
     :func:`default_device_batch`) over ``mesh`` (None: one device), all computed."""
     batch = device_batch or default_device_batch()
-    devices = _devices(mesh)
+    devices = 1 if mesh is None else int(mesh.devices.size)
     processes = 1 if mesh is None else len({d.process_index for d in mesh.devices.flat})
     blocks = -(-draws // batch)
     return {
@@ -279,9 +275,8 @@ def numeric_xla_flags(flags: str | None = None) -> list[str]:
     kept = []
     for flag in flags.split():
         name = flag.lstrip("-").split("=")[0]
-        if name == "xla_force_host_platform_device_count" or name.startswith("xla_dump"):
-            continue
-        kept.append(flag)
+        if name != "xla_force_host_platform_device_count" and not name.startswith("xla_dump"):
+            kept.append(flag)
     return sorted(kept)
 
 
@@ -341,19 +336,11 @@ def fingerprint(
     }
 
 
-# ------------------------------------------------------------------------ processes
-
-
-# ------------------------------------------------------------------------------ run
-
-
 def check_member(scenario: scenarios.Scenario, member) -> int | None:
     """The member index :func:`run` uses (None for a plain scenario), or a ``ValueError``
     saying what to pass: a union (``scenario.members``) needs ``0 <= member <
     len(members)``; a plain scenario takes none (or 0)."""
-    if member is not None and (
-        isinstance(member, bool) or not isinstance(member, int | np.integer)
-    ):
+    if member is not None and _not_integer(member, -math.inf):
         raise ValueError(f"member must be an integer index, got {member!r}")
     if not scenario.members:
         if member not in (None, 0):

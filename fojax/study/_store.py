@@ -214,43 +214,23 @@ def plan(
         covering = [u for u in usable if u[0] <= position < u[1]]
         if covering:
             _, stop, item = max(covering, key=lambda u: u[1])
-            segments.append(("load", position, stop, item))
-            position = stop
-            continue
-        later = [u[0] for u in usable if u[0] > position]
-        stop = min(later) if later else draws
-        segments.append(("compute", position, stop, None))
-        position = stop
-    merged: list[tuple[str, int, int, StoredRange | None]] = []
-    for segment in segments:  # adjacent segments from the same file: one
-        if merged and segment[0] == "load" and merged[-1][3] is segment[3]:
-            merged[-1] = ("load", merged[-1][1], segment[2], segment[3])
+            # adjacent segments from the same file: one
+            start = segments.pop()[1] if segments and segments[-1][3] is item else position
+            segments.append(("load", start, stop, item))
         else:
-            merged.append(segment)
-    return merged
+            stop = min((u[0] for u in usable if u[0] > position), default=draws)
+            segments.append(("compute", position, stop, None))
+        position = stop
+    return segments
 
 
 def flatten_snapshot(snapshot) -> dict[str, np.ndarray]:
-    leaves = {
-        "time": snapshot.time,
-        "state": snapshot.state,
-        "reference": snapshot.reference,
-        "inputs": snapshot.inputs,
-        "inputs_low": snapshot.inputs_low,
-        "inputs_high": snapshot.inputs_high,
-    }
+    leaves = {k: v for k, v in snapshot._asdict().items() if k != "info"}
     leaves.update({f"info.{k}": v for k, v in snapshot.info._asdict().items()})
     return {k: np.asarray(v) for k, v in leaves.items()}
 
 
 def unflatten_snapshot(flat: dict[str, np.ndarray]) -> simulator.Snapshot:
     info = ControlInfo(**{k[5:]: v for k, v in flat.items() if k.startswith("info.")})
-    return simulator.Snapshot(
-        time=flat["time"],
-        state=flat["state"],
-        reference=flat["reference"],
-        inputs=flat["inputs"],
-        info=info,
-        inputs_low=flat["inputs_low"],
-        inputs_high=flat["inputs_high"],
-    )
+    fields = [k for k in simulator.Snapshot._fields if k != "info"]
+    return simulator.Snapshot(info=info, **{k: flat[k] for k in fields})

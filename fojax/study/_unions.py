@@ -17,14 +17,7 @@ from fojax import scenarios, sharding, simulator
 from fojax.controllers import gains_io
 from fojax.settings import Settings
 from fojax.settings import read as read_settings
-from fojax.study._declaration import (
-    Study,
-    UnionMember,
-    prepare_runs,
-    scenario_of,
-    store_fingerprint,
-)
-from fojax.study._store import manifest_differences
+from fojax.study._declaration import Study, UnionMember, scenario_of, stored_differences
 
 __all__ = ["agreed", "plan_unions", "stored_alone", "union_enabled", "union_key"]
 
@@ -100,15 +93,8 @@ def plan_unions(studies: list[Study], settings: Settings | None = None) -> list[
 def stored_alone(study: Study, out: str | os.PathLike) -> bool:
     """Whether ``out/chunks`` holds draws of this study run alone (an earlier run
     without the union, which it then continues)."""
-    chunks = Path(out) / "chunks"
-    if not chunks.is_dir():
-        return False
-    _, scenario, config, dtype, runs = prepare_runs(study)
-    for name, (controller, gains) in runs.items():
-        fingerprint = store_fingerprint(controller, gains, scenario, config, study, dtype)
-        if manifest_differences(chunks / name, fingerprint) == []:
-            return True
-    return False
+    stored = stored_differences(study, out) if (Path(out) / "chunks").is_dir() else []
+    return any(differences == [] for _, differences in stored)
 
 
 def agreed(unions: list[UnionMember | None]) -> list[UnionMember | None]:
