@@ -431,12 +431,6 @@ DISTRIBUTED_FLAGS = {
 """The flag of each :func:`fojax.sharding.initialize` argument (for its messages)."""
 
 
-def _coordinator(text: str) -> str:
-    from fojax import sharding
-
-    return sharding.check_coordinator_address(text, "--coordinator")
-
-
 def parse_distributed(values: dict) -> dict:
     """Validated ``{"coordinator_address", "num_processes", "process_id"}`` (None where
     not given) from the options' texts; ``ValueError`` saying what to change.
@@ -457,8 +451,12 @@ def parse_distributed(values: dict) -> dict:
         raise ValueError(
             f"--process-id must be below the number of processes ({count}), got {index}"
         )
+    if coordinator is not None:
+        from fojax import sharding
+
+        coordinator = sharding.check_coordinator_address(coordinator, "--coordinator")
     return {
-        "coordinator_address": None if coordinator is None else _coordinator(coordinator),
+        "coordinator_address": coordinator,
         "num_processes": count,
         "process_id": index,
     }

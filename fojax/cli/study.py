@@ -11,9 +11,6 @@ records to be rerun exactly.
   its git commit, Python, JAX, jaxlib, NumPy), backend and device and process counts;
   :func:`gains_record`: the gains' values and where they came from. ``fojax
   simulate``, ``tune`` and ``bench`` store both with their results.
-* :func:`store_differences`, :func:`check_stores`: the settings in which a run
-  differs from the one whose chunks are already in the output folder, field by
-  field, before anything runs.
 * :func:`write_json` (:mod:`fojax.records`): atomic JSON files.
 """
 
@@ -22,21 +19,18 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from fojax import records
 from fojax.cli.output import provenance, write_json
 from fojax.study import (
     StoreMismatch,
     Study,
     UnionMember,
     compile_threads,
-    manifest_differences,
     options_applied_to,
     plan_unions,
     prepare_runs,
     snapshot_interval,
     union_enabled,
 )
-from fojax.study import check_stores as _check_stores
 from fojax.study import run_studies as _run_studies
 from fojax.study import run_study as _run_study
 
@@ -44,7 +38,6 @@ __all__ = [
     "Study",
     "StoreMismatch",
     "UnionMember",
-    "check_stores",
     "compile_threads",
     "gains_record",
     "options_applied_to",
@@ -54,7 +47,6 @@ __all__ = [
     "run_studies",
     "run_study",
     "snapshot_interval",
-    "store_differences",
     "union_enabled",
     "write_json",
 ]
@@ -106,21 +98,6 @@ def _flag(field: str) -> str:
     return _FLAGS[max(matches, key=len)] if matches else ""
 
 
-def store_differences(store: Path, fingerprint: dict | None) -> list[str] | None:
-    """How ``fingerprint`` differs from the one of the draws in ``store``: one line per
-    field, naming the option that sets it (``[]``: the same settings; None: nothing
-    stored there to compare)."""
-    if fingerprint is None:
-        return None
-    differences = manifest_differences(store, fingerprint)
-    return None if differences is None else records.describe(differences, _flag)
-
-
-def check_stores(study: Study, out: Path, union: UnionMember | None = None) -> None:
-    """:func:`fojax.study.check_stores`, each field named by the option that sets it."""
-    _check_stores(study, out, union, hint=_flag, advice=ADVICE)
-
-
 def run_studies(
     studies: list[tuple[Study, Path]],
     progress: bool = True,
@@ -129,8 +106,8 @@ def run_studies(
     announce=None,
     settings=None,
 ):
-    """:func:`fojax.study.run_studies`, a store of other settings named as
-    :func:`check_stores` names it."""
+    """:func:`fojax.study.run_studies`, each field of a store of other
+    settings named by the option that sets it, with :data:`ADVICE`."""
     return _run_studies(
         studies, progress, overwrite, threads, announce, settings, hint=_flag, advice=ADVICE
     )
@@ -139,6 +116,6 @@ def run_studies(
 def run_study(
     study: Study, out: Path, progress: bool = True, overwrite: bool = False, settings=None
 ) -> dict:
-    """:func:`fojax.study.run_study`, a store of other settings named as
-    :func:`check_stores` names it."""
+    """:func:`fojax.study.run_study`, each field of a store of other
+    settings named by the option that sets it, with :data:`ADVICE`."""
     return _run_study(study, out, progress, overwrite, settings, hint=_flag, advice=ADVICE)

@@ -30,23 +30,19 @@ def _multiprocess(mesh) -> bool:
     )
 
 
-def _broadcast_bytes(payload: bytes | None) -> bytes:
-    """``payload`` of process 0, on every process."""
+def _broadcast_arrays(arrays: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
+    """``arrays`` of process 0, on every process."""
     from jax.experimental import multihost_utils
 
-    lead = jax.process_index() == 0
+    lead, buffer = jax.process_index() == 0, io.BytesIO()
+    if lead:
+        np.savez(buffer, **arrays)
+    payload = buffer.getvalue()
     sharding.barrier("broadcast")
     size = np.array([len(payload) if lead else 0], np.int64)
     size = int(np.asarray(multihost_utils.broadcast_one_to_all(size))[0])
     data = np.frombuffer(payload, np.uint8) if lead else np.zeros(size, np.uint8)
-    return np.asarray(multihost_utils.broadcast_one_to_all(data)).tobytes()
-
-
-def _broadcast_arrays(arrays: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
-    buffer = io.BytesIO()
-    if jax.process_index() == 0:
-        np.savez(buffer, **arrays)
-    data = _broadcast_bytes(buffer.getvalue() if jax.process_index() == 0 else None)
+    data = np.asarray(multihost_utils.broadcast_one_to_all(data)).tobytes()
     with np.load(io.BytesIO(data)) as loaded:
         return {k: loaded[k] for k in loaded.files}
 

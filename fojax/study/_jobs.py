@@ -79,23 +79,13 @@ class Job:
         return answer
 
     def run(self, runner, progress: bool):
+        study = self.study
         return _run.run(
-            self.controller,
-            self.gains,
-            self.scenario,
-            self.config,
-            self.study.draws,
-            seed=self.study.seed,
-            device_batch=self.study.device_batch,
-            keep=self.study.keep,
-            progress=progress,
-            dtype=self.dtype,
-            metrics_config=self.metrics_config,
-            store=self.store,
-            runner=runner,
-            mesh=self.mesh,
-            member=self.member,
-        )
+            self.controller, self.gains, self.scenario, self.config, study.draws,
+            seed=study.seed, device_batch=study.device_batch, keep=study.keep,
+            progress=progress, dtype=self.dtype, metrics_config=self.metrics_config,
+            store=self.store, runner=runner, mesh=self.mesh, member=self.member,
+        )  # fmt: skip
 
 
 def study_jobs(
