@@ -264,14 +264,10 @@ def check_output_directory(text: str | os.PathLike) -> Path:
                 "not under a file"
             )
         if not os.access(ancestor, os.W_OK | os.X_OK):
+            reason = f"{path} cannot be created: no permission to write in {ancestor}"
             if ancestor == path:
-                raise ValueError(
-                    f"cannot write in {path} (permission denied); choose a folder you can write to"
-                )
-            raise ValueError(
-                f"{path} cannot be created: no permission to write in {ancestor}; choose a "
-                "folder you can write to"
-            )
+                reason = f"cannot write in {path} (permission denied)"
+            raise ValueError(f"{reason}; choose a folder you can write to")
         if len(path.name.encode()) > 255:
             raise ValueError(f"{path.name[:40]}... is too long for a file name")
     except OSError as error:

@@ -20,6 +20,7 @@ import os
 from pathlib import Path
 
 from fojax.cli.output import provenance, write_json
+from fojax.controllers import gains_io
 from fojax.study import (
     StoreMismatch,
     Study,
@@ -61,8 +62,6 @@ ADVICE = "to start afresh, add --overwrite (discards those draws), or choose ano
 def gains_record(gains, source: str | os.PathLike | None) -> dict:
     """``{"source": absolute file path or "defaults", "values": {field: value}}``: the
     values as the run used them (after the cast to its dtype)."""
-    from fojax.controllers import gains_io
-
     return {
         "source": str(Path(source).resolve()) if source is not None else "defaults",
         "values": gains_io.gains_to_dict(gains),

@@ -7,20 +7,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import jax.numpy as jnp
+import numpy as np
+
+from fojax import metrics, sharding, statistics
+from fojax import study as monte_carlo
 from fojax.cli.output import provenance, write_json, write_npz
 from fojax.cli.study import Study, gains_record, options_applied_to
+from fojax.controllers import registry
 
 __all__ = ["write_outputs"]
 
 
 def _reaching_bounds(name: str, study: Study, result) -> dict:
     """Eq. (34) bound per draw, for controllers that define one."""
-    import jax.numpy as jnp
-    import numpy as np
-
-    from fojax import metrics
-    from fojax.controllers import registry
-
     law = registry.make_controller(name, dt=study.dt, horizon=study.horizon).law
     if not hasattr(law, "reaching_time_bound"):
         return {}
@@ -33,10 +33,6 @@ def _reaching_bounds(name: str, study: Study, result) -> dict:
 
 
 def _used_gains(study: Study, name: str):
-    import jax.numpy as jnp
-
-    from fojax.controllers import registry
-
     gains = study.gains.get(name)
     if gains is None:
         gains = registry.get_controller_class(name).default_gains(jnp.dtype(study.dtype))
@@ -46,9 +42,6 @@ def _used_gains(study: Study, name: str):
 def _batch_layout(study: Study) -> dict:
     """How the draws were laid out over processes and devices (a draw's numbers do not
     depend on it, only on the block size ``device_batch``)."""
-    from fojax import sharding
-    from fojax import study as monte_carlo
-
     layout = monte_carlo.batch_layout(study.draws, study.device_batch, sharding.default_mesh())
     layout["note"] = (
         "each call computes one block of device_batch consecutive draws per device of "
@@ -81,11 +74,9 @@ def write_outputs(
     summary["provenance"] = provenance(command)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    files = ["summary.json", "draws.npz"]
     trajectories = _first_trajectories(results)
-    if trajectories:
-        files.append("trajectories.npz")
-    summary["files"] = files
+    files = ["summary.json", "draws.npz", "trajectories.npz"]
+    summary["files"] = files if trajectories else files[:2]
     write_json(out / "summary.json", summary)
     write_npz(out / "draws.npz", arrays)
     if trajectories:
@@ -97,8 +88,6 @@ def write_outputs(
 
 def _header(study: Study, results: dict) -> dict:
     """The summary's settings and gains, before the controllers' entries."""
-    from fojax import study as monte_carlo
-
     return {
         "scenario": study.scenario_id,
         "draws": study.draws,
@@ -124,8 +113,6 @@ def _header(study: Study, results: dict) -> dict:
 def _controller_entries(study: Study, results: dict, summary: dict) -> dict:
     """Each controller's summary entry into ``summary["controllers"]``; returns the
     per-draw arrays of ``draws.npz``."""
-    from fojax import study as monte_carlo
-
     arrays = {}
     for name, result in results.items():
         bounds = _reaching_bounds(name, study, result)
@@ -143,9 +130,6 @@ def _controller_entries(study: Study, results: dict, summary: dict) -> dict:
 
 def _paired(results: dict) -> dict:
     """Each controller's paired differences from the first one's, metric by metric."""
-    from fojax import statistics
-    from fojax import study as monte_carlo
-
     baseline, *others = list(results)
     base_table = monte_carlo.metric_table(results[baseline])
     paired = {}

@@ -58,8 +58,6 @@ from fojax.study._dispatch import (
 )
 from fojax.study._store import ChunkStore, unflatten_snapshot
 
-Array = jax.Array
-
 DEVICE_BATCH = {"cpu": 50}
 """Default draws per block (per device and call), by platform. On a CPU, 50: the
 default ``fojax reproduce`` (100 draws per scenario and controller) is then two blocks,
