@@ -140,13 +140,14 @@ def run_result(segments, chunk_store, computed, batch, keep, mesh, call_times):
     if multi:  # the others hold only the computed blocks: process 0 sends the result
         flat = _broadcast_arrays(flat)
     computed_draws = int(flat.pop("computed")[0])
-    status, per_draw, kept = _split(flat)
+    per_draw = {k[2:]: v for k, v in flat.items() if k.startswith("m.")}
+    kept = {k[2:]: v for k, v in flat.items() if k.startswith("s.")}
     compile_time = 0.0
     if len(call_times) > 1:
         compile_time = max(0.0, call_times[0] - float(np.median(call_times[1:])))
     elif call_times:
         compile_time = float("nan")  # one call: cannot separate compile from run
-    return status, per_draw, kept, computed_draws, compile_time
+    return flat["status"], per_draw, kept, computed_draws, compile_time
 
 
 def save_blocks(chunk_store: ChunkStore, call: list[int], computed: dict, batch: int) -> None:
@@ -196,9 +197,3 @@ def _assemble(segments, chunk_store, computed: dict, batch: int, keep: int) -> d
         for name in kept[0]:
             out[f"s.{name}"] = np.concatenate([k[name] for k in kept])
     return out
-
-
-def _split(flat: dict[str, np.ndarray]):
-    per_draw = {k[2:]: v for k, v in flat.items() if k.startswith("m.")}
-    kept = {k[2:]: v for k, v in flat.items() if k.startswith("s.")}
-    return flat["status"], per_draw, kept
