@@ -165,15 +165,11 @@ def run_lane(
     name, in the progress lines."""
     tuned = load_tuned(tuned_path) if tuned_path.exists() else None
     jobs = [plan.jobs[i] for i in job_indices]
-
-    def pending(job, tuned):  # a run waiting for the tuned gains, or not on disk
-        return [
-            run
-            for run in job.runs
-            if (run.gains == "tuned" and tuned is None) or not _finished(out, run, tuned, plan.seed)
-        ]
-
-    work = [(job, pending(job, tuned)) for job in jobs]
+    waits = {run for job in jobs for run in job.runs if run.gains == "tuned" and tuned is None}
+    work = [  # the runs waiting for the tuned gains or not on disk
+        (job, [r for r in job.runs if r in waits or not _finished(out, r, tuned, plan.seed)])
+        for job in jobs
+    ]
     work = [(job, runs) for job, runs in work if runs]
     log = _logger(progress, lane)
     if not work:
@@ -187,11 +183,10 @@ def run_lane(
                 f"compiled job {job.index} ({job.controller.name}, {len(job.members)} "
                 f"scenarios, {job.dtype}) in {seconds:.0f} s"
             )
+            deferred += [(compiled, run) for run in runs if run in waits]
             for run in runs:
-                if run.gains == "tuned" and tuned is None:
-                    deferred.append((compiled, run))
-                    continue
-                _run_and_log(compiled, run, tuned, plan, out, log)
+                if run not in waits:
+                    _run_and_log(compiled, run, tuned, plan, out, log)
     if deferred:
         log("waiting for the tuned gains ...")
         tuned = _wait_for_tuned(tuned_path)
@@ -381,18 +376,13 @@ def _start_tuning(args, directory: Path, log) -> subprocess.Popen:
     """The gain tuning (``experiments.fair_comparison``) in a process of its own."""
     directory.mkdir(parents=True, exist_ok=True)
     (directory / "FAILED").unlink(missing_ok=True)
-    log("tuning the five controllers: " + " ".join(_tuning_command(args, directory)[1:]))
+    command = _tuning_command(args, directory)
+    log("tuning the five controllers: " + " ".join(command[1:]))
     return subprocess.Popen(
-        _tuning_command(args, directory),
+        command,
         stdout=subprocess.DEVNULL,
         stderr=open(directory / "stderr.log", "w"),  # noqa: SIM115
     )
-
-
-def _tuned_here(path: Path) -> bool:
-    """Whether ``path`` (the fair comparison's ``results.json``) holds gains tuned by
-    this code (its ``code``: :func:`experiments._common.code`)."""
-    return json.loads(path.read_text()).get("code") == _common.code()
 
 
 def _wait_for_tuning(tuning, tuned_path: Path, started: float, log) -> float:
@@ -490,8 +480,10 @@ def main(argv=None) -> int:
         f"lanes {', '.join(f'{k}: {len(v)} programs' for k, v in lanes.items())}"
     )
     tuning, tuning_wall = None, None
-    if args.tuned_gains is None and tuned_path.exists() and not _tuned_here(tuned_path):
-        tuned_path.unlink()  # tuned by other code: tuned again
+    if args.tuned_gains is None and tuned_path.exists():
+        # the fair comparison's results.json holds its code (experiments._common.code):
+        if json.loads(tuned_path.read_text()).get("code") != _common.code():
+            tuned_path.unlink()  # tuned by other code: tuned again
     if any(s.gains == "tuned" for s in plan.settings) and not tuned_path.exists():
         tuning, tuning_start = _start_tuning(args, tuned_path.parent, log), time.perf_counter()
     lane_argv = [a for a in argv if a != "--quiet"] + (["--quiet"] if args.quiet else [])

@@ -361,9 +361,7 @@ def _flip_lines(plan, evaluated, meta) -> list[str]:
     else:
         lines.append("No verdict is the same in every setting.")
     lines.append("")
-    for cid in SHORT_CLAIMS:
-        if cid not in found:
-            continue
+    for cid in [c for c in SHORT_CLAIMS if c in found]:
         moves = ", ".join(
             f"{_column_label(key, meta)}: *{before}* -> *{after}*"
             for key, before, after in found[cid]
@@ -564,8 +562,7 @@ def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, result
         doc.parent.mkdir(parents=True, exist_ok=True)
     figure = (doc.parent / doc.stem if doc is not None else out / "sensitivity").with_suffix(".png")
     style.attempt("verdict matrix", plot_matrix, plan, evaluated, meta, figure)
-    figure_name = figure.name if doc is not None else "sensitivity.png"
-    text = markdown(plan, evaluated, meta, precision, figure_name)
+    text = markdown(plan, evaluated, meta, precision, figure.name)
     atomic_write(out / "report.md", text)
     if doc is None:
         return out / "report.md"
