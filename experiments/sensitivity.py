@@ -147,8 +147,7 @@ def execute(compiled, run: Run, gains, seed: int, store: Path) -> float:
 
 
 def _describe(run: Run) -> str:
-    job = run.job
-    c = job.controller
+    job, c = run.job, run.job.controller
     return (
         f"{c.name} {run.scenario.name[:24]!r} gains={run.gains} {job.dtype} dt={job.config.dt:g}"
         f" guard={c.thrust_floor:g} filter={c.filter_frequency:g}"
@@ -363,20 +362,16 @@ def parse_args(argv):
     return args
 
 
-def _tuning_command(args, directory: Path) -> list:
-    return [
+def _start_tuning(args, directory: Path, log) -> subprocess.Popen:
+    """The gain tuning (``experiments.fair_comparison``) in a process of its own."""
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "FAILED").unlink(missing_ok=True)
+    command = [
         sys.executable, "-m", "experiments.fair_comparison", "--out", str(directory),
         "--steps", str(args.tune_steps), "--draws", str(args.tune_draws),
         "--horizon", f"{args.tune_horizon:g}", "--seed", str(args.seed), "--eval-draws", "1",
         "--eval-scenarios", "2", "--eval-horizon", "0.1", "--quiet",
     ]  # fmt: skip
-
-
-def _start_tuning(args, directory: Path, log) -> subprocess.Popen:
-    """The gain tuning (``experiments.fair_comparison``) in a process of its own."""
-    directory.mkdir(parents=True, exist_ok=True)
-    (directory / "FAILED").unlink(missing_ok=True)
-    command = _tuning_command(args, directory)
     log("tuning the five controllers: " + " ".join(command[1:]))
     return subprocess.Popen(
         command,

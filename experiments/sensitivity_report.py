@@ -532,8 +532,7 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
     ]
     missing = {k: v["missing"] for k, v in evaluated.items() if "missing" in v}
     if missing:
-        lines += ["## Not run", ""]
-        lines += [f"* {k}: missing {', '.join(v)}" for k, v in missing.items()]
+        lines += ["## Not run", "", *(f"* {k}: missing {', '.join(v)}" for k, v in missing.items())]
         lines.append("")
     return "\n".join(lines)
 
