@@ -81,7 +81,7 @@ def _outcomes(entry: dict) -> dict:
 
 
 def _claims(evaluated: dict, key: str) -> dict:
-    """Claim id -> claim of the setting ``key`` (none where it was not evaluated)."""
+    """Claim id -> claim of the setting ``key`` (empty where it was not evaluated)."""
     return {c["id"]: c for c in evaluated.get(key, {}).get("claims", [])}
 
 
@@ -232,12 +232,10 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
                 ax.add_patch(Rectangle((j + 0.04, i + 0.04), 0.92, 0.92, fill=False, lw=2.2))
     ax.set_xlim(0, len(settings))
     ax.set_ylim(len(claim_ids), 0)
-    ax.set_xticks([j + 0.5 for j in range(len(settings))])
-    ax.set_xticklabels(
-        [_column_label(s.key, meta) for s in settings], rotation=40, ha="right", fontsize=8
-    )
-    ax.set_yticks([i + 0.5 for i in range(len(claim_ids))])
-    ax.set_yticklabels([SHORT_CLAIMS[c] for c in claim_ids], fontsize=8.5)
+    labels = [_column_label(s.key, meta) for s in settings]
+    ax.set_xticks(np.arange(len(settings)) + 0.5, labels, rotation=40, ha="right", fontsize=8)
+    labels = [SHORT_CLAIMS[c] for c in claim_ids]
+    ax.set_yticks(np.arange(len(claim_ids)) + 0.5, labels, fontsize=8.5)
     ax.tick_params(length=0)
     for side in ax.spines.values():
         side.set_visible(False)
@@ -295,14 +293,9 @@ def _json_ready(evaluated: dict) -> dict:
                 item["counts"] = claim["counts"]
                 item["verdict_without_margin"] = claim.get("verdict_without_margin")
                 item["comparisons"] = [
-                    {
-                        "controller": c["controller"],
-                        "metric": c["metric"],
-                        "outcome": c["outcome"],
-                        "difference_mean": c["difference"].get("mean"),
-                        "difference_ci95": c["difference"].get("ci95"),
-                        "margin": c["margin"],
-                    }
+                    {k: c[k] for k in ("controller", "metric", "outcome")}
+                    | {f"difference_{k}": c["difference"].get(k) for k in ("mean", "ci95")}
+                    | {"margin": c["margin"]}
                     for c in claim["comparisons"]
                 ]
             if claim["id"] == "R2-chatter-free":
