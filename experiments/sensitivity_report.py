@@ -427,14 +427,9 @@ def _precision_lines(table) -> list[str]:
 
 
 def _invocation_lines(meta: dict) -> list[str]:
-    history = meta.get("invocations") or [
-        {
-            "wall_s": meta["wall_s"],
-            "runs_computed": None,
-            "load_average_start": meta["load_average_start"],
-            "load_average_end": meta["load_average_end"],
-        }
-    ]
+    # without a record of the invocations: this one, its count of runs computed unknown
+    only = dict(meta, runs_computed=None, started=None, tuning_s=None)
+    history = meta.get("invocations") or [only]
     lines = []
     for item in history:
         computed = item.get("runs_computed")
@@ -558,11 +553,9 @@ def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, result
     atomic_write(out / "report.md", text)
     if doc is None:
         return out / "report.md"
-    body = text.split("\n", 1)[1].lstrip("\n")  # the document keeps its own title
+    title, body = text.split("\n", 1)  # the document keeps its own title
     if not (doc.exists() and MARKER in doc.read_text()):
-        doc.write_text(
-            "# Sensitivity of the Section V verdicts to the modelling choices\n\n"
-            "(Reading of the run: to be written by hand above the marker.)\n\n" + MARKER
-        )
-    output.splice(doc, body, marker=MARKER)
+        stub = "(Reading of the run: to be written by hand above the marker.)"
+        doc.write_text(f"{title}\n\n{stub}\n\n{MARKER}")
+    output.splice(doc, body.lstrip("\n"), marker=MARKER)
     return doc
