@@ -239,13 +239,10 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     ax.tick_params(length=0)
     for side in ax.spines.values():
         side.set_visible(False)
-    handles = [
-        Patch(facecolor=VERDICT_STYLE[v][1], label=v)
-        for v in ("holds", "does not hold", "equivalent within the margin", "inconclusive")
+    handles = [  # the verdicts but "not run", and the frame
+        *(Patch(facecolor=colour, label=v) for v, (_, colour) in list(VERDICT_STYLE.items())[:4]),
+        Patch(facecolor="white", edgecolor="black", lw=2, label="differs from reference"),
     ]
-    handles.append(
-        Patch(facecolor="white", edgecolor="black", lw=2, label="differs from reference")
-    )
     legend = {"loc": "upper center", "bbox_to_anchor": (0.5, -0.32), "ncol": 5, "fontsize": 8}
     ax.legend(handles=handles, frameon=False, **legend)
     ax.set_title(
