@@ -103,11 +103,16 @@ def _run_store(out: Path, run: Run, tuned: dict | None, seed: int) -> Path:
     return out / "runs" / run_key(run, tuned, seed)
 
 
-def _finished(out: Path, run: Run, tuned: dict | None, seed: int) -> bool:
+def _stored(store: Path, run: Run):
+    """``(status, per_draw)`` of the run's draws stored in ``store``, or ``None``."""
     from fojax import study
 
-    store = study.ChunkStore.existing(_run_store(out, run, tuned, seed))
-    return store is not None and store.read(run.job.draws) is not None
+    existing = study.ChunkStore.existing(store)
+    return existing and existing.read(run.job.draws)
+
+
+def _finished(out: Path, run: Run, tuned: dict | None, seed: int) -> bool:
+    return _stored(_run_store(out, run, tuned, seed), run) is not None
 
 
 def compile_job(job: Job):
@@ -142,8 +147,7 @@ def execute(compiled, run: Run, gains, seed: int, store: Path) -> float:
 
 
 def _describe(run: Run) -> str:
-    job = run.job
-    c = job.controller
+    job, c = run.job, run.job.controller
     return (
         f"{c.name} {run.scenario.name[:24]!r} gains={run.gains} {job.dtype} dt={job.config.dt:g}"
         f" guard={c.thrust_floor:g} filter={c.filter_frequency:g}"
@@ -160,15 +164,11 @@ def run_lane(
     name, in the progress lines."""
     tuned = load_tuned(tuned_path) if tuned_path.exists() else None
     jobs = [plan.jobs[i] for i in job_indices]
-
-    def pending(job, tuned):  # a run waiting for the tuned gains, or not on disk
-        return [
-            run
-            for run in job.runs
-            if (run.gains == "tuned" and tuned is None) or not _finished(out, run, tuned, plan.seed)
-        ]
-
-    work = [(job, pending(job, tuned)) for job in jobs]
+    waits = {run for job in jobs for run in job.runs if run.gains == "tuned" and tuned is None}
+    work = [  # the runs waiting for the tuned gains or not on disk
+        (job, [r for r in job.runs if r in waits or not _finished(out, r, tuned, plan.seed)])
+        for job in jobs
+    ]
     work = [(job, runs) for job, runs in work if runs]
     log = _logger(progress, lane)
     if not work:
@@ -182,11 +182,10 @@ def run_lane(
                 f"compiled job {job.index} ({job.controller.name}, {len(job.members)} "
                 f"scenarios, {job.dtype}) in {seconds:.0f} s"
             )
+            deferred += [(compiled, run) for run in runs if run in waits]
             for run in runs:
-                if run.gains == "tuned" and tuned is None:
-                    deferred.append((compiled, run))
-                    continue
-                _run_and_log(compiled, run, tuned, plan, out, log)
+                if run not in waits:
+                    _run_and_log(compiled, run, tuned, plan, out, log)
     if deferred:
         log("waiting for the tuned gains ...")
         tuned = _wait_for_tuned(tuned_path)
@@ -214,10 +213,7 @@ def _logger(progress: bool, lane: str = "main"):
     start = time.perf_counter()
 
     def log(text: str) -> None:
-        if progress:
-            print(
-                f"[{lane} {time.perf_counter() - start:5.0f} s] {text}", file=sys.stderr, flush=True
-            )
+        output.log(not progress, f"[{lane} {time.perf_counter() - start:5.0f} s] {text}")
 
     return log
 
@@ -235,21 +231,16 @@ def load_results(plan: Plan, out: Path, tuned: dict | None) -> dict:
     for cell, (run, n) in plan.cells.items():
         if run.gains == "tuned" and tuned is None:
             continue
-        key = run_key(run, tuned, plan.seed)
-        if key not in loaded:
-            store = study.ChunkStore.existing(out / "runs" / key)
-            stored = store and store.read(run.job.draws)
-            if not stored:
-                continue
-            loaded[key] = stored
-        status, per_draw = loaded[key]
+        store = _run_store(out, run, tuned, plan.seed)
+        if store not in loaded:
+            loaded[store] = _stored(store, run)
+        if not loaded[store]:
+            continue
+        status, per_draw = loaded[store]
+        per_draw = {k: v[:n] for k, v in per_draw.items()}
+        name = run.job.controller.name
         results[cell] = study.MonteCarloResult(
-            controller=run.job.controller.name,
-            status=np.asarray(status[:n], np.int32),
-            per_draw={k: v[:n] for k, v in per_draw.items()},
-            trajectories=None,
-            wall_time=0.0,
-            compile_time=0.0,
+            name, np.asarray(status[:n], np.int32), per_draw, None, 0.0, 0.0
         )
     return results
 
@@ -344,10 +335,8 @@ def parse_args(argv):
         unknown = [k for k in keys if k not in SETTING_KEYS]
         if unknown or not keys:
             parser.error(f"--settings must be among {', '.join(SETTING_KEYS)}, got {unknown}")
-        wanted = set(keys)
-        for s in SETTINGS:  # a setting needs the one it is compared with
-            if s.key in wanted and s.reference:
-                wanted.add(s.reference)
+        # a setting needs the one it is compared with
+        wanted = {*keys, *(s.reference for s in SETTINGS if s.key in keys and s.reference)}
         args.selected = tuple(s for s in SETTINGS if s.key in wanted)
     from fojax.controllers import registry
 
@@ -373,35 +362,22 @@ def parse_args(argv):
     return args
 
 
-def _tuning_command(args, directory: Path) -> list:
-    return [
+def _start_tuning(args, directory: Path, log) -> subprocess.Popen:
+    """The gain tuning (``experiments.fair_comparison``) in a process of its own."""
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "FAILED").unlink(missing_ok=True)
+    command = [
         sys.executable, "-m", "experiments.fair_comparison", "--out", str(directory),
         "--steps", str(args.tune_steps), "--draws", str(args.tune_draws),
         "--horizon", f"{args.tune_horizon:g}", "--seed", str(args.seed), "--eval-draws", "1",
         "--eval-scenarios", "2", "--eval-horizon", "0.1", "--quiet",
     ]  # fmt: skip
-
-
-def _lane_command(argv: list, lane: str) -> list:
-    return [sys.executable, "-m", "experiments.sensitivity", *argv, "--lane", lane]
-
-
-def _start_tuning(args, directory: Path, log) -> subprocess.Popen:
-    """The gain tuning (``experiments.fair_comparison``) in a process of its own."""
-    directory.mkdir(parents=True, exist_ok=True)
-    (directory / "FAILED").unlink(missing_ok=True)
-    log("tuning the five controllers: " + " ".join(_tuning_command(args, directory)[1:]))
+    log("tuning the five controllers: " + " ".join(command[1:]))
     return subprocess.Popen(
-        _tuning_command(args, directory),
+        command,
         stdout=subprocess.DEVNULL,
         stderr=open(directory / "stderr.log", "w"),  # noqa: SIM115
     )
-
-
-def _tuned_here(path: Path) -> bool:
-    """Whether ``path`` (the fair comparison's ``results.json``) holds gains tuned by
-    this code (its ``code``: :func:`experiments._common.code`)."""
-    return json.loads(path.read_text()).get("code") == _common.code()
 
 
 def _wait_for_tuning(tuning, tuned_path: Path, started: float, log) -> float:
@@ -429,13 +405,17 @@ def _record_invocation(out: Path, argv, wall, before, load_start, tuning_wall) -
             "runs_computed": len(_finished_files(out) - before),
             "runs_on_disk_before": len(before),
             "tuning_s": None if tuning_wall is None else round(tuning_wall, 1),
-            "load_average_start": [round(x, 2) for x in load_start],
-            "load_average_end": [round(x, 2) for x in os.getloadavg()],
-            "command": "python -m experiments.sensitivity " + " ".join(argv),
+            "load_average_start": load_start,
+            "load_average_end": output.load_average(),
+            "command": _command(argv),
         }
     )
     output.write_json(history_path, history)
     return history
+
+
+def _command(argv) -> str:
+    return "python -m experiments.sensitivity " + " ".join(argv)
 
 
 def _finished_files(out: Path) -> set:
@@ -463,10 +443,10 @@ def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, history) -> dic
         "programs": len(plan.jobs),
         "runs": len(plan.runs),
         "wall_s": round(wall, 1),
-        "load_average_start": [round(x, 2) for x in load_start],
-        "load_average_end": [round(x, 2) for x in os.getloadavg()],
+        "load_average_start": load_start,
+        "load_average_end": output.load_average(),
         "cpus": os.cpu_count(),
-        "command": "python -m experiments.sensitivity " + " ".join(argv),
+        "command": _command(argv),
         "invocations": history,
     }
 
@@ -487,7 +467,7 @@ def main(argv=None) -> int:
         return 0
 
     start = time.perf_counter()
-    load_start = os.getloadavg()
+    load_start = output.load_average()
     before = _finished_files(out)
     log = _logger(not args.quiet)
     log(
@@ -495,12 +475,15 @@ def main(argv=None) -> int:
         f"lanes {', '.join(f'{k}: {len(v)} programs' for k, v in lanes.items())}"
     )
     tuning, tuning_wall = None, None
-    if args.tuned_gains is None and tuned_path.exists() and not _tuned_here(tuned_path):
-        tuned_path.unlink()  # tuned by other code: tuned again
+    if args.tuned_gains is None and tuned_path.exists():
+        # the fair comparison's results.json holds its code (experiments._common.code):
+        if json.loads(tuned_path.read_text()).get("code") != _common.code():
+            tuned_path.unlink()  # tuned by other code: tuned again
     if any(s.gains == "tuned" for s in plan.settings) and not tuned_path.exists():
         tuning, tuning_start = _start_tuning(args, tuned_path.parent, log), time.perf_counter()
     lane_argv = [a for a in argv if a != "--quiet"] + (["--quiet"] if args.quiet else [])
-    processes = {lane: subprocess.Popen(_lane_command(lane_argv, lane)) for lane in lanes}
+    command = [sys.executable, "-m", "experiments.sensitivity", *lane_argv, "--lane"]
+    processes = {lane: subprocess.Popen([*command, lane]) for lane in lanes}
     try:
         if tuning is not None:
             tuning_wall = _wait_for_tuning(tuning, tuned_path, tuning_start, log)

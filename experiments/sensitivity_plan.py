@@ -188,14 +188,11 @@ def simulation_config(setting: Setting, horizon: float):
 
     fields = dict(setting.simulation)
     dt = float(fields.get("dt", 1e-3))
-    limit = fields.get("rotor_speed_limit")
-    if limit is not None:
-        limit = rotor_speed_limit()
-    steps = round(horizon / dt)
+    limit = None if fields.get("rotor_speed_limit") is None else rotor_speed_limit()
     return simulator.SimulationConfig(
         dt=dt,
         horizon=float(horizon),
-        save_every=simulator.divisor_near(steps, 100),
+        save_every=simulator.divisor_near(round(horizon / dt), 100),
         rotor_speed_limit=limit,
     )
 
@@ -222,15 +219,12 @@ def make_plan(
         for scenario_id in SCENARIO_IDS:
             scenario = scenario_variant(scenario_id, variants.get(scenario_id), horizon)
             for name in controllers:
-                options = {"dt": config.dt, "horizon": config.horizon}
-                options.update(dict(setting.controller))
+                options = {"dt": config.dt, "horizon": config.horizon, **dict(setting.controller)}
                 # A setting moves an option of the laws that have it (sat: all but the
                 # FL; oustaloup: the AFONFTSMC and the FOBSMC); the others run as they are.
                 controller = make_controller(name, **registry.options_for(name, options))
                 job_key = (controller, config, setting.dtype)
-                if job_key not in jobs:
-                    jobs[job_key] = Job(len(jobs), controller, config, setting.dtype)
-                job = jobs[job_key]
+                job = jobs.setdefault(job_key, Job(len(jobs), controller, config, setting.dtype))
                 if scenario not in job.members:
                     job.members.append(scenario)
                 identity = (job_key, setting.gains, scenario)
@@ -249,23 +243,15 @@ def assign_lanes(plan: Plan, workers: int) -> dict:
     for the tuned gains first in lane 0, so that their other runs finish early)."""
     lanes = {str(i): [] for i in range(workers)}
     load = {str(i): 0.0 for i in range(workers)}
-    f64 = [j.index for j in plan.jobs if j.dtype == "float64"]
-    waiting = [j for j in plan.jobs if j.dtype != "float64" and _has_tuned(j)]
-    for job in waiting:
-        lanes["0"].append(job.index)
-        load["0"] += job.cost()
-    rest = [j for j in plan.jobs if j.dtype != "float64" and not _has_tuned(j)]
-    for job in sorted(rest, key=lambda j: -j.cost()):
-        lane = min(load, key=lambda k: (load[k], k))
+    float32 = [j for j in plan.jobs if j.dtype != "float64"]
+    waiting = [j for j in float32 if any(r.gains == "tuned" for r in j.runs)]
+    rest = sorted((j for j in float32 if j not in waiting), key=lambda j: -j.cost())
+    for job in waiting + rest:
+        lane = "0" if job in waiting else min(load, key=lambda k: (load[k], k))
         lanes[lane].append(job.index)
         load[lane] += job.cost()
-    if f64:
-        lanes["f64"] = f64
+    lanes["f64"] = [j.index for j in plan.jobs if j.dtype == "float64"]
     return {k: v for k, v in lanes.items() if v}
-
-
-def _has_tuned(job: Job) -> bool:
-    return any(r.gains == "tuned" for r in job.runs)
 
 
 # ------------------------------------------------------------------- gains and keys

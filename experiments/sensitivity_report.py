@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import _common
 from fojax.cli import output
 from fojax.cli.reproduce import claims as claims_module
 from fojax.cli.reproduce.report import format_number as _fmt
@@ -79,6 +80,21 @@ def _outcomes(entry: dict) -> dict:
     return table
 
 
+def _claims(evaluated: dict, key: str) -> dict:
+    """Claim id -> claim of the setting ``key`` (empty where it was not evaluated)."""
+    return {c["id"]: c for c in evaluated.get(key, {}).get("claims", [])}
+
+
+def _cell(claim: dict, sep: str) -> str:
+    """The claim's verdict, short, and for a scenario claim ``sep`` and the counts of its
+    comparisons better/worse/equivalent/inconclusive."""
+    text = VERDICT_STYLE.get(claim["verdict"], (claim["verdict"],))[0]
+    if claim.get("counts"):
+        c = claim["counts"]
+        text += sep + "/".join(str(c[k]) for k in ("better", "worse", "equivalent", "inconclusive"))
+    return text
+
+
 def _against_reference(plan, evaluated: dict, read):
     """(setting key, read(setting), read(its reference setting)) for each setting with a
     reference setting that was evaluated."""
@@ -96,6 +112,11 @@ def flips(plan, evaluated: dict) -> dict:
             if theirs.get(claim_id, verdict) != verdict:
                 found.setdefault(claim_id, []).append((key, theirs[claim_id], verdict))
     return found
+
+
+def _flipped(plan, evaluated: dict) -> set:
+    """``(setting key, claim id)`` of every verdict that differs from its reference's."""
+    return {(key, cid) for cid, items in flips(plan, evaluated).items() for key, *_ in items}
 
 
 def outcome_changes(plan, evaluated: dict) -> dict:
@@ -124,9 +145,7 @@ def precision_table(plan, results: dict) -> list[dict] | None:
         return None
     rows = []
     for metric in PRECISION_METRICS:
-        worst = None
-        systematic = 0
-        cells = 0
+        worst, systematic, cells = None, 0, 0
         for s in (1, 2, 3):
             for name in plan.controllers:
                 a = results.get(("default", s, name))
@@ -149,8 +168,7 @@ def precision_table(plan, results: dict) -> list[dict] | None:
                     delta = claims_module.RELATIVE_MARGIN * abs(mean64)
                 else:
                     delta = claims_module.margin(unit, vb, plan.horizon)
-                ratio = abs(shift) / delta if delta > 0 else (0.0 if shift == 0 else math.inf)
-                relative = abs(shift) / abs(mean64) if mean64 else (0.0 if shift == 0 else math.inf)
+                ratio, relative = _over(shift, delta), _over(shift, abs(mean64))
                 if d.size > 1 and np.std(d, ddof=1) > 0:
                     half = 1.96 * float(np.std(d, ddof=1)) / math.sqrt(d.size)
                     systematic += int(abs(shift) > half)
@@ -182,6 +200,11 @@ def precision_table(plan, results: dict) -> list[dict] | None:
     return rows
 
 
+def _over(shift: float, scale: float) -> float:
+    """``|shift| / scale``; where ``scale`` is not positive, 0 for no shift, else inf."""
+    return abs(shift) / scale if scale > 0 else (0.0 if shift == 0 else math.inf)
+
+
 # --------------------------------------------------------------------------- figure
 
 
@@ -196,43 +219,30 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     plt = style.pyplot()
     settings = list(plan.settings)
     claim_ids = list(SHORT_CLAIMS)
-    changed = {(key, cid) for cid, items in flips(plan, evaluated).items() for key, *_ in items}
+    changed = _flipped(plan, evaluated)
     fig, ax = plt.subplots(figsize=(1.05 * len(settings) + 2.6, 0.62 * len(claim_ids) + 2.4))
     for j, setting in enumerate(settings):
-        entry = evaluated.get(setting.key, {})
-        by_id = {c["id"]: c for c in entry.get("claims", [])}
+        by_id = _claims(evaluated, setting.key)
         for i, cid in enumerate(claim_ids):
-            claim = by_id.get(cid)
-            verdict = claim["verdict"] if claim else "not run"
-            label, colour = VERDICT_STYLE.get(verdict, (verdict, "#FFFFFF"))
+            claim = by_id.get(cid, {"verdict": "not run"})
+            colour = VERDICT_STYLE.get(claim["verdict"], (None, "#FFFFFF"))[1]
             ax.add_patch(Rectangle((j, i), 1, 1, facecolor=colour, edgecolor="white", lw=1.5))
-            text = label
-            counts = claim.get("counts") if claim else None
-            if counts:
-                text += "\n" + "/".join(
-                    str(counts[k]) for k in ("better", "worse", "equivalent", "inconclusive")
-                )
-            ax.text(j + 0.5, i + 0.5, text, ha="center", va="center", fontsize=7.5)
+            ax.text(j + 0.5, i + 0.5, _cell(claim, "\n"), ha="center", va="center", fontsize=7.5)
             if (setting.key, cid) in changed:
                 ax.add_patch(Rectangle((j + 0.04, i + 0.04), 0.92, 0.92, fill=False, lw=2.2))
     ax.set_xlim(0, len(settings))
     ax.set_ylim(len(claim_ids), 0)
-    ax.set_xticks([j + 0.5 for j in range(len(settings))])
-    ax.set_xticklabels(
-        [_column_label(s, meta) for s in settings], rotation=40, ha="right", fontsize=8
-    )
-    ax.set_yticks([i + 0.5 for i in range(len(claim_ids))])
-    ax.set_yticklabels([SHORT_CLAIMS[c] for c in claim_ids], fontsize=8.5)
+    labels = [_column_label(s.key, meta) for s in settings]
+    ax.set_xticks(np.arange(len(settings)) + 0.5, labels, rotation=40, ha="right", fontsize=8)
+    labels = [SHORT_CLAIMS[c] for c in claim_ids]
+    ax.set_yticks(np.arange(len(claim_ids)) + 0.5, labels, fontsize=8.5)
     ax.tick_params(length=0)
     for side in ax.spines.values():
         side.set_visible(False)
-    handles = [
-        Patch(facecolor=VERDICT_STYLE[v][1], label=v)
-        for v in ("holds", "does not hold", "equivalent within the margin", "inconclusive")
+    handles = [  # the verdicts but "not run", and the frame
+        *(Patch(facecolor=colour, label=v) for v, (_, colour) in list(VERDICT_STYLE.items())[:4]),
+        Patch(facecolor="white", edgecolor="black", lw=2, label="differs from reference"),
     ]
-    handles.append(
-        Patch(facecolor="white", edgecolor="black", lw=2, label="differs from reference")
-    )
     legend = {"loc": "upper center", "bbox_to_anchor": (0.5, -0.32), "ncol": 5, "fontsize": 8}
     ax.legend(handles=handles, frameon=False, **legend)
     ax.set_title(
@@ -245,7 +255,7 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     return style.save(fig, path)
 
 
-def _column_label(setting, meta: dict) -> str:
+def _column_label(key: str, meta: dict) -> str:
     labels = {
         "default": "default",
         "default-reduced": f"default, first {meta['dt_draws']}",
@@ -261,7 +271,7 @@ def _column_label(setting, meta: dict) -> str:
         "tuned": "tuned gains",
         "float64": "float64",
     }
-    return labels.get(setting.key, setting.key)
+    return labels.get(key, key)
 
 
 # --------------------------------------------------------------------------- report
@@ -280,14 +290,9 @@ def _json_ready(evaluated: dict) -> dict:
                 item["counts"] = claim["counts"]
                 item["verdict_without_margin"] = claim.get("verdict_without_margin")
                 item["comparisons"] = [
-                    {
-                        "controller": c["controller"],
-                        "metric": c["metric"],
-                        "outcome": c["outcome"],
-                        "difference_mean": c["difference"].get("mean"),
-                        "difference_ci95": c["difference"].get("ci95"),
-                        "margin": c["margin"],
-                    }
+                    {k: c[k] for k in ("controller", "metric", "outcome")}
+                    | {f"difference_{k}": c["difference"].get(k) for k in ("mean", "ci95")}
+                    | {"margin": c["margin"]}
                     for c in claim["comparisons"]
                 ]
             if claim["id"] == "R2-chatter-free":
@@ -303,50 +308,33 @@ def _json_ready(evaluated: dict) -> dict:
 
 
 def _setting_lines(plan, evaluated, meta) -> list[str]:
-    lines = [
-        "| setting | choice | value | reference | S1 transient | S1 robustness | "
+    lines = _common.table_head(
+        "setting | choice | value | reference | S1 transient | S1 robustness | "
         "S2 convergence, tracking | S2 random rejection | S3 tracking, rejection | "
-        "chatter-free | finite time | outcomes changed |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
+        "chatter-free | finite time | outcomes changed"
+    )
     changes = outcome_changes(plan, evaluated)
-    flipped = {(key, cid) for cid, items in flips(plan, evaluated).items() for key, *_ in items}
+    flipped = _flipped(plan, evaluated)
     for setting in plan.settings:
-        entry = evaluated.get(setting.key, {})
-        by_id = {c["id"]: c for c in entry.get("claims", [])}
+        by_id = _claims(evaluated, setting.key)
         cells = []
         for cid in SHORT_CLAIMS:
             claim = by_id.get(cid)
             if claim is None:
                 cells.append("not run")
                 continue
-            text = VERDICT_STYLE.get(claim["verdict"], (claim["verdict"],))[0]
-            if claim.get("counts"):
-                c = claim["counts"]
-                text += f" {c['better']}/{c['worse']}/{c['equivalent']}/{c['inconclusive']}"
-            if (setting.key, cid) in flipped:
-                text = f"**{text}**"
-            cells.append(text)
+            text = _cell(claim, " ")
+            cells.append(f"**{text}**" if (setting.key, cid) in flipped else text)
+        changed = ""
         if setting.key in changes:
-            total = sum(len(c.get("comparisons", [])) for c in entry.get("claims", []))
+            total = sum(len(c.get("comparisons", [])) for c in by_id.values())
             changed = f"{len(changes[setting.key])} of {total}"
-        else:
-            changed = ""
-        reference = ""
-        if setting.reference:
-            reference = _column_label(_by_key(plan, setting.reference), meta)
+        reference = _column_label(setting.reference, meta) if setting.reference else ""
         lines.append(
-            f"| {_column_label(setting, meta)} | {setting.choice} | {setting.value} | "
+            f"| {_column_label(setting.key, meta)} | {setting.choice} | {setting.value} | "
             f"{reference} | " + " | ".join(cells) + f" | {changed} |"
         )
     return lines
-
-
-def _by_key(plan, key):
-    for setting in plan.settings:
-        if setting.key == key:
-            return setting
-    raise KeyError(key)
 
 
 def _flip_lines(plan, evaluated, meta) -> list[str]:
@@ -363,11 +351,9 @@ def _flip_lines(plan, evaluated, meta) -> list[str]:
     else:
         lines.append("No verdict is the same in every setting.")
     lines.append("")
-    for cid in SHORT_CLAIMS:
-        if cid not in found:
-            continue
+    for cid in [c for c in SHORT_CLAIMS if c in found]:
         moves = ", ".join(
-            f"{_column_label(_by_key(plan, key), meta)}: *{before}* -> *{after}*"
+            f"{_column_label(key, meta)}: *{before}* -> *{after}*"
             for key, before, after in found[cid]
         )
         lines.append(f"* Flips, {SHORT_CLAIMS[cid]}: {moves}.")
@@ -379,7 +365,7 @@ def _change_lines(plan, evaluated, meta, limit: int = 12) -> list[str]:
     for key, items in outcome_changes(plan, evaluated).items():
         if not items:
             continue
-        label = _column_label(_by_key(plan, key), meta)
+        label = _column_label(key, meta)
         shown = "; ".join(
             f"{cid.split('-')[0]} {metric} vs {controller}: {before} -> {after}"
             for cid, controller, metric, before, after in items[:limit]
@@ -402,7 +388,7 @@ def _divergence_lines(plan, evaluated, meta) -> list[str]:
             if count
         ]
         if parts:
-            label = _column_label(setting, meta)
+            label = _column_label(setting.key, meta)
             lines.append(f"* {label} (of {entry['draws']} draws): " + ", ".join(parts) + ".")
     return lines or ["No draw diverged in any setting."]
 
@@ -419,9 +405,10 @@ def _precision_lines(table) -> list[str]:
         "chattering draws; 'per draw': the median |float32 - float64| of one draw over the "
         "margin (in that worst cell).",
         "",
-        "| metric | trusted | worst cell | float64 mean | shift | margin | shift / margin "
-        "| relative | per draw / margin | systematic cells |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        *_common.table_head(
+            "metric | trusted | worst cell | float64 mean | shift | margin | shift / margin | "
+            "relative | per draw / margin | systematic cells"
+        ),
     ]
     for row in table:
         w = row["worst"]
@@ -437,14 +424,9 @@ def _precision_lines(table) -> list[str]:
 
 
 def _invocation_lines(meta: dict) -> list[str]:
-    history = meta.get("invocations") or [
-        {
-            "wall_s": meta["wall_s"],
-            "runs_computed": None,
-            "load_average_start": meta["load_average_start"],
-            "load_average_end": meta["load_average_end"],
-        }
-    ]
+    # without a record of the invocations: this one, its count of runs computed unknown
+    only = dict(meta, runs_computed=None, started=None, tuning_s=None)
+    history = meta.get("invocations") or [only]
     lines = []
     for item in history:
         computed = item.get("runs_computed")
@@ -535,8 +517,7 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
     ]
     missing = {k: v["missing"] for k, v in evaluated.items() if "missing" in v}
     if missing:
-        lines += ["## Not run", ""]
-        lines += [f"* {k}: missing {', '.join(v)}" for k, v in missing.items()]
+        lines += ["## Not run", "", *(f"* {k}: missing {', '.join(v)}" for k, v in missing.items())]
         lines.append("")
     return "\n".join(lines)
 
@@ -565,16 +546,13 @@ def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, result
         doc.parent.mkdir(parents=True, exist_ok=True)
     figure = (doc.parent / doc.stem if doc is not None else out / "sensitivity").with_suffix(".png")
     style.attempt("verdict matrix", plot_matrix, plan, evaluated, meta, figure)
-    figure_name = figure.name if doc is not None else "sensitivity.png"
-    text = markdown(plan, evaluated, meta, precision, figure_name)
+    text = markdown(plan, evaluated, meta, precision, figure.name)
     atomic_write(out / "report.md", text)
     if doc is None:
         return out / "report.md"
-    body = text.split("\n", 1)[1].lstrip("\n")  # the document keeps its own title
+    title, body = text.split("\n", 1)  # the document keeps its own title
     if not (doc.exists() and MARKER in doc.read_text()):
-        doc.write_text(
-            "# Sensitivity of the Section V verdicts to the modelling choices\n\n"
-            "(Reading of the run: to be written by hand above the marker.)\n\n" + MARKER
-        )
-    output.splice(doc, body, marker=MARKER)
+        stub = "(Reading of the run: to be written by hand above the marker.)"
+        doc.write_text(f"{title}\n\n{stub}\n\n{MARKER}")
+    output.splice(doc, body.lstrip("\n"), marker=MARKER)
     return doc
