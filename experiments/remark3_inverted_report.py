@@ -17,6 +17,15 @@ SURROGATES = ("settling_time", "rotor_saturation")
 (:mod:`fojax.requirements`): their finite difference is 0 or a jump, not compared."""
 
 
+MARKERS = {
+    "naive": ("o", 9, "none"),
+    "tuned from naive": ("o", 3.5, None),
+    "tuned from paper": ("D", 4, None),
+}
+"""Panel (c)'s ``(marker, size, face)`` per gain set: the naive start a large hollow circle,
+so that a tuned-from-naive dot left where it started shows inside it."""
+
+
 def _fmt_set(entry: dict) -> str:  # the bounds with a multiplier > 0
     return ", ".join(f"{n} ({w:.3g})" for n, w in entry["set"].items() if w > 0) or "-"
 
@@ -168,10 +177,15 @@ def figure(results: dict, path: Path) -> None:
             continue
         ys = [entry["log10_ratio"][label] for label in labels]
         text = f"{name} (median |.| {entry['median_abs_log10']:.2f})"
-        fields.plot(xs, ys, "o", ms=4, color=colors[name], label=text)
+        marker, size, face = MARKERS.get(name, ("o", 4, None))
+        fields.plot(xs, ys, marker, ms=size, mfc=face, color=colors[name], label=text)
     fields.set_xticks(xs, labels, rotation=90, fontsize=7)
     fields.set_ylabel("log10(gain / paper's gain)")
-    fields.set_title("(c) each gain set against the paper's, field by field", fontsize=10)
+    fields.set_title(
+        "(c) each gain set against the paper's, field by field\n(a dot inside a hollow "
+        "circle: a gain the tuner left at its naive start)",
+        fontsize=10,
+    )
     fields.legend(fontsize=8, loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=130)
