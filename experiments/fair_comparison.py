@@ -99,9 +99,7 @@ def parse_args(argv) -> argparse.Namespace:
     if args.learning_rate is None:
         args.learning_rate = 0.1
     if args.switch is not None and args.method != "cma-lbfgs":
-        parser.error(
-            f"--switch applies to --method cma-lbfgs only, not to --method {args.method}"
-        )
+        parser.error(f"--switch applies to --method cma-lbfgs only, not to --method {args.method}")
     known = registry.controller_names()
     if args.controllers is None:
         args.controllers = tuple(known)
@@ -138,12 +136,7 @@ def tune(args, index: int, name: str):
     from fojax.optimize import strategies
 
     spec = optimize.ProblemSpec(
-        controller=name,
-        scenario=args.scenario,
-        horizon=args.horizon,
-        draws=args.draws,
-        seed=args.seed,
-        dtype=args.dtype,
+        name, args.scenario, args.horizon, draws=args.draws, seed=args.seed, dtype=args.dtype
     )
     defaults = registry.get_controller_class(name).default_gains(jnp.dtype(args.dtype))
     objective = optimize.Objective(spec, defaults)
@@ -263,12 +256,7 @@ def main(argv=None) -> int:
             "cost": dataclasses.asdict(objectives[BASELINE].spec.cost),
             "start": "each controller's default gains",
         },
-        "tuner": {
-            "method": args.method,
-            "steps": args.steps,
-            "switch": args.switch,
-            "learning_rate": args.learning_rate,
-        },  # fmt: skip
+        "tuner": {k: getattr(args, k) for k in ("method", "steps", "switch", "learning_rate")},
         "evaluation_switching": "sat",
         "tuning": tuning,
         "evaluation": evaluation,
@@ -329,12 +317,9 @@ def table(results: dict) -> str:
     )
     for name in names:
         t = tuning[name]
-        v = t.get("validation")
-        returned = (
-            "-"
-            if not v
-            else f"{v['best_step']}: {v['initial']['cost']:.4g} -> {v['best']['cost']:.4g}"
-        )
+        returned = "-"
+        if v := t.get("validation"):
+            returned = f"{v['best_step']}: {v['initial']['cost']:.4g} -> {v['best']['cost']:.4g}"
         lines.append(
             f"| {name} | {t['parameters']} | {t['draw_steps']:.3g} | "
             f"{t['tuning_wall_time_s']:.0f} | {t['first_objective']:.4g} -> "

@@ -84,12 +84,9 @@ class _Study:
         from fojax import optimize
         from fojax.controllers.afonftsmc import paper_gains
 
+        cost = optimize.CostConfig(effort_weight=0.0, chattering_weight=0.0)
         spec = optimize.ProblemSpec(
-            scenario=1,
-            horizon=args.horizon,
-            draws=1,
-            cost=optimize.CostConfig(effort_weight=0.0, chattering_weight=0.0),
-            dtype="float64",
+            "afonftsmc", 1, args.horizon, draws=1, cost=cost, dtype="float64"
         )
         self.paper = paper_gains(jnp.float64)
         self.objective = optimize.Objective(spec, self.paper, scenario=nominal_scenario_1())
@@ -174,16 +171,9 @@ def lbfgs(study: _Study, start: str, args):
         study.objective, strategies.LBFGS(width=WIDTH), optimize.Budget(steps=args.steps),
         study.starts[start], validation_draws=1, validate_every=1, progress=not args.quiet,
     )  # fmt: skip
-    trace = [
-        {
-            "step": row["step"],
-            "J": row["loss"],
-            "accepted": row["accepted"],
-            "J_sat": row["validation"],
-            "wall_time_s": row["wall_time_s"],
-        }
-        for row in result.history
-    ]
+    keys = ("step", "J", "accepted", "J_sat", "wall_time_s")
+    fields = ("step", "loss", "accepted", "validation", "wall_time_s")  # the driver's history
+    trace = [{k: row[f] for k, f in zip(keys, fields, strict=True)} for row in result.history]
     record = {"trace": trace, "returned_step": result.best_step}
     record["accepted"] = sum(row["accepted"] for row in trace[1:])  # the first: the start
     return result.x, record
@@ -228,16 +218,11 @@ def main(argv=None) -> int:
     return _common.finish(args.out, results, text, args.update_doc, "remark3", None, wrote)
 
 
-FIELD_ROWS = (
-    ("surface_c1", "c1", True),
-    ("surface_c2", "c2", True),
-    ("reaching_h1", "hbar1", True),
-    ("reaching_h2", "hbar2", True),
-    ("power", "phi", True),
-    ("ratio", "p/q", True),
-    ("gamma1", "gamma1", True),
-    ("gamma2", "gamma2", True),
-)
+FIELD_ROWS = {
+    "surface_c1": "c1", "surface_c2": "c2", "reaching_h1": "hbar1", "reaching_h2": "hbar2",
+    "power": "phi", "ratio": "p/q", "gamma1": "gamma1", "gamma2": "gamma2",
+}  # fmt: skip
+"""Gain field -> its symbol: one table row per group of shared axes (:data:`AXIS_GROUPS`)."""
 AXIS_GROUPS = (("x = y", 0), ("z", 2), ("phi = theta = psi", 3))
 ADAPTATION = ("eta0", "eta1", "eta2")
 
@@ -247,6 +232,7 @@ def table(results: dict) -> str:
     field with their costs."""
     point = results["paper_point"]
     objective = results["objective"]
+    along = point["along_negative_gradient"]
     lines = [
         f"Objective: `J = P + A` on the nominal run of scenario 1 ({objective['horizon_s']:g} s, "
         f"float64, {objective['parameters']} parameters), scored at `sat`; its gradient is "
@@ -263,16 +249,11 @@ def table(results: dict) -> str:
         )
         + ".",
         "",
-        "| step along -grad/|grad| | "
-        + " | ".join(f"{e['step']:g}" for e in point["along_negative_gradient"])
-        + " |",
-        "|---|" + "---|" * len(point["along_negative_gradient"]),
+        "| step along -grad/|grad| | " + " | ".join(f"{e['step']:g}" for e in along) + " |",
+        "|---|" + "---|" * len(along),
         *(
             f"| J (`{law}`) | "
-            + " | ".join(
-                f"{e[key]:.4g}" + (" (div.)" if e["diverged"] else "")
-                for e in point["along_negative_gradient"]
-            )
+            + " | ".join(f"{e[key]:.4g}" + (" (div.)" if e["diverged"] else "") for e in along)
             + " |"
             for law, key in (("tanh", "J"), ("sat", "J_sat"))
         ),
@@ -281,8 +262,8 @@ def table(results: dict) -> str:
     gains = results["gains"]
     names = list(gains)
     lines += _common.table_head("field | axes | " + " | ".join(names))
-    for field, symbol, per_axis in FIELD_ROWS:
-        for axes, index in AXIS_GROUPS if per_axis else (("all", 0),):
+    for field, symbol in FIELD_ROWS.items():
+        for axes, index in AXIS_GROUPS:
             cells = [f"{np.asarray(gains[n][field])[index]:.4g}" for n in names]
             lines.append(f"| {symbol} | {axes} | " + " | ".join(cells) + " |")
     for axes, index in AXIS_GROUPS:
@@ -294,10 +275,8 @@ def table(results: dict) -> str:
     labels = dict(zip(terms, ("J = P + A", *"PAEC"), strict=True))
     for switching in ("sat", "sign"):
         for term, label in labels.items():
-            cells = []
-            for n in names:
-                entry = costs[n][switching]
-                cells.append("diverged" if entry["diverged"] else f"{entry[term]:.4g}")
+            entries = [costs[n][switching] for n in names]
+            cells = ["diverged" if e["diverged"] else f"{e[term]:.4g}" for e in entries]
             lines.append(f"| **{label}** | `{switching}` | " + " | ".join(cells) + " |")
     traces = results["lbfgs"]
     lines += [

@@ -140,19 +140,13 @@ def best_subsets(gradient, candidates, names, max_size: int = 3) -> list[dict]:
     (``size`` ``"all"``, its active set the multipliers > 0)."""
     rows = []
     for size in range(1, min(max_size, len(names)) + 1):
-        best = None
-        for subset in itertools.combinations(range(len(names)), size):
-            r, lam = cone_residual(gradient, np.asarray(candidates)[list(subset)])
-            if best is None or r < best[0]:
-                best = (r, subset, lam)
-        r, subset, lam = best
-        rows.append(
-            {
-                "size": size,
-                "residual": r,
-                "set": {names[i]: float(w) for i, w in zip(subset, lam, strict=True)},
-            }
+        tried = (
+            (*cone_residual(gradient, np.asarray(candidates)[list(subset)]), subset)
+            for subset in itertools.combinations(range(len(names)), size)
         )
+        r, lam, subset = min(tried, key=lambda t: t[0])  # the first of the smallest
+        named = {names[i]: float(w) for i, w in zip(subset, lam, strict=True)}
+        rows.append({"size": size, "residual": r, "set": named})
     r, lam = cone_residual(gradient, candidates)
     norms = np.linalg.norm(np.asarray(candidates, np.float64).reshape(len(names), -1), axis=1)
     active = {n: float(w) for n, w, s in zip(names, lam, norms, strict=True) if w * s > ACTIVE}
@@ -372,16 +366,14 @@ def distance(gains, paper) -> dict:
 
     ours, theirs = gains_io.gains_to_dict(gains), gains_io.gains_to_dict(paper)
     values, logs = {}, {}
-    for field, symbol, _ in remark3_study.FIELD_ROWS + (("adaptation", None, None),):
+    for field, symbol in [*remark3_study.FIELD_ROWS.items(), ("adaptation", None)]:
         for axes, index in remark3_study.AXIS_GROUPS:
-            mine, reference = np.asarray(ours[field])[index], np.asarray(theirs[field])[index]
+            mine = np.atleast_1d(np.asarray(ours[field])[index])
+            reference = np.atleast_1d(np.asarray(theirs[field])[index])
             symbols = remark3_study.ADAPTATION if symbol is None else (symbol,)
-            for k, name in enumerate(symbols):
-                label = f"{name} [{axes}]"
-                values[label] = float(mine if symbol else mine[k])
-                logs[label] = float(
-                    np.log10(values[label] / (reference if symbol else reference[k]))
-                )
+            for name, value, base in zip(symbols, mine, reference, strict=True):
+                values[f"{name} [{axes}]"] = float(value)
+                logs[f"{name} [{axes}]"] = float(np.log10(value / base))
     size = np.abs(np.asarray(list(logs.values())))
     return {
         "values": values,

@@ -17,6 +17,15 @@ SURROGATES = ("settling_time", "rotor_saturation")
 (:mod:`fojax.requirements`): their finite difference is 0 or a jump, not compared."""
 
 
+MARKERS = {
+    "naive": ("o", 9, "none"),
+    "tuned from naive": ("o", 3.5, None),
+    "tuned from paper": ("D", 4, None),
+}
+"""Panel (c)'s ``(marker, size, face)`` per gain set: the naive start a large hollow circle,
+so that a tuned-from-naive dot left where it started shows inside it."""
+
+
 def _fmt_set(entry: dict) -> str:  # the bounds with a multiplier > 0
     return ", ".join(f"{n} ({w:.3g})" for n, w in entry["set"].items() if w > 0) or "-"
 
@@ -27,10 +36,8 @@ def _residual_lines(results: dict) -> list[str]:
         "Residual `r` (0: stationary, 1: no bound helps) of the best requirement set of each "
         "size, multipliers in brackets:",
         "",
+        *_common.table_head("gains | objective | 1 bound | 2 bounds | 3 bounds | every candidate"),
     ]
-    lines += _common.table_head(
-        "gains | objective | 1 bound | 2 bounds | 3 bounds | every candidate"
-    )
     for point, analysis in results["analysis"].items():
         for objective in ("tracking", "effort"):
             cells = [
@@ -38,10 +45,9 @@ def _residual_lines(results: dict) -> list[str]:
                 for e in analysis[objective]["subsets"]
             ]
             lines.append(f"| {point} | {objective} | " + " | ".join(cells) + " |")
+    columns = "gains | fojax tune's weights (1e-5, 1e-5) | best `(w_E, w_C)` | its residual"
     lines += ["", "Weighted sum `P + A + w_E E + w_C C`: residual at `w = 0` is 1.", ""]
-    lines += _common.table_head(
-        "gains | fojax tune's weights (1e-5, 1e-5) | best `(w_E, w_C)` | its residual"
-    )
+    lines += _common.table_head(columns)
     for point, analysis in results["analysis"].items():
         w = analysis["weights"]
         lines.append(
@@ -71,14 +77,9 @@ def table(results: dict) -> str:
     values = {
         k: dict(zip(results["quantities"], v, strict=True)) for k, v in results["values"].items()
     }
-    found = results["requirements_found"]["requirements"]
-    lines += [
-        "",
-        "Quantities of each gain set (the requirement set found: bounds at the paper's values):",
-        "",
-    ]
-    lines += _common.table_head("quantity | bound | " + " | ".join(names))
-    bounds = {r["metric"]: r["max"] for r in found}
+    head = "Quantities of each gain set (the requirement set found: bounds at the paper's values):"
+    lines += ["", head, "", *_common.table_head("quantity | bound | " + " | ".join(names))]
+    bounds = {r["metric"]: r["max"] for r in results["requirements_found"]["requirements"]}
     for q in results["quantities"]:
         bound = f"<= {bounds[q]:.4g}" if q in bounds else ""
         cells = [f"{values[n][q]:.4g}" for n in names]
@@ -93,18 +94,10 @@ def table(results: dict) -> str:
             for n in names
         ]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    lines.append(
-        "| **median abs log10** | "
-        + " | ".join(f"{distances[n]['median_abs_log10']:.2f}" for n in names)
-        + " |"
-    )
-    lines.append(
-        "| **within a factor 2** | "
-        + " | ".join(
-            f"{distances[n]['within_factor_2']}/{distances[n]['parameters']}" for n in names
-        )
-        + " |"
-    )
+    medians = [f"{distances[n]['median_abs_log10']:.2f}" for n in names]
+    within = [f"{distances[n]['within_factor_2']}/{distances[n]['parameters']}" for n in names]
+    for title, cells in (("median abs log10", medians), ("within a factor 2", within)):
+        lines.append(f"| **{title}** | " + " | ".join(cells) + " |")
     tuning = results["requirement_tuning"]
     t = results["times_s"]
     runs = "; ".join(
@@ -145,17 +138,15 @@ def figure(results: dict, path: Path) -> None:
         sweep.loglog(w["sweep_w_E"], w["sweep_residual"], color=colors[name], label=name)
     count = len(results["analysis"]["paper"]["effort"]["subsets"])
     sizes.set_xticks(range(1, count + 1), [*map(str, range(1, count)), "all"])
-    sizes.set_xlabel("bounds (the best set of each size)")
+    sizes.set(xlabel="bounds (the best set of each size)", ylim=(0, 1.02))
     sizes.set_ylabel("residual r (0: stationary, 1: no bound helps)")
-    sizes.set_ylim(0, 1.02)
     sizes.set_title("(a) min objective s.t. bounds at these gains' values", fontsize=10)
     sizes.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     sweep.axhline(1, color="0.5", lw=0.8)
     sweep.axvline(1e-5, color="0.5", ls=":", lw=1)
     where = sweep.get_xaxis_transform()
     sweep.text(1e-5, 0.97, " fojax tune's w_E", transform=where, va="top", color="0.4", fontsize=8)
-    sweep.set_xlabel("effort weight w_E")
-    sweep.set_ylabel("r = |grad(P + A + w_E E)| / |grad(P + A)|")
+    sweep.set(xlabel="effort weight w_E", ylabel="r = |grad(P + A + w_E E)| / |grad(P + A)|")
     sweep.set_title("(b) the weighted sum P + A + w_E E", fontsize=10)
     sweep.legend(fontsize=8)
     distances = results["distance_to_paper"]
@@ -168,10 +159,12 @@ def figure(results: dict, path: Path) -> None:
             continue
         ys = [entry["log10_ratio"][label] for label in labels]
         text = f"{name} (median |.| {entry['median_abs_log10']:.2f})"
-        fields.plot(xs, ys, "o", ms=4, color=colors[name], label=text)
+        marker, size, face = MARKERS.get(name, ("o", 4, None))
+        fields.plot(xs, ys, marker, ms=size, mfc=face, color=colors[name], label=text)
     fields.set_xticks(xs, labels, rotation=90, fontsize=7)
     fields.set_ylabel("log10(gain / paper's gain)")
-    fields.set_title("(c) each gain set against the paper's, field by field", fontsize=10)
+    note = "(a dot inside a hollow circle: a gain the tuner left at its naive start)"
+    fields.set_title(f"(c) each gain set against the paper's, field by field\n{note}", fontsize=10)
     fields.legend(fontsize=8, loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=130)

@@ -17,11 +17,9 @@ horizon (``--blocks auto 100 full``). Writes ``memory.json`` and prints a table.
 
 from __future__ import annotations
 
-import argparse
 import json
 import multiprocessing
 import sys
-from pathlib import Path
 
 from experiments import _common
 from fojax.cli import output
@@ -69,21 +67,17 @@ def measure(horizon: float, draws: int, block: str, execute: bool) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m experiments.tune_memory")
+    parser = _common.parser("tune_memory")
     parser.add_argument("--horizons", type=float, nargs="+", default=[5, 10, 20, 40, 80])
     parser.add_argument("--draws", type=int, default=256)
     parser.add_argument("--execute-up-to", type=float, default=10.0)
-    parser.add_argument(
-        "--blocks",
-        nargs="+",
-        default=["auto", "100"],
-        help="block choices: auto (checkpoint_interval), a number of steps, or full "
-        "(one block: no rematerialisation across the horizon)",
+    choices = (
+        "block choices: auto (checkpoint_interval), a number of steps, or full "
+        "(one block: no rematerialisation across the horizon)"
     )
-    parser.add_argument("--out", type=Path, default=Path("results/tune_memory"))
-    parser.add_argument(
-        "--update-doc", type=Path, help="markdown file whose tune-memory block to replace"
-    )
+    parser.add_argument("--blocks", nargs="+", default=["auto", "100"], help=choices)
+    block = "markdown file whose tune-memory block to replace"
+    _common.add_outputs(parser, "tune_memory", update_doc=block, smoke=False)
     args = parser.parse_args(argv)
     rows = []
     for horizon in args.horizons:
@@ -114,10 +108,6 @@ def main(argv=None) -> int:
     return 0
 
 
-def _number(value) -> str:
-    return "-" if value is None else f"{value:.0f}"
-
-
 def table(rows: list[dict], draws: int) -> str:
     """The block: per horizon and block size, the compiled gradient's working set, and
     where it ran, the process's peak resident memory and the run's time."""
@@ -132,10 +122,10 @@ def table(rows: list[dict], draws: int) -> str:
         ),
     ]
     for r in sorted(rows, key=lambda r: (r["horizon_s"], r["save_every"])):
+        rss = "-" if r.get("peak_rss_mb") is None else f"{r['peak_rss_mb']:.0f}"
         lines.append(
             f"| {r['horizon_s']:g} | {r['steps']} | {r['save_every']} | {r['temp_mb']:.0f} | "
-            f"{r['compile_s']:.0f} | {_number(r.get('peak_rss_mb'))} | "
-            f"{r.get('run_s', '-')} |"
+            f"{r['compile_s']:.0f} | {rss} | {r.get('run_s', '-')} |"
         )
     return "\n".join(lines)
 

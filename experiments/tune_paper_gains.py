@@ -118,12 +118,11 @@ def parse_args(argv) -> argparse.Namespace:
     args = build_parser().parse_args(argv)
     if args.tiny:
         # The small problem of the tests (shares their compiled code).
-        args.horizon, args.draws, args.steps = 0.3, 3, 2
-        args.default_steps = 3
-        args.seed, args.dtype = 5, "float64"
-        args.effort_weight, args.chattering_weight, args.attitude_weight = 1e-3, 1e-3, 2.0
-        args.validation_draws, args.validate_every, args.eval_draws = 2, 1, 2
-        args.tuner_validation_draws = 2
+        vars(args).update(
+            horizon=0.3, draws=3, steps=2, default_steps=3, seed=5, dtype="float64",
+            effort_weight=1e-3, chattering_weight=1e-3, attitude_weight=2.0,
+            validation_draws=2, validate_every=1, eval_draws=2, tuner_validation_draws=2,
+        )  # fmt: skip
         args.eval_horizon = args.eval_horizon or 0.3
         args.df_budget_factor = max(args.df_budget_factor, 40.0)
     return args
@@ -143,19 +142,14 @@ class _Study:
         weights = ("effort_weight", "chattering_weight", "attitude_weight")
         overrides = {k: getattr(args, k) for k in weights if getattr(args, k) is not None}
         self.spec = optimize.ProblemSpec(
-            controller="afonftsmc",
-            scenario=args.scenario,
-            horizon=args.horizon,
-            draws=args.draws,
-            seed=args.seed,
-            cost=optimize.CostConfig(**overrides),
-            dtype=args.dtype,
-        )
+            "afonftsmc", args.scenario, args.horizon, draws=args.draws, seed=args.seed,
+            cost=optimize.CostConfig(**overrides), dtype=args.dtype,
+        )  # fmt: skip
         dtype = jnp.dtype(args.dtype)
         self.naive = optimize.naive_gains("afonftsmc", dtype)
         self.objective = optimize.Objective(self.spec, self.naive)
-        self.starts = {"paper": self.objective.vector(paper_gains(dtype)), "naive": None}
-        self.starts["naive"] = self.objective.x0
+        paper = self.objective.vector(paper_gains(dtype))
+        self.starts = {"paper": paper, "naive": self.objective.x0}
         self.validation_keys = optimize.draw_keys(
             args.seed, "heldout", args.validation_draws, VALIDATION_OFFSET
         )
@@ -181,11 +175,9 @@ class _Study:
         if name in ("cma-es", "nelder-mead"):
             strategy = strategies.make(name, seed=args.seed, sigma=args.cma_sigma)
             return strategy, optimize.Budget(draw_steps=budget), 0
-        method, steps = (
-            ("auto", args.default_steps)
-            if name == "default"
-            else (args.gradient_method, args.steps)
-        )
+        method, steps = (args.gradient_method, args.steps)
+        if name == "default":
+            method, steps = "auto", args.default_steps
         strategy = strategies.make(
             method, steps, seed=args.seed, sigma=args.cma_sigma,
             max_step=args.max_step, learning_rate=args.learning_rate,
@@ -193,7 +185,11 @@ class _Study:
         return strategy, optimize.Budget(steps=steps), args.tuner_validation_draws
 
     def run(self, name: str, budget: int | None = None) -> dict:
-        """Tuner ``name`` from the naive start: its record (:func:`_record`)."""
+        """Tuner ``name`` from the naive start: its record as JSON: its answer ``x`` and
+        gains, its curve points ``(method, draw-steps, wall time, validation cost)`` and
+        what it spent (``summary``)."""
+        from fojax.controllers import gains_io
+
         strategy, limit, validation_draws = self.strategy(name, budget)
         spent = ", ".join(f"{v} {k}" for k, v in dataclasses.asdict(limit).items() if v)
         output.log(self.args.quiet, f"{name}: {spent}")
@@ -213,20 +209,12 @@ class _Study:
             "returned_step": result.best_step,
             "validation": result.validation,
         }
-        return _record(self.objective, result.x, curve, summary)
-
-
-def _record(objective, x, curve: list, summary: dict) -> dict:
-    """A tuner's run as JSON: its answer ``x`` and gains, its curve points ``(method,
-    draw-steps, wall time, validation cost)`` and what it spent (``summary``)."""
-    from fojax.controllers import gains_io
-
-    return {
-        "x": np.asarray(x).tolist(),
-        "gains": gains_io.gains_to_dict(objective.gains(x)),
-        "curve": [list(c) for c in curve],
-        "summary": summary,
-    }
+        return {
+            "x": np.asarray(result.x).tolist(),
+            "gains": gains_io.gains_to_dict(self.objective.gains(result.x)),
+            "curve": [list(c) for c in curve],
+            "summary": summary,
+        }
 
 
 def run_tuners(args, study: _Study) -> dict:
@@ -241,11 +229,9 @@ def run_tuners(args, study: _Study) -> dict:
         for name in ("gradient", "default")
     }
     budget = int(args.df_budget_factor * found["gradient"]["summary"]["draw_steps"])
+    fingerprint = settings | {"budget": budget}
     for name in ("cma-es", "nelder-mead"):
-        fingerprint = settings | {"budget": budget}
-        found[name] = _common.cached(
-            folder, name, fingerprint, lambda name=name: study.run(name, budget)
-        )
+        found[name] = _common.cached(folder, name, fingerprint, lambda n=name: study.run(n, budget))
     return {name: found[name] for name in TUNERS}
 
 
@@ -488,11 +474,9 @@ def report(results: dict) -> str:
 
 
 def plot(curves, references, path: Path) -> None:
-    import matplotlib
+    from fojax.cli import style
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = style.pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
     colors = {"default": "C3", "gradient": "C0", "cma-es": "C1", "nelder-mead": "C2"}
     for method, color in colors.items():
