@@ -29,13 +29,13 @@ block ``<!-- NAME:begin -->`` ... ``<!-- NAME:end -->`` of DOC (``--name``, defa
 
 from __future__ import annotations
 
-import argparse
 import json
 import shlex
 import subprocess
 import sys
 from pathlib import Path
 
+from experiments import _common
 from fojax.cli import output
 
 __all__ = ["label_record", "main", "render", "step_loops"]
@@ -111,10 +111,9 @@ def _memory(entry: dict) -> str:
 
 
 def _forward(result: dict) -> list[str]:
-    lines = [
-        "| draws | horizon | draw-steps/s | compile (trace + lower + XLA) | kernels per step |",
-        "|---|---|---|---|---|",
-    ]
+    lines = _common.table_head(
+        "draws | horizon | draw-steps/s | compile (trace + lower + XLA) | kernels per step"
+    )
     for e in result["forward"]:
         rate = _number(e["draw_steps_per_s"])
         if e.get("calls", 1) > 1:
@@ -131,11 +130,10 @@ def _forward(result: dict) -> list[str]:
 
 
 def _gradient(result: dict) -> list[str]:
-    lines = [
-        "| draws | horizon | draw-steps/s | gradient / forward (CPU time) | "
-        "compile (trace + lower + XLA) | kernels per step, each pass | peak memory |",
-        "|---|---|---|---|---|---|---|",
-    ]
+    lines = _common.table_head(
+        "draws | horizon | draw-steps/s | gradient / forward (CPU time) | "
+        "compile (trace + lower + XLA) | kernels per step, each pass | peak memory"
+    )
     for e in result["gradient"]:
         cpu = e.get("gradient_over_forward_cpu_time")
         ratio = f"{e['gradient_over_forward']:.2f}x" + (f" ({cpu:.2f}x)" if cpu else "")
@@ -150,10 +148,9 @@ def _gradient(result: dict) -> list[str]:
 
 def _numpy(result: dict) -> list[str]:
     forward = {e["draws"]: e for e in result["forward"]}
-    lines = [
-        "| draws | NumPy: draw-steps/s (horizon) | JAX: draw-steps/s (horizon) | JAX / NumPy |",
-        "|---|---|---|---|",
-    ]
+    lines = _common.table_head(
+        "draws | NumPy: draw-steps/s (horizon) | JAX: draw-steps/s (horizon) | JAX / NumPy"
+    )
     for e in result["numpy"]:
         jax_entry = forward.get(e["draws"])
         jax_cell, ratio = "n/a", "n/a"
@@ -169,11 +166,11 @@ def render(result: dict, source: str | None = None) -> str:
     """The block's text (below its label) for a bench ``result``; ``source``: the
     command that rendered it from a stored JSON, stated first."""
     workload, machine = result.get("workload") or {}, result.get("machine") or {}
+    provenance = result.get("provenance") or {}
     repeats = {len(e.get("run_s_all") or [None]) for e in result["forward"]}
-    created = (result.get("provenance") or {}).get("created_utc")
+    created = provenance.get("created_utc")
     head = []
-    command = str((result.get("provenance") or {}).get("command") or "")
-    if "--small" in command.split():
+    if "--small" in str(provenance.get("command") or "").split():
         head.append("**Made with `fojax bench --small`, a smoke test: its figures mean nothing.**")
     if source is not None:
         head.append(f"Rendered by `{source}`" + (f"; measured {created}." if created else "."))
@@ -225,8 +222,8 @@ def render(result: dict, source: str | None = None) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m experiments.bench_report",
+    parser = _common.parser(
+        "bench_report",
         description="Run fojax bench (or read its JSON with --from) and write its block.",
     )
     parser.add_argument("--from", dest="source", type=Path, metavar="FILE",

@@ -43,6 +43,9 @@ METHODS = {
     "gl short memory 1 s": ("gl", {"memory": 1000}),
 }
 
+SMOOTH = ("sin(1.7t)", "ramp", "t^2")
+"""The smooth test signals: the main table and the figure show the worst over these."""
+
 
 def _signals(t: np.ndarray) -> dict[str, np.ndarray]:
     return {
@@ -69,11 +72,6 @@ def _exact(t: np.ndarray, alpha: float) -> dict[str, np.ndarray]:
 def relative_error(y: np.ndarray, exact: np.ndarray, skip: int = 1) -> float:
     """Worst |error| over t >= skip*dt relative to the largest |exact| there."""
     return float(np.max(np.abs(y[skip:] - exact[skip:])) / np.max(np.abs(exact[skip:])))
-
-
-def _cost(method: str, options: dict, dt: float, horizon: float) -> dict:
-    op = fractional.make_operator(method, dt, horizon, **options)
-    return op.cost()
 
 
 def _time_per_step(method: str, options: dict, dt: float, steps: int, channels: int = 64) -> float:
@@ -110,10 +108,10 @@ def evaluate(horizon: float = 80.0, dt: float = 1e-3, orders=ORDERS, methods=Non
         errors = {}
         for i, alpha in enumerate(alphas):
             exact = _exact(t, alpha)
-            per_signal = {}
-            for j, name in enumerate(names):
-                # Derivatives of the step are unbounded at t = 0 and O(1/dt^a) at t = dt.
-                per_signal[name] = relative_error(y_all[i][:, j], exact[name])
+            # Derivatives of the step are unbounded at t = 0 and O(1/dt^a) at t = dt.
+            per_signal = {
+                name: relative_error(y_all[i][:, j], exact[name]) for j, name in enumerate(names)
+            }
             # Relaxation E_a(-t^a): I^a E = 1 - E (integral orders only).
             order = abs(alpha)
             if alpha < 0:
@@ -126,10 +124,9 @@ def evaluate(horizon: float = 80.0, dt: float = 1e-3, orders=ORDERS, methods=Non
                     y_relax, 1.0 - relax, skip=int(round(1.0 / dt))
                 )
             errors[f"{alpha:+.2f}"] = per_signal
-        smooth = ["sin(1.7t)", "ramp", "t^2"]
-        worst_smooth = max(errors[a][s] for a in errors for s in smooth)
+        worst_smooth = max(errors[a][s] for a in errors for s in SMOOTH)
         worst_all = max(max(v.values()) for v in errors.values())
-        cost = _cost(method, options, dt, horizon)
+        cost = fractional.make_operator(method, dt, horizon, **options).cost()
         cost["ns_per_channel_step"] = _time_per_step(method, options, dt, min(steps, 20_001))
         results["methods"][label] = {
             "method": method,
@@ -140,6 +137,12 @@ def evaluate(horizon: float = 80.0, dt: float = 1e-3, orders=ORDERS, methods=Non
             "cost": cost,
         }
     return results
+
+
+def _worst_smooth(result: dict, sign: int, orders) -> list[float]:
+    """A method's worst error over :data:`SMOOTH` at each order: integrals (``sign``
+    -1) or derivatives (1)."""
+    return [max(result["errors"][f"{sign * o:+.2f}"][s] for s in SMOOTH) for o in orders]
 
 
 def markdown(results: dict) -> str:
@@ -157,13 +160,8 @@ def markdown(results: dict) -> str:
         " | ns/channel-step |",
         "|---" * (2 * len(orders) + 5) + "|",
     ]
-    smooth = ["sin(1.7t)", "ramp", "t^2"]
     for label, r in results["methods"].items():
-        cells = []
-        for sign in (-1, 1):
-            for o in orders:
-                e = r["errors"][f"{sign * o:+.2f}"]
-                cells.append(f"{max(e[s] for s in smooth):.1e}")
+        cells = [f"{e:.1e}" for sign in (-1, 1) for e in _worst_smooth(r, sign, orders)]
         c = r["cost"]
         lines.append(
             f"| {label} | "
@@ -179,22 +177,16 @@ def markdown(results: dict) -> str:
         "| method | step | cos(0.4t) | relaxation | relaxation, t >= 1 s |",
         "|---|---|---|---|---|",
     ]
+    non_smooth = ("step", "cos(0.4t)", "relaxation", "relaxation, t>=1s")
     for label, r in results["methods"].items():
-
-        def worst(name, r=r):
-            return max(v[name] for v in r["errors"].values() if name in v)
-
-        lines.append(
-            f"| {label} | {worst('step'):.1e} | {worst('cos(0.4t)'):.1e} | "
-            f"{worst('relaxation'):.1e} | {worst('relaxation, t>=1s'):.1e} |"
-        )
+        worst = [max(v[name] for v in r["errors"].values() if name in v) for name in non_smooth]
+        lines.append(f"| {label} | " + " | ".join(f"{w:.1e}" for w in worst) + " |")
     return "\n".join(lines) + "\n"
 
 
 def plot(results: dict, path: pathlib.Path) -> pathlib.Path:
     plt = style.pyplot()
     orders = results["orders"]
-    smooth = ["sin(1.7t)", "ramp", "t^2"]
     fig = plt.figure(figsize=(11, 4.6), layout="constrained")
     axes = fig.subplots(1, 2, sharey=True)
     for ax, sign, title in (
@@ -203,12 +195,11 @@ def plot(results: dict, path: pathlib.Path) -> pathlib.Path:
     ):
         markers = ("o", "s", "^", "D", "v", "P", "X")
         for index, (label, r) in enumerate(results["methods"].items()):
-            errs = [max(r["errors"][f"{sign * o:+.2f}"][s] for s in smooth) for o in orders]
             # Hollow markers shrinking with the index: methods whose errors coincide
             # (e.g. full and short GL memory at short horizons) stay visible.
             ax.semilogy(
-                orders, errs, marker=markers[index % len(markers)], ms=10 - index, mfc="none",
-                mew=1.3, lw=1.2, label=label,
+                orders, _worst_smooth(r, sign, orders), marker=markers[index % len(markers)],
+                ms=10 - index, mfc="none", mew=1.3, lw=1.2, label=label,
             )  # fmt: skip
         ax.axhline(1e-4, color="k", ls="--", lw=0.8, label="1e-4")
         ax.set_xlabel("order a")
@@ -227,19 +218,16 @@ finish (80 s at 1 ms, the default, is 80,000)."""
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fojax accuracy", description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--out",
-        type=arguments.output_directory,
-        default=pathlib.Path("results/fractional"),
-        metavar="DIR",
-        help="output folder (results/fractional)",
+    real = arguments.positive_float
+    # fmt: off
+    arguments.add_options(
+        parser,
+        ("--out", dict(type=arguments.output_directory, default=pathlib.Path("results/fractional"),
+                       metavar="DIR", help="output folder (results/fractional)")),
+        ("--horizon", dict(type=real, default=80.0, help="seconds (default 80)")),
+        ("--dt", dict(type=real, default=1e-3, help="step in seconds (default 1e-3)")),
     )
-    parser.add_argument(
-        "--horizon", type=arguments.positive_float, default=80.0, help="seconds (default 80)"
-    )
-    parser.add_argument(
-        "--dt", type=arguments.positive_float, default=1e-3, help="step in seconds (default 1e-3)"
-    )
+    # fmt: on
     return parser
 
 

@@ -39,6 +39,7 @@ units.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import platform
 import resource
@@ -142,17 +143,17 @@ UNITS = {
 }
 
 
-SMALL_SETS = (
-    "draws",
-    "long_horizon",
-    "short_horizon",
-    "repeats",
-    "gradient_draws",
-    "gradient_horizons",
-    "numpy_draws",
-    "numpy_horizon",
-)
-"""The options ``--small`` sets itself (giving one of them with it is an error)."""
+SMALL = {
+    "draws": (1,),
+    "long_horizon": 0.02,
+    "short_horizon": 0.02,
+    "repeats": 1,
+    "gradient_draws": (4,),
+    "gradient_horizons": (0.02,),
+    "numpy_draws": (1,),
+    "numpy_horizon": 0.02,
+}
+"""The sizes ``--small`` sets itself (giving one of these options with it is an error)."""
 
 
 def _given(argv: list[str]) -> set[str]:
@@ -168,17 +169,11 @@ def _parse(argv: list[str]) -> argparse.Namespace:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.small:
-        clashing = sorted(_given(argv) & set(SMALL_SETS))
+        clashing = sorted(_given(argv) & set(SMALL))
         if clashing:
             flags = ", ".join("--" + name.replace("_", "-") for name in clashing)
             parser.error(f"--small sets the sizes itself; leave {flags} out or drop --small")
-        args.draws = (min(args.draws[0], 4),)
-        args.long_horizon = args.short_horizon = 0.02
-        args.repeats = 1
-        args.gradient_draws = (min(args.gradient_draws[0], 4),)
-        args.gradient_horizons = (0.02,)
-        args.numpy_draws = args.draws
-        args.numpy_horizon = 0.02
+        vars(args).update(SMALL)
     return args
 
 
@@ -284,7 +279,14 @@ def _measure(args, result: dict, mesh) -> None:
             _log(f"gradient: {count} draws x {horizon} s ...")
             entry = measure_gradient(count, horizon, args.repeats, mesh)
             result["gradient"].append(entry)
-            _log_gradient(entry)
+            memory = entry["gradient_memory"].get("peak_bytes")
+            _log(
+                f"  {entry['gradient_draw_steps_per_s']:.3g} draw-steps/s, "
+                f"{entry['gradient_over_forward']:.2f}x forward "
+                f"({entry['gradient_over_forward_cpu_time']:.2f}x in CPU time), "
+                f"peak {memory / 2**20 if memory else float('nan'):.1f} MiB, "
+                f"compile {entry['gradient_compile_s']:.1f} s"
+            )
 
     if args.scaling:
         base_draws = 8 if args.small else 256
@@ -301,8 +303,6 @@ def _measure(args, result: dict, mesh) -> None:
             for e in entries:
                 _log(f"  {kind}: {e['draws']} x {e['horizon_s']} s: run {e['run_s']:.3f} s")
 
-    import importlib.util
-
     if importlib.util.find_spec("crazyflow") is not None:
         _log("crazyflow ...")
         try:
@@ -311,17 +311,6 @@ def _measure(args, result: dict, mesh) -> None:
             result["crazyflow"] = {"error": f"{type(error).__name__}: {error}"}
     else:
         result["crazyflow"] = {"skipped": "crazyflow is not installed"}
-
-
-def _log_gradient(entry: dict) -> None:
-    memory = entry["gradient_memory"].get("peak_bytes")
-    _log(
-        f"  {entry['gradient_draw_steps_per_s']:.3g} draw-steps/s, "
-        f"{entry['gradient_over_forward']:.2f}x forward "
-        f"({entry['gradient_over_forward_cpu_time']:.2f}x in CPU time), "
-        f"peak {memory / 2**20 if memory else float('nan'):.1f} MiB, "
-        f"compile {entry['gradient_compile_s']:.1f} s"
-    )
 
 
 def _print_summary(result: dict) -> None:

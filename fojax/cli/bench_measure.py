@@ -20,7 +20,9 @@ class _Workload:
         self.dt = 1e-3
         steps = int(round(horizon / self.dt))
         if save_every is None:
-            save_every = _block_size(steps)
+            # Checkpointed blocks of the divisor of ``steps`` nearest ``sqrt(steps)`` keep
+            # reverse-mode memory ``O(sqrt(steps))``.
+            save_every = simulator.divisor_near(steps, math.sqrt(steps))
         self.scenario = scenarios.get_scenario(2)
         self.config = simulator.SimulationConfig(dt=self.dt, horizon=horizon, save_every=save_every)
         # The fractional memory is sized for the scenario's 80 s, whatever the horizon.
@@ -58,14 +60,6 @@ class _Workload:
         return scenarios.batch_first(result)
 
 
-def _block_size(steps: int) -> int:
-    """The divisor of ``steps`` nearest ``sqrt(steps)``: checkpointed blocks of that many
-    steps keep reverse-mode memory ``O(sqrt(steps))``."""
-    from fojax import simulator
-
-    return simulator.divisor_near(steps, math.sqrt(steps))
-
-
 def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
     import jax
 
@@ -79,26 +73,23 @@ def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
 
 
 def _padded_count(count: int, devices: int) -> int:
-    return count if count % devices == 0 else count + (-count % devices)
+    return count + (-count % devices)
 
 
 def _compile(fn, *args) -> tuple:
     """``fn`` compiled for ``args``, its compile time (s) and that time by phase:
     ``{"trace_s", "lower_s", "xla_s"}`` (tracing to a jaxpr, lowering to StableHLO,
     XLA's optimisation and code generation)."""
-    start = time.perf_counter()
-    traced = fn.trace(*args)
-    traced_at = time.perf_counter()
-    lowered = traced.lower()
-    lowered_at = time.perf_counter()
-    compiled = lowered.compile()
-    end = time.perf_counter()
-    phases = {
-        "trace_s": traced_at - start,
-        "lower_s": lowered_at - traced_at,
-        "xla_s": end - lowered_at,
-    }
-    return compiled, end - start, phases
+    stage, phases = fn, {}
+    for phase, advance in (
+        ("trace_s", lambda jitted: jitted.trace(*args)),
+        ("lower_s", lambda traced: traced.lower()),
+        ("xla_s", lambda lowered: lowered.compile()),
+    ):
+        start = time.perf_counter()
+        stage = advance(stage)
+        phases[phase] = time.perf_counter() - start
+    return stage, sum(phases.values()), phases
 
 
 _NOT_KERNELS = frozenset({"parameter", "get-tuple-element", "tuple", "constant", "bitcast"})
@@ -144,16 +135,9 @@ def _memory(compiled) -> dict:
         return {}
     if stats is None:
         return {}
-    fields = (
-        "temp_size_in_bytes",
-        "argument_size_in_bytes",
-        "output_size_in_bytes",
-        "generated_code_size_in_bytes",
-    )
-    out = {name.replace("_in_bytes", "_bytes"): int(getattr(stats, name, 0)) for name in fields}
-    out["peak_bytes"] = (
-        out["temp_size_bytes"] + out["argument_size_bytes"] + out["output_size_bytes"]
-    )
+    parts = ("temp", "argument", "output", "generated_code")
+    out = {f"{k}_size_bytes": int(getattr(stats, f"{k}_size_in_bytes", 0)) for k in parts}
+    out["peak_bytes"] = sum(out[f"{k}_size_bytes"] for k in parts[:3])
     return out
 
 
@@ -187,11 +171,7 @@ def measure_forward(
     chunks = [place(i * padded_chunk, padded_chunk) for i in range(n_chunks)]
     compiled, compile_s, phases = _compile(run, gains, chunks[0])
     jax.block_until_ready(compiled(gains, chunks[0]))  # warm
-
-    def run_all():
-        return [compiled(gains, c) for c in chunks]
-
-    run_s, times = _median_time(run_all, repeats)
+    run_s, times = _median_time(lambda: [compiled(gains, c) for c in chunks], repeats)
     steps = work.config.steps
     entry = {
         "draws": count,
@@ -239,7 +219,7 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
 
     def costs(gains, draws):
         # One copy of the gains per draw: their cotangents stay per draw inside the time
-        # loop and are summed once, after it (see the module docstring).
+        # loop and are summed once, after it (see :meth:`_Workload.run_draws`).
         return work.run_draws(gains, draws, cost, per_draw_gains=True).outputs
 
     per_device = sharding.sharded_batch(costs, mesh, batched=(False, True))
@@ -247,10 +227,10 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
     def forward(gains, draws):
         return jnp.mean(per_device(gains, draws))
 
-    forward_jit = jax.jit(forward)
-    gradient_jit = jax.jit(jax.grad(forward))
-    forward_c, forward_compile_s, forward_phases = _compile(forward_jit, gains, draws)
-    gradient_c, gradient_compile_s, gradient_phases = _compile(gradient_jit, gains, draws)
+    forward_c, forward_compile_s, forward_phases = _compile(jax.jit(forward), gains, draws)
+    gradient_c, gradient_compile_s, gradient_phases = _compile(
+        jax.jit(jax.grad(forward)), gains, draws
+    )
     jax.block_until_ready(forward_c(gains, draws))
     jax.block_until_ready(gradient_c(gains, draws))
     # Interleaved, so that a load that comes and goes falls on both alike; the ratio is

@@ -84,11 +84,12 @@ def _switching(kind: str, surface: np.ndarray, width: np.ndarray) -> np.ndarray:
     return np.tanh(surface / width)
 
 
-def _rotor_speeds_squared(thrust_factor, drag_factor, arm_length, inputs):
-    """``(n, 4)`` squared rotor speeds of the inverted mixer (10); ``inputs`` ``(n, 4)``."""
-    bd = thrust_factor * arm_length
-    common = inputs[:, 0] / (4.0 * thrust_factor)
-    yaw = inputs[:, 3] / (4.0 * drag_factor)
+def _rotor_speeds_squared(params: dict, inputs):
+    """``(n, 4)`` squared rotor speeds of the inverted mixer (10); ``inputs`` ``(n, 4)``,
+    ``params`` the plant's (``"thrust_factor"``, ``"drag_factor"``, ``"arm_length"``)."""
+    bd = params["thrust_factor"] * params["arm_length"]
+    common = inputs[:, 0] / (4.0 * params["thrust_factor"])
+    yaw = inputs[:, 3] / (4.0 * params["drag_factor"])
     tau_x, tau_y = inputs[:, 1], inputs[:, 2]
     return np.stack(
         [
@@ -101,37 +102,34 @@ def _rotor_speeds_squared(thrust_factor, drag_factor, arm_length, inputs):
     )
 
 
-def _rotor_speed_sum(thrust_factor, drag_factor, arm_length, inputs):
-    speeds = np.sqrt(
-        np.maximum(_rotor_speeds_squared(thrust_factor, drag_factor, arm_length, inputs), 0.0)
-    )
+def _rotor_speed_sum(params: dict, inputs):
+    speeds = np.sqrt(np.maximum(_rotor_speeds_squared(params, inputs), 0.0))
     return speeds[:, 0] - speeds[:, 1] + speeds[:, 2] - speeds[:, 3]
+
+
+def _angular_drift(params: dict, rates, drag_attitude, omega_r):
+    """The angular accelerations of eq. (11) without torque ``(n, 3)``: gyroscopic, rotor
+    (rotor speed sum ``omega_r``) and quadratic drag terms. ``params``: a plant's, per
+    draw (inertia ``(n, 3)``) or nominal (``(3,)``)."""
+    inertia, j_r = params["inertia"], params["rotor_inertia"]
+    i11, i22, i33 = inertia[..., 0], inertia[..., 1], inertia[..., 2]
+    roll_rate, pitch_rate, yaw_rate = rates[:, 0], rates[:, 1], rates[:, 2]
+    gyroscopic = np.stack(
+        [
+            (i22 - i33) / i11 * pitch_rate * yaw_rate - j_r / i11 * pitch_rate * omega_r,
+            (i33 - i11) / i22 * roll_rate * yaw_rate + j_r / i22 * roll_rate * omega_r,
+            (i11 - i22) / i33 * roll_rate * pitch_rate,
+        ],
+        axis=1,
+    )
+    return gyroscopic - drag_attitude / inertia * (rates * np.abs(rates))
 
 
 def _derivatives(p, state, inputs, disturbance, drag_position, drag_attitude, omega_r):
     """Eq. (11) for all draws: ``(n, 12)``. ``p``: dict of per-draw plant arrays."""
     phi, theta, psi = state[:, 3], state[:, 4], state[:, 5]
-    rates = state[:, 9:12]
-    roll_rate, pitch_rate, yaw_rate = rates[:, 0], rates[:, 1], rates[:, 2]
-    i11, i22, i33 = p["inertia"][:, 0], p["inertia"][:, 1], p["inertia"][:, 2]
-    j_r = p["rotor_inertia"]
-    drag = rates * np.abs(rates)
-    roll_accel = (
-        (i22 - i33) / i11 * pitch_rate * yaw_rate
-        - j_r / i11 * pitch_rate * omega_r
-        - drag_attitude[:, 0] / i11 * drag[:, 0]
-        + inputs[:, 1] / i11
-    )
-    pitch_accel = (
-        (i33 - i11) / i22 * roll_rate * yaw_rate
-        + j_r / i22 * roll_rate * omega_r
-        - drag_attitude[:, 1] / i22 * drag[:, 1]
-        + inputs[:, 2] / i22
-    )
-    yaw_accel = (
-        (i11 - i22) / i33 * roll_rate * pitch_rate
-        - drag_attitude[:, 2] / i33 * drag[:, 2]
-        + inputs[:, 3] / i33
+    angular_accel = (
+        _angular_drift(p, state[:, 9:12], drag_attitude, omega_r) + inputs[:, 1:] / p["inertia"]
     )
     c_phi, s_phi = np.cos(phi), np.sin(phi)
     c_theta, s_theta = np.cos(theta), np.sin(theta)
@@ -151,9 +149,7 @@ def _derivatives(p, state, inputs, disturbance, drag_position, drag_attitude, om
         - drag_position / mass * state[:, 6:9]
     )
     linear_accel[:, 2] -= p["gravity"]
-    accel = np.concatenate(
-        [linear_accel, np.stack([roll_accel, pitch_accel, yaw_accel], axis=1)], axis=1
-    )
+    accel = np.concatenate([linear_accel, angular_accel], axis=1)
     return np.concatenate([state[:, 6:12], accel + disturbance], axis=1)
 
 
@@ -241,8 +237,7 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
     cost = np.zeros(n, dtype)
 
     for k in range(config.steps):
-        t = k * dt
-        ref, ref_vel, ref_acc = (np.asarray(a, dtype) for a in reference_54_55(t))
+        ref, ref_vel, ref_acc = (np.asarray(a, dtype) for a in reference_54_55(k * dt))
 
         # ---- controller: errors of the six axes
         attitude_reference, error, error_rate = _errors(state, command_filter, ref, ref_vel, dtype)
@@ -355,91 +350,49 @@ def _attitude_loop(prepared: dict, state, command_filter, tilt_reference, terms,
         command_filter @ prepared["filter_transition"].T
         + tilt_reference[:, :, None] * prepared["filter_input"]
     )
-    drift = _attitude_drift(nominal, state, last_inputs)
+    omega_r_model = _rotor_speed_sum(nominal, last_inputs)  # from the previous step's inputs
+    drift = _angular_drift(nominal, state[:, 9:12], nominal["drag_attitude"], omega_r_model)
     torque = nominal["inertia"] * (
         -drift + attitude_reference_accel - dsurface[:, 3:] + reaching[:, 3:]
     )
     return torque, command_filter
 
 
-def _attitude_drift(nominal: dict, state, last_inputs):
-    """The nominal model's angular accelerations without torque ``(n, 3)``: gyroscopic,
-    rotor and quadratic drag terms (rotor speed from the previous step's inputs)."""
-    omega_r_model = _rotor_speed_sum(
-        nominal["thrust_factor"], nominal["drag_factor"], nominal["arm_length"], last_inputs
-    )
-    rates = state[:, 9:12]
-    i_nom = nominal["inertia"]
-    p_, q_, r_ = rates[:, 0], rates[:, 1], rates[:, 2]
-    return np.stack(
-        [
-            (i_nom[1] - i_nom[2]) / i_nom[0] * q_ * r_
-            - nominal["rotor_inertia"] / i_nom[0] * q_ * omega_r_model,
-            (i_nom[2] - i_nom[0]) / i_nom[1] * p_ * r_
-            + nominal["rotor_inertia"] / i_nom[1] * p_ * omega_r_model,
-            (i_nom[0] - i_nom[1]) / i_nom[2] * p_ * q_,
-        ],
-        axis=1,
-    ) - nominal["drag_attitude"] / i_nom * (rates * np.abs(rates))
-
-
 def _status_bits(plant_params: dict, next_state, inputs, surface):
     """The step's status bits ``(n,)``: 1 nonfinite, 2 tilt limit, 4 actuator limit."""
-    finite = (
-        np.all(np.isfinite(next_state), axis=1)
-        & np.all(np.isfinite(inputs), axis=1)
-        & np.all(np.isfinite(surface), axis=1)
-    )
+    finite = np.all(np.isfinite(np.concatenate([next_state, inputs, surface], axis=1)), axis=1)
     tilt = np.any(np.abs(next_state[:, 3:5]) >= math.pi / 2, axis=1)
-    squared = _rotor_speeds_squared(
-        plant_params["thrust_factor"],
-        plant_params["drag_factor"],
-        plant_params["arm_length"],
-        inputs,
-    )
-    actuator = np.any(squared < 0, axis=1)
+    actuator = np.any(_rotor_speeds_squared(plant_params, inputs) < 0, axis=1)
     return np.where(finite, 0, 1) | np.where(tilt, 2, 0) | np.where(actuator, 4, 0)
 
 
 def _errors(state, command_filter, ref, ref_vel, dtype):
     """The attitude reference ``(n, 3)`` and the six axes' errors and error rates."""
     n = state.shape[0]
-    attitude_reference = np.concatenate(
-        [command_filter[:, :, 0], np.full((n, 1), ref[3], dtype)], axis=1
+    reference, reference_rate = (
+        np.concatenate(
+            [np.broadcast_to(r[:3], (n, 3)), command_filter[:, :, i], np.full((n, 1), r[3], dtype)],
+            axis=1,
+        )
+        for i, r in enumerate((ref, ref_vel))
     )
-    attitude_reference_rate = np.concatenate(
-        [command_filter[:, :, 1], np.full((n, 1), ref_vel[3], dtype)], axis=1
-    )
-    error = state[:, :6] - np.concatenate(
-        [np.broadcast_to(ref[:3], (n, 3)), attitude_reference], axis=1
-    )
-    error_rate = state[:, 6:12] - np.concatenate(
-        [np.broadcast_to(ref_vel[:3], (n, 3)), attitude_reference_rate], axis=1
-    )
-    return attitude_reference, error, error_rate
+    return reference[:, 3:], state[:, :6] - reference, state[:, 6:12] - reference_rate
 
 
 def _plant_step(prepared: dict, scenario, state, inputs, k: int, dt: float):
     """The plant's RK4 step ``k``, with the inputs, the disturbance and the drag held."""
     plant_params = prepared["plant"]
-    drag_table, noise_table = prepared["drag_table"], prepared["noise_table"]
-    drag_hold = max(1, round(scenario.drag_hold / dt))
-    noise_hold = max(1, round(scenario.noise_hold / dt))
-    t = k * dt
-    disturbance = (
-        np.asarray(disturbances_53(t), prepared["dtype"])
-        + noise_table[:, min(k // noise_hold, noise_table.shape[1] - 1)]
+
+    def held_row(table, hold: float):  # the table's row of step k, each held ``hold`` s
+        return table[:, min(k // max(1, round(hold / dt)), table.shape[1] - 1)]
+
+    disturbance = np.asarray(disturbances_53(k * dt), prepared["dtype"]) + held_row(
+        prepared["noise_table"], scenario.noise_hold
     )
-    multipliers = drag_table[:, min(k // drag_hold, drag_table.shape[1] - 1)]
+    multipliers = held_row(prepared["drag_table"], scenario.drag_hold)
     drag_position = plant_params["drag_position"] * multipliers[:, :3]
     drag_attitude = plant_params["drag_attitude"] * multipliers[:, 3:]
-    omega_r = _rotor_speed_sum(
-        plant_params["thrust_factor"],
-        plant_params["drag_factor"],
-        plant_params["arm_length"],
-        inputs,
-    )
-
+    omega_r = _rotor_speed_sum(plant_params, inputs)
     held = (inputs, disturbance, drag_position, drag_attitude, omega_r)
     return _rk4_step(plant_params, state, held, dt)
 
@@ -452,13 +405,10 @@ def _initial(prepared: dict, scenario, n: int):
         np.concatenate([scenario.initial_position, scenario.initial_attitude, np.zeros(6)]),
         (n, 1),
     ).astype(dtype)
-    n_modes = prepared["decay_m1"].shape[0]
-    modes = np.zeros((n, 12, n_modes), dtype)
-    u_prev = np.zeros((n, 12), dtype)
-    u_prev2 = np.zeros((n, 12), dtype)
-    adaptive = np.zeros((n, 6, 3), dtype)
+    modes = np.zeros((n, 12, prepared["decay_m1"].shape[0]), dtype)
     command_filter = np.zeros((n, 2, 2), dtype)
     command_filter[:, :, 0] = state[:, 3:5]
     last_inputs = np.zeros((n, 4), dtype)
     last_inputs[:, 0] = nominal["mass"] * nominal["gravity"]
+    u_prev, u_prev2, adaptive = (np.zeros(shape, dtype) for shape in ((n, 12), (n, 12), (n, 6, 3)))
     return state, modes, u_prev, u_prev2, adaptive, command_filter, last_inputs
