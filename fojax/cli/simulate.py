@@ -195,13 +195,10 @@ def _print_summary(summary: dict) -> None:
         cells = []
         for key in ("position_rmse", "attitude_rmse"):
             m = entry["metrics"][key]
-            if m["mean"] is None:
-                cells.append(f"{'n/a':>26}")
-            elif m["ci95"] is None:
-                cells.append(f"{m['mean']:>26.4g}")
-            else:
-                lo, hi = m["ci95"]
-                cells.append(f"{m['mean']:.4g} [{lo:.4g}, {hi:.4g}]".rjust(26))
+            cell = "n/a" if m["mean"] is None else f"{m['mean']:.4g}"
+            if m["mean"] is not None and m["ci95"] is not None:
+                cell += " [{:.4g}, {:.4g}]".format(*m["ci95"])
+            cells.append(cell.rjust(26))
         print(f"  {name:<10} {cells[0]} {cells[1]}  {entry['diverged']}/{entry['draws']}")
 
 

@@ -3,9 +3,8 @@
 See :mod:`fojax.cli.reproduce` for what it writes, :mod:`.claims` for the claims and
 the verdict rule, :mod:`.report` for the report.
 
-The studies (one :class:`fojax.cli.simulate.Study` per scenario) are made, run and
-summarised through :func:`_make_study`, :func:`_run_studies` and :func:`_write_outputs`
-only, the one place that knows where that layer lives.
+The studies (one :class:`fojax.cli.simulate.Study` per scenario) are run and summarised
+through :func:`_run_studies` and :func:`_write_outputs` only.
 """
 
 from __future__ import annotations
@@ -33,10 +32,6 @@ committed example is in ``docs/reproduction.md``."""
 
 
 # ------------------------------------------------------------------- the study layer
-
-
-def _make_study(**fields) -> simulate.Study:
-    return simulate.Study(**fields)
 
 
 def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce, settings=None):
@@ -214,7 +209,7 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
         horizon = args.horizon if args.horizon is not None else scenario.horizon
         steps = arguments.horizon_steps(parser, horizon, args.dt, example=False)
         studies.append(
-            _make_study(
+            simulate.Study(
                 scenario_id=scenario_id,
                 controllers=(BASELINE, *compared),
                 draws=args.draws,
@@ -273,20 +268,18 @@ def main(argv=None) -> int:
                 summaries[study.scenario_id] = _write_outputs(study, results, directory)
                 if drawer is not None:  # while the next scenario runs
                     drawer.submit(study.scenario_id, results)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ValueError) as error:
         if drawer is not None:
             drawer.close()
+        if isinstance(error, ValueError):
+            print(f"fojax reproduce: error: {error}", file=sys.stderr)
+            return 2
         print(
             f"\ninterrupted: finished draws are kept under {out}/s*/chunks; run the same "
             "command again to continue",
             file=sys.stderr,
         )
         return 130
-    except ValueError as error:
-        if drawer is not None:
-            drawer.close()
-        print(f"fojax reproduce: error: {error}", file=sys.stderr)
-        return 2
     if not lead:  # process 0 writes the report
         return 0
     figures = drawer.finish() if drawer is not None else []
