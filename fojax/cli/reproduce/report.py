@@ -244,14 +244,13 @@ def _claim_section(claim: dict) -> list[str]:
             "| eq. (34) bound (s) |",
             "|---|---|---|---|---|---|---|",
         ]
-        for row in claim["rows"]:
-            lines.append(
-                f"| {row['scenario']} | {row['axis']} | {_fmt(row['band'])} | "
-                f"{row['reached']}/{row['valid_draws']} | "
-                f"{row['kept_from_first_half']}/{row['valid_draws']} | "
-                f"{_cell(row['reaching_time_s'])} | {_fmt(row['bound_34_s']['mean'])} |"
-            )
-        lines.append("")
+        lines += [
+            f"| {row['scenario']} | {row['axis']} | {_fmt(row['band'])} | "
+            f"{row['reached']}/{row['valid_draws']} | "
+            f"{row['kept_from_first_half']}/{row['valid_draws']} | "
+            f"{_cell(row['reaching_time_s'])} | {_fmt(row['bound_34_s']['mean'])} |"
+            for row in claim["rows"]
+        ] + [""]
     return lines
 
 
@@ -306,13 +305,9 @@ def _markdown(out, summaries, claims, settings, figures, wall_time, tables) -> l
     ]
     for claim in claims:
         c = claim.get("counts")
-        tally = (
-            f"{c['better']} / {c['worse']} / {c['equivalent']} / {c['inconclusive']}" if c else ""
-        )
-        lines.append(
-            f"| {claim['text']} | **{claim['verdict']}** | {tally} | "
-            f"{claim.get('verdict_without_margin', claim['verdict'])} |"
-        )
+        tally = " / ".join(str(c[k]) for k in claims_module.OUTCOMES) if c else ""
+        without = claim.get("verdict_without_margin", claim["verdict"])
+        lines.append(_row([claim["text"], f"**{claim['verdict']}**", tally, without]))
     lines += [""] + _rule_lines(settings)
     lines += [
         "Reading the metrics: errors are `actual - reference`; roll and pitch errors (in "
