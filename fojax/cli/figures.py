@@ -53,8 +53,11 @@ def _figure(rows, cols, size):
     return fig, fig.subplots(rows, cols, sharex=True, squeeze=False)
 
 
-def _grid(axes) -> None:
-    """``t (s)`` under the last row of ``axes``, a light grid in every one."""
+def _label_axes(axes, ylabels=()) -> None:
+    """``t (s)`` under the last row of ``axes``, ``ylabels`` on the panels of a 3 x 2
+    grid (:func:`_panels`), a light grid in every one."""
+    for ax, text in zip(_panels(axes), ylabels, strict=False):
+        ax.set_ylabel(text)
     for ax in axes[-1]:
         ax.set_xlabel("t (s)")
     for ax in axes.flat:
@@ -67,8 +70,8 @@ def _panels(axes):
     return axes.T.flat
 
 
-def _finish(fig, axes, path, title, caption, handles):
-    _grid(axes)
+def _finish(fig, axes, path, title, caption, handles, ylabels=()):
+    _label_axes(axes, ylabels)
     style.suptitle(fig, title, caption)
     style.legend_below(fig, handles)
     return style.save(fig, path)
@@ -98,12 +101,11 @@ def plot_tracking(results: dict, path: Path, title: str = "Tracking") -> Path:
     for axis in range(3):
         line = style.reference(axes[axis, 0], t0, np.median(ref[:, :, axis], 0))
     style.reference(axes[2, 1], t0, np.median(ref[:, :, 3], 0))
-    for ax, text in zip(_panels(axes), labels, strict=True):
-        ax.set_ylabel(text)
     axes[0, 1].set_title(
         "phi, theta: no reference drawn (each controller commands its own)", fontsize=8
     )
-    return _finish(fig, axes, path, title, style.draws_caption(results), handles + [line])
+    caption = style.draws_caption(results)
+    return _finish(fig, axes, path, title, caption, handles + [line], labels)
 
 
 def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Path:
@@ -119,11 +121,8 @@ def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Pa
         errors = kept_valid(result, np.concatenate([position_error, attitude_error], axis=-1))
         for axis, ax in enumerate(_panels(axes)):
             style.band(ax, _time(result), errors[:, :, axis], style.color(name, i))
-    for ax, text in zip(_panels(axes), labels, strict=True):
-        ax.set_ylabel(text)
-    return _finish(
-        fig, axes, path, title, style.draws_caption(results), _controller_handles(results)
-    )
+    handles = _controller_handles(results)
+    return _finish(fig, axes, path, title, style.draws_caption(results), handles, labels)
 
 
 def inputs_envelope(result):
@@ -158,7 +157,7 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
             )
     for channel in range(4):
         axes[channel, 0].set_ylabel(INPUTS[channel])
-    _grid(axes)
+    _label_axes(axes)
     t = _time(next(iter(results.values())))
     block = float(t[1] - t[0]) if t.size > 1 else float("nan")
     caption = style.draws_caption(results).replace(
@@ -235,10 +234,9 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
         Line2D([], [], color="0.3", ls=ls, lw=1.1, label=f"b{j}")
         for j, ls in enumerate(style.ESTIMATE_STYLES)
     ]
-    for ax, text in zip(_panels(axes), AXES, strict=True):
-        ax.set_ylabel(f"{text}: b0, b1, b2")
+    labels = [f"{text}: b0, b1, b2" for text in AXES]
     caption = style.draws_caption(results).replace("median and 5-95 % band", "median")
-    return _finish(fig, axes, path, title, caption, handles)
+    return _finish(fig, axes, path, title, caption, handles, labels)
 
 
 FIGURES = (

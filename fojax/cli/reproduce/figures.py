@@ -34,7 +34,7 @@ from fojax.cli import style
 from fojax.cli.figures import (
     _controller_handles,
     _figure,
-    _grid,
+    _label_axes,
     _panels,
     _path_figure,
     inputs_envelope,
@@ -72,11 +72,13 @@ def _handles(results: dict, reference: bool = True, extra=()):
     return handles + list(extra)
 
 
-def _finish(fig, path: Path, title: str, results: dict, handles, spread=None, axes=None):
+def _finish(
+    fig, path: Path, title: str, results: dict, handles, spread=None, axes=None, ylabels=()
+):
     """Title with the true draw counts, legend below the axes, PNG and PDF; with
-    ``axes`` (a grid of time plots), :func:`fojax.cli.figures._grid` first."""
+    ``axes`` (a grid of time plots), :func:`fojax.cli.figures._label_axes` first."""
     if axes is not None:
-        _grid(axes)
+        _label_axes(axes, ylabels)
     spread = spread or style.draws_caption(results).replace(
         "the statistics in summary.json", "the tables"
     )
@@ -98,12 +100,10 @@ def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> P
         style.reference(axes[axis, 0], t, first.reference[0, :, axis])
     style.reference(axes[2, 1], t, first.reference[0, :, 3])
     labels = ["x (m)", "y (m)", "z (m)", "phi (rad)", "theta (rad)", "psi (rad)"]
-    for ax, label in zip(_panels(axes), labels, strict=True):
-        ax.set_ylabel(label)
     axes[0, 0].set_title("(a) Position tracking", fontsize=9)
     axes[0, 1].set_title("(b) Attitude tracking (phi, theta sampled every snapshot)", fontsize=9)
     title = f"Fig. {number}: Path following performance in Scenario {scenario_id}"
-    return _finish(fig, path, title, results, _handles(results), axes=axes)
+    return _finish(fig, path, title, results, _handles(results), axes=axes, ylabels=labels)
 
 
 def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int) -> Path:
@@ -210,8 +210,6 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
                 ax.plot(t, mid, ls=ls, color=color, lw=1.1, zorder=3)
                 if values.shape[0] > 1 and name == "afonftsmc":
                     ax.fill_between(t, low, high, color=color, alpha=0.12, lw=0, zorder=2)
-    for ax, label in zip(_panels(axes), ("x", "y", "z", "phi", "theta", "psi"), strict=True):
-        ax.set_ylabel(f"{label} estimates")
     axes[0, 0].set_title("(a) Parameters position", fontsize=9)
     axes[0, 1].set_title("(b) Parameters attitude", fontsize=9)
     styles = [
@@ -225,7 +223,8 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
         "(AFONFTSMC b-hat, ANFTSMC a-hat; band: AFONFTSMC 5-95 %)"
     )
     handles = _handles(shown or results, reference=False, extra=styles)
-    return _finish(fig, path, title, shown or results, handles, axes=axes)
+    labels = [f"{axis} estimates" for axis in ("x", "y", "z", "phi", "theta", "psi")]
+    return _finish(fig, path, title, shown or results, handles, axes=axes, ylabels=labels)
 
 
 def plot_all(results_by_scenario: dict, directory: Path) -> list[Path]:
