@@ -93,15 +93,13 @@ class _FigureDrawer:
         )
 
     def finish(self) -> list[Path]:
-        from fojax.cli.reproduce import figures as paper_figures
-
         if self.progress:
             print("figures ...", file=sys.stderr, flush=True)
         paths = []
         for scenario_id in sorted(self.results):
             future = self.futures.get(scenario_id)
             try:
-                drawn = [Path(p) for p in future.result()] if future is not None else None
+                drawn = future.result() if future is not None else None
             except Exception as error:  # noqa: BLE001 - the process died: draw them here
                 print(
                     f"warning: the figure process failed ({type(error).__name__}: {error}); "
@@ -110,10 +108,8 @@ class _FigureDrawer:
                 )
                 drawn = None
             if drawn is None:
-                drawn = paper_figures.plot_all(
-                    {scenario_id: self.results[scenario_id]}, self.directory
-                )
-            paths.extend(drawn)
+                drawn = _draw_scenario(scenario_id, self.results[scenario_id], self.directory)
+            paths.extend(Path(p) for p in drawn)
         self.close()
         return paths
 
