@@ -418,6 +418,16 @@ def _held_number(summary: dict) -> float:
     return summary["yield"] if "yield" in summary else summary["cost"]
 
 
+def _bar_axes(ax, labels, right_end: float, xlabel: str, title: str) -> None:
+    """Axes of horizontal bars: one row per label, top down; x from 0 to ``right_end``."""
+    ax.set_yticks(np.arange(len(labels)), labels)
+    ax.invert_yaxis()
+    ax.set_xlim(0, right_end)
+    ax.set_xlabel(xlabel)
+    ax.set_title(title, fontsize=9)
+    ax.grid(axis="x", alpha=0.3)
+
+
 def plot_yield(results: dict, path: Path, title: str) -> Path:
     """Left: the yield per controller with its 95 % Clopper-Pearson interval. Right: the
     share of draws failing each requirement, per controller."""
@@ -425,43 +435,24 @@ def plot_yield(results: dict, path: Path, title: str) -> Path:
     names = list(results)
     first = results[names[0]]
     requirements = list(first.names)
+    size = (10.5, 0.5 + 0.45 * max(4, len(requirements) * len(names) ** 0.5))
     fig, (left, right) = plt.subplots(
-        1,
-        2,
-        figsize=(10.5, 0.5 + 0.45 * max(4, len(requirements) * len(names) ** 0.5)),
-        layout="constrained",
-        gridspec_kw={"width_ratios": [1, 1.6]},
+        1, 2, figsize=size, layout="constrained", gridspec_kw={"width_ratios": [1, 1.6]}
     )
-    y = np.arange(len(names))
     for i, name in enumerate(names):
         result = results[name]
         low, high = result.interval
         value = result.yield_
         color = style.color(name, i)
         left.barh(i, 100 * value, color=color, alpha=0.35, height=0.6)
-        left.errorbar(
-            100 * value,
-            i,
-            xerr=[[100 * (value - low)], [100 * (high - value)]],
-            fmt="o",
-            color=color,
-            capsize=4,
-        )
-        left.annotate(
-            f"{value:.0%} ({result.passed}/{result.draws})",
-            (100 * high, i),
-            xytext=(4, 0),
-            textcoords="offset points",
-            va="center",
-            fontsize=8,
-        )
-    left.set_yticks(y, names)
-    left.invert_yaxis()
-    left.set_xlim(0, 125)
+        xerr = [[100 * (value - low)], [100 * (high - value)]]
+        left.errorbar(100 * value, i, xerr=xerr, fmt="o", color=color, capsize=4)
+        text = f"{value:.0%} ({result.passed}/{result.draws})"
+        left.annotate(text, (100 * high, i), xytext=(4, 0), textcoords="offset points",
+                      va="center", fontsize=8)  # fmt: skip
+    _bar_axes(left, names, 125, "yield (%), 95 % Clopper-Pearson interval",
+              "draws meeting every requirement")  # fmt: skip
     left.set_xticks([0, 25, 50, 75, 100])
-    left.set_xlabel("yield (%), 95 % Clopper-Pearson interval")
-    left.set_title("draws meeting every requirement", fontsize=9)
-    left.grid(axis="x", alpha=0.3)
     height = 0.8 / len(names)
     rows = np.arange(len(requirements))
     for i, name in enumerate(names):
@@ -469,12 +460,8 @@ def plot_yield(results: dict, path: Path, title: str) -> Path:
         share = 100 * np.asarray(result.failures) / result.draws
         offset = (i - (len(names) - 1) / 2) * height
         right.barh(rows + offset, share, height=height, color=style.color(name, i), label=name)
-    right.set_yticks(rows, requirements)
-    right.invert_yaxis()
-    right.set_xlim(0, 100)
-    right.set_xlabel("draws failing the requirement (%)")
-    right.set_title("failures per requirement", fontsize=9)
-    right.grid(axis="x", alpha=0.3)
+    _bar_axes(right, requirements, 100, "draws failing the requirement (%)",
+              "failures per requirement")  # fmt: skip
     if len(names) > 1:
         right.legend(fontsize=8, loc="best")
     style.suptitle(fig, title, "a diverged draw fails every requirement")
