@@ -202,6 +202,20 @@ def _print_summary(summary: dict) -> None:
         print(f"  {name:<10} {cells[0]} {cells[1]}  {entry['diverged']}/{entry['draws']}")
 
 
+def stopped(error: BaseException, prog: str, chunks: str) -> int:
+    """Says why a study stopped: interrupted (``KeyboardInterrupt``; the finished draws
+    are kept ``chunks``) or bad input (``ValueError``); returns the exit status, 130 or 2."""
+    if isinstance(error, KeyboardInterrupt):
+        print(
+            f"\ninterrupted: finished draws are kept {chunks}; run the same command again to "
+            "continue",
+            file=sys.stderr,
+        )
+        return 130
+    print(f"{prog}: error: {error}", file=sys.stderr)
+    return 2
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     runtime = arguments.setup_runtime(argv, "fojax simulate")
@@ -215,16 +229,8 @@ def main(argv=None) -> int:
     try:
         progress = not args.quiet and lead
         results = run_study(study, out, progress, args.overwrite, runtime["settings"])
-    except KeyboardInterrupt:
-        print(
-            f"\ninterrupted: finished draws are kept in {out / 'chunks'}; run the same "
-            "command again to continue",
-            file=sys.stderr,
-        )
-        return 130
-    except ValueError as error:  # e.g. study.StoreMismatch, raised before compiling
-        print(f"fojax simulate: error: {error}", file=sys.stderr)
-        return 2
+    except (KeyboardInterrupt, ValueError) as error:  # e.g. study.StoreMismatch, before compiling
+        return stopped(error, "fojax simulate", f"in {out / 'chunks'}")
     if not lead:  # process 0 writes the outputs
         return 0
     wall = round(time.perf_counter() - start, 1)

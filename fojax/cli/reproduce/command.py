@@ -267,15 +267,7 @@ def main(argv=None) -> int:
     except (KeyboardInterrupt, ValueError) as error:
         if drawer is not None:
             drawer.close()
-        if isinstance(error, ValueError):
-            print(f"fojax reproduce: error: {error}", file=sys.stderr)
-            return 2
-        print(
-            f"\ninterrupted: finished draws are kept under {out}/s*/chunks; run the same "
-            "command again to continue",
-            file=sys.stderr,
-        )
-        return 130
+        return simulate.stopped(error, "fojax reproduce", f"under {out}/s*/chunks")
     if not lead:  # process 0 writes the report
         return 0
     figures = drawer.finish() if drawer is not None else []
