@@ -35,8 +35,6 @@ __all__ = [
     "plot_yield",
 ]
 
-COLORS = style.CONTROLLER_COLORS  # kept for callers of the old name
-
 AXES = ("x", "y", "z", "phi", "theta", "psi")
 INPUTS = ("u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)")
 
@@ -51,17 +49,29 @@ def kept_valid(result, array) -> np.ndarray:
 
 
 def _figure(rows, cols, size):
-    plt = style.pyplot()
-    fig = plt.figure(figsize=size, layout="constrained")
-    axes = fig.subplots(rows, cols, sharex=True, squeeze=False)
-    return fig, axes
+    fig = style.pyplot().figure(figsize=size, layout="constrained")
+    return fig, fig.subplots(rows, cols, sharex=True, squeeze=False)
 
 
-def _finish(fig, axes, path, title, caption, handles):
+def _label_axes(axes, ylabels=()) -> None:
+    """``t (s)`` under the last row of ``axes``, ``ylabels`` on the panels of a 3 x 2
+    grid (:func:`_panels`), a light grid in every one."""
+    for ax, text in zip(_panels(axes), ylabels, strict=False):
+        ax.set_ylabel(text)
     for ax in axes[-1]:
         ax.set_xlabel("t (s)")
     for ax in axes.flat:
         ax.grid(alpha=0.3)
+
+
+def _panels(axes):
+    """The six panels of a 3 x 2 grid in axis order: ``x, y, z`` left, ``phi, theta,
+    psi`` right."""
+    return axes.T.flat
+
+
+def _finish(fig, axes, path, title, caption, handles, ylabels=()):
+    _label_axes(axes, ylabels)
     style.suptitle(fig, title, caption)
     style.legend_below(fig, handles)
     return style.save(fig, path)
@@ -84,21 +94,18 @@ def plot_tracking(results: dict, path: Path, title: str = "Tracking") -> Path:
     t0 = _time(first)
     for i, (name, result) in enumerate(results.items()):
         state = kept_valid(result, result.trajectories.state)
-        for axis in range(6):
-            style.band(
-                axes[axis % 3, axis // 3], _time(result), state[:, :, axis], style.color(name, i)
-            )
+        for axis, ax in enumerate(_panels(axes)):
+            style.band(ax, _time(result), state[:, :, axis], style.color(name, i))
     ref = np.asarray(first.trajectories.reference)
     handles = _controller_handles(results)
     for axis in range(3):
         line = style.reference(axes[axis, 0], t0, np.median(ref[:, :, axis], 0))
     style.reference(axes[2, 1], t0, np.median(ref[:, :, 3], 0))
-    for axis, text in enumerate(labels):
-        axes[axis % 3, axis // 3].set_ylabel(text)
     axes[0, 1].set_title(
         "phi, theta: no reference drawn (each controller commands its own)", fontsize=8
     )
-    return _finish(fig, axes, path, title, style.draws_caption(results), handles + [line])
+    caption = style.draws_caption(results)
+    return _finish(fig, axes, path, title, caption, handles + [line], labels)
 
 
 def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Path:
@@ -112,15 +119,10 @@ def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Pa
         position_error = np.asarray(tr.state)[:, :, :3] - np.asarray(tr.reference)[:, :, :3]
         attitude_error = np.asarray(tr.state)[:, :, 3:6] - np.asarray(tr.info.attitude_reference)
         errors = kept_valid(result, np.concatenate([position_error, attitude_error], axis=-1))
-        for axis in range(6):
-            style.band(
-                axes[axis % 3, axis // 3], _time(result), errors[:, :, axis], style.color(name, i)
-            )
-    for axis, text in enumerate(labels):
-        axes[axis % 3, axis // 3].set_ylabel(text)
-    return _finish(
-        fig, axes, path, title, style.draws_caption(results), _controller_handles(results)
-    )
+        for axis, ax in enumerate(_panels(axes)):
+            style.band(ax, _time(result), errors[:, :, axis], style.color(name, i))
+    handles = _controller_handles(results)
+    return _finish(fig, axes, path, title, style.draws_caption(results), handles, labels)
 
 
 def inputs_envelope(result):
@@ -155,10 +157,7 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
             )
     for channel in range(4):
         axes[channel, 0].set_ylabel(INPUTS[channel])
-    for ax in axes[-1]:
-        ax.set_xlabel("t (s)")
-    for ax in axes.flat:
-        ax.grid(alpha=0.3)
+    _label_axes(axes)
     t = _time(next(iter(results.values())))
     block = float(t[1] - t[0]) if t.size > 1 else float("nan")
     caption = style.draws_caption(results).replace(
@@ -170,12 +169,23 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
     return style.save(fig, path)
 
 
-def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) -> Path:
-    """3-D path (left) and its top view (right): the reference and a few draws."""
-    plt = style.pyplot()
-    fig = plt.figure(figsize=(12, 5.8), layout="constrained")
+def _path_figure(height: float):
+    """``(fig, ax3, ax2)``: a 3-D path's axes (left) and its top view's (right), labelled."""
+    fig = style.pyplot().figure(figsize=(12, height), layout="constrained")
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     ax2 = fig.add_subplot(1, 2, 2)
+    for ax in (ax3, ax2):
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+    ax3.set_zlabel("z (m)")
+    ax2.set_aspect("equal", adjustable="datalim")
+    ax2.grid(alpha=0.3)
+    return fig, ax3, ax2
+
+
+def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) -> Path:
+    """3-D path (left) and its top view (right): the reference and a few draws."""
+    fig, ax3, ax2 = _path_figure(5.8)
     first = next(iter(results.values()))
     ref = np.asarray(first.trajectories.reference[0])
     shown = 0
@@ -190,13 +200,6 @@ def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) ->
     ax3.plot(
         ref[:, 0], ref[:, 1], ref[:, 2], color=style.REFERENCE_COLOR, ls="--", lw=1.3, zorder=10
     )
-    ax3.set_xlabel("x (m)")
-    ax3.set_ylabel("y (m)")
-    ax3.set_zlabel("z (m)")
-    ax2.set_xlabel("x (m)")
-    ax2.set_ylabel("y (m)")
-    ax2.set_aspect("equal", adjustable="datalim")
-    ax2.grid(alpha=0.3)
     total = first.draws
     style.suptitle(
         fig,
@@ -222,8 +225,7 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
             continue
         color = style.color(name, i)
         handles.append(Line2D([], [], color=color, lw=2, label=style.label(name, result)))
-        for axis in range(6):
-            ax = axes[axis % 3, axis // 3]
+        for axis, ax in enumerate(_panels(axes)):
             for j, ls in enumerate(style.ESTIMATE_STYLES):
                 ax.plot(
                     _time(result), np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1
@@ -232,10 +234,9 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
         Line2D([], [], color="0.3", ls=ls, lw=1.1, label=f"b{j}")
         for j, ls in enumerate(style.ESTIMATE_STYLES)
     ]
-    for axis, text in enumerate(AXES):
-        axes[axis % 3, axis // 3].set_ylabel(f"{text}: b0, b1, b2")
+    labels = [f"{text}: b0, b1, b2" for text in AXES]
     caption = style.draws_caption(results).replace("median and 5-95 % band", "median")
-    return _finish(fig, axes, path, title, caption, handles)
+    return _finish(fig, axes, path, title, caption, handles, labels)
 
 
 FIGURES = (
@@ -417,6 +418,16 @@ def _held_number(summary: dict) -> float:
     return summary["yield"] if "yield" in summary else summary["cost"]
 
 
+def _bar_axes(ax, labels, right_end: float, xlabel: str, title: str) -> None:
+    """Axes of horizontal bars: one row per label, top down; x from 0 to ``right_end``."""
+    ax.set_yticks(np.arange(len(labels)), labels)
+    ax.invert_yaxis()
+    ax.set_xlim(0, right_end)
+    ax.set_xlabel(xlabel)
+    ax.set_title(title, fontsize=9)
+    ax.grid(axis="x", alpha=0.3)
+
+
 def plot_yield(results: dict, path: Path, title: str) -> Path:
     """Left: the yield per controller with its 95 % Clopper-Pearson interval. Right: the
     share of draws failing each requirement, per controller."""
@@ -424,43 +435,24 @@ def plot_yield(results: dict, path: Path, title: str) -> Path:
     names = list(results)
     first = results[names[0]]
     requirements = list(first.names)
+    size = (10.5, 0.5 + 0.45 * max(4, len(requirements) * len(names) ** 0.5))
     fig, (left, right) = plt.subplots(
-        1,
-        2,
-        figsize=(10.5, 0.5 + 0.45 * max(4, len(requirements) * len(names) ** 0.5)),
-        layout="constrained",
-        gridspec_kw={"width_ratios": [1, 1.6]},
+        1, 2, figsize=size, layout="constrained", gridspec_kw={"width_ratios": [1, 1.6]}
     )
-    y = np.arange(len(names))
     for i, name in enumerate(names):
         result = results[name]
         low, high = result.interval
         value = result.yield_
         color = style.color(name, i)
         left.barh(i, 100 * value, color=color, alpha=0.35, height=0.6)
-        left.errorbar(
-            100 * value,
-            i,
-            xerr=[[100 * (value - low)], [100 * (high - value)]],
-            fmt="o",
-            color=color,
-            capsize=4,
-        )
-        left.annotate(
-            f"{value:.0%} ({result.passed}/{result.draws})",
-            (100 * high, i),
-            xytext=(4, 0),
-            textcoords="offset points",
-            va="center",
-            fontsize=8,
-        )
-    left.set_yticks(y, names)
-    left.invert_yaxis()
-    left.set_xlim(0, 125)
+        xerr = [[100 * (value - low)], [100 * (high - value)]]
+        left.errorbar(100 * value, i, xerr=xerr, fmt="o", color=color, capsize=4)
+        text = f"{value:.0%} ({result.passed}/{result.draws})"
+        left.annotate(text, (100 * high, i), xytext=(4, 0), textcoords="offset points",
+                      va="center", fontsize=8)  # fmt: skip
+    _bar_axes(left, names, 125, "yield (%), 95 % Clopper-Pearson interval",
+              "draws meeting every requirement")  # fmt: skip
     left.set_xticks([0, 25, 50, 75, 100])
-    left.set_xlabel("yield (%), 95 % Clopper-Pearson interval")
-    left.set_title("draws meeting every requirement", fontsize=9)
-    left.grid(axis="x", alpha=0.3)
     height = 0.8 / len(names)
     rows = np.arange(len(requirements))
     for i, name in enumerate(names):
@@ -468,12 +460,8 @@ def plot_yield(results: dict, path: Path, title: str) -> Path:
         share = 100 * np.asarray(result.failures) / result.draws
         offset = (i - (len(names) - 1) / 2) * height
         right.barh(rows + offset, share, height=height, color=style.color(name, i), label=name)
-    right.set_yticks(rows, requirements)
-    right.invert_yaxis()
-    right.set_xlim(0, 100)
-    right.set_xlabel("draws failing the requirement (%)")
-    right.set_title("failures per requirement", fontsize=9)
-    right.grid(axis="x", alpha=0.3)
+    _bar_axes(right, requirements, 100, "draws failing the requirement (%)",
+              "failures per requirement")  # fmt: skip
     if len(names) > 1:
         right.legend(fontsize=8, loc="best")
     style.suptitle(fig, title, "a diverged draw fails every requirement")

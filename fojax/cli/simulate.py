@@ -195,14 +195,25 @@ def _print_summary(summary: dict) -> None:
         cells = []
         for key in ("position_rmse", "attitude_rmse"):
             m = entry["metrics"][key]
-            if m["mean"] is None:
-                cells.append(f"{'n/a':>26}")
-            elif m["ci95"] is None:
-                cells.append(f"{m['mean']:>26.4g}")
-            else:
-                lo, hi = m["ci95"]
-                cells.append(f"{m['mean']:.4g} [{lo:.4g}, {hi:.4g}]".rjust(26))
+            cell = "n/a" if m["mean"] is None else f"{m['mean']:.4g}"
+            if m["mean"] is not None and m["ci95"] is not None:
+                cell += " [{:.4g}, {:.4g}]".format(*m["ci95"])
+            cells.append(cell.rjust(26))
         print(f"  {name:<10} {cells[0]} {cells[1]}  {entry['diverged']}/{entry['draws']}")
+
+
+def stopped(error: BaseException, prog: str, chunks: str) -> int:
+    """Says why a study stopped: interrupted (``KeyboardInterrupt``; the finished draws
+    are kept ``chunks``) or bad input (``ValueError``); returns the exit status, 130 or 2."""
+    if isinstance(error, KeyboardInterrupt):
+        print(
+            f"\ninterrupted: finished draws are kept {chunks}; run the same command again to "
+            "continue",
+            file=sys.stderr,
+        )
+        return 130
+    print(f"{prog}: error: {error}", file=sys.stderr)
+    return 2
 
 
 def main(argv=None) -> int:
@@ -218,16 +229,8 @@ def main(argv=None) -> int:
     try:
         progress = not args.quiet and lead
         results = run_study(study, out, progress, args.overwrite, runtime["settings"])
-    except KeyboardInterrupt:
-        print(
-            f"\ninterrupted: finished draws are kept in {out / 'chunks'}; run the same "
-            "command again to continue",
-            file=sys.stderr,
-        )
-        return 130
-    except ValueError as error:  # e.g. study.StoreMismatch, raised before compiling
-        print(f"fojax simulate: error: {error}", file=sys.stderr)
-        return 2
+    except (KeyboardInterrupt, ValueError) as error:  # e.g. study.StoreMismatch, before compiling
+        return stopped(error, "fojax simulate", f"in {out / 'chunks'}")
     if not lead:  # process 0 writes the outputs
         return 0
     wall = round(time.perf_counter() - start, 1)

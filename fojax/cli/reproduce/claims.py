@@ -37,7 +37,8 @@ Claim verdict, from its comparisons' outcomes:
 
 The earlier rule (a comparison better or worse when its 95 % interval excludes 0, no
 margin, no multiplicity control) is kept next to it (``ci_rule``,
-``verdict_without_margin``) to show which verdicts the margin and Holm change.
+``verdict_without_margin``: :func:`claim_verdict` of the ``ci_rule`` results) to show
+which verdicts the margin and Holm change.
 
 Remark 2, chatter-free inputs (:func:`chatter_claim`): every input of the AFONFTSMC
 changes per control step by less than ``CHATTER_THRESHOLD`` (10 %) of its RMS value on
@@ -108,11 +109,9 @@ REACHING_BAND_FACTOR = 2.0
 ``dt``: twice the step that ``sgn`` switching gives ``S``, so that the band holds the
 discrete sliding mode's chattering with room for the disturbance's share."""
 
-AXES_XYZ = ("x", "y", "z")
 
-
-def _metrics(prefix: str, axes=AXES_XYZ) -> list[str]:
-    return [f"{prefix}_{axis}" for axis in axes]
+def _metrics(prefix: str) -> list[str]:
+    return [f"{prefix}_{axis}" for axis in ("x", "y", "z")]
 
 
 # The paper's Section V conclusions, each mapped to metrics (every one lower-is-better)
@@ -280,16 +279,6 @@ def claim_verdict(outcomes) -> str:
     return "inconclusive"
 
 
-def _verdict_without_margin(results) -> str:
-    """The earlier rule: any interval below 0 -> does not hold; all above -> holds."""
-    results = list(results)
-    if "worse" in results:
-        return "does not hold"
-    if results and all(r == "better" for r in results):
-        return "holds"
-    return "inconclusive"
-
-
 def counts(outcomes) -> dict:
     outcomes = list(outcomes)
     return {k: outcomes.count(k) for k in OUTCOMES}
@@ -298,35 +287,40 @@ def counts(outcomes) -> dict:
 # ------------------------------------------------------------------ scenario claims
 
 
-def _per_draw(results: dict, name: str) -> dict:
+def _per_draw(results: dict, metrics, earlier: dict | None = None) -> dict:
+    """Controller -> ``metrics`` -> ``((draws,) values, unit)`` (:func:`fojax.study.metric_table`);
+    with ``earlier`` (the same controllers in another scenario), the increase from it."""
     from fojax import study
 
-    return study.metric_table(results[name])
+    tables = {}
+    for name, result in results.items():
+        table = study.metric_table(result)
+        tables[name] = {m: table[m] for m in metrics}
+        if earlier is not None:
+            before = study.metric_table(earlier[name])
+            tables[name] = {m: (v - before[m][0], unit) for m, (v, unit) in tables[name].items()}
+    return tables
+
+
+def _paired(tables: dict, other: str, metric: str, horizon: float) -> dict:
+    """:func:`compare` of ``metric`` between ``other`` and the AFONFTSMC in ``tables``."""
+    values, unit = tables[other][metric]
+    reference = tables[BASELINE][metric][0]
+    return compare(values - reference, margin(unit, reference, horizon))
 
 
 def _claim_comparisons(claim: dict, summaries: dict, results_by_scenario: dict) -> list[dict]:
     scenario = claim["scenario"]
-    results = results_by_scenario[scenario]
+    earlier = results_by_scenario[claim["delta_from"]] if "delta_from" in claim else None
+    tables = _per_draw(results_by_scenario[scenario], claim["metrics"], earlier)
     horizon = summaries[scenario]["horizon_s"]
-    others = [n for n in results if n != BASELINE]
-    base = _per_draw(results, BASELINE)
-    if "delta_from" in claim:
-        earlier = results_by_scenario[claim["delta_from"]]
-        base_earlier = _per_draw(earlier, BASELINE)
-    comparisons = []
-    for other in others:
-        table = _per_draw(results, other)
-        if "delta_from" in claim:
-            table_earlier = _per_draw(earlier, other)
-        for metric in claim["metrics"]:
-            values, unit = table[metric]
-            reference = base[metric][0]
-            if "delta_from" in claim:
-                values = values - table_earlier[metric][0]
-                reference = reference - base_earlier[metric][0]
-            comparison = compare(values - reference, margin(unit, reference, horizon))
-            comparisons.append({"controller": other, "metric": metric, "unit": unit} | comparison)
-    return comparisons
+    return [
+        {"controller": other, "metric": metric, "unit": tables[other][metric][1]}
+        | _paired(tables, other, metric, horizon)
+        for other in tables
+        if other != BASELINE
+        for metric in claim["metrics"]
+    ]
 
 
 def evaluate_claims(summaries: dict, results_by_scenario: dict) -> list[dict]:
@@ -338,24 +332,24 @@ def evaluate_claims(summaries: dict, results_by_scenario: dict) -> list[dict]:
     """
     evaluated = []
     for claim in CLAIMS:
-        entry = {k: claim[k] for k in ("id", "scenario", "text", "mapping", "metrics")}
-        if "delta_from" in claim:
-            entry["delta_from"] = claim["delta_from"]
+        keys = ("id", "scenario", "text", "mapping", "metrics", "delta_from")
+        entry = {k: claim[k] for k in keys if k in claim}
         needed = {claim["scenario"], claim.get("delta_from", claim["scenario"])}
         if not needed <= set(summaries):
             entry.update(
                 verdict="not run", verdict_without_margin="not run", comparisons=[], counts={}
             )
-            evaluated.append(entry)
-            continue
-        comparisons = decide(_claim_comparisons(claim, summaries, results_by_scenario))
-        outcomes = [c["outcome"] for c in comparisons]
-        entry.update(
-            verdict=claim_verdict(outcomes),
-            verdict_without_margin=_verdict_without_margin(c["ci_rule"] for c in comparisons),
-            comparisons=comparisons,
-            counts=counts(outcomes),
-        )
+        else:
+            comparisons = decide(_claim_comparisons(claim, summaries, results_by_scenario))
+            outcomes = [c["outcome"] for c in comparisons]
+            entry.update(
+                verdict=claim_verdict(outcomes),
+                # the earlier rule: any interval below 0 -> does not hold; all above -> holds
+                # (its results are never 'equivalent')
+                verdict_without_margin=claim_verdict(c["ci_rule"] for c in comparisons),
+                comparisons=comparisons,
+                counts=counts(outcomes),
+            )
         evaluated.append(entry)
     evaluated.append(chatter_claim(summaries))
     evaluated.append(finite_time_claim(summaries, results_by_scenario))
@@ -368,18 +362,10 @@ def paired_tables(summaries: dict, results_by_scenario: dict, metrics: list[str]
     control; the claims' verdicts adjust)."""
     tables = {}
     for scenario, results in results_by_scenario.items():
-        horizon = summaries[scenario]["horizon_s"]
-        base = _per_draw(results, BASELINE)
+        per_draw, horizon = _per_draw(results, metrics), summaries[scenario]["horizon_s"]
         tables[scenario] = {}
-        for other in results:
-            if other == BASELINE:
-                continue
-            table = _per_draw(results, other)
-            row = {}
-            for metric in metrics:
-                values, unit = table[metric]
-                reference = base[metric][0]
-                row[metric] = compare(values - reference, margin(unit, reference, horizon))
+        for other in (name for name in results if name != BASELINE):
+            row = {metric: _paired(per_draw, other, metric, horizon) for metric in metrics}
             decide(list(row.values()), adjust=False)
             tables[scenario][other] = row
     return tables

@@ -3,9 +3,8 @@
 See :mod:`fojax.cli.reproduce` for what it writes, :mod:`.claims` for the claims and
 the verdict rule, :mod:`.report` for the report.
 
-The studies (one :class:`fojax.cli.simulate.Study` per scenario) are made, run and
-summarised through :func:`_make_study`, :func:`_run_studies` and :func:`_write_outputs`
-only, the one place that knows where that layer lives.
+The studies (one :class:`fojax.cli.simulate.Study` per scenario) are run and summarised
+through :func:`_run_studies` and :func:`_write_outputs` only.
 """
 
 from __future__ import annotations
@@ -33,10 +32,6 @@ committed example is in ``docs/reproduction.md``."""
 
 
 # ------------------------------------------------------------------- the study layer
-
-
-def _make_study(**fields) -> simulate.Study:
-    return simulate.Study(**fields)
 
 
 def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce, settings=None):
@@ -98,15 +93,13 @@ class _FigureDrawer:
         )
 
     def finish(self) -> list[Path]:
-        from fojax.cli.reproduce import figures as paper_figures
-
         if self.progress:
             print("figures ...", file=sys.stderr, flush=True)
         paths = []
         for scenario_id in sorted(self.results):
             future = self.futures.get(scenario_id)
             try:
-                drawn = [Path(p) for p in future.result()] if future is not None else None
+                drawn = future.result() if future is not None else None
             except Exception as error:  # noqa: BLE001 - the process died: draw them here
                 print(
                     f"warning: the figure process failed ({type(error).__name__}: {error}); "
@@ -115,10 +108,8 @@ class _FigureDrawer:
                 )
                 drawn = None
             if drawn is None:
-                drawn = paper_figures.plot_all(
-                    {scenario_id: self.results[scenario_id]}, self.directory
-                )
-            paths.extend(drawn)
+                drawn = _draw_scenario(scenario_id, self.results[scenario_id], self.directory)
+            paths.extend(Path(p) for p in drawn)
         self.close()
         return paths
 
@@ -214,7 +205,7 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
         horizon = args.horizon if args.horizon is not None else scenario.horizon
         steps = arguments.horizon_steps(parser, horizon, args.dt, example=False)
         studies.append(
-            _make_study(
+            simulate.Study(
                 scenario_id=scenario_id,
                 controllers=(BASELINE, *compared),
                 draws=args.draws,
@@ -273,20 +264,10 @@ def main(argv=None) -> int:
                 summaries[study.scenario_id] = _write_outputs(study, results, directory)
                 if drawer is not None:  # while the next scenario runs
                     drawer.submit(study.scenario_id, results)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ValueError) as error:
         if drawer is not None:
             drawer.close()
-        print(
-            f"\ninterrupted: finished draws are kept under {out}/s*/chunks; run the same "
-            "command again to continue",
-            file=sys.stderr,
-        )
-        return 130
-    except ValueError as error:
-        if drawer is not None:
-            drawer.close()
-        print(f"fojax reproduce: error: {error}", file=sys.stderr)
-        return 2
+        return simulate.stopped(error, "fojax reproduce", f"under {out}/s*/chunks")
     if not lead:  # process 0 writes the report
         return 0
     figures = drawer.finish() if drawer is not None else []

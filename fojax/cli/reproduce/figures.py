@@ -31,16 +31,19 @@ from pathlib import Path
 import numpy as np
 
 from fojax.cli import style
-from fojax.cli.figures import inputs_envelope, kept_valid
+from fojax.cli.figures import (
+    _controller_handles,
+    _figure,
+    _label_axes,
+    _panels,
+    _path_figure,
+    inputs_envelope,
+    kept_valid,
+)
 
 __all__ = ["FIGURE_NUMBERS", "plot_all"]
 
 FIGURE_NUMBERS = {1: (5, 6, 7, 8), 2: (9, 10, 11, 12), 3: (13, 14, 15, 16)}
-DPI = style.DPI
-
-
-def _kept(results: dict) -> dict:
-    return {name: r for name, r in results.items() if r.trajectories is not None}
 
 
 def _reference_velocity(scenario_id: int, times: np.ndarray) -> np.ndarray:
@@ -61,10 +64,7 @@ def _reference_velocity(scenario_id: int, times: np.ndarray) -> np.ndarray:
 def _handles(results: dict, reference: bool = True, extra=()):
     from matplotlib.lines import Line2D
 
-    handles = [
-        Line2D([], [], color=style.color(name, i), lw=2, label=style.label(name, result))
-        for i, (name, result) in enumerate(results.items())
-    ]
+    handles = _controller_handles(results)
     if reference:
         handles.append(
             Line2D([], [], color=style.REFERENCE_COLOR, ls="--", lw=1.2, label="reference")
@@ -72,20 +72,19 @@ def _handles(results: dict, reference: bool = True, extra=()):
     return handles + list(extra)
 
 
-def _finish(fig, path: Path, title: str, results: dict, handles, spread: str | None = None):
-    """Title with the true draw counts, legend below the axes, PNG and PDF."""
+def _finish(
+    fig, path: Path, title: str, results: dict, handles, spread=None, axes=None, ylabels=()
+):
+    """Title with the true draw counts, legend below the axes, PNG and PDF; with
+    ``axes`` (a grid of time plots), :func:`fojax.cli.figures._label_axes` first."""
+    if axes is not None:
+        _label_axes(axes, ylabels)
     spread = spread or style.draws_caption(results).replace(
         "the statistics in summary.json", "the tables"
     )
     style.suptitle(fig, title, spread)
     style.legend_below(fig, handles)
     return style.save(fig, path, quantize=True)
-
-
-def _figure(rows, cols, size):
-    plt = style.pyplot()
-    fig = plt.figure(figsize=size, layout="constrained")
-    return fig, fig.subplots(rows, cols, sharex=True, squeeze=False)
 
 
 def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> Path:
@@ -95,22 +94,16 @@ def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> P
     t = np.asarray(first.time[0])
     for i, (name, result) in enumerate(results.items()):
         state = kept_valid(result, result.trajectories.state)
-        for axis in range(6):
-            style.band(axes[axis % 3, axis // 3], t, state[:, :, axis], style.color(name, i))
+        for axis, ax in enumerate(_panels(axes)):
+            style.band(ax, t, state[:, :, axis], style.color(name, i))
     for axis in range(3):
         style.reference(axes[axis, 0], t, first.reference[0, :, axis])
     style.reference(axes[2, 1], t, first.reference[0, :, 3])
     labels = ["x (m)", "y (m)", "z (m)", "phi (rad)", "theta (rad)", "psi (rad)"]
-    for axis, label in enumerate(labels):
-        ax = axes[axis % 3, axis // 3]
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
     axes[0, 0].set_title("(a) Position tracking", fontsize=9)
     axes[0, 1].set_title("(b) Attitude tracking (phi, theta sampled every snapshot)", fontsize=9)
-    for ax in axes[2]:
-        ax.set_xlabel("t (s)")
     title = f"Fig. {number}: Path following performance in Scenario {scenario_id}"
-    return _finish(fig, path, title, results, _handles(results))
+    return _finish(fig, path, title, results, _handles(results), axes=axes, ylabels=labels)
 
 
 def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int) -> Path:
@@ -148,8 +141,6 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
     for row in range(4):
         axes[row, 0].set_ylabel(inputs[row])
         axes[row, 1].set_ylabel(errors[row])
-        for ax in axes[row]:
-            ax.grid(alpha=0.3)
         axes[row, 1].axhline(0.0, color="0.4", lw=0.6, zorder=1)
     block = float(t[1] - t[0]) if t.size > 1 else float("nan")
     axes[0, 0].set_title(
@@ -158,18 +149,13 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
         fontsize=9,
     )
     axes[0, 1].set_title("(b) Tracking errors (position; velocity error norm)", fontsize=9)
-    for ax in axes[3]:
-        ax.set_xlabel("t (s)")
     title = f"Fig. {number}: Control inputs & tracking errors in Scenario {scenario_id}"
-    return _finish(fig, path, title, results, _handles(results, reference=False))
+    return _finish(fig, path, title, results, _handles(results, reference=False), axes=axes)
 
 
 def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: int = 3) -> Path:
     """Fig. 7/11/15: (a) 3-D path, (b) 2-D path; median path bold, a few draws faint."""
-    plt = style.pyplot()
-    fig = plt.figure(figsize=(12, 6), layout="constrained")
-    ax3 = fig.add_subplot(1, 2, 1, projection="3d")
-    ax2 = fig.add_subplot(1, 2, 2)
+    fig, ax3, ax2 = _path_figure(6)
     first = next(iter(results.values())).trajectories
     ref = np.asarray(first.reference[0])
     for i, (name, result) in enumerate(results.items()):
@@ -184,14 +170,7 @@ def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: 
             ax2.plot(state[d, :, 0], state[d, :, 1], color=color, lw=0.5, alpha=0.3, zorder=2)
     ax3.plot(ref[:, 0], ref[:, 1], ref[:, 2], color=style.REFERENCE_COLOR, ls="--", lw=1.2)
     style.reference(ax2, ref[:, 0], ref[:, 1])
-    ax3.set_xlabel("x (m)")
-    ax3.set_ylabel("y (m)")
-    ax3.set_zlabel("z (m)")
     ax3.set_title("(a) 3-D trajectory tracking", fontsize=9)
-    ax2.set_xlabel("x (m)")
-    ax2.set_ylabel("y (m)")
-    ax2.set_aspect("equal", adjustable="datalim")
-    ax2.grid(alpha=0.3)
     ax2.set_title(f"(b) 2-D trajectory tracking (faint: {faint} single draws)", fontsize=9)
     title = f"Fig. {number}: Path following performance in Scenario {scenario_id}"
     spread = (
@@ -224,23 +203,15 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
             continue
         color = style.color(name, index)
         shown[name] = result
-        for axis in range(6):
-            ax = axes[axis % 3, axis // 3]
+        for axis, ax in enumerate(_panels(axes)):
             for j, ls in enumerate(style.ESTIMATE_STYLES[: len(symbols)]):
                 values = adaptive[:, :, axis, j]
                 low, mid, high = np.percentile(values, style.BAND_PERCENTILES, axis=0)
                 ax.plot(t, mid, ls=ls, color=color, lw=1.1, zorder=3)
                 if values.shape[0] > 1 and name == "afonftsmc":
                     ax.fill_between(t, low, high, color=color, alpha=0.12, lw=0, zorder=2)
-    labels = ["x", "y", "z", "phi", "theta", "psi"]
-    for axis, label in enumerate(labels):
-        ax = axes[axis % 3, axis // 3]
-        ax.set_ylabel(f"{label} estimates")
-        ax.grid(alpha=0.3)
     axes[0, 0].set_title("(a) Parameters position", fontsize=9)
     axes[0, 1].set_title("(b) Parameters attitude", fontsize=9)
-    for ax in axes[2]:
-        ax.set_xlabel("t (s)")
     styles = [
         Line2D(
             [], [], color="0.3", ls=ls, lw=1.1, label=" / ".join(s[j] for s in ADAPTIVE.values())
@@ -252,7 +223,8 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
         "(AFONFTSMC b-hat, ANFTSMC a-hat; band: AFONFTSMC 5-95 %)"
     )
     handles = _handles(shown or results, reference=False, extra=styles)
-    return _finish(fig, path, title, shown or results, handles)
+    labels = [f"{axis} estimates" for axis in ("x", "y", "z", "phi", "theta", "psi")]
+    return _finish(fig, path, title, shown or results, handles, axes=axes, ylabels=labels)
 
 
 def plot_all(results_by_scenario: dict, directory: Path) -> list[Path]:
@@ -269,7 +241,8 @@ def plot_all(results_by_scenario: dict, directory: Path) -> list[Path]:
         (plot_parameters, "parameters"),
     )
     for scenario_id in sorted(results_by_scenario):
-        results = _kept(results_by_scenario[scenario_id])
+        results = results_by_scenario[scenario_id]
+        results = {name: r for name, r in results.items() if r.trajectories is not None}
         if not results:
             continue
         for (maker, stem), number in zip(makers, FIGURE_NUMBERS[scenario_id], strict=True):

@@ -9,15 +9,10 @@ import numpy as np
 
 from fojax.cli import output
 from fojax.cli.reproduce import claims as claims_module
-from fojax.cli.reproduce.claims import BASELINE, CHATTER_THRESHOLD
+from fojax.cli.reproduce.claims import BASELINE, CHATTER_THRESHOLD, _metrics
 from fojax.records import atomic_write
 
 __all__ = ["TABLE_METRICS", "write_report"]
-
-
-def _metrics(prefix: str) -> list[str]:
-    return [f"{prefix}_{axis}" for axis in ("x", "y", "z")]
-
 
 TABLE_METRICS = (
     ["position_rmse", "attitude_rmse"]
@@ -44,6 +39,16 @@ def format_number(value, digits: int = 3) -> str:
 
 
 _fmt = format_number
+
+
+def _row(cells) -> str:
+    """A Markdown table row."""
+    return "| " + " | ".join(cells) + " |"
+
+
+def _head(columns) -> list[str]:
+    """A Markdown table's header row and rule."""
+    return [_row(columns), "|" + "---|" * len(columns)]
 
 
 def _cell(stats: dict) -> str:
@@ -139,13 +144,12 @@ def _scenario_section(summary: dict, table: dict | None) -> list[str]:
         "",
         "Mean and 95 % confidence interval over the draws that did not diverge:",
         "",
-        "| metric | unit | " + " | ".join(names) + " |",
-        "|---|---|" + "---|" * len(names),
+        *_head(["metric", "unit", *names]),
     ]
     first = summary["controllers"][names[0]]["metrics"]
     for metric in TABLE_METRICS:
         cells = [_cell(summary["controllers"][n]["metrics"][metric]) for n in names]
-        lines.append(f"| {metric} | {first[metric]['unit']} | " + " | ".join(cells) + " |")
+        lines.append(_row([metric, first[metric]["unit"], *cells]))
     diverged = [str(summary["controllers"][n]["diverged"]) for n in names]
     lines.append("| diverged draws | | " + " | ".join(diverged) + " |")
     wall = [f"{summary['controllers'][n].get('wall_time_s', float('nan')):.0f}" for n in names]
@@ -153,7 +157,6 @@ def _scenario_section(summary: dict, table: dict | None) -> list[str]:
     if not table:
         lines.append("")
         return lines
-    others = list(table)
     lines += [
         "",
         f"Paired differences, controller minus {BASELINE} on the same draw (mean [95 % CI]), "
@@ -162,38 +165,35 @@ def _scenario_section(summary: dict, table: dict | None) -> list[str]:
         "than delta, **worse**: higher by more than delta, equiv.: within +-delta, ?: "
         "undecided:",
         "",
-        "| metric | delta | " + " | ".join(others) + " |",
-        "|---|---|" + "---|" * len(others),
+        *_differences(TABLE_METRICS, table),
+        "",
     ]
-    for metric in TABLE_METRICS:
-        cells = [
-            f"{_cell(table[o][metric]['difference'])} {MARK[table[o][metric]['outcome']]}"
-            for o in others
-        ]
-        delta = _fmt(table[others[0]][metric]["margin"])
-        lines.append(f"| {metric} | {delta} | " + " | ".join(cells) + " |")
-    lines.append("")
+    return lines
+
+
+def _differences(metrics, table: dict) -> list[str]:
+    """A table of paired differences: per metric its margin and, per controller of
+    ``table`` (controller -> metric -> comparison), the difference and its outcome."""
+    lines = _head(["metric", "delta", *table])
+    for metric in metrics:
+        row = [by_metric[metric] for by_metric in table.values()]
+        cells = [f"{_cell(c['difference'])} {MARK[c['outcome']]}" for c in row]
+        lines.append(_row([metric, _fmt(row[0]["margin"]), *cells]))
     return lines
 
 
 def _comparison_table(claim: dict) -> list[str]:
-    comparisons = claim["comparisons"]
-    others = list(dict.fromkeys(c["controller"] for c in comparisons))
-    by = {(c["controller"], c["metric"]): c for c in comparisons}
+    table = {}
+    for c in claim["comparisons"]:
+        table.setdefault(c["controller"], {})[c["metric"]] = c
     head = "(S2 - S1) difference" if claim.get("delta_from") else "difference"
-    lines = [
+    return [
         f"Per comparison: {head}, controller minus {BASELINE} (mean [95 % CI]), and its "
         "outcome (Holm-adjusted over the claim):",
         "",
-        "| metric | delta | " + " | ".join(others) + " |",
-        "|---|---|" + "---|" * len(others),
+        *_differences(claim["metrics"], table),
+        "",
     ]
-    for metric in claim["metrics"]:
-        row = [by[(o, metric)] for o in others]
-        cells = [f"{_cell(c['difference'])} {MARK[c['outcome']]}" for c in row]
-        lines.append(f"| {metric} | {_fmt(row[0]['margin'])} | " + " | ".join(cells) + " |")
-    lines.append("")
-    return lines
 
 
 def _claim_section(claim: dict) -> list[str]:
@@ -224,16 +224,13 @@ def _claim_section(claim: dict) -> list[str]:
             "Mean change per control step relative to the input's RMS "
             f"(chatter-free below {CHATTER_THRESHOLD:g}):",
             "",
-            "| scenario | controller | u_F | tau_x | tau_y | tau_z | chatter-free |",
-            "|---|---|---|---|---|---|---|",
+            *_head(["scenario", "controller", "u_F", "tau_x", "tau_y", "tau_z", "chatter-free"]),
         ]
         for row in claim["rows"]:
             r = row["change_per_step_over_rms"]
-            cells = " | ".join(_fmt(r[k]) for k in ("thrust", "tau_x", "tau_y", "tau_z"))
-            lines.append(
-                f"| {row['scenario']} | {row['controller']} | {cells} | "
-                f"{'yes' if row['chatter_free'] else 'no'} |"
-            )
+            cells = [_fmt(r[k]) for k in ("thrust", "tau_x", "tau_y", "tau_z")]
+            free = "yes" if row["chatter_free"] else "no"
+            lines.append(_row([str(row["scenario"]), row["controller"], *cells, free]))
         lines.append("")
     if claim["id"] == "C-finite-time":
         lines += [
@@ -247,14 +244,13 @@ def _claim_section(claim: dict) -> list[str]:
             "| eq. (34) bound (s) |",
             "|---|---|---|---|---|---|---|",
         ]
-        for row in claim["rows"]:
-            lines.append(
-                f"| {row['scenario']} | {row['axis']} | {_fmt(row['band'])} | "
-                f"{row['reached']}/{row['valid_draws']} | "
-                f"{row['kept_from_first_half']}/{row['valid_draws']} | "
-                f"{_cell(row['reaching_time_s'])} | {_fmt(row['bound_34_s']['mean'])} |"
-            )
-        lines.append("")
+        lines += [
+            f"| {row['scenario']} | {row['axis']} | {_fmt(row['band'])} | "
+            f"{row['reached']}/{row['valid_draws']} | "
+            f"{row['kept_from_first_half']}/{row['valid_draws']} | "
+            f"{_cell(row['reaching_time_s'])} | {_fmt(row['bound_34_s']['mean'])} |"
+            for row in claim["rows"]
+        ] + [""]
     return lines
 
 
@@ -309,13 +305,9 @@ def _markdown(out, summaries, claims, settings, figures, wall_time, tables) -> l
     ]
     for claim in claims:
         c = claim.get("counts")
-        tally = (
-            f"{c['better']} / {c['worse']} / {c['equivalent']} / {c['inconclusive']}" if c else ""
-        )
-        lines.append(
-            f"| {claim['text']} | **{claim['verdict']}** | {tally} | "
-            f"{claim.get('verdict_without_margin', claim['verdict'])} |"
-        )
+        tally = " / ".join(str(c[k]) for k in claims_module.OUTCOMES) if c else ""
+        without = claim.get("verdict_without_margin", claim["verdict"])
+        lines.append(_row([claim["text"], f"**{claim['verdict']}**", tally, without]))
     lines += [""] + _rule_lines(settings)
     lines += [
         "Reading the metrics: errors are `actual - reference`; roll and pitch errors (in "
