@@ -317,6 +317,7 @@ def test_accuracy_bad_inputs(capsys, places):
         (["--horizon", "inf"], "finite number > 0"),
         (["--dt", "0"], "finite number > 0"),
         (["--dt", "2", "--horizon", "1"], "must be smaller than --horizon"),
+        (["--horizon", "0.5", "--dt", "0.05"], "must be at least 1 s"),
         (["--dt", "1e-5", "--horizon", "80"], "at most 1000000"),
         (["--out", str(places["file"])], "is a file, not a folder"),
         (["--out", ""], "empty name"),

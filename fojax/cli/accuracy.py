@@ -239,6 +239,11 @@ def main(argv=None) -> int:
     if args.dt >= args.horizon:
         parser.error(f"--dt ({args.dt:g} s) must be smaller than --horizon ({args.horizon:g} s)")
     steps = round(args.horizon / args.dt)
+    if steps < round(1.0 / args.dt):
+        parser.error(
+            f"--horizon ({args.horizon:g} s) must be at least 1 s: the table's "
+            "'relaxation, t >= 1 s' column reads the samples from 1 s on"
+        )
     if steps > MAX_STEPS:
         parser.error(
             f"--horizon / --dt is {steps} steps; at most {MAX_STEPS} (the full-memory "

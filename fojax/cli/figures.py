@@ -23,8 +23,11 @@ import numpy as np
 from fojax.cli import style
 
 __all__ = [
+    "controller_handles",
     "inputs_envelope",
     "kept_valid",
+    "label_axes",
+    "path_figure",
     "plot_adaptive",
     "plot_all",
     "plot_convergence",
@@ -33,6 +36,8 @@ __all__ = [
     "plot_path",
     "plot_tracking",
     "plot_yield",
+    "six_panels",
+    "time_grid",
 ]
 
 AXES = ("x", "y", "z", "phi", "theta", "psi")
@@ -48,15 +53,16 @@ def kept_valid(result, array) -> np.ndarray:
     return np.asarray(array)[style.valid_kept(result)]
 
 
-def _figure(rows, cols, size):
+def time_grid(rows, cols, size):
+    """``(fig, axes)``: a ``(rows, cols)`` grid of time plots sharing their time axis."""
     fig = style.pyplot().figure(figsize=size, layout="constrained")
     return fig, fig.subplots(rows, cols, sharex=True, squeeze=False)
 
 
-def _label_axes(axes, ylabels=()) -> None:
+def label_axes(axes, ylabels=()) -> None:
     """``t (s)`` under the last row of ``axes``, ``ylabels`` on the panels of a 3 x 2
-    grid (:func:`_panels`), a light grid in every one."""
-    for ax, text in zip(_panels(axes), ylabels, strict=False):
+    grid (:func:`six_panels`), a light grid in every one."""
+    for ax, text in zip(six_panels(axes), ylabels, strict=False):
         ax.set_ylabel(text)
     for ax in axes[-1]:
         ax.set_xlabel("t (s)")
@@ -64,20 +70,21 @@ def _label_axes(axes, ylabels=()) -> None:
         ax.grid(alpha=0.3)
 
 
-def _panels(axes):
+def six_panels(axes):
     """The six panels of a 3 x 2 grid in axis order: ``x, y, z`` left, ``phi, theta,
     psi`` right."""
     return axes.T.flat
 
 
 def _finish(fig, axes, path, title, caption, handles, ylabels=()):
-    _label_axes(axes, ylabels)
+    label_axes(axes, ylabels)
     style.suptitle(fig, title, caption)
     style.legend_below(fig, handles)
     return style.save(fig, path)
 
 
-def _controller_handles(results: dict):
+def controller_handles(results: dict):
+    """Legend handles: one line per controller of ``results``, in its colour and label."""
     from matplotlib.lines import Line2D
 
     return [
@@ -88,16 +95,16 @@ def _controller_handles(results: dict):
 
 def plot_tracking(results: dict, path: Path, title: str = "Tracking") -> Path:
     """Position ``x, y, z`` and attitude ``phi, theta, psi`` against their references."""
-    fig, axes = _figure(3, 2, (11, 8))
+    fig, axes = time_grid(3, 2, (11, 8))
     labels = ["x (m)", "y (m)", "z (m)", "phi (rad)", "theta (rad)", "psi (rad)"]
     first = next(iter(results.values()))
     t0 = _time(first)
     for i, (name, result) in enumerate(results.items()):
         state = kept_valid(result, result.trajectories.state)
-        for axis, ax in enumerate(_panels(axes)):
+        for axis, ax in enumerate(six_panels(axes)):
             style.band(ax, _time(result), state[:, :, axis], style.color(name, i))
     ref = np.asarray(first.trajectories.reference)
-    handles = _controller_handles(results)
+    handles = controller_handles(results)
     for axis in range(3):
         line = style.reference(axes[axis, 0], t0, np.median(ref[:, :, axis], 0))
     style.reference(axes[2, 1], t0, np.median(ref[:, :, 3], 0))
@@ -110,7 +117,7 @@ def plot_tracking(results: dict, path: Path, title: str = "Tracking") -> Path:
 
 def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Path:
     """Position errors ``e = X - X_r`` and attitude errors against the commanded attitude."""
-    fig, axes = _figure(3, 2, (11, 8))
+    fig, axes = time_grid(3, 2, (11, 8))
     labels = ["e_x (m)", "e_y (m)", "e_z (m)", "e_phi (rad)", "e_theta (rad)", "e_psi (rad)"]
     for ax in axes.flat:
         ax.axhline(0.0, color="0.4", lw=0.6, zorder=1)
@@ -119,9 +126,9 @@ def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Pa
         position_error = np.asarray(tr.state)[:, :, :3] - np.asarray(tr.reference)[:, :, :3]
         attitude_error = np.asarray(tr.state)[:, :, 3:6] - np.asarray(tr.info.attitude_reference)
         errors = kept_valid(result, np.concatenate([position_error, attitude_error], axis=-1))
-        for axis, ax in enumerate(_panels(axes)):
+        for axis, ax in enumerate(six_panels(axes)):
             style.band(ax, _time(result), errors[:, :, axis], style.color(name, i))
-    handles = _controller_handles(results)
+    handles = controller_handles(results)
     return _finish(fig, axes, path, title, style.draws_caption(results), handles, labels)
 
 
@@ -157,7 +164,7 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
             )
     for channel in range(4):
         axes[channel, 0].set_ylabel(INPUTS[channel])
-    _label_axes(axes)
+    label_axes(axes)
     t = _time(next(iter(results.values())))
     block = float(t[1] - t[0]) if t.size > 1 else float("nan")
     caption = style.draws_caption(results).replace(
@@ -169,7 +176,7 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
     return style.save(fig, path)
 
 
-def _path_figure(height: float):
+def path_figure(height: float):
     """``(fig, ax3, ax2)``: a 3-D path's axes (left) and its top view's (right), labelled."""
     fig = style.pyplot().figure(figsize=(12, height), layout="constrained")
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
@@ -185,7 +192,7 @@ def _path_figure(height: float):
 
 def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) -> Path:
     """3-D path (left) and its top view (right): the reference and a few draws."""
-    fig, ax3, ax2 = _path_figure(5.8)
+    fig, ax3, ax2 = path_figure(5.8)
     first = next(iter(results.values()))
     ref = np.asarray(first.trajectories.reference[0])
     shown = 0
@@ -207,7 +214,7 @@ def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) ->
         f"one line per draw: the first {shown} of {total} draws per controller "
         "(diverged draws left out)",
     )
-    style.legend_below(fig, _controller_handles(results) + [line])
+    style.legend_below(fig, controller_handles(results) + [line])
     return style.save(fig, path)
 
 
@@ -217,7 +224,7 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
     b2), median over draws."""
     from matplotlib.lines import Line2D
 
-    fig, axes = _figure(3, 2, (11, 8))
+    fig, axes = time_grid(3, 2, (11, 8))
     handles = []
     for i, (name, result) in enumerate(results.items()):
         adaptive = kept_valid(result, result.trajectories.info.adaptive)  # (draws, time, 6, 3)
@@ -225,7 +232,7 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
             continue
         color = style.color(name, i)
         handles.append(Line2D([], [], color=color, lw=2, label=style.label(name, result)))
-        for axis, ax in enumerate(_panels(axes)):
+        for axis, ax in enumerate(six_panels(axes)):
             for j, ls in enumerate(style.ESTIMATE_STYLES):
                 ax.plot(
                     _time(result), np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1

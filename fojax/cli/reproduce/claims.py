@@ -77,6 +77,7 @@ __all__ = [
     "margin",
     "margin_floor",
     "paired_tables",
+    "per_axis",
     "reaching_band",
 ]
 
@@ -110,7 +111,8 @@ REACHING_BAND_FACTOR = 2.0
 discrete sliding mode's chattering with room for the disturbance's share."""
 
 
-def _metrics(prefix: str) -> list[str]:
+def per_axis(prefix: str) -> list[str]:
+    """``prefix``'s metric on each position axis: ``[prefix_x, prefix_y, prefix_z]``."""
     return [f"{prefix}_{axis}" for axis in ("x", "y", "z")]
 
 
@@ -124,7 +126,7 @@ CLAIMS = [
             "Scenario 1: 'the AFONFTSMC has better performances in terms of overshoot, "
             "settling/rising time, and steady-state error than other compared techniques'"
         ),
-        "metrics": _metrics("overshoot") + _metrics("settling_time") + _metrics("itae"),
+        "metrics": per_axis("overshoot") + per_axis("settling_time") + per_axis("itae"),
         "mapping": (
             "overshoot_x/y/z, settling_time_x/y/z (0.05 m band) and, for the steady-state "
             "error, itae_x/y/z (the time-weighted IAE, dominated by late errors). Rising "
@@ -139,7 +141,7 @@ CLAIMS = [
             "Scenario 1: 'better robustness performances relative to external disturbances "
             "and uncertainties'"
         ),
-        "metrics": ["position_rmse", "attitude_rmse"] + _metrics("max_error"),
+        "metrics": ["position_rmse", "attitude_rmse"] + per_axis("max_error"),
         "mapping": (
             "position_rmse, attitude_rmse and max_error_x/y/z under scenario 1's drag "
             "uncertainty and disturbances (53)."
@@ -152,7 +154,7 @@ CLAIMS = [
             "Scenario 2: 'better in terms of convergence speed, trajectory tracking, and "
             "rejection of the random disturbances'"
         ),
-        "metrics": _metrics("settling_time") + ["position_rmse"] + _metrics("rmse"),
+        "metrics": per_axis("settling_time") + ["position_rmse"] + per_axis("rmse"),
         "mapping": (
             "convergence speed: settling_time_x/y/z; trajectory tracking: position_rmse and "
             "rmse_x/y/z under scenario 2. Rejection of the random disturbances: see the "
@@ -180,7 +182,7 @@ CLAIMS = [
             "Scenario 3: 'more accurate trajectory tracking, stronger random uncertainty and "
             "disturbances rejection'"
         ),
-        "metrics": ["position_rmse"] + _metrics("rmse") + _metrics("max_error"),
+        "metrics": ["position_rmse"] + per_axis("rmse") + per_axis("max_error"),
         "mapping": (
             "position_rmse, rmse_x/y/z and max_error_x/y/z under scenario 3's 30 % mass and "
             "inertia uncertainty and disturbances (56)."

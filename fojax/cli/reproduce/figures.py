@@ -32,13 +32,13 @@ import numpy as np
 
 from fojax.cli import style
 from fojax.cli.figures import (
-    _controller_handles,
-    _figure,
-    _label_axes,
-    _panels,
-    _path_figure,
+    controller_handles,
     inputs_envelope,
     kept_valid,
+    label_axes,
+    path_figure,
+    six_panels,
+    time_grid,
 )
 
 __all__ = ["FIGURE_NUMBERS", "plot_all"]
@@ -64,7 +64,7 @@ def _reference_velocity(scenario_id: int, times: np.ndarray) -> np.ndarray:
 def _handles(results: dict, reference: bool = True, extra=()):
     from matplotlib.lines import Line2D
 
-    handles = _controller_handles(results)
+    handles = controller_handles(results)
     if reference:
         handles.append(
             Line2D([], [], color=style.REFERENCE_COLOR, ls="--", lw=1.2, label="reference")
@@ -76,9 +76,9 @@ def _finish(
     fig, path: Path, title: str, results: dict, handles, spread=None, axes=None, ylabels=()
 ):
     """Title with the true draw counts, legend below the axes, PNG and PDF; with
-    ``axes`` (a grid of time plots), :func:`fojax.cli.figures._label_axes` first."""
+    ``axes`` (a grid of time plots), :func:`fojax.cli.figures.label_axes` first."""
     if axes is not None:
-        _label_axes(axes, ylabels)
+        label_axes(axes, ylabels)
     spread = spread or style.draws_caption(results).replace(
         "the statistics in summary.json", "the tables"
     )
@@ -89,12 +89,12 @@ def _finish(
 
 def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> Path:
     """Fig. 5/9/13: (a) position tracking, (b) attitude tracking."""
-    fig, axes = _figure(3, 2, (11, 8))
+    fig, axes = time_grid(3, 2, (11, 8))
     first = next(iter(results.values())).trajectories
     t = np.asarray(first.time[0])
     for i, (name, result) in enumerate(results.items()):
         state = kept_valid(result, result.trajectories.state)
-        for axis, ax in enumerate(_panels(axes)):
+        for axis, ax in enumerate(six_panels(axes)):
             style.band(ax, t, state[:, :, axis], style.color(name, i))
     for axis in range(3):
         style.reference(axes[axis, 0], t, first.reference[0, :, axis])
@@ -108,7 +108,7 @@ def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> P
 
 def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int) -> Path:
     """Fig. 6/10/14: (a) control inputs, (b) position and velocity tracking errors."""
-    fig, axes = _figure(4, 2, (11, 9))
+    fig, axes = time_grid(4, 2, (11, 9))
     first = next(iter(results.values())).trajectories
     t = np.asarray(first.time[0])
     reference_velocity = _reference_velocity(scenario_id, t)
@@ -155,7 +155,7 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
 
 def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: int = 3) -> Path:
     """Fig. 7/11/15: (a) 3-D path, (b) 2-D path; median path bold, a few draws faint."""
-    fig, ax3, ax2 = _path_figure(6)
+    fig, ax3, ax2 = path_figure(6)
     first = next(iter(results.values())).trajectories
     ref = np.asarray(first.reference[0])
     for i, (name, result) in enumerate(results.items()):
@@ -190,7 +190,7 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
     dotted b2/a2)."""
     from matplotlib.lines import Line2D
 
-    fig, axes = _figure(3, 2, (11, 8))
+    fig, axes = time_grid(3, 2, (11, 8))
     first = next(iter(results.values())).trajectories
     t = np.asarray(first.time[0])
     shown = {}
@@ -203,7 +203,7 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
             continue
         color = style.color(name, index)
         shown[name] = result
-        for axis, ax in enumerate(_panels(axes)):
+        for axis, ax in enumerate(six_panels(axes)):
             for j, ls in enumerate(style.ESTIMATE_STYLES[: len(symbols)]):
                 values = adaptive[:, :, axis, j]
                 low, mid, high = np.percentile(values, style.BAND_PERCENTILES, axis=0)

@@ -9,18 +9,18 @@ import numpy as np
 
 from fojax.cli import output
 from fojax.cli.reproduce import claims as claims_module
-from fojax.cli.reproduce.claims import BASELINE, CHATTER_THRESHOLD, _metrics
+from fojax.cli.reproduce.claims import BASELINE, CHATTER_THRESHOLD, per_axis
 from fojax.records import atomic_write
 
 __all__ = ["TABLE_METRICS", "write_report"]
 
 TABLE_METRICS = (
     ["position_rmse", "attitude_rmse"]
-    + _metrics("rmse")
-    + _metrics("overshoot")
-    + _metrics("settling_time")
-    + _metrics("itae")
-    + _metrics("max_error")
+    + per_axis("rmse")
+    + per_axis("overshoot")
+    + per_axis("settling_time")
+    + per_axis("itae")
+    + per_axis("max_error")
     + ["chattering_thrust", "chattering_tau_x", "control_effort_thrust", "actuator_saturation"]
 )
 
