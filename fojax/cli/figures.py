@@ -40,7 +40,6 @@ __all__ = [
     "time_grid",
 ]
 
-AXES = ("x", "y", "z", "phi", "theta", "psi")
 INPUTS = ("u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)")
 
 
@@ -241,7 +240,7 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
         Line2D([], [], color="0.3", ls=ls, lw=1.1, label=f"b{j}")
         for j, ls in enumerate(style.ESTIMATE_STYLES)
     ]
-    labels = [f"{text}: b0, b1, b2" for text in AXES]
+    labels = [f"{text}: b0, b1, b2" for text in ("x", "y", "z", "phi", "theta", "psi")]
     caption = style.draws_caption(results).replace("median and 5-95 % band", "median")
     return _finish(fig, axes, path, title, caption, handles, labels)
 
