@@ -70,6 +70,8 @@ _MONTE_CARLO = (
     "fojax/cli/study.py",
     "fojax/cli/study_files.py",
 )
+# The reproduction's report and figures (the paper's figures draw with fojax.cli.figures).
+_REPORT = ("fojax/cli/reproduce", "fojax/cli/figures.py", "fojax/cli/style.py")
 _TUNING = (
     *_CLOSED_LOOP,
     "fojax/blocks.py",
@@ -114,7 +116,7 @@ BLOCKS: dict[str, Block] = {
                 document.replace("_", "-"),
                 f"docs/{document}.md",
                 _study("regenerate_reproduction", "--only", switching),
-                (*_MONTE_CARLO, "fojax/cli/reproduce", "experiments/regenerate_reproduction.py"),
+                (*_MONTE_CARLO, *_REPORT, "experiments/regenerate_reproduction.py"),
                 regenerate_reproduction.MARKER,
                 f"results/{folder}",
             )
