@@ -263,6 +263,25 @@ def rollout(
     return Rollout(jnp.stack(final.state), final.status, outputs, trajectory)
 
 
+def rollout_from_keys(
+    controller: Any,
+    gains: Any,
+    model: plant.PlantParams,
+    scenario: scenarios.Scenario,
+    keys: Any,
+    config: SimulationConfig,
+    observer: Any = None,
+    dtype: Any = None,
+    member: Any = 0,
+) -> Rollout:
+    """:func:`rollout` of the draws ``keys`` ``(n, 2)`` name, each sampled for ``config.dt``
+    in ``dtype`` (:func:`fojax.scenarios.sample_draws`; ``member``: a union's member), the
+    batch's axes last. The Monte Carlo study, the tuner's cost and the requirements'
+    evaluation all roll out this way. Pure."""
+    draws = scenarios.sample_draws(scenario, keys, config.dt, dtype, member)
+    return rollout(controller, gains, model, scenario, draws, config, observer)
+
+
 _STATUS = observers.Status()
 
 

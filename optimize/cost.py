@@ -170,8 +170,9 @@ def make_batch_cost(
     weights = jnp.asarray(cost_config.weights, dtype)
 
     def cost(gains, keys):
-        draws = scenarios.sample_draws(scenario, keys, sim_config.dt, dtype)
-        result = simulator.rollout(controller, gains, model, scenario, draws, sim_config, observer)
+        result = simulator.rollout_from_keys(
+            controller, gains, model, scenario, keys, sim_config, observer, dtype
+        )
         terms = result.outputs  # (4, n)
         return jnp.sum(weights[:, None] * terms, 0), terms.T, result.status
 

@@ -294,8 +294,9 @@ _EVALUATORS = EvaluatorCache(16)
 def _evaluator(controller, scenario, config, observer, dtype, model):
     def build():
         def run(gains, keys):
-            draws = scenarios.sample_draws(scenario, keys, config.dt, dtype)
-            result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
+            result = simulator.rollout_from_keys(
+                controller, gains, model, scenario, keys, config, observer, dtype
+            )
             return result.outputs, result.status
 
         return jax.jit(run)

@@ -221,8 +221,9 @@ def make_chunk_runner(
     observer = metrics.Metrics(metrics_config)
 
     def batch(gains, keys, member=0):
-        draws = scenarios.sample_draws(scenario, keys, config.dt, dtype, member)
-        result = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
+        result = simulator.rollout_from_keys(
+            controller, gains, model, scenario, keys, config, observer, dtype, member
+        )
         return scenarios.batch_first((result.status, result.outputs, result.trajectory))
 
     batched = (False, True, False) if scenario.members else (False, True)
