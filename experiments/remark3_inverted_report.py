@@ -128,14 +128,16 @@ def figure(results: dict, path: Path) -> None:
     )
     colors = {name: f"C{i}" for i, name in enumerate(results["analysis"])}
     for name, analysis in results["analysis"].items():
+        # the naive start wide and light: tuned-from-naive's lines may lie on it
+        wide = {"lw": 5, "alpha": 0.4} if name == "naive" else {}
         for objective, style_ in (("effort", "-o"), ("tracking", "--s")):
             rows = analysis[objective]["subsets"]
             sizes.plot(
-                range(1, len(rows) + 1), [e["residual"] for e in rows], style_, ms=4,
-                color=colors[name], label=f"{name}, {objective}",
+                range(1, len(rows) + 1), [e["residual"] for e in rows], style_,
+                ms=9 if wide else 4, color=colors[name], label=f"{name}, {objective}", **wide,
             )  # fmt: skip
         w = analysis["weights"]
-        sweep.loglog(w["sweep_w_E"], w["sweep_residual"], color=colors[name], label=name)
+        sweep.loglog(w["sweep_w_E"], w["sweep_residual"], color=colors[name], label=name, **wide)
     count = len(results["analysis"]["paper"]["effort"]["subsets"])
     sizes.set_xticks(range(1, count + 1), [*map(str, range(1, count)), "all"])
     sizes.set(xlabel="bounds (the best set of each size)", ylim=(0, 1.02))
@@ -147,7 +149,9 @@ def figure(results: dict, path: Path) -> None:
     where = sweep.get_xaxis_transform()
     sweep.text(1e-5, 0.97, " fojax tune's w_E", transform=where, va="top", color="0.4", fontsize=8)
     sweep.set(xlabel="effort weight w_E", ylabel="r = |grad(P + A + w_E E)| / |grad(P + A)|")
-    sweep.set_title("(b) the weighted sum P + A + w_E E", fontsize=10)
+    sweep.set_title(
+        "(b) the weighted sum P + A + w_E E\n(a wide light line: the naive start's)", fontsize=10
+    )
     sweep.legend(fontsize=8)
     distances = results["distance_to_paper"]
     labels = list(distances["paper"]["log10_ratio"])
