@@ -99,20 +99,12 @@ __all__ = [
 ]
 
 
-def _run_store(out: Path, run: Run, tuned: dict | None, seed: int) -> Path:
-    return out / "runs" / run_key(run, tuned, seed)
-
-
-def _stored(store: Path, run: Run):
-    """``(status, per_draw)`` of the run's draws stored in ``store``, or ``None``."""
+def _stored(out: Path, run: Run, tuned: dict | None, seed: int):
+    """``(status, per_draw)`` of the run's draws stored in ``OUT/runs/<key>``, or ``None``."""
     from fojax import study
 
-    existing = study.ChunkStore.existing(store)
+    existing = study.ChunkStore.existing(out / "runs" / run_key(run, tuned, seed))
     return existing and existing.read(run.job.draws)
-
-
-def _finished(out: Path, run: Run, tuned: dict | None, seed: int) -> bool:
-    return _stored(_run_store(out, run, tuned, seed), run) is not None
 
 
 def compile_job(job: Job):
@@ -146,16 +138,6 @@ def execute(compiled, run: Run, gains, seed: int, store: Path) -> float:
     return result.wall_time
 
 
-def _describe(run: Run) -> str:
-    job, c = run.job, run.job.controller
-    return (
-        f"{c.name} {run.scenario.name[:24]!r} gains={run.gains} {job.dtype} dt={job.config.dt:g}"
-        f" guard={c.thrust_floor:g} filter={c.filter_frequency:g}"
-        f" {getattr(c.law, 'switching', '-')} {getattr(c.law, 'fractional_method', '-')}"
-        f" rotor={job.config.rotor_speed_limit}"
-    )
-
-
 def run_lane(
     plan: Plan, job_indices: list, out: Path, tuned_path: Path, progress: bool, lane: str = "main"
 ) -> None:
@@ -166,13 +148,23 @@ def run_lane(
     jobs = [plan.jobs[i] for i in job_indices]
     waits = {run for job in jobs for run in job.runs if run.gains == "tuned" and tuned is None}
     work = [  # the runs waiting for the tuned gains or not on disk
-        (job, [r for r in job.runs if r in waits or not _finished(out, r, tuned, plan.seed)])
+        (job, [r for r in job.runs if r in waits or not _stored(out, r, tuned, plan.seed)])
         for job in jobs
     ]
     work = [(job, runs) for job, runs in work if runs]
     log = _logger(progress, lane)
-    if not work:
-        return
+
+    def execute_and_log(compiled, run) -> None:
+        store = out / "runs" / run_key(run, tuned, plan.seed)
+        seconds = execute(compiled, run, gains_for(run, tuned), plan.seed, store)
+        job, c = run.job, run.job.controller
+        log(
+            f"ran {c.name} {run.scenario.name[:24]!r} gains={run.gains} {job.dtype} "
+            f"dt={job.config.dt:g} guard={c.thrust_floor:g} filter={c.filter_frequency:g}"
+            f" {getattr(c.law, 'switching', '-')} {getattr(c.law, 'fractional_method', '-')}"
+            f" rotor={job.config.rotor_speed_limit}: {job.draws} draws in {seconds:.1f} s"
+        )
+
     deferred = []
     with ThreadPoolExecutor(max_workers=1) as pool:
         futures = [pool.submit(compile_job, job) for job, _ in work]
@@ -185,19 +177,13 @@ def run_lane(
             deferred += [(compiled, run) for run in runs if run in waits]
             for run in runs:
                 if run not in waits:
-                    _run_and_log(compiled, run, tuned, plan, out, log)
+                    execute_and_log(compiled, run)
     if deferred:
         log("waiting for the tuned gains ...")
         tuned = _wait_for_tuned(tuned_path)
-        for compiled, run in deferred:
-            if not _finished(out, run, tuned, plan.seed):
-                _run_and_log(compiled, run, tuned, plan, out, log)
-
-
-def _run_and_log(compiled, run, tuned, plan, out, log) -> None:
-    store = _run_store(out, run, tuned, plan.seed)
-    seconds = execute(compiled, run, gains_for(run, tuned), plan.seed, store)
-    log(f"ran {_describe(run)}: {run.job.draws} draws in {seconds:.1f} s")
+    for compiled, run in deferred:
+        if not _stored(out, run, tuned, plan.seed):
+            execute_and_log(compiled, run)
 
 
 def _wait_for_tuned(path: Path, poll: float = 5.0) -> dict:
@@ -226,22 +212,18 @@ def load_results(plan: Plan, out: Path, tuned: dict | None) -> dict:
     of the cell's run) for every cell whose run is on disk."""
     from fojax import study
 
-    loaded = {}
-    results = {}
+    loaded, results = {}, {}
     for cell, (run, n) in plan.cells.items():
         if run.gains == "tuned" and tuned is None:
             continue
-        store = _run_store(out, run, tuned, plan.seed)
-        if store not in loaded:
-            loaded[store] = _stored(store, run)
-        if not loaded[store]:
-            continue
-        status, per_draw = loaded[store]
-        per_draw = {k: v[:n] for k, v in per_draw.items()}
-        name = run.job.controller.name
-        results[cell] = study.MonteCarloResult(
-            name, np.asarray(status[:n], np.int32), per_draw, None, 0.0, 0.0
-        )
+        if run not in loaded:
+            loaded[run] = _stored(out, run, tuned, plan.seed)
+        if loaded[run]:
+            status, per_draw = loaded[run]
+            per_draw = {k: v[:n] for k, v in per_draw.items()}
+            results[cell] = study.MonteCarloResult(
+                run.job.controller.name, np.asarray(status[:n], np.int32), per_draw, None, 0.0, 0.0
+            )
     return results
 
 
@@ -262,22 +244,26 @@ def evaluate(plan: Plan, results: dict) -> dict:
         if missing:
             evaluated[setting.key] = {"missing": missing}
             continue
-        results_by_scenario, summaries, diverged = {}, {}, {}
         band = reaching_band(config.dt)
-        for s in SCENARIO_IDS:
-            by_name = {n: results[(setting.key, s, n)] for n in plan.controllers}
-            results_by_scenario[s] = by_name
-            summaries[s] = {
+        by_scenario = {
+            s: {n: results[(setting.key, s, n)] for n in plan.controllers} for s in SCENARIO_IDS
+        }
+        summaries = {
+            s: {
                 "horizon_s": config.horizon,
                 "dt_s": config.dt,
                 "reaching_band": list(band),
                 "controllers": {n: study.summarize(r) for n, r in by_name.items()},
             }
-            diverged[s] = {n: s_["diverged"] for n, s_ in summaries[s]["controllers"].items()}
+            for s, by_name in by_scenario.items()
+        }
         evaluated[setting.key] = {
-            "claims": claims_module.evaluate_claims(summaries, results_by_scenario),
-            "diverged": diverged,
-            "draws": next(iter(results_by_scenario[1].values())).draws,
+            "claims": claims_module.evaluate_claims(summaries, by_scenario),
+            "diverged": {
+                s: {n: c["diverged"] for n, c in summary["controllers"].items()}
+                for s, summary in summaries.items()
+            },
+            "draws": next(iter(by_scenario[1].values())).draws,
             "summaries": summaries,
         }
     return evaluated
@@ -306,8 +292,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument(
-        "--settings",
-        help=f"comma-separated subset of {','.join(SETTING_KEYS)} (default all)",
+        "--settings", help=f"comma-separated subset of {','.join(SETTING_KEYS)} (default all)"
     )
     parser.add_argument(
         "--controllers",
@@ -394,36 +379,30 @@ def _wait_for_tuning(tuning, tuned_path: Path, started: float, log) -> float:
     return tuning_wall
 
 
-def _record_invocation(out: Path, argv, wall, before, load_start, tuning_wall) -> list:
-    """``OUT/invocations.json`` with this invocation appended; the list."""
-    history_path = out / "invocations.json"
+def _finished_files(out: Path) -> set:
+    return set((out / "runs").glob("*/draws_*.npz"))
+
+
+def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, before) -> dict:
+    """The report's account of the run: its size, settings, tuning and invocations
+    (``OUT/invocations.json``, this invocation appended)."""
+    tuning_s = None if tuning_wall is None else round(tuning_wall, 1)
+    command = "python -m experiments.sensitivity " + " ".join(argv)
+    history_path = args.out / "invocations.json"
     history = json.loads(history_path.read_text()) if history_path.exists() else []
     history.append(
         {
             "started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(time.time() - wall)),
             "wall_s": round(wall, 1),
-            "runs_computed": len(_finished_files(out) - before),
+            "runs_computed": len(_finished_files(args.out) - before),
             "runs_on_disk_before": len(before),
-            "tuning_s": None if tuning_wall is None else round(tuning_wall, 1),
+            "tuning_s": tuning_s,
             "load_average_start": load_start,
             "load_average_end": output.load_average(),
-            "command": _command(argv),
+            "command": command,
         }
     )
     output.write_json(history_path, history)
-    return history
-
-
-def _command(argv) -> str:
-    return "python -m experiments.sensitivity " + " ".join(argv)
-
-
-def _finished_files(out: Path) -> set:
-    return set((out / "runs").glob("*/draws_*.npz"))
-
-
-def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, history) -> dict:
-    """The report's account of the run: its size, settings, tuning and invocations."""
     return {
         "draws": args.draws,
         "dt_draws": args.dt_draws,
@@ -438,7 +417,7 @@ def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, history) -> dic
             "steps": args.tune_steps,
             "draws": args.tune_draws,
             "horizon_s": args.tune_horizon,
-            "wall_s": None if tuning_wall is None else round(tuning_wall, 1),
+            "wall_s": tuning_s,
         },
         "programs": len(plan.jobs),
         "runs": len(plan.runs),
@@ -446,7 +425,7 @@ def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, history) -> dic
         "load_average_start": load_start,
         "load_average_end": output.load_average(),
         "cpus": os.cpu_count(),
-        "command": _command(argv),
+        "command": command,
         "invocations": history,
     }
 
@@ -504,10 +483,9 @@ def main(argv=None) -> int:
     results = load_results(plan, out, tuned)
     evaluated = evaluate(plan, results)
     wall = time.perf_counter() - start
-    history = _record_invocation(out, argv, wall, before, load_start, tuning_wall)
+    meta = _meta(args, argv, plan, wall, load_start, tuning_wall, before)
     from experiments import sensitivity_report
 
-    meta = _meta(args, argv, plan, wall, load_start, tuning_wall, history)
     doc = None if args.no_doc else args.doc
     report = sensitivity_report.write(out, plan, evaluated, meta, doc, results)
     log(f"wrote {report} in {wall:.0f} s")
