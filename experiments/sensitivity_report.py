@@ -44,6 +44,9 @@ VERDICT_STYLE = {
     "not run": ("not run", "#FFFFFF"),
 }
 
+NOT_RUN = {"verdict": "not run"}
+"""What stands for a claim that a setting did not evaluate."""
+
 TRUST_FRACTION = 0.25
 """float32 is trusted for a metric when its mean moves from float64's by less than this
 fraction of the claims' margin, in every scenario and controller."""
@@ -224,7 +227,7 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     for j, setting in enumerate(settings):
         by_id = _claims(evaluated, setting.key)
         for i, cid in enumerate(claim_ids):
-            claim = by_id.get(cid, {"verdict": "not run"})
+            claim = by_id.get(cid, NOT_RUN)
             colour = VERDICT_STYLE.get(claim["verdict"], (None, "#FFFFFF"))[1]
             ax.add_patch(Rectangle((j, i), 1, 1, facecolor=colour, edgecolor="white", lw=1.5))
             ax.text(j + 0.5, i + 0.5, _cell(claim, "\n"), ha="center", va="center", fontsize=7.5)
@@ -317,14 +320,8 @@ def _setting_lines(plan, evaluated, meta) -> list[str]:
     flipped = _flipped(plan, evaluated)
     for setting in plan.settings:
         by_id = _claims(evaluated, setting.key)
-        cells = []
-        for cid in SHORT_CLAIMS:
-            claim = by_id.get(cid)
-            if claim is None:
-                cells.append("not run")
-                continue
-            text = _cell(claim, " ")
-            cells.append(f"**{text}**" if (setting.key, cid) in flipped else text)
+        cells = [(cid, _cell(by_id.get(cid, NOT_RUN), " ")) for cid in SHORT_CLAIMS]
+        cells = [f"**{text}**" if (setting.key, cid) in flipped else text for cid, text in cells]
         changed = ""
         if setting.key in changes:
             total = sum(len(c.get("comparisons", [])) for c in by_id.values())
@@ -340,24 +337,20 @@ def _setting_lines(plan, evaluated, meta) -> list[str]:
 def _flip_lines(plan, evaluated, meta) -> list[str]:
     found = flips(plan, evaluated)
     base = _verdicts(evaluated.get("default", {}))
-    lines = []
     robust = [cid for cid in SHORT_CLAIMS if cid in base and cid not in found]
+    head = "No verdict is the same in every setting."
     if robust:
-        lines.append(
+        head = (
             "Robust (the same verdict in every setting as in its reference): "
             + "; ".join(f"{SHORT_CLAIMS[c]} (*{base[c]}*)" for c in robust)
             + "."
         )
-    else:
-        lines.append("No verdict is the same in every setting.")
-    lines.append("")
-    for cid in [c for c in SHORT_CLAIMS if c in found]:
-        moves = ", ".join(
-            f"{_column_label(key, meta)}: *{before}* -> *{after}*"
-            for key, before, after in found[cid]
-        )
-        lines.append(f"* Flips, {SHORT_CLAIMS[cid]}: {moves}.")
-    return lines
+    moves = {
+        cid: ", ".join(f"{_column_label(key, meta)}: *{a}* -> *{b}*" for key, a, b in found[cid])
+        for cid in SHORT_CLAIMS
+        if cid in found
+    }
+    return [head, "", *(f"* Flips, {SHORT_CLAIMS[c]}: {text}." for c, text in moves.items())]
 
 
 def _change_lines(plan, evaluated, meta, limit: int = 12) -> list[str]:
