@@ -60,9 +60,10 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
-from experiments import _common
+from experiments import _common, sensitivity_report
 from experiments.sensitivity_plan import (  # noqa: F401  (the study's names)
     SCENARIO_IDS,
     SETTING_KEYS,
@@ -84,8 +85,10 @@ from experiments.sensitivity_plan import (  # noqa: F401  (the study's names)
     scenario_variant,
     simulation_config,
 )
-from fojax.cli import output
+from fojax import study
+from fojax.cli import arguments, output
 from fojax.cli.reproduce import claims as claims_module
+from fojax.controllers import registry
 
 __all__ = [
     "SETTINGS",
@@ -101,8 +104,6 @@ __all__ = [
 
 def _stored(out: Path, run: Run, tuned: dict | None, seed: int):
     """``(status, per_draw)`` of the run's draws stored in ``OUT/runs/<key>``, or ``None``."""
-    from fojax import study
-
     existing = study.ChunkStore.existing(out / "runs" / run_key(run, tuned, seed))
     return existing and existing.read(run.job.draws)
 
@@ -110,10 +111,6 @@ def _stored(out: Path, run: Run, tuned: dict | None, seed: int):
 def compile_job(job: Job):
     """The job's program (:func:`fojax.study.compile_chunk_runner` for the union of its
     scenarios, ``job.draws`` draws a call) and its compile time (s)."""
-    import jax.numpy as jnp
-
-    from fojax import study
-
     dtype = jnp.dtype(job.dtype)
     start = time.perf_counter()
     compiled = study.compile_chunk_runner(
@@ -126,8 +123,6 @@ def compile_job(job: Job):
 def execute(compiled, run: Run, gains, seed: int, store: Path) -> float:
     """Draws ``0 ... job.draws - 1`` of the run (:func:`fojax.study.run` of its union
     member, one call of the compiled program), stored in ``store``; the seconds."""
-    from fojax import study
-
     job = run.job
     result = study.run(
         job.controller, gains, job.union(), job.config, job.draws, seed,
@@ -210,8 +205,6 @@ def _logger(progress: bool, lane: str = "main"):
 def load_results(plan: Plan, out: Path, tuned: dict | None) -> dict:
     """``(setting key, scenario id, controller) -> MonteCarloResult`` (first ``n`` draws
     of the cell's run) for every cell whose run is on disk."""
-    from fojax import study
-
     loaded, results = {}, {}
     for cell, (run, n) in plan.cells.items():
         if run.gains == "tuned" and tuned is None:
@@ -230,8 +223,6 @@ def load_results(plan: Plan, out: Path, tuned: dict | None) -> dict:
 def evaluate(plan: Plan, results: dict) -> dict:
     """Setting key -> ``{"claims": evaluate_claims(...), "diverged": ...}``, or
     ``{"missing": [...]}`` when some of its runs are not there."""
-    from fojax import study
-
     evaluated = {}
     for setting in plan.settings:
         config = simulation_config(setting, plan.horizon)
@@ -273,8 +264,6 @@ def evaluate(plan: Plan, results: dict) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fojax.cli import arguments
-
     parser = _common.parser(
         "sensitivity",
         description="The Section V verdicts with each open modelling choice moved in turn.",
@@ -323,8 +312,6 @@ def parse_args(argv):
         # a setting needs the one it is compared with
         wanted = {*keys, *(s.reference for s in SETTINGS if s.key in keys and s.reference)}
         args.selected = tuple(s for s in SETTINGS if s.key in wanted)
-    from fojax.controllers import registry
-
     paper = registry.PAPER_CONTROLLERS
     if args.controllers is None:
         args.controllers = paper
@@ -484,8 +471,6 @@ def main(argv=None) -> int:
     evaluated = evaluate(plan, results)
     wall = time.perf_counter() - start
     meta = _meta(args, argv, plan, wall, load_start, tuning_wall, before)
-    from experiments import sensitivity_report
-
     doc = None if args.no_doc else args.doc
     report = sensitivity_report.write(out, plan, evaluated, meta, doc, results)
     log(f"wrote {report} in {wall:.0f} s")

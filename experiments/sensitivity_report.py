@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from experiments import _common
-from fojax.cli import output
+from fojax import study
+from fojax.cli import output, style
 from fojax.cli.reproduce import claims as claims_module
 from fojax.cli.reproduce.report import format_number as _fmt
 from fojax.records import atomic_write
@@ -141,8 +142,6 @@ def precision_table(plan, results: dict) -> list[dict] | None:
     """Per metric of :data:`PRECISION_METRICS`: the float32 mean's shift from float64's
     (same draws) against the claims' margin of that metric, the largest over scenarios
     and controllers; ``None`` without both settings."""
-    from fojax import study
-
     keys = {s.key for s in plan.settings}
     if not {"default", "float64"} <= keys:
         return None
@@ -216,8 +215,6 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     comparisons (better/worse/equivalent/undecided) in the cells, a heavy frame where a
     verdict differs from its reference setting's."""
     from matplotlib.patches import Patch, Rectangle
-
-    from fojax.cli import style
 
     plt = style.pyplot()
     settings = list(plan.settings)
@@ -518,8 +515,6 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
 def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, results: dict) -> Path:
     """``OUT/report.json``, ``OUT/report.md`` and the figure; ``doc`` updated below its
     marker (created with a stub above it if new). Returns the Markdown written last."""
-    from fojax.cli import style
-
     out = Path(out)
     precision = precision_table(plan, results)
     data = {
