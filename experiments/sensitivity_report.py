@@ -255,56 +255,60 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     return style.save(fig, path)
 
 
+COLUMN_LABELS = {
+    "default-reduced": "default, first {dt_draws}",
+    "dt-0.1ms": "dt 0.1 ms",
+    "guard-0.5g": "thrust guard 0.5 g",
+    "filter-25": "filter 25 rad/s",
+    "filter-100": "filter 100 rad/s",
+    "oustaloup": "CRONE (Oustaloup)",
+    "sat": "sat switching",
+    "s3-smoothed": "S3 ref. smoothed",
+    "sigma-x5": "sigma x5",
+    "tuned": "tuned gains",
+}
+"""A setting's column label where it is not its key (``{dt_draws}``: from the meta)."""
+
+
 def _column_label(key: str, meta: dict) -> str:
-    labels = {
-        "default": "default",
-        "default-reduced": f"default, first {meta['dt_draws']}",
-        "dt-0.1ms": "dt 0.1 ms",
-        "guard-0.5g": "thrust guard 0.5 g",
-        "filter-25": "filter 25 rad/s",
-        "filter-100": "filter 100 rad/s",
-        "oustaloup": "CRONE (Oustaloup)",
-        "sat": "sat switching",
-        "rotor-limited": "rotor-limited",
-        "s3-smoothed": "S3 ref. smoothed",
-        "sigma-x5": "sigma x5",
-        "tuned": "tuned gains",
-        "float64": "float64",
-    }
-    return labels.get(key, key)
+    return COLUMN_LABELS.get(key, key).format(**meta)
 
 
 # --------------------------------------------------------------------------- report
 
 
+def _json_claim(claim: dict) -> dict:
+    """The claim as ``report.json`` keeps it: verdict, counts, each comparison's outcome,
+    difference and margin; the baseline's chatter rows; the finite-time rows, short."""
+    item = {k: claim[k] for k in ("id", "verdict") if k in claim}
+    if "counts" in claim:
+        item["counts"] = claim["counts"]
+        item["verdict_without_margin"] = claim.get("verdict_without_margin")
+        item["comparisons"] = [
+            {k: c[k] for k in ("controller", "metric", "outcome")}
+            | {f"difference_{k}": c["difference"].get(k) for k in ("mean", "ci95")}
+            | {"margin": c["margin"]}
+            for c in claim["comparisons"]
+        ]
+    if claim["id"] == "R2-chatter-free":
+        item["rows"] = [r for r in claim["rows"] if r["controller"] == claims_module.BASELINE]
+    if claim["id"] == "C-finite-time":
+        keys = "scenario axis band valid_draws reached kept_from_first_half".split()
+        item["rows"] = [{k: r[k] for k in keys} for r in claim["rows"]]
+    return item
+
+
 def _json_ready(evaluated: dict) -> dict:
-    out = {}
-    for key, entry in evaluated.items():
-        if "claims" not in entry:
-            out[key] = entry
-            continue
-        claims = []
-        for claim in entry["claims"]:
-            item = {k: claim[k] for k in ("id", "verdict") if k in claim}
-            if "counts" in claim:
-                item["counts"] = claim["counts"]
-                item["verdict_without_margin"] = claim.get("verdict_without_margin")
-                item["comparisons"] = [
-                    {k: c[k] for k in ("controller", "metric", "outcome")}
-                    | {f"difference_{k}": c["difference"].get(k) for k in ("mean", "ci95")}
-                    | {"margin": c["margin"]}
-                    for c in claim["comparisons"]
-                ]
-            if claim["id"] == "R2-chatter-free":
-                item["rows"] = [
-                    r for r in claim["rows"] if r["controller"] == claims_module.BASELINE
-                ]
-            if claim["id"] == "C-finite-time":
-                keys = "scenario axis band valid_draws reached kept_from_first_half".split()
-                item["rows"] = [{k: r[k] for k in keys} for r in claim["rows"]]
-            claims.append(item)
-        out[key] = {"draws": entry["draws"], "diverged": entry["diverged"], "claims": claims}
-    return out
+    return {
+        key: {
+            "draws": entry["draws"],
+            "diverged": entry["diverged"],
+            "claims": [_json_claim(claim) for claim in entry["claims"]],
+        }
+        if "claims" in entry
+        else entry
+        for key, entry in evaluated.items()
+    }
 
 
 def _setting_lines(plan, evaluated, meta) -> list[str]:
@@ -369,11 +373,9 @@ def _divergence_lines(plan, evaluated, meta) -> list[str]:
     lines = []
     for setting in plan.settings:
         entry = evaluated.get(setting.key, {})
-        if "diverged" not in entry:
-            continue
         parts = [
             f"S{s} {name} {count}"
-            for s, by_name in entry["diverged"].items()
+            for s, by_name in entry.get("diverged", {}).items()
             for name, count in by_name.items()
             if count
         ]
