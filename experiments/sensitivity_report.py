@@ -77,11 +77,11 @@ def _verdicts(entry: dict) -> dict:
 
 def _outcomes(entry: dict) -> dict:
     """``(claim, controller, metric) -> outcome`` of the scenario claims."""
-    table = {}
-    for claim in entry.get("claims", []):
-        for c in claim.get("comparisons", []):
-            table[(claim["id"], c["controller"], c["metric"])] = c["outcome"]
-    return table
+    return {
+        (claim["id"], c["controller"], c["metric"]): c["outcome"]
+        for claim in entry.get("claims", [])
+        for c in claim.get("comparisons", [])
+    }
 
 
 def _claims(evaluated: dict, key: str) -> dict:
@@ -99,22 +99,22 @@ def _cell(claim: dict, sep: str) -> str:
     return text
 
 
-def _against_reference(plan, evaluated: dict, read):
-    """(setting key, read(setting), read(its reference setting)) for each setting with a
-    reference setting that was evaluated."""
+def _changes(plan, evaluated: dict, read):
+    """(setting key, [(item, reference value, value)]) for each setting with a reference
+    setting that was evaluated: the items of ``read(entry)`` (item -> value) that differ."""
     for setting in plan.settings:
         if setting.reference and setting.reference in evaluated:
-            yield setting.key, read(evaluated[setting.key]), read(evaluated[setting.reference])
+            mine, theirs = (read(evaluated[k]) for k in (setting.key, setting.reference))
+            yield setting.key, [(k, theirs[k], v) for k, v in mine.items() if theirs.get(k, v) != v]
 
 
 def flips(plan, evaluated: dict) -> dict:
     """Claim id -> [(setting key, reference verdict, verdict)] where the setting's verdict
     differs from its reference setting's."""
     found = {}
-    for key, mine, theirs in _against_reference(plan, evaluated, _verdicts):
-        for claim_id, verdict in mine.items():
-            if theirs.get(claim_id, verdict) != verdict:
-                found.setdefault(claim_id, []).append((key, theirs[claim_id], verdict))
+    for key, changed in _changes(plan, evaluated, _verdicts):
+        for claim_id, before, after in changed:
+            found.setdefault(claim_id, []).append((key, before, after))
     return found
 
 
@@ -125,14 +125,8 @@ def _flipped(plan, evaluated: dict) -> set:
 
 def outcome_changes(plan, evaluated: dict) -> dict:
     """Setting key -> list of (claim, controller, metric, reference outcome, outcome)."""
-    return {
-        key: [
-            (*k, theirs[k], outcome)
-            for k, outcome in mine.items()
-            if theirs.get(k, outcome) != outcome
-        ]
-        for key, mine, theirs in _against_reference(plan, evaluated, _outcomes)
-    }
+    changes = _changes(plan, evaluated, _outcomes)
+    return {key: [(*k, before, after) for k, before, after in items] for key, items in changes}
 
 
 # ---------------------------------------------------------------------- precision
