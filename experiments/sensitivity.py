@@ -302,27 +302,21 @@ def build_parser() -> argparse.ArgumentParser:
 def parse_args(argv):
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.settings is None:
-        args.selected = SETTINGS
-    else:
-        keys = _common.listed(args.settings)
-        unknown = [k for k in keys if k not in SETTING_KEYS]
-        if unknown or not keys:
-            parser.error(f"--settings must be among {', '.join(SETTING_KEYS)}, got {unknown}")
-        # a setting needs the one it is compared with
-        wanted = {*keys, *(s.reference for s in SETTINGS if s.key in keys and s.reference)}
-        args.selected = tuple(s for s in SETTINGS if s.key in wanted)
+    keys = SETTING_KEYS if args.settings is None else _common.listed(args.settings)
+    unknown = [k for k in keys if k not in SETTING_KEYS]
+    if unknown or not keys:
+        parser.error(f"--settings must be among {', '.join(SETTING_KEYS)}, got {unknown}")
+    # a setting needs the one it is compared with
+    wanted = {*keys, *(s.reference for s in SETTINGS if s.key in keys and s.reference)}
+    args.selected = tuple(s for s in SETTINGS if s.key in wanted)
     paper = registry.PAPER_CONTROLLERS
-    if args.controllers is None:
-        args.controllers = paper
-    else:
-        names = _common.listed(args.controllers)
-        if not names or set(names) - set(paper) or claims_module.BASELINE not in names:
-            parser.error(
-                f"--controllers must be among {', '.join(paper)} and include "
-                f"{claims_module.BASELINE}, got {args.controllers!r}"
-            )
-        args.controllers = tuple(n for n in paper if n in names)
+    names = paper if args.controllers is None else _common.listed(args.controllers)
+    if not names or set(names) - set(paper) or claims_module.BASELINE not in names:
+        parser.error(
+            f"--controllers must be among {', '.join(paper)} and include "
+            f"{claims_module.BASELINE}, got {args.controllers!r}"
+        )
+    args.controllers = tuple(n for n in paper if n in names)
     for dt in (1e-3, 1e-4):
         steps = args.horizon / dt
         if abs(steps - round(steps)) > 1e-6 * steps:
@@ -447,8 +441,7 @@ def main(argv=None) -> int:
             tuned_path.unlink()  # tuned by other code: tuned again
     if any(s.gains == "tuned" for s in plan.settings) and not tuned_path.exists():
         tuning, tuning_start = _start_tuning(args, tuned_path.parent, log), time.perf_counter()
-    lane_argv = [a for a in argv if a != "--quiet"] + (["--quiet"] if args.quiet else [])
-    command = [sys.executable, "-m", "experiments.sensitivity", *lane_argv, "--lane"]
+    command = [sys.executable, "-m", "experiments.sensitivity", *argv, "--lane"]
     processes = {lane: subprocess.Popen([*command, lane]) for lane in lanes}
     try:
         if tuning is not None:
