@@ -224,14 +224,10 @@ def evaluate(plan: Plan, results: dict) -> dict:
     """Setting key -> ``{"claims": evaluate_claims(...), "diverged": ...}``, or
     ``{"missing": [...]}`` when some of its runs are not there."""
     evaluated = {}
+    cells = [(s, name) for s in SCENARIO_IDS for name in plan.controllers]
     for setting in plan.settings:
         config = simulation_config(setting, plan.horizon)
-        missing = [
-            f"s{s} {name}"
-            for s in SCENARIO_IDS
-            for name in plan.controllers
-            if (setting.key, s, name) not in results
-        ]
+        missing = [f"s{s} {name}" for s, name in cells if (setting.key, s, name) not in results]
         if missing:
             evaluated[setting.key] = {"missing": missing}
             continue

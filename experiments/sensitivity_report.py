@@ -309,10 +309,8 @@ def _setting_lines(plan, evaluated, meta) -> list[str]:
         by_id = _claims(evaluated, setting.key)
         cells = [(cid, _cell(by_id.get(cid, NOT_RUN), " ")) for cid in SHORT_CLAIMS]
         cells = [f"**{text}**" if (setting.key, cid) in flipped else text for cid, text in cells]
-        changed = ""
-        if setting.key in changes:
-            total = sum(len(c.get("comparisons", [])) for c in by_id.values())
-            changed = f"{len(changes[setting.key])} of {total}"
+        total = sum(len(c.get("comparisons", [])) for c in by_id.values())
+        changed = f"{len(changes[setting.key])} of {total}" if setting.key in changes else ""
         reference = _column_label(setting.reference, meta) if setting.reference else ""
         lines.append(
             f"| {_column_label(setting.key, meta)} | {setting.choice} | {setting.value} | "
