@@ -173,8 +173,6 @@ class Plan:
     runs: list
     cells: dict  # (setting key, scenario id, controller) -> (Run, draws)
     horizon: float
-    draws: int
-    dt_draws: int
     seed: int
     controllers: tuple
 
@@ -225,7 +223,7 @@ def make_plan(
                 job.draws = max(job.draws, n)
                 cells[(setting.key, scenario_id, name)] = (runs[identity], n)
     jobs, runs = list(jobs.values()), list(runs.values())
-    return Plan(tuple(settings), jobs, runs, cells, horizon, draws, dt_draws, seed, controllers)
+    return Plan(tuple(settings), jobs, runs, cells, horizon, seed, controllers)
 
 
 def assign_lanes(plan: Plan, workers: int) -> dict:
