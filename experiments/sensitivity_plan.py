@@ -304,9 +304,7 @@ def run_key(run: Run, tuned: dict | None, seed: int) -> str:
     gains, metrics = gains_for(run, tuned, "float32"), metrics_config(job.config)
     fields = (job.controller, gains, run.scenario, job.config, seed, job.dtype, metrics)
     settings = study.fingerprint(*fields, device_batch=job.draws)
-    settings["union"] = _plain(job.members)
-    settings["member"] = run.member
-    settings["draws"] = job.draws
+    settings.update(union=_plain(job.members), member=run.member, draws=job.draws)
     text = json.dumps(records.canonical(settings), sort_keys=True)
     if " at 0x" in text:  # an object spelled by its address: not the same in another process
         raise ValueError(f"run key depends on an address: {text}")
