@@ -335,11 +335,8 @@ def _start_tuning(args, directory: Path, log) -> subprocess.Popen:
         "--eval-scenarios", "2", "--eval-horizon", "0.1", "--quiet",
     ]  # fmt: skip
     log("tuning the five controllers: " + " ".join(command[1:]))
-    return subprocess.Popen(
-        command,
-        stdout=subprocess.DEVNULL,
-        stderr=open(directory / "stderr.log", "w"),  # noqa: SIM115
-    )
+    stderr = open(directory / "stderr.log", "w")  # noqa: SIM115  (the child's, left open)
+    return subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=stderr)
 
 
 def _wait_for_tuning(tuning, tuned_path: Path, started: float, log) -> float:

@@ -198,9 +198,7 @@ def make_plan(
     paper's five (the AFONFTSMC first)."""
     controllers = tuple(controllers or registry.PAPER_CONTROLLERS)
 
-    jobs: dict = {}
-    runs: dict = {}
-    cells = {}
+    jobs, runs, cells = {}, {}, {}
     for setting in settings:
         config = simulation_config(setting, horizon)
         n = dt_draws if setting.reduced else draws
