@@ -441,9 +441,8 @@ def main(argv=None) -> int:
             tuning_wall = _wait_for_tuning(tuning, tuned_path, tuning_start, log)
         failed = [lane for lane, process in processes.items() if process.wait() != 0]
     except KeyboardInterrupt:
-        for process in [*processes.values(), tuning]:
-            if process is not None:
-                process.terminate()
+        for process in filter(None, [*processes.values(), tuning]):
+            process.terminate()
         print(
             f"\ninterrupted: finished runs are kept under {out}/runs; run the same command "
             "again to continue",
