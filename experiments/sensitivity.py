@@ -60,9 +60,10 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
-from experiments import _common
+from experiments import _common, sensitivity_report
 from experiments.sensitivity_plan import (  # noqa: F401  (the study's names)
     SCENARIO_IDS,
     SETTING_KEYS,
@@ -84,8 +85,10 @@ from experiments.sensitivity_plan import (  # noqa: F401  (the study's names)
     scenario_variant,
     simulation_config,
 )
-from fojax.cli import output
+from fojax import study
+from fojax.cli import arguments, output
 from fojax.cli.reproduce import claims as claims_module
+from fojax.controllers import registry
 
 __all__ = [
     "SETTINGS",
@@ -99,29 +102,15 @@ __all__ = [
 ]
 
 
-def _run_store(out: Path, run: Run, tuned: dict | None, seed: int) -> Path:
-    return out / "runs" / run_key(run, tuned, seed)
-
-
-def _stored(store: Path, run: Run):
-    """``(status, per_draw)`` of the run's draws stored in ``store``, or ``None``."""
-    from fojax import study
-
-    existing = study.ChunkStore.existing(store)
+def _stored(out: Path, run: Run, tuned: dict | None, seed: int):
+    """``(status, per_draw)`` of the run's draws stored in ``OUT/runs/<key>``, or ``None``."""
+    existing = study.ChunkStore.existing(out / "runs" / run_key(run, tuned, seed))
     return existing and existing.read(run.job.draws)
-
-
-def _finished(out: Path, run: Run, tuned: dict | None, seed: int) -> bool:
-    return _stored(_run_store(out, run, tuned, seed), run) is not None
 
 
 def compile_job(job: Job):
     """The job's program (:func:`fojax.study.compile_chunk_runner` for the union of its
     scenarios, ``job.draws`` draws a call) and its compile time (s)."""
-    import jax.numpy as jnp
-
-    from fojax import study
-
     dtype = jnp.dtype(job.dtype)
     start = time.perf_counter()
     compiled = study.compile_chunk_runner(
@@ -134,8 +123,6 @@ def compile_job(job: Job):
 def execute(compiled, run: Run, gains, seed: int, store: Path) -> float:
     """Draws ``0 ... job.draws - 1`` of the run (:func:`fojax.study.run` of its union
     member, one call of the compiled program), stored in ``store``; the seconds."""
-    from fojax import study
-
     job = run.job
     result = study.run(
         job.controller, gains, job.union(), job.config, job.draws, seed,
@@ -144,16 +131,6 @@ def execute(compiled, run: Run, gains, seed: int, store: Path) -> float:
         member=run.member,
     )  # fmt: skip
     return result.wall_time
-
-
-def _describe(run: Run) -> str:
-    job, c = run.job, run.job.controller
-    return (
-        f"{c.name} {run.scenario.name[:24]!r} gains={run.gains} {job.dtype} dt={job.config.dt:g}"
-        f" guard={c.thrust_floor:g} filter={c.filter_frequency:g}"
-        f" {getattr(c.law, 'switching', '-')} {getattr(c.law, 'fractional_method', '-')}"
-        f" rotor={job.config.rotor_speed_limit}"
-    )
 
 
 def run_lane(
@@ -166,13 +143,23 @@ def run_lane(
     jobs = [plan.jobs[i] for i in job_indices]
     waits = {run for job in jobs for run in job.runs if run.gains == "tuned" and tuned is None}
     work = [  # the runs waiting for the tuned gains or not on disk
-        (job, [r for r in job.runs if r in waits or not _finished(out, r, tuned, plan.seed)])
+        (job, [r for r in job.runs if r in waits or not _stored(out, r, tuned, plan.seed)])
         for job in jobs
     ]
     work = [(job, runs) for job, runs in work if runs]
     log = _logger(progress, lane)
-    if not work:
-        return
+
+    def execute_and_log(compiled, run) -> None:
+        store = out / "runs" / run_key(run, tuned, plan.seed)
+        seconds = execute(compiled, run, gains_for(run, tuned), plan.seed, store)
+        job, c = run.job, run.job.controller
+        log(
+            f"ran {c.name} {run.scenario.name[:24]!r} gains={run.gains} {job.dtype} "
+            f"dt={job.config.dt:g} guard={c.thrust_floor:g} filter={c.filter_frequency:g}"
+            f" {getattr(c.law, 'switching', '-')} {getattr(c.law, 'fractional_method', '-')}"
+            f" rotor={job.config.rotor_speed_limit}: {job.draws} draws in {seconds:.1f} s"
+        )
+
     deferred = []
     with ThreadPoolExecutor(max_workers=1) as pool:
         futures = [pool.submit(compile_job, job) for job, _ in work]
@@ -185,19 +172,13 @@ def run_lane(
             deferred += [(compiled, run) for run in runs if run in waits]
             for run in runs:
                 if run not in waits:
-                    _run_and_log(compiled, run, tuned, plan, out, log)
+                    execute_and_log(compiled, run)
     if deferred:
         log("waiting for the tuned gains ...")
         tuned = _wait_for_tuned(tuned_path)
-        for compiled, run in deferred:
-            if not _finished(out, run, tuned, plan.seed):
-                _run_and_log(compiled, run, tuned, plan, out, log)
-
-
-def _run_and_log(compiled, run, tuned, plan, out, log) -> None:
-    store = _run_store(out, run, tuned, plan.seed)
-    seconds = execute(compiled, run, gains_for(run, tuned), plan.seed, store)
-    log(f"ran {_describe(run)}: {run.job.draws} draws in {seconds:.1f} s")
+    for compiled, run in deferred:
+        if not _stored(out, run, tuned, plan.seed):
+            execute_and_log(compiled, run)
 
 
 def _wait_for_tuned(path: Path, poll: float = 5.0) -> dict:
@@ -224,60 +205,52 @@ def _logger(progress: bool, lane: str = "main"):
 def load_results(plan: Plan, out: Path, tuned: dict | None) -> dict:
     """``(setting key, scenario id, controller) -> MonteCarloResult`` (first ``n`` draws
     of the cell's run) for every cell whose run is on disk."""
-    from fojax import study
-
-    loaded = {}
-    results = {}
+    loaded, results = {}, {}
     for cell, (run, n) in plan.cells.items():
         if run.gains == "tuned" and tuned is None:
             continue
-        store = _run_store(out, run, tuned, plan.seed)
-        if store not in loaded:
-            loaded[store] = _stored(store, run)
-        if not loaded[store]:
-            continue
-        status, per_draw = loaded[store]
-        per_draw = {k: v[:n] for k, v in per_draw.items()}
-        name = run.job.controller.name
-        results[cell] = study.MonteCarloResult(
-            name, np.asarray(status[:n], np.int32), per_draw, None, 0.0, 0.0
-        )
+        if run not in loaded:
+            loaded[run] = _stored(out, run, tuned, plan.seed)
+        if loaded[run]:
+            status, per_draw = loaded[run]
+            per_draw = {k: v[:n] for k, v in per_draw.items()}
+            results[cell] = study.MonteCarloResult(
+                run.job.controller.name, np.asarray(status[:n], np.int32), per_draw, None, 0.0, 0.0
+            )
     return results
 
 
 def evaluate(plan: Plan, results: dict) -> dict:
     """Setting key -> ``{"claims": evaluate_claims(...), "diverged": ...}``, or
     ``{"missing": [...]}`` when some of its runs are not there."""
-    from fojax import study
-
     evaluated = {}
+    cells = [(s, name) for s in SCENARIO_IDS for name in plan.controllers]
     for setting in plan.settings:
         config = simulation_config(setting, plan.horizon)
-        missing = [
-            f"s{s} {name}"
-            for s in SCENARIO_IDS
-            for name in plan.controllers
-            if (setting.key, s, name) not in results
-        ]
+        missing = [f"s{s} {name}" for s, name in cells if (setting.key, s, name) not in results]
         if missing:
             evaluated[setting.key] = {"missing": missing}
             continue
-        results_by_scenario, summaries, diverged = {}, {}, {}
         band = reaching_band(config.dt)
-        for s in SCENARIO_IDS:
-            by_name = {n: results[(setting.key, s, n)] for n in plan.controllers}
-            results_by_scenario[s] = by_name
-            summaries[s] = {
+        by_scenario = {
+            s: {n: results[(setting.key, s, n)] for n in plan.controllers} for s in SCENARIO_IDS
+        }
+        summaries = {
+            s: {
                 "horizon_s": config.horizon,
                 "dt_s": config.dt,
                 "reaching_band": list(band),
                 "controllers": {n: study.summarize(r) for n, r in by_name.items()},
             }
-            diverged[s] = {n: s_["diverged"] for n, s_ in summaries[s]["controllers"].items()}
+            for s, by_name in by_scenario.items()
+        }
         evaluated[setting.key] = {
-            "claims": claims_module.evaluate_claims(summaries, results_by_scenario),
-            "diverged": diverged,
-            "draws": next(iter(results_by_scenario[1].values())).draws,
+            "claims": claims_module.evaluate_claims(summaries, by_scenario),
+            "diverged": {
+                s: {n: c["diverged"] for n, c in summary["controllers"].items()}
+                for s, summary in summaries.items()
+            },
+            "draws": next(iter(by_scenario[1].values())).draws,
             "summaries": summaries,
         }
     return evaluated
@@ -287,8 +260,6 @@ def evaluate(plan: Plan, results: dict) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fojax.cli import arguments
-
     parser = _common.parser(
         "sensitivity",
         description="The Section V verdicts with each open modelling choice moved in turn.",
@@ -306,8 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument(
-        "--settings",
-        help=f"comma-separated subset of {','.join(SETTING_KEYS)} (default all)",
+        "--settings", help=f"comma-separated subset of {','.join(SETTING_KEYS)} (default all)"
     )
     parser.add_argument(
         "--controllers",
@@ -328,29 +298,21 @@ def build_parser() -> argparse.ArgumentParser:
 def parse_args(argv):
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.settings is None:
-        args.selected = SETTINGS
-    else:
-        keys = _common.listed(args.settings)
-        unknown = [k for k in keys if k not in SETTING_KEYS]
-        if unknown or not keys:
-            parser.error(f"--settings must be among {', '.join(SETTING_KEYS)}, got {unknown}")
-        # a setting needs the one it is compared with
-        wanted = {*keys, *(s.reference for s in SETTINGS if s.key in keys and s.reference)}
-        args.selected = tuple(s for s in SETTINGS if s.key in wanted)
-    from fojax.controllers import registry
-
+    keys = SETTING_KEYS if args.settings is None else _common.listed(args.settings)
+    unknown = [k for k in keys if k not in SETTING_KEYS]
+    if unknown or not keys:
+        parser.error(f"--settings must be among {', '.join(SETTING_KEYS)}, got {unknown}")
+    # a setting needs the one it is compared with
+    wanted = {*keys, *(s.reference for s in SETTINGS if s.key in keys and s.reference)}
+    args.selected = tuple(s for s in SETTINGS if s.key in wanted)
     paper = registry.PAPER_CONTROLLERS
-    if args.controllers is None:
-        args.controllers = paper
-    else:
-        names = _common.listed(args.controllers)
-        if not names or set(names) - set(paper) or claims_module.BASELINE not in names:
-            parser.error(
-                f"--controllers must be among {', '.join(paper)} and include "
-                f"{claims_module.BASELINE}, got {args.controllers!r}"
-            )
-        args.controllers = tuple(n for n in paper if n in names)
+    names = paper if args.controllers is None else _common.listed(args.controllers)
+    if not names or set(names) - set(paper) or claims_module.BASELINE not in names:
+        parser.error(
+            f"--controllers must be among {', '.join(paper)} and include "
+            f"{claims_module.BASELINE}, got {args.controllers!r}"
+        )
+    args.controllers = tuple(n for n in paper if n in names)
     for dt in (1e-3, 1e-4):
         steps = args.horizon / dt
         if abs(steps - round(steps)) > 1e-6 * steps:
@@ -373,11 +335,8 @@ def _start_tuning(args, directory: Path, log) -> subprocess.Popen:
         "--eval-scenarios", "2", "--eval-horizon", "0.1", "--quiet",
     ]  # fmt: skip
     log("tuning the five controllers: " + " ".join(command[1:]))
-    return subprocess.Popen(
-        command,
-        stdout=subprocess.DEVNULL,
-        stderr=open(directory / "stderr.log", "w"),  # noqa: SIM115
-    )
+    stderr = open(directory / "stderr.log", "w")  # noqa: SIM115  (the child's, left open)
+    return subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=stderr)
 
 
 def _wait_for_tuning(tuning, tuned_path: Path, started: float, log) -> float:
@@ -394,36 +353,30 @@ def _wait_for_tuning(tuning, tuned_path: Path, started: float, log) -> float:
     return tuning_wall
 
 
-def _record_invocation(out: Path, argv, wall, before, load_start, tuning_wall) -> list:
-    """``OUT/invocations.json`` with this invocation appended; the list."""
-    history_path = out / "invocations.json"
+def _finished_files(out: Path) -> set:
+    return set((out / "runs").glob("*/draws_*.npz"))
+
+
+def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, before) -> dict:
+    """The report's account of the run: its size, settings, tuning and invocations
+    (``OUT/invocations.json``, this invocation appended)."""
+    tuning_s = None if tuning_wall is None else round(tuning_wall, 1)
+    command = "python -m experiments.sensitivity " + " ".join(argv)
+    history_path = args.out / "invocations.json"
     history = json.loads(history_path.read_text()) if history_path.exists() else []
     history.append(
         {
             "started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(time.time() - wall)),
             "wall_s": round(wall, 1),
-            "runs_computed": len(_finished_files(out) - before),
+            "runs_computed": len(_finished_files(args.out) - before),
             "runs_on_disk_before": len(before),
-            "tuning_s": None if tuning_wall is None else round(tuning_wall, 1),
+            "tuning_s": tuning_s,
             "load_average_start": load_start,
             "load_average_end": output.load_average(),
-            "command": _command(argv),
+            "command": command,
         }
     )
     output.write_json(history_path, history)
-    return history
-
-
-def _command(argv) -> str:
-    return "python -m experiments.sensitivity " + " ".join(argv)
-
-
-def _finished_files(out: Path) -> set:
-    return set((out / "runs").glob("*/draws_*.npz"))
-
-
-def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, history) -> dict:
-    """The report's account of the run: its size, settings, tuning and invocations."""
     return {
         "draws": args.draws,
         "dt_draws": args.dt_draws,
@@ -438,7 +391,7 @@ def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, history) -> dic
             "steps": args.tune_steps,
             "draws": args.tune_draws,
             "horizon_s": args.tune_horizon,
-            "wall_s": None if tuning_wall is None else round(tuning_wall, 1),
+            "wall_s": tuning_s,
         },
         "programs": len(plan.jobs),
         "runs": len(plan.runs),
@@ -446,7 +399,7 @@ def _meta(args, argv, plan: Plan, wall, load_start, tuning_wall, history) -> dic
         "load_average_start": load_start,
         "load_average_end": output.load_average(),
         "cpus": os.cpu_count(),
-        "command": _command(argv),
+        "command": command,
         "invocations": history,
     }
 
@@ -481,17 +434,15 @@ def main(argv=None) -> int:
             tuned_path.unlink()  # tuned by other code: tuned again
     if any(s.gains == "tuned" for s in plan.settings) and not tuned_path.exists():
         tuning, tuning_start = _start_tuning(args, tuned_path.parent, log), time.perf_counter()
-    lane_argv = [a for a in argv if a != "--quiet"] + (["--quiet"] if args.quiet else [])
-    command = [sys.executable, "-m", "experiments.sensitivity", *lane_argv, "--lane"]
+    command = [sys.executable, "-m", "experiments.sensitivity", *argv, "--lane"]
     processes = {lane: subprocess.Popen([*command, lane]) for lane in lanes}
     try:
         if tuning is not None:
             tuning_wall = _wait_for_tuning(tuning, tuned_path, tuning_start, log)
         failed = [lane for lane, process in processes.items() if process.wait() != 0]
     except KeyboardInterrupt:
-        for process in [*processes.values(), tuning]:
-            if process is not None:
-                process.terminate()
+        for process in filter(None, [*processes.values(), tuning]):
+            process.terminate()
         print(
             f"\ninterrupted: finished runs are kept under {out}/runs; run the same command "
             "again to continue",
@@ -504,10 +455,7 @@ def main(argv=None) -> int:
     results = load_results(plan, out, tuned)
     evaluated = evaluate(plan, results)
     wall = time.perf_counter() - start
-    history = _record_invocation(out, argv, wall, before, load_start, tuning_wall)
-    from experiments import sensitivity_report
-
-    meta = _meta(args, argv, plan, wall, load_start, tuning_wall, history)
+    meta = _meta(args, argv, plan, wall, load_start, tuning_wall, before)
     doc = None if args.no_doc else args.doc
     report = sensitivity_report.write(out, plan, evaluated, meta, doc, results)
     log(f"wrote {report} in {wall:.0f} s")

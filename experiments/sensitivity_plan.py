@@ -9,10 +9,12 @@ import dataclasses
 import json
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
-from fojax import records
+from fojax import make_controller, metrics, records, requirements, scenarios, simulator, study
 from fojax.cli.reproduce import claims as claims_module
+from fojax.controllers import gains_io, registry
 
 SCENARIO_IDS = (1, 2, 3)
 
@@ -29,8 +31,6 @@ SIGMA_FACTOR = 5.0
 def rotor_speed_limit(thrust_to_weight: float = THRUST_TO_WEIGHT) -> float:
     """``w_max`` (rad/s) at which four rotors give ``thrust_to_weight`` times the nominal
     weight (:func:`fojax.requirements.rotor_speed_limit`)."""
-    from fojax import requirements
-
     return requirements.rotor_speed_limit(thrust_to_weight)
 
 
@@ -112,8 +112,6 @@ def scenario_variant(scenario_id: int, variant: str | None, horizon: float):
     """Scenario ``scenario_id`` (``variant``: ``None``, ``"smoothed"`` for scenario 3's
     reference with its start smoothed, ``"sigma-x5"`` for scenario 2's Gaussian
     disturbances x :data:`SIGMA_FACTOR`) over ``horizon`` s."""
-    from fojax import scenarios
-
     scenario = scenarios.get_scenario(scenario_id)
     if variant == "smoothed":
         scenario = dataclasses.replace(scenario, reference=scenarios.reference_57_smoothed)
@@ -145,8 +143,6 @@ class Job:
     draws: int = 0
 
     def union(self):
-        from fojax import scenarios
-
         return scenarios.union(*self.members)
 
     def cost(self) -> float:
@@ -177,15 +173,11 @@ class Plan:
     runs: list
     cells: dict  # (setting key, scenario id, controller) -> (Run, draws)
     horizon: float
-    draws: int
-    dt_draws: int
     seed: int
     controllers: tuple
 
 
 def simulation_config(setting: Setting, horizon: float):
-    from fojax import simulator
-
     fields = dict(setting.simulation)
     dt = float(fields.get("dt", 1e-3))
     limit = None if fields.get("rotor_speed_limit") is None else rotor_speed_limit()
@@ -204,14 +196,9 @@ def make_plan(
     numbers are the same: one job per distinct (controller, simulation settings,
     dtype), one run per distinct (job, gains, scenario). ``controllers``: default the
     paper's five (the AFONFTSMC first)."""
-    from fojax import make_controller
-    from fojax.controllers import registry
-
     controllers = tuple(controllers or registry.PAPER_CONTROLLERS)
 
-    jobs: dict = {}
-    runs: dict = {}
-    cells = {}
+    jobs, runs, cells = {}, {}, {}
     for setting in settings:
         config = simulation_config(setting, horizon)
         n = dt_draws if setting.reduced else draws
@@ -234,7 +221,7 @@ def make_plan(
                 job.draws = max(job.draws, n)
                 cells[(setting.key, scenario_id, name)] = (runs[identity], n)
     jobs, runs = list(jobs.values()), list(runs.values())
-    return Plan(tuple(settings), jobs, runs, cells, horizon, draws, dt_draws, seed, controllers)
+    return Plan(tuple(settings), jobs, runs, cells, horizon, seed, controllers)
 
 
 def assign_lanes(plan: Plan, workers: int) -> dict:
@@ -260,10 +247,6 @@ def assign_lanes(plan: Plan, workers: int) -> dict:
 def gains_for(run: Run, tuned: dict | None, dtype: str | None = None):
     """The run's gains in ``dtype`` (default the run's): the controller's defaults or
     the tuned ones."""
-    import jax.numpy as jnp
-
-    from fojax.controllers import gains_io
-
     dtype = jnp.dtype(dtype or run.job.dtype)
     name = run.job.controller.name
     if run.gains == "ours":
@@ -288,16 +271,12 @@ def load_tuned(path: Path) -> dict:
 def reaching_band(dt: float) -> tuple:
     """:func:`fojax.cli.reproduce.claims.reaching_band` from the AFONFTSMC's default
     gains in float64 (NumPy), the same band in every process, float32 or float64."""
-    from fojax.controllers import registry
-
     spec = registry.get_controller_class(claims_module.BASELINE).GAINS
     gains = spec.type(*(np.asarray(f.default, np.float64) for f in spec.fields))
     return claims_module.reaching_band(dt, gains)
 
 
 def metrics_config(config):
-    from fojax import metrics
-
     return metrics.MetricsConfig(
         dt=config.dt, steps=config.steps, reaching_band=reaching_band(config.dt)
     )
@@ -319,15 +298,11 @@ def run_key(run: Run, tuned: dict | None, seed: int) -> str:
     :func:`fojax.study.fingerprint` with the union's members spelled out, the member and
     the batch. The gains enter as float32 values, so that every process, with or
     without ``jax_enable_x64``, finds the same key (the dtype is a field of its own)."""
-    from fojax import study
-
     job = run.job
     gains, metrics = gains_for(run, tuned, "float32"), metrics_config(job.config)
     fields = (job.controller, gains, run.scenario, job.config, seed, job.dtype, metrics)
     settings = study.fingerprint(*fields, device_batch=job.draws)
-    settings["union"] = _plain(job.members)
-    settings["member"] = run.member
-    settings["draws"] = job.draws
+    settings.update(union=_plain(job.members), member=run.member, draws=job.draws)
     text = json.dumps(records.canonical(settings), sort_keys=True)
     if " at 0x" in text:  # an object spelled by its address: not the same in another process
         raise ValueError(f"run key depends on an address: {text}")

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from experiments import _common
-from fojax.cli import output
+from fojax import study
+from fojax.cli import output, style
 from fojax.cli.reproduce import claims as claims_module
 from fojax.cli.reproduce.report import format_number as _fmt
 from fojax.records import atomic_write
@@ -43,6 +44,9 @@ VERDICT_STYLE = {
     "inconclusive": ("?", "#BBBBBB"),
     "not run": ("not run", "#FFFFFF"),
 }
+
+NOT_RUN = {"verdict": "not run"}
+"""What stands for a claim that a setting did not evaluate."""
 
 TRUST_FRACTION = 0.25
 """float32 is trusted for a metric when its mean moves from float64's by less than this
@@ -73,11 +77,11 @@ def _verdicts(entry: dict) -> dict:
 
 def _outcomes(entry: dict) -> dict:
     """``(claim, controller, metric) -> outcome`` of the scenario claims."""
-    table = {}
-    for claim in entry.get("claims", []):
-        for c in claim.get("comparisons", []):
-            table[(claim["id"], c["controller"], c["metric"])] = c["outcome"]
-    return table
+    return {
+        (claim["id"], c["controller"], c["metric"]): c["outcome"]
+        for claim in entry.get("claims", [])
+        for c in claim.get("comparisons", [])
+    }
 
 
 def _claims(evaluated: dict, key: str) -> dict:
@@ -95,22 +99,22 @@ def _cell(claim: dict, sep: str) -> str:
     return text
 
 
-def _against_reference(plan, evaluated: dict, read):
-    """(setting key, read(setting), read(its reference setting)) for each setting with a
-    reference setting that was evaluated."""
+def _changes(plan, evaluated: dict, read):
+    """(setting key, [(item, reference value, value)]) for each setting with a reference
+    setting that was evaluated: the items of ``read(entry)`` (item -> value) that differ."""
     for setting in plan.settings:
         if setting.reference and setting.reference in evaluated:
-            yield setting.key, read(evaluated[setting.key]), read(evaluated[setting.reference])
+            mine, theirs = (read(evaluated[k]) for k in (setting.key, setting.reference))
+            yield setting.key, [(k, theirs[k], v) for k, v in mine.items() if theirs.get(k, v) != v]
 
 
 def flips(plan, evaluated: dict) -> dict:
     """Claim id -> [(setting key, reference verdict, verdict)] where the setting's verdict
     differs from its reference setting's."""
     found = {}
-    for key, mine, theirs in _against_reference(plan, evaluated, _verdicts):
-        for claim_id, verdict in mine.items():
-            if theirs.get(claim_id, verdict) != verdict:
-                found.setdefault(claim_id, []).append((key, theirs[claim_id], verdict))
+    for key, changed in _changes(plan, evaluated, _verdicts):
+        for claim_id, before, after in changed:
+            found.setdefault(claim_id, []).append((key, before, after))
     return found
 
 
@@ -121,14 +125,8 @@ def _flipped(plan, evaluated: dict) -> set:
 
 def outcome_changes(plan, evaluated: dict) -> dict:
     """Setting key -> list of (claim, controller, metric, reference outcome, outcome)."""
-    return {
-        key: [
-            (*k, theirs[k], outcome)
-            for k, outcome in mine.items()
-            if theirs.get(k, outcome) != outcome
-        ]
-        for key, mine, theirs in _against_reference(plan, evaluated, _outcomes)
-    }
+    changes = _changes(plan, evaluated, _outcomes)
+    return {key: [(*k, before, after) for k, before, after in items] for key, items in changes}
 
 
 # ---------------------------------------------------------------------- precision
@@ -138,65 +136,55 @@ def precision_table(plan, results: dict) -> list[dict] | None:
     """Per metric of :data:`PRECISION_METRICS`: the float32 mean's shift from float64's
     (same draws) against the claims' margin of that metric, the largest over scenarios
     and controllers; ``None`` without both settings."""
-    from fojax import study
-
-    keys = {s.key for s in plan.settings}
-    if not {"default", "float64"} <= keys:
+    cells = [(s, name) for s in (1, 2, 3) for name in plan.controllers]
+    pairs = {cell: [results.get((key, *cell)) for key in ("default", "float64")] for cell in cells}
+    if not {"default", "float64"} <= {s.key for s in plan.settings} or any(
+        None in pair for pair in pairs.values()
+    ):
         return None
+    tables = {cell: [study.metric_table(r) for r in pair] for cell, pair in pairs.items()}
     rows = []
     for metric in PRECISION_METRICS:
-        worst, systematic, cells = None, 0, 0
-        for s in (1, 2, 3):
-            for name in plan.controllers:
-                a = results.get(("default", s, name))
-                b = results.get(("float64", s, name))
-                if a is None or b is None:
-                    return None
-                ta, tb = study.metric_table(a), study.metric_table(b)
-                if metric not in ta:
-                    continue
-                va, unit = ta[metric]
-                vb = tb[metric][0]
-                both = np.isfinite(va) & np.isfinite(vb)
-                if not np.any(both):
-                    continue
-                cells += 1
-                d = va[both] - vb[both]
-                shift = float(np.mean(d))
-                mean64 = float(np.mean(vb[both]))
-                if unit in ("N", "N m"):
-                    delta = claims_module.RELATIVE_MARGIN * abs(mean64)
-                else:
-                    delta = claims_module.margin(unit, vb, plan.horizon)
-                ratio, relative = _over(shift, delta), _over(shift, abs(mean64))
-                if d.size > 1 and np.std(d, ddof=1) > 0:
-                    half = 1.96 * float(np.std(d, ddof=1)) / math.sqrt(d.size)
-                    systematic += int(abs(shift) > half)
-                per_draw = float(np.median(np.abs(d)) / delta) if delta > 0 else 0.0
-                cell = {
-                    "scenario": s,
-                    "controller": name,
-                    "mean_float64": mean64,
-                    "shift": shift,
-                    "margin": delta,
-                    "shift_over_margin": ratio,
-                    "relative_shift": relative,
-                    "median_draw_difference_over_margin": per_draw,
-                }
-                if worst is None or ratio > worst["shift_over_margin"]:
-                    worst = cell
-        if worst is None:
-            continue
-        rows.append(
-            {
-                "metric": metric,
-                "unit": study.metric_table(results[("float64", 1, "afonftsmc")])[metric][1],
-                "worst": worst,
-                "systematic_cells": systematic,
-                "cells": cells,
-                "trusted": worst["shift_over_margin"] < TRUST_FRACTION,
+        found = []  # (cell, systematic: 0 or 1)
+        for (s, name), (ta, tb) in tables.items():
+            if metric not in ta:
+                continue
+            (va, unit), vb = ta[metric], tb[metric][0]
+            both = np.isfinite(va) & np.isfinite(vb)
+            if not np.any(both):
+                continue
+            d = va[both] - vb[both]
+            shift, mean64 = float(np.mean(d)), float(np.mean(vb[both]))
+            if unit in ("N", "N m"):
+                delta = claims_module.RELATIVE_MARGIN * abs(mean64)
+            else:
+                delta = claims_module.margin(unit, vb, plan.horizon)
+            spread = float(np.std(d, ddof=1)) if d.size > 1 else 0.0
+            cell = {
+                "scenario": s,
+                "controller": name,
+                "mean_float64": mean64,
+                "shift": shift,
+                "margin": delta,
+                "shift_over_margin": _over(shift, delta),
+                "relative_shift": _over(shift, abs(mean64)),
+                "median_draw_difference_over_margin": (
+                    float(np.median(np.abs(d)) / delta) if delta > 0 else 0.0
+                ),
             }
-        )
+            found.append((cell, int(spread > 0 and abs(shift) > 1.96 * spread / math.sqrt(d.size))))
+        if found:
+            worst = max((cell for cell, _ in found), key=lambda cell: cell["shift_over_margin"])
+            rows.append(
+                {
+                    "metric": metric,
+                    "unit": tables[(1, "afonftsmc")][1][metric][1],
+                    "worst": worst,
+                    "systematic_cells": sum(systematic for _, systematic in found),
+                    "cells": len(found),
+                    "trusted": worst["shift_over_margin"] < TRUST_FRACTION,
+                }
+            )
     return rows
 
 
@@ -214,8 +202,6 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     verdict differs from its reference setting's."""
     from matplotlib.patches import Patch, Rectangle
 
-    from fojax.cli import style
-
     plt = style.pyplot()
     settings = list(plan.settings)
     claim_ids = list(SHORT_CLAIMS)
@@ -224,7 +210,7 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     for j, setting in enumerate(settings):
         by_id = _claims(evaluated, setting.key)
         for i, cid in enumerate(claim_ids):
-            claim = by_id.get(cid, {"verdict": "not run"})
+            claim = by_id.get(cid, NOT_RUN)
             colour = VERDICT_STYLE.get(claim["verdict"], (None, "#FFFFFF"))[1]
             ax.add_patch(Rectangle((j, i), 1, 1, facecolor=colour, edgecolor="white", lw=1.5))
             ax.text(j + 0.5, i + 0.5, _cell(claim, "\n"), ha="center", va="center", fontsize=7.5)
@@ -255,56 +241,60 @@ def plot_matrix(plan, evaluated: dict, meta: dict, path: Path) -> Path:
     return style.save(fig, path)
 
 
+COLUMN_LABELS = {
+    "default-reduced": "default, first {dt_draws}",
+    "dt-0.1ms": "dt 0.1 ms",
+    "guard-0.5g": "thrust guard 0.5 g",
+    "filter-25": "filter 25 rad/s",
+    "filter-100": "filter 100 rad/s",
+    "oustaloup": "CRONE (Oustaloup)",
+    "sat": "sat switching",
+    "s3-smoothed": "S3 ref. smoothed",
+    "sigma-x5": "sigma x5",
+    "tuned": "tuned gains",
+}
+"""A setting's column label where it is not its key (``{dt_draws}``: from the meta)."""
+
+
 def _column_label(key: str, meta: dict) -> str:
-    labels = {
-        "default": "default",
-        "default-reduced": f"default, first {meta['dt_draws']}",
-        "dt-0.1ms": "dt 0.1 ms",
-        "guard-0.5g": "thrust guard 0.5 g",
-        "filter-25": "filter 25 rad/s",
-        "filter-100": "filter 100 rad/s",
-        "oustaloup": "CRONE (Oustaloup)",
-        "sat": "sat switching",
-        "rotor-limited": "rotor-limited",
-        "s3-smoothed": "S3 ref. smoothed",
-        "sigma-x5": "sigma x5",
-        "tuned": "tuned gains",
-        "float64": "float64",
-    }
-    return labels.get(key, key)
+    return COLUMN_LABELS.get(key, key).format(**meta)
 
 
 # --------------------------------------------------------------------------- report
 
 
+def _json_claim(claim: dict) -> dict:
+    """The claim as ``report.json`` keeps it: verdict, counts, each comparison's outcome,
+    difference and margin; the baseline's chatter rows; the finite-time rows, short."""
+    item = {k: claim[k] for k in ("id", "verdict") if k in claim}
+    if "counts" in claim:
+        item["counts"] = claim["counts"]
+        item["verdict_without_margin"] = claim.get("verdict_without_margin")
+        item["comparisons"] = [
+            {k: c[k] for k in ("controller", "metric", "outcome")}
+            | {f"difference_{k}": c["difference"].get(k) for k in ("mean", "ci95")}
+            | {"margin": c["margin"]}
+            for c in claim["comparisons"]
+        ]
+    if claim["id"] == "R2-chatter-free":
+        item["rows"] = [r for r in claim["rows"] if r["controller"] == claims_module.BASELINE]
+    if claim["id"] == "C-finite-time":
+        keys = "scenario axis band valid_draws reached kept_from_first_half".split()
+        item["rows"] = [{k: r[k] for k in keys} for r in claim["rows"]]
+    return item
+
+
 def _json_ready(evaluated: dict) -> dict:
-    out = {}
-    for key, entry in evaluated.items():
-        if "claims" not in entry:
-            out[key] = entry
-            continue
-        claims = []
-        for claim in entry["claims"]:
-            item = {k: claim[k] for k in ("id", "verdict") if k in claim}
-            if "counts" in claim:
-                item["counts"] = claim["counts"]
-                item["verdict_without_margin"] = claim.get("verdict_without_margin")
-                item["comparisons"] = [
-                    {k: c[k] for k in ("controller", "metric", "outcome")}
-                    | {f"difference_{k}": c["difference"].get(k) for k in ("mean", "ci95")}
-                    | {"margin": c["margin"]}
-                    for c in claim["comparisons"]
-                ]
-            if claim["id"] == "R2-chatter-free":
-                item["rows"] = [
-                    r for r in claim["rows"] if r["controller"] == claims_module.BASELINE
-                ]
-            if claim["id"] == "C-finite-time":
-                keys = "scenario axis band valid_draws reached kept_from_first_half".split()
-                item["rows"] = [{k: r[k] for k in keys} for r in claim["rows"]]
-            claims.append(item)
-        out[key] = {"draws": entry["draws"], "diverged": entry["diverged"], "claims": claims}
-    return out
+    return {
+        key: {
+            "draws": entry["draws"],
+            "diverged": entry["diverged"],
+            "claims": [_json_claim(claim) for claim in entry["claims"]],
+        }
+        if "claims" in entry
+        else entry
+        for key, entry in evaluated.items()
+    }
 
 
 def _setting_lines(plan, evaluated, meta) -> list[str]:
@@ -317,18 +307,10 @@ def _setting_lines(plan, evaluated, meta) -> list[str]:
     flipped = _flipped(plan, evaluated)
     for setting in plan.settings:
         by_id = _claims(evaluated, setting.key)
-        cells = []
-        for cid in SHORT_CLAIMS:
-            claim = by_id.get(cid)
-            if claim is None:
-                cells.append("not run")
-                continue
-            text = _cell(claim, " ")
-            cells.append(f"**{text}**" if (setting.key, cid) in flipped else text)
-        changed = ""
-        if setting.key in changes:
-            total = sum(len(c.get("comparisons", [])) for c in by_id.values())
-            changed = f"{len(changes[setting.key])} of {total}"
+        cells = [(cid, _cell(by_id.get(cid, NOT_RUN), " ")) for cid in SHORT_CLAIMS]
+        cells = [f"**{text}**" if (setting.key, cid) in flipped else text for cid, text in cells]
+        total = sum(len(c.get("comparisons", [])) for c in by_id.values())
+        changed = f"{len(changes[setting.key])} of {total}" if setting.key in changes else ""
         reference = _column_label(setting.reference, meta) if setting.reference else ""
         lines.append(
             f"| {_column_label(setting.key, meta)} | {setting.choice} | {setting.value} | "
@@ -340,24 +322,20 @@ def _setting_lines(plan, evaluated, meta) -> list[str]:
 def _flip_lines(plan, evaluated, meta) -> list[str]:
     found = flips(plan, evaluated)
     base = _verdicts(evaluated.get("default", {}))
-    lines = []
     robust = [cid for cid in SHORT_CLAIMS if cid in base and cid not in found]
+    head = "No verdict is the same in every setting."
     if robust:
-        lines.append(
+        head = (
             "Robust (the same verdict in every setting as in its reference): "
             + "; ".join(f"{SHORT_CLAIMS[c]} (*{base[c]}*)" for c in robust)
             + "."
         )
-    else:
-        lines.append("No verdict is the same in every setting.")
-    lines.append("")
-    for cid in [c for c in SHORT_CLAIMS if c in found]:
-        moves = ", ".join(
-            f"{_column_label(key, meta)}: *{before}* -> *{after}*"
-            for key, before, after in found[cid]
-        )
-        lines.append(f"* Flips, {SHORT_CLAIMS[cid]}: {moves}.")
-    return lines
+    moves = {
+        cid: ", ".join(f"{_column_label(key, meta)}: *{a}* -> *{b}*" for key, a, b in found[cid])
+        for cid in SHORT_CLAIMS
+        if cid in found
+    }
+    return [head, "", *(f"* Flips, {SHORT_CLAIMS[c]}: {text}." for c, text in moves.items())]
 
 
 def _change_lines(plan, evaluated, meta, limit: int = 12) -> list[str]:
@@ -379,11 +357,9 @@ def _divergence_lines(plan, evaluated, meta) -> list[str]:
     lines = []
     for setting in plan.settings:
         entry = evaluated.get(setting.key, {})
-        if "diverged" not in entry:
-            continue
         parts = [
             f"S{s} {name} {count}"
-            for s, by_name in entry["diverged"].items()
+            for s, by_name in entry.get("diverged", {}).items()
             for name, count in by_name.items()
             if count
         ]
@@ -525,8 +501,6 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
 def write(out: Path, plan, evaluated: dict, meta: dict, doc: Path | None, results: dict) -> Path:
     """``OUT/report.json``, ``OUT/report.md`` and the figure; ``doc`` updated below its
     marker (created with a stub above it if new). Returns the Markdown written last."""
-    from fojax.cli import style
-
     out = Path(out)
     precision = precision_table(plan, results)
     data = {
