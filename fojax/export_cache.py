@@ -19,12 +19,11 @@ when the persistent compilation cache is off or when several processes run
 
 from __future__ import annotations
 
-import importlib
 import importlib.metadata
 import json
+import pkgutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
 
 import jax
 import numpy as np
@@ -39,10 +38,8 @@ _REGISTERED: dict[type, str] = {}
 
 def _folder() -> Path | None:
     """``<jax_compilation_cache_dir>/exported`` when the persistent cache is on."""
-    if not jax.config.jax_enable_compilation_cache:
-        return None
     root = jax.config.jax_compilation_cache_dir
-    return Path(root) / "exported" if root else None
+    return Path(root) / "exported" if root and jax.config.jax_enable_compilation_cache else None
 
 
 def _namedtuples(treedef) -> set[type]:
@@ -66,14 +63,6 @@ def _register(types) -> list[str]:
             _REGISTERED[cls] = name
         names.append(_REGISTERED[cls])
     return names
-
-
-def _import(name: str) -> type:
-    module, qualname = name.split(":")
-    obj: Any = importlib.import_module(module)
-    for part in qualname.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 def _signature(args) -> tuple:
@@ -105,9 +94,13 @@ def _digest(name: str, key: Mapping, signature: tuple, options) -> str:
 
 
 def _load(path: Path):
-    header, _, payload = path.read_bytes().partition(b"\n")
-    _register([_import(name) for name in json.loads(header)["types"]])
-    return jax.export.deserialize(bytearray(payload))
+    """The program exported to ``path``, or None (no file, or a damaged or foreign one)."""
+    try:
+        header, _, payload = path.read_bytes().partition(b"\n")
+        _register([pkgutil.resolve_name(name) for name in json.loads(header)["types"]])
+        return jax.export.deserialize(bytearray(payload))
+    except Exception:
+        return None
 
 
 def _save(path: Path, exported) -> None:
@@ -140,13 +133,8 @@ def reusable(
         program = programs.get(signature)
         if program is None:
             path = folder / f"{name}-{_digest(name, key, signature, compiler_options)}.bin"
-            exported = None
-            if path.is_file():
-                try:
-                    exported = _load(path)
-                except Exception:  # a damaged or foreign file: export again
-                    exported = None
-            if exported is None:
+            exported = _load(path)
+            if exported is None:  # no file, or a damaged or foreign one: export again
                 exported = jax.export.export(jitted)(*args)
                 _save(path, exported)
             program = programs[signature] = jax.jit(

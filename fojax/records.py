@@ -120,9 +120,7 @@ def write_arrays(path: str | os.PathLike, arrays: list, header: dict) -> Path:
     import numpy as np
 
     named = {f"a{i:05d}": np.asarray(a) for i, a in enumerate(arrays)}
-    buffer = io.BytesIO()
-    np.savez(buffer, header=np.asarray(json.dumps(header)), **named)
-    return atomic_write(path, buffer.getvalue())
+    return write_npz(path, {"header": np.asarray(json.dumps(header)), **named}, compress=False)
 
 
 def read_arrays(path: str | os.PathLike) -> tuple[list, dict]:
@@ -217,13 +215,11 @@ def describe(
 ) -> list[str]:
     """One line per difference: ``field (hint): earlier X, now Y`` (``earlier``: what
     the stored side is called; ``hint(field)``: e.g. the option that sets it)."""
-    lines = []
-    for field, old, new in found:
-        extra = hint(field)
-        lines.append(
-            f"{field}{f' ({extra})' if extra else ''}: {earlier} {_short(old)}, now {_short(new)}"
-        )
-    return lines
+    return [
+        f"{field}{f' ({extra})' if (extra := hint(field)) else ''}: {earlier} {_short(old)}, "
+        f"now {_short(new)}"
+        for field, old, new in found
+    ]
 
 
 def check(

@@ -25,24 +25,13 @@ import argparse
 import sys
 
 COMMANDS = {
-    "accuracy": (
-        "fojax.cli.accuracy",
-        "accuracy and cost of the fractional operators",
-    ),
-    "reproduce": (
-        "fojax.cli.reproduce",
-        "the paper's Section V with Monte Carlo: all scenarios and controllers, report",
-    ),
-    "simulate": (
-        "fojax.cli.simulate",
-        "Monte Carlo study of a scenario under one or all controllers",
-    ),
-    "bench": ("fojax.cli.bench", "throughput, compile time and gradient cost of the closed loop"),
-    "tune": (
-        "fojax.cli.tune",
-        "gradient-based gain tuning over Monte Carlo draws",
-    ),
+    "accuracy": "accuracy and cost of the fractional operators",
+    "reproduce": "the paper's Section V with Monte Carlo: all scenarios and controllers, report",
+    "simulate": "Monte Carlo study of a scenario under one or all controllers",
+    "bench": "throughput, compile time and gradient cost of the closed loop",
+    "tune": "gradient-based gain tuning over Monte Carlo draws",
 }
+"""Each command, run by the module ``fojax.cli.<command>``, and what it does."""
 
 HOST_DEVICE_COMMANDS = ("simulate", "reproduce")
 """Commands whose draws are split over one CPU device per core (set before JAX starts;
@@ -64,7 +53,7 @@ def main(argv=None) -> int:
     parser.add_argument(
         "command",
         choices=sorted(COMMANDS),
-        help=", ".join(f"{name}: {text}" for name, (_, text) in sorted(COMMANDS.items())),
+        help=", ".join(f"{name}: {text}" for name, text in sorted(COMMANDS.items())),
     )
     parser.add_argument(
         "--version",
@@ -78,14 +67,13 @@ def main(argv=None) -> int:
         print(_versions())
         return 0
     args = parser.parse_args(argv[:1])
-    module_name, _ = COMMANDS[args.command]
     if args.command in HOST_DEVICE_COMMANDS:
         from fojax.cli import arguments
 
         arguments.use_host_devices()
     import importlib
 
-    module = importlib.import_module(module_name)
+    module = importlib.import_module(f"fojax.cli.{args.command}")
     try:
         status = module.main(argv[1:])
     except KeyboardInterrupt:

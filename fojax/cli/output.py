@@ -76,31 +76,17 @@ def git_commit(root: Path | None = None, exclude: tuple[str, ...] = DOCUMENTS) -
     root = _checkout() if root is None else Path(root)
     if not (root / ".git").exists():
         return {}
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        command = ["git", "-C", str(root), *args]
+        return subprocess.run(command, capture_output=True, text=True, timeout=10)
+
     try:
-        commit = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
+        commit = git("rev-parse", "HEAD")
         if commit.returncode != 0:
             return {}
-        status = subprocess.run(
-            [
-                "git",
-                "-C",
-                str(root),
-                "status",
-                "--porcelain",
-                "--untracked-files=no",
-                "--",
-                ".",
-                *(f":(top,exclude){path}" for path in exclude),
-            ],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
+        excluded = (f":(top,exclude){path}" for path in exclude)
+        status = git("status", "--porcelain", "--untracked-files=no", "--", ".", *excluded)
         dirty = bool(status.stdout.strip()) if status.returncode == 0 else None
         return {"commit": commit.stdout.strip(), "dirty": dirty}
     except (OSError, subprocess.SubprocessError):
@@ -204,10 +190,7 @@ def cpu_model() -> str | None:
 def run_context(command: list[str]) -> dict:
     """Provenance of a study run (:func:`provenance`), the CPU model and the load
     average."""
-    record = provenance(command)
-    record["cpu_model"] = cpu_model()
-    record["load_average"] = load_average()
-    return record
+    return provenance(command) | {"cpu_model": cpu_model(), "load_average": load_average()}
 
 
 # ------------------------------------------------------------------------------- docs
