@@ -64,7 +64,13 @@ def main(argv=None) -> int:
         parser.print_help()
         return 0 if argv else 2
     if argv[0] == "--version":
-        print(_versions())
+        from fojax.cli import output
+
+        # fojax 0.1.0 (Python 3.11.7, jax 0.4.38, jaxlib 0.4.38, optax 0.2.4, numpy 2.2.1): what
+        # fojax.cli.output.versions records with every run
+        named = {"Python" if k == "python" else k: v for k, v in output.versions().items()}
+        others = ", ".join(f"{name} {value or 'not installed'}" for name, value in named.items())
+        print(f"fojax {output._version('fojax') or 'not installed'} ({others})")
         return 0
     args = parser.parse_args(argv[:1])
     if args.command in HOST_DEVICE_COMMANDS:
@@ -80,7 +86,10 @@ def main(argv=None) -> int:
         print(f"\nfojax {args.command}: interrupted", file=sys.stderr)
         return 130
     except OSError as error:
-        print(f"fojax {args.command}: error: {_describe(error)}", file=sys.stderr)
+        reason = error.strerror or str(error)
+        if error.filename is not None:  # what failed, on which file, and why
+            reason = f"cannot write or read {error.filename}: {reason}"
+        print(f"fojax {args.command}: error: {reason}", file=sys.stderr)
         return 1
     return status if isinstance(status, int) else 0
 
@@ -96,21 +105,3 @@ def require_extra(command: str, extra: str, modules: tuple[str, ...]) -> None:
             f"fojax {command}: needs {', '.join(missing)}, in the [{extra}] extra: "
             f"pip install 'fojax[{extra}]'"
         )
-
-
-def _describe(error: OSError) -> str:
-    """``error`` as one line: what failed, on which file, and why."""
-    reason = error.strerror or str(error)
-    if error.filename is not None:
-        return f"cannot write or read {error.filename}: {reason}"
-    return reason
-
-
-def _versions() -> str:
-    """``fojax 0.1.0 (Python 3.11.7, jax 0.4.38, jaxlib 0.4.38, optax 0.2.4, numpy 2.2.1)``:
-    what :func:`fojax.cli.output.versions` records with every run."""
-    from fojax.cli import output
-
-    named = {"Python" if k == "python" else k: v for k, v in output.versions().items()}
-    others = ", ".join(f"{name} {value or 'not installed'}" for name, value in named.items())
-    return f"fojax {output._version('fojax') or 'not installed'} ({others})"

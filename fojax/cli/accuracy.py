@@ -173,10 +173,7 @@ def plot(results: dict, path: pathlib.Path) -> pathlib.Path:
     orders = results["orders"]
     fig = plt.figure(figsize=(11, 4.6), layout="constrained")
     axes = fig.subplots(1, 2, sharey=True)
-    for ax, sign, title in (
-        (axes[0], -1, "integral of order a"),
-        (axes[1], 1, "derivative of order a"),
-    ):
+    for ax, sign in zip(axes, (-1, 1), strict=True):
         markers = ("o", "s", "^", "D", "v", "P", "X")
         for index, (label, r) in enumerate(results["methods"].items()):
             # Hollow markers shrinking with the index: methods whose errors coincide
@@ -187,7 +184,7 @@ def plot(results: dict, path: pathlib.Path) -> pathlib.Path:
             )  # fmt: skip
         ax.axhline(1e-4, color="k", ls="--", lw=0.8, label="1e-4")
         ax.set_xlabel("order a")
-        ax.set_title(title)
+        ax.set_title(f"{'integral' if sign < 0 else 'derivative'} of order a")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel(f"worst relative error over {results['horizon_s']:g} s")
     handles, labels = axes[0].get_legend_handles_labels()

@@ -10,6 +10,7 @@ outside argparse.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 from pathlib import Path
@@ -64,12 +65,10 @@ def _integer(text: str, minimum: int, description: str, maximum: int | None = No
         value = int(text)
     except ValueError:
         hint = ""
-        try:
+        with contextlib.suppress(ValueError):
             number = float(text)
             if math.isfinite(number) and number == int(number):
                 hint = f" (write it as {int(number)})"
-        except ValueError:
-            pass
         raise argparse.ArgumentTypeError(f"expected {description}, got {text!r}{hint}") from None
     if value < minimum or (maximum is not None and value > maximum):
         raise argparse.ArgumentTypeError(f"expected {description}, got {value}")
@@ -233,16 +232,11 @@ def _path(text: str, what: str) -> Path:
 
 def _existing_ancestor(path: Path) -> Path:
     """The nearest of ``path`` and its parents that exists (``.`` for a relative path)."""
-    candidate = path
-    while True:
-        try:
+    for candidate in (path, *path.parents):
+        with contextlib.suppress(OSError):  # e.g. a name too long
             if candidate.exists():
                 return candidate
-        except OSError:  # e.g. a name too long
-            pass
-        if candidate.parent == candidate:
-            return candidate
-        candidate = candidate.parent if str(candidate.parent) else Path(".")
+    return candidate
 
 
 def check_output_directory(text: str | os.PathLike) -> Path:
@@ -284,9 +278,8 @@ def check_output_file(text: str | os.PathLike, example: str = "results/out.json"
     path = _path(text, f"an output file name (e.g. {example})")
     if path.is_dir():
         raise ValueError(f"{path} is a folder; name a file, e.g. {path / Path(example).name}")
-    parent = path.parent if str(path.parent) else Path(".")
     try:
-        check_output_directory(parent)
+        check_output_directory(path.parent)
     except ValueError as error:
         raise ValueError(f"cannot write {path}: {error}") from None
     if path.exists() and not os.access(path, os.W_OK):
@@ -451,11 +444,7 @@ def parse_distributed(values: dict) -> dict:
         from fojax import sharding
 
         coordinator = sharding.check_coordinator_address(coordinator, "--coordinator")
-    return {
-        "coordinator_address": coordinator,
-        "num_processes": count,
-        "process_id": index,
-    }
+    return {"coordinator_address": coordinator, "num_processes": count, "process_id": index}
 
 
 def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:

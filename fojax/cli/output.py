@@ -157,9 +157,7 @@ def provenance(command: list[str] | None = None, gains: dict | None = None) -> d
         "cpu_count": os.cpu_count(),
         "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
-    if gains is not None:
-        record["gains"] = gains
-    return record
+    return record if gains is None else record | {"gains": gains}
 
 
 def load_average() -> list[float]:
@@ -218,20 +216,18 @@ def block_label(command: str | None = None, root: Path | None = None) -> str:
     same in a line for the reader (:func:`format_label`).
     """
     git = git_commit(root)
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:
-        cores = os.cpu_count()
-    record = {
-        "command": invocation() if command is None else command,
-        "commit": git.get("commit"),
-        "dirty": git.get("dirty"),
-        "cpu": cpu_model(),
-        "cores": cores,
-        "load": load_average(),
-        **versions(),
-    }
-    return format_label(record)
+    affinity = getattr(os, "sched_getaffinity", None)
+    return format_label(
+        {
+            "command": invocation() if command is None else command,
+            "commit": git.get("commit"),
+            "dirty": git.get("dirty"),
+            "cpu": cpu_model(),
+            "cores": os.cpu_count() if affinity is None else len(affinity(0)),
+            "load": load_average(),
+            **versions(),
+        }
+    )
 
 
 def format_label(record: dict) -> str:
