@@ -55,14 +55,11 @@ def _namedtuples(treedef) -> set[type]:
 
 def _register(types) -> list[str]:
     """Registers NamedTuple types with ``jax.export`` (by ``module:qualname``)."""
-    names = []
-    for cls in sorted(types, key=lambda c: (c.__module__, c.__qualname__)):
-        if cls not in _REGISTERED:
-            name = f"{cls.__module__}:{cls.__qualname__}"
-            jax.export.register_namedtuple_serialization(cls, serialized_name=name)
-            _REGISTERED[cls] = name
-        names.append(_REGISTERED[cls])
-    return names
+    for cls in set(types) - _REGISTERED.keys():
+        name = f"{cls.__module__}:{cls.__qualname__}"
+        jax.export.register_namedtuple_serialization(cls, serialized_name=name)
+        _REGISTERED[cls] = name
+    return [_REGISTERED[c] for c in sorted(types, key=lambda c: (c.__module__, c.__qualname__))]
 
 
 def _signature(args) -> tuple:

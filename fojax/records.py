@@ -102,8 +102,7 @@ def write_csv(path: str | os.PathLike, rows: list[dict], columns=None) -> Path:
     writer = csv.DictWriter(buffer, fieldnames=columns, lineterminator="\n")
     if columns:
         writer.writeheader()
-    for row in rows:
-        writer.writerow({k: _cell(v) for k, v in row.items()})
+    writer.writerows({k: _cell(v) for k, v in row.items()} for row in rows)
     return atomic_write(path, buffer.getvalue())
 
 
