@@ -57,12 +57,6 @@ def log(quiet: bool, text: str) -> None:
 # ------------------------------------------------------------------------- provenance
 
 
-def _checkout() -> Path:
-    import fojax
-
-    return Path(fojax.__file__).resolve().parent.parent
-
-
 DOCUMENTS = ("docs", "README.md")
 """Where generated blocks and their figures are written. No result depends on them, so
 changes there do not make a checkout dirty (a generator writes its figures and
@@ -73,7 +67,7 @@ def git_commit(root: Path | None = None, exclude: tuple[str, ...] = DOCUMENTS) -
     """``{"commit", "dirty"}`` of the git checkout ``root`` (default: the one holding
     fojax), or ``{}`` (not one). ``dirty``: uncommitted changes to tracked files, outside
     the paths ``exclude`` (relative to the checkout's root; default :data:`DOCUMENTS`)."""
-    root = _checkout() if root is None else Path(root)
+    root = Path(__file__).resolve().parents[2] if root is None else Path(root)  # fojax/cli/..
     if not (root / ".git").exists():
         return {}
 
@@ -290,6 +284,5 @@ def splice(
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
     if begin not in content or end not in content:
         raise ValueError(f"{document} has no {begin} ... {end} block")
-    head, rest = content.split(begin, 1)
-    _, tail = rest.split(end, 1)
-    atomic_write(document, f"{head}{begin}\n{text}\n{end}{tail}")
+    head, _, rest = content.partition(begin)
+    atomic_write(document, f"{head}{begin}\n{text}\n{end}{rest.partition(end)[2]}")
