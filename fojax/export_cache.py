@@ -100,10 +100,14 @@ def _load(path: Path):
         return None
 
 
-def _save(path: Path, exported) -> None:
+def _export(path: Path, jitted: Callable, args):
+    """``jitted`` exported for ``args``, saved to ``path`` (its NamedTuple types named in
+    a JSON header line) for :func:`_load`."""
+    exported = jax.export.export(jitted)(*args)
     types = _namedtuples(exported.in_tree) | _namedtuples(exported.out_tree)
     header = json.dumps({"types": _register(types)}).encode()
     records.atomic_write(path, header + b"\n" + exported.serialize())
+    return exported
 
 
 def reusable(
@@ -130,10 +134,8 @@ def reusable(
         program = programs.get(signature)
         if program is None:
             path = folder / f"{name}-{_digest(name, key, signature, compiler_options)}.bin"
-            exported = _load(path)
-            if exported is None:  # no file, or a damaged or foreign one: export again
-                exported = jax.export.export(jitted)(*args)
-                _save(path, exported)
+            # No file, or a damaged or foreign one: export (again).
+            exported = _load(path) or _export(path, jitted, args)
             program = programs[signature] = jax.jit(
                 exported.call, compiler_options=compiler_options
             )

@@ -104,16 +104,14 @@ def evaluate(horizon: float = 80.0, dt: float = 1e-3, orders=ORDERS, methods=Non
                 for key, skip in (("relaxation", 1), ("relaxation, t>=1s", round(1.0 / dt))):
                     per_signal[key] = relative_error(y_relax, 1.0 - relax, skip)
             errors[f"{alpha:+.2f}"] = per_signal
-        worst_smooth = max(errors[a][s] for a in errors for s in SMOOTH)
-        worst_all = max(max(v.values()) for v in errors.values())
         cost = fractional.make_operator(method, dt, horizon, **options).cost()
         cost["ns_per_channel_step"] = _time_per_step(method, options, dt, min(steps, 20_001))
         results["methods"][label] = {
             "method": method,
             "options": options,
             "errors": errors,
-            "worst_smooth_signals": worst_smooth,
-            "worst_all_signals": worst_all,
+            "worst_smooth_signals": max(errors[a][s] for a in errors for s in SMOOTH),
+            "worst_all_signals": max(max(v.values()) for v in errors.values()),
             "cost": cost,
         }
     return results

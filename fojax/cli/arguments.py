@@ -467,6 +467,7 @@ def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
     cache = enable_compile_cache(known.no_compile_cache, found)
     from fojax import sharding
 
+    info = {"process_index": 0, "process_count": 1, "joined": None}
     if distributed:
         try:
             info = sharding.initialize(**options, names=DISTRIBUTED_FLAGS, settings=found)
@@ -474,6 +475,4 @@ def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
             parser.error(str(error))
         except RuntimeError as error:  # e.g. JAX already started in this process
             parser.error(f"cannot join the multi-process run: {error}")
-    else:
-        info = {"process_index": 0, "process_count": 1, "joined": None}
     return {**info, "compile_cache": cache, "settings": found}

@@ -133,9 +133,8 @@ def provenance(command: list[str] | None = None, gains: dict | None = None) -> d
 
     import fojax
 
-    command = list(sys.argv if command is None else command)
     record: dict[str, Any] = {
-        "command": shlex.join(command),
+        "command": shlex.join(sys.argv if command is None else command),
         "working_directory": os.getcwd(),
         "fojax_version": _version("fojax") or getattr(fojax, "__version__", None),
         "fojax_git": git_commit() or None,
