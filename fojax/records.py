@@ -256,9 +256,8 @@ def stored(
         return None
     record = json.loads(path.read_text())
     kept, kept_code = record.pop("fingerprint", None), record.pop("code", None)
-    if kept_code != (code_digest() if code is None else code):
-        return None
-    return record if kept is None or not differences(kept, fingerprint) else None
+    same_code = kept_code == (code_digest() if code is None else code)
+    return record if same_code and (kept is None or not differences(kept, fingerprint)) else None
 
 
 def cached(

@@ -144,13 +144,8 @@ def markdown(results: dict) -> str:
     for label, r in results["methods"].items():
         cells = [f"{e:.1e}" for sign in (-1, 1) for e in _worst_smooth(r, sign, orders)]
         c = r["cost"]
-        cost = [
-            c["modes"],
-            c["flops_per_step"],
-            c["state_floats"],
-            f"{c['ns_per_channel_step']:.1f}",
-        ]
-        lines.append(_row([label, *cells, *cost]))
+        cost = [c[key] for key in ("modes", "flops_per_step", "state_floats")]
+        lines.append(_row([label, *cells, *cost, f"{c['ns_per_channel_step']:.1f}"]))
     lines += [
         "",
         "Non-smooth signals (worst over orders): step and cos (derivative singular at t = 0), "
