@@ -13,6 +13,7 @@ import argparse
 import contextlib
 import math
 import os
+from argparse import ArgumentTypeError
 from pathlib import Path
 
 from fojax import settings
@@ -69,9 +70,9 @@ def _integer(text: str, minimum: int, description: str, maximum: int | None = No
             number = float(text)
             if math.isfinite(number) and number == int(number):
                 hint = f" (write it as {int(number)})"
-        raise argparse.ArgumentTypeError(f"expected {description}, got {text!r}{hint}") from None
+        raise ArgumentTypeError(f"expected {description}, got {text!r}{hint}") from None
     if value < minimum or (maximum is not None and value > maximum):
-        raise argparse.ArgumentTypeError(f"expected {description}, got {value}")
+        raise ArgumentTypeError(f"expected {description}, got {value}")
     return value
 
 
@@ -79,9 +80,9 @@ def _real(text: str, allow_zero: bool, description: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected {description}, got {text!r}") from None
+        raise ArgumentTypeError(f"expected {description}, got {text!r}") from None
     if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
-        raise argparse.ArgumentTypeError(f"expected {description}, got {text}")
+        raise ArgumentTypeError(f"expected {description}, got {text}")
     return value
 
 
@@ -113,15 +114,13 @@ def nonnegative_float(text: str) -> float:
 def listed(text: str, parse, example: str) -> tuple:
     parts = [part.strip() for part in text.split(",")]
     if not text.strip() or any(not part for part in parts):
-        raise argparse.ArgumentTypeError(
-            f"expected a comma-separated list like {example}, got {text!r}"
-        )
+        raise ArgumentTypeError(f"expected a comma-separated list like {example}, got {text!r}")
     values = []
     for part in parts:
         try:
             values.append(parse(part))
-        except argparse.ArgumentTypeError as error:
-            raise argparse.ArgumentTypeError(
+        except ArgumentTypeError as error:
+            raise ArgumentTypeError(
                 f"{error} in {text!r} (expected a comma-separated list like {example})"
             ) from None
     return tuple(values)
@@ -144,14 +143,10 @@ def scenario_ids(text: str) -> tuple[int, ...]:
     try:
         ids = tuple(sorted({int(part) for part in text.split(",") if part.strip()}))
     except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected scenario ids like 1,2,3, got {text!r}"
-        ) from None
+        raise ArgumentTypeError(f"expected scenario ids like 1,2,3, got {text!r}") from None
     bad = [i for i in ids if i not in scenarios.SCENARIO_IDS]
     if not ids or bad:
-        raise argparse.ArgumentTypeError(
-            f"scenarios must be among {scenarios.SCENARIO_IDS}, got {text!r}"
-        )
+        raise ArgumentTypeError(f"scenarios must be among {scenarios.SCENARIO_IDS}, got {text!r}")
     return ids
 
 
@@ -307,7 +302,7 @@ def _argparse_type(check, *args):
         try:
             return check(text, *args)
         except ValueError as error:
-            raise argparse.ArgumentTypeError(str(error)) from None
+            raise ArgumentTypeError(str(error)) from None
 
     convert.__name__ = check.__name__.removeprefix("check_")
     return convert
@@ -434,7 +429,7 @@ def parse_distributed(values: dict) -> dict:
     try:
         count = None if count is None else _integer(count, 1, "--num-processes, an integer >= 1")
         index = None if index is None else _integer(index, 0, "--process-id, an integer >= 0")
-    except argparse.ArgumentTypeError as error:
+    except ArgumentTypeError as error:
         raise ValueError(str(error)) from None
     if index is not None and count is not None and index >= count:
         raise ValueError(
