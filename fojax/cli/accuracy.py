@@ -176,12 +176,10 @@ def plot(results: dict, path: pathlib.Path) -> pathlib.Path:
                 ms=10 - index, mfc="none", mew=1.3, lw=1.2, label=label,
             )  # fmt: skip
         ax.axhline(1e-4, color="k", ls="--", lw=0.8, label="1e-4")
-        ax.set_xlabel("order a")
-        ax.set_title(f"{'integral' if sign < 0 else 'derivative'} of order a")
+        ax.set(xlabel="order a", title=f"{'integral' if sign < 0 else 'derivative'} of order a")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel(f"worst relative error over {results['horizon_s']:g} s")
-    handles, labels = axes[0].get_legend_handles_labels()
-    style.legend_below(fig, handles, labels, ncol=4)
+    style.legend_below(fig, *axes[0].get_legend_handles_labels(), ncol=4)
     return style.save(fig, path)
 
 
