@@ -19,12 +19,11 @@ when the persistent compilation cache is off or when several processes run
 
 from __future__ import annotations
 
-import importlib
 import importlib.metadata
 import json
+import pkgutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
 
 import jax
 import numpy as np
@@ -39,10 +38,8 @@ _REGISTERED: dict[type, str] = {}
 
 def _folder() -> Path | None:
     """``<jax_compilation_cache_dir>/exported`` when the persistent cache is on."""
-    if not jax.config.jax_enable_compilation_cache:
-        return None
     root = jax.config.jax_compilation_cache_dir
-    return Path(root) / "exported" if root else None
+    return Path(root) / "exported" if root and jax.config.jax_enable_compilation_cache else None
 
 
 def _namedtuples(treedef) -> set[type]:
@@ -58,22 +55,11 @@ def _namedtuples(treedef) -> set[type]:
 
 def _register(types) -> list[str]:
     """Registers NamedTuple types with ``jax.export`` (by ``module:qualname``)."""
-    names = []
-    for cls in sorted(types, key=lambda c: (c.__module__, c.__qualname__)):
-        if cls not in _REGISTERED:
-            name = f"{cls.__module__}:{cls.__qualname__}"
-            jax.export.register_namedtuple_serialization(cls, serialized_name=name)
-            _REGISTERED[cls] = name
-        names.append(_REGISTERED[cls])
-    return names
-
-
-def _import(name: str) -> type:
-    module, qualname = name.split(":")
-    obj: Any = importlib.import_module(module)
-    for part in qualname.split("."):
-        obj = getattr(obj, part)
-    return obj
+    for cls in set(types) - _REGISTERED.keys():
+        name = f"{cls.__module__}:{cls.__qualname__}"
+        jax.export.register_namedtuple_serialization(cls, serialized_name=name)
+        _REGISTERED[cls] = name
+    return [_REGISTERED[c] for c in sorted(types, key=lambda c: (c.__module__, c.__qualname__))]
 
 
 def _signature(args) -> tuple:
@@ -105,15 +91,23 @@ def _digest(name: str, key: Mapping, signature: tuple, options) -> str:
 
 
 def _load(path: Path):
-    header, _, payload = path.read_bytes().partition(b"\n")
-    _register([_import(name) for name in json.loads(header)["types"]])
-    return jax.export.deserialize(bytearray(payload))
+    """The program exported to ``path``, or None (no file, or a damaged or foreign one)."""
+    try:
+        header, _, payload = path.read_bytes().partition(b"\n")
+        _register([pkgutil.resolve_name(name) for name in json.loads(header)["types"]])
+        return jax.export.deserialize(bytearray(payload))
+    except Exception:
+        return None
 
 
-def _save(path: Path, exported) -> None:
+def _export(path: Path, jitted: Callable, args):
+    """``jitted`` exported for ``args``, saved to ``path`` (its NamedTuple types named in
+    a JSON header line) for :func:`_load`."""
+    exported = jax.export.export(jitted)(*args)
     types = _namedtuples(exported.in_tree) | _namedtuples(exported.out_tree)
     header = json.dumps({"types": _register(types)}).encode()
     records.atomic_write(path, header + b"\n" + exported.serialize())
+    return exported
 
 
 def reusable(
@@ -140,15 +134,8 @@ def reusable(
         program = programs.get(signature)
         if program is None:
             path = folder / f"{name}-{_digest(name, key, signature, compiler_options)}.bin"
-            exported = None
-            if path.is_file():
-                try:
-                    exported = _load(path)
-                except Exception:  # a damaged or foreign file: export again
-                    exported = None
-            if exported is None:
-                exported = jax.export.export(jitted)(*args)
-                _save(path, exported)
+            # No file, or a damaged or foreign one: export (again).
+            exported = _load(path) or _export(path, jitted, args)
             program = programs[signature] = jax.jit(
                 exported.call, compiler_options=compiler_options
             )

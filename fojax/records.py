@@ -102,8 +102,7 @@ def write_csv(path: str | os.PathLike, rows: list[dict], columns=None) -> Path:
     writer = csv.DictWriter(buffer, fieldnames=columns, lineterminator="\n")
     if columns:
         writer.writeheader()
-    for row in rows:
-        writer.writerow({k: _cell(v) for k, v in row.items()})
+    writer.writerows({k: _cell(v) for k, v in row.items()} for row in rows)
     return atomic_write(path, buffer.getvalue())
 
 
@@ -120,9 +119,7 @@ def write_arrays(path: str | os.PathLike, arrays: list, header: dict) -> Path:
     import numpy as np
 
     named = {f"a{i:05d}": np.asarray(a) for i, a in enumerate(arrays)}
-    buffer = io.BytesIO()
-    np.savez(buffer, header=np.asarray(json.dumps(header)), **named)
-    return atomic_write(path, buffer.getvalue())
+    return write_npz(path, {"header": np.asarray(json.dumps(header)), **named}, compress=False)
 
 
 def read_arrays(path: str | os.PathLike) -> tuple[list, dict]:
@@ -217,13 +214,11 @@ def describe(
 ) -> list[str]:
     """One line per difference: ``field (hint): earlier X, now Y`` (``earlier``: what
     the stored side is called; ``hint(field)``: e.g. the option that sets it)."""
-    lines = []
-    for field, old, new in found:
-        extra = hint(field)
-        lines.append(
-            f"{field}{f' ({extra})' if extra else ''}: {earlier} {_short(old)}, now {_short(new)}"
-        )
-    return lines
+    return [
+        f"{field}{f' ({extra})' if (extra := hint(field)) else ''}: {earlier} {_short(old)}, "
+        f"now {_short(new)}"
+        for field, old, new in found
+    ]
 
 
 def check(
@@ -261,9 +256,8 @@ def stored(
         return None
     record = json.loads(path.read_text())
     kept, kept_code = record.pop("fingerprint", None), record.pop("code", None)
-    if kept_code != (code_digest() if code is None else code):
-        return None
-    return record if kept is None or not differences(kept, fingerprint) else None
+    same_code = kept_code == (code_digest() if code is None else code)
+    return record if same_code and (kept is None or not differences(kept, fingerprint)) else None
 
 
 def cached(

@@ -25,24 +25,13 @@ import argparse
 import sys
 
 COMMANDS = {
-    "accuracy": (
-        "fojax.cli.accuracy",
-        "accuracy and cost of the fractional operators",
-    ),
-    "reproduce": (
-        "fojax.cli.reproduce",
-        "the paper's Section V with Monte Carlo: all scenarios and controllers, report",
-    ),
-    "simulate": (
-        "fojax.cli.simulate",
-        "Monte Carlo study of a scenario under one or all controllers",
-    ),
-    "bench": ("fojax.cli.bench", "throughput, compile time and gradient cost of the closed loop"),
-    "tune": (
-        "fojax.cli.tune",
-        "gradient-based gain tuning over Monte Carlo draws",
-    ),
+    "accuracy": "accuracy and cost of the fractional operators",
+    "reproduce": "the paper's Section V with Monte Carlo: all scenarios and controllers, report",
+    "simulate": "Monte Carlo study of a scenario under one or all controllers",
+    "bench": "throughput, compile time and gradient cost of the closed loop",
+    "tune": "gradient-based gain tuning over Monte Carlo draws",
 }
+"""Each command, run by the module ``fojax.cli.<command>``, and what it does."""
 
 HOST_DEVICE_COMMANDS = ("simulate", "reproduce")
 """Commands whose draws are split over one CPU device per core (set before JAX starts;
@@ -64,7 +53,7 @@ def main(argv=None) -> int:
     parser.add_argument(
         "command",
         choices=sorted(COMMANDS),
-        help=", ".join(f"{name}: {text}" for name, (_, text) in sorted(COMMANDS.items())),
+        help=", ".join(f"{name}: {text}" for name, text in sorted(COMMANDS.items())),
     )
     parser.add_argument(
         "--version",
@@ -75,24 +64,32 @@ def main(argv=None) -> int:
         parser.print_help()
         return 0 if argv else 2
     if argv[0] == "--version":
-        print(_versions())
+        from fojax.cli import output
+
+        # fojax 0.1.0 (Python 3.11.7, jax 0.4.38, jaxlib 0.4.38, optax 0.2.4, numpy 2.2.1): what
+        # fojax.cli.output.versions records with every run
+        named = {"Python" if k == "python" else k: v for k, v in output.versions().items()}
+        others = ", ".join(f"{name} {value or 'not installed'}" for name, value in named.items())
+        print(f"fojax {output._version('fojax') or 'not installed'} ({others})")
         return 0
     args = parser.parse_args(argv[:1])
-    module_name, _ = COMMANDS[args.command]
     if args.command in HOST_DEVICE_COMMANDS:
         from fojax.cli import arguments
 
         arguments.use_host_devices()
     import importlib
 
-    module = importlib.import_module(module_name)
+    module = importlib.import_module(f"fojax.cli.{args.command}")
     try:
         status = module.main(argv[1:])
     except KeyboardInterrupt:
         print(f"\nfojax {args.command}: interrupted", file=sys.stderr)
         return 130
     except OSError as error:
-        print(f"fojax {args.command}: error: {_describe(error)}", file=sys.stderr)
+        reason = error.strerror or str(error)
+        if error.filename is not None:  # what failed, on which file, and why
+            reason = f"cannot write or read {error.filename}: {reason}"
+        print(f"fojax {args.command}: error: {reason}", file=sys.stderr)
         return 1
     return status if isinstance(status, int) else 0
 
@@ -108,21 +105,3 @@ def require_extra(command: str, extra: str, modules: tuple[str, ...]) -> None:
             f"fojax {command}: needs {', '.join(missing)}, in the [{extra}] extra: "
             f"pip install 'fojax[{extra}]'"
         )
-
-
-def _describe(error: OSError) -> str:
-    """``error`` as one line: what failed, on which file, and why."""
-    reason = error.strerror or str(error)
-    if error.filename is not None:
-        return f"cannot write or read {error.filename}: {reason}"
-    return reason
-
-
-def _versions() -> str:
-    """``fojax 0.1.0 (Python 3.11.7, jax 0.4.38, jaxlib 0.4.38, optax 0.2.4, numpy 2.2.1)``:
-    what :func:`fojax.cli.output.versions` records with every run."""
-    from fojax.cli import output
-
-    named = {"Python" if k == "python" else k: v for k, v in output.versions().items()}
-    others = ", ".join(f"{name} {value or 'not installed'}" for name, value in named.items())
-    return f"fojax {output._version('fojax') or 'not installed'} ({others})"

@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 import sys
-import time
+import timeit
 
 import jax
 import jax.numpy as jnp
@@ -47,26 +47,15 @@ SMOOTH = ("sin(1.7t)", "ramp", "t^2")
 """The smooth test signals: the main table and the figure show the worst over these."""
 
 
-def _signals(t: np.ndarray) -> dict[str, np.ndarray]:
-    return {
-        "sin(1.7t)": np.sin(1.7 * t),
-        "cos(0.4t)": np.cos(0.4 * t),
-        "step": np.ones_like(t),
-        "ramp": t,
-        "t^2": t**2,
-    }
-
-
-def _exact(t: np.ndarray, alpha: float) -> dict[str, np.ndarray]:
-    from fojax.cli import references as ref
-
-    return {
-        "sin(1.7t)": ref.sine(t, 1.7, alpha),
-        "cos(0.4t)": ref.cosine(t, 0.4, alpha),
-        "step": ref.power(t, 0.0, alpha),
-        "ramp": ref.power(t, 1.0, alpha),
-        "t^2": ref.power(t, 2.0, alpha),
-    }
+SIGNALS = {
+    "sin(1.7t)": (lambda t: np.sin(1.7 * t), "sine", 1.7),
+    "cos(0.4t)": (lambda t: np.cos(0.4 * t), "cosine", 0.4),
+    "step": (np.ones_like, "power", 0.0),
+    "ramp": (lambda t: t, "power", 1.0),
+    "t^2": (lambda t: t**2, "power", 2.0),
+}
+"""The test signals: ``(signal of t, exact differintegral)``, the latter a function of
+:mod:`fojax.cli.references` and its parameter (the frequency, or the power of t)."""
 
 
 def relative_error(y: np.ndarray, exact: np.ndarray, skip: int = 1) -> float:
@@ -80,11 +69,7 @@ def _time_per_step(method: str, options: dict, dt: float, steps: int, channels: 
     u = jnp.asarray(np.random.default_rng(0).normal(size=(steps, channels)), jnp.float32)
     runner = jax.jit(lambda u, a: fractional.run(op, a, u))
     runner(u, -0.5).block_until_ready()
-    times = []
-    for _ in range(3):
-        start = time.perf_counter()
-        runner(u, -0.5).block_until_ready()
-        times.append(time.perf_counter() - start)
+    times = timeit.repeat(lambda: runner(u, -0.5).block_until_ready(), number=1, repeat=3)
     return float(np.median(times) / (steps * channels) * 1e9)
 
 
@@ -94,9 +79,7 @@ def evaluate(horizon: float = 80.0, dt: float = 1e-3, orders=ORDERS, methods=Non
     methods = methods or METHODS
     steps = int(round(horizon / dt)) + 1
     t = np.arange(steps) * dt
-    signals = _signals(t)
-    names = list(signals)
-    u = jnp.asarray(np.stack([signals[n] for n in names], axis=1))
+    u = jnp.asarray(np.stack([signal(t) for signal, _, _ in SIGNALS.values()], axis=1))
     alphas = [-o for o in orders] + list(orders)
     results = {"horizon_s": horizon, "dt_s": dt, "orders": list(orders), "methods": {}}
     for label, (method, options) in methods.items():
@@ -107,33 +90,28 @@ def evaluate(horizon: float = 80.0, dt: float = 1e-3, orders=ORDERS, methods=Non
         y_all = np.asarray(apply(jnp.asarray(alphas)))
         errors = {}
         for i, alpha in enumerate(alphas):
-            exact = _exact(t, alpha)
             # Derivatives of the step are unbounded at t = 0 and O(1/dt^a) at t = dt.
             per_signal = {
-                name: relative_error(y_all[i][:, j], exact[name]) for j, name in enumerate(names)
+                name: relative_error(y_all[i][:, j], getattr(references, exact)(t, x, alpha))
+                for j, (name, (_, exact, x)) in enumerate(SIGNALS.items())
             }
             # Relaxation E_a(-t^a): I^a E = 1 - E (integral orders only).
-            order = abs(alpha)
             if alpha < 0:
-                relax = references.mittag_leffler(-(t**order), order)
+                relax = references.mittag_leffler(-(t**-alpha), -alpha)
                 y_relax = np.asarray(
                     fractional.differintegrate(relax, alpha, dt, method, **options)
                 )
-                per_signal["relaxation"] = relative_error(y_relax, 1.0 - relax)
-                per_signal["relaxation, t>=1s"] = relative_error(
-                    y_relax, 1.0 - relax, skip=int(round(1.0 / dt))
-                )
+                for key, skip in (("relaxation", 1), ("relaxation, t>=1s", round(1.0 / dt))):
+                    per_signal[key] = relative_error(y_relax, 1.0 - relax, skip)
             errors[f"{alpha:+.2f}"] = per_signal
-        worst_smooth = max(errors[a][s] for a in errors for s in SMOOTH)
-        worst_all = max(max(v.values()) for v in errors.values())
         cost = fractional.make_operator(method, dt, horizon, **options).cost()
         cost["ns_per_channel_step"] = _time_per_step(method, options, dt, min(steps, 20_001))
         results["methods"][label] = {
             "method": method,
             "options": options,
             "errors": errors,
-            "worst_smooth_signals": worst_smooth,
-            "worst_all_signals": worst_all,
+            "worst_smooth_signals": max(errors[a][s] for a in errors for s in SMOOTH),
+            "worst_all_signals": max(max(v.values()) for v in errors.values()),
             "cost": cost,
         }
     return results
@@ -145,6 +123,14 @@ def _worst_smooth(result: dict, sign: int, orders) -> list[float]:
     return [max(result["errors"][f"{sign * o:+.2f}"][s] for s in SMOOTH) for o in orders]
 
 
+COST_COLUMNS = ("modes", "flops/step", "state floats", "ns/channel-step")
+
+
+def _row(cells) -> str:
+    """A row of a Markdown table."""
+    return "| " + " | ".join(map(str, cells)) + " |"
+
+
 def markdown(results: dict) -> str:
     orders = results["orders"]
     lines = [
@@ -152,23 +138,14 @@ def markdown(results: dict) -> str:
         "(max |error| / max |exact|, t >= dt), worst over sin(1.7t), ramp and t^2; "
         "I = integral, D = derivative of the order in the column.",
         "",
-        "| method | "
-        + " | ".join(f"I {o:g}" for o in orders)
-        + " | "
-        + " | ".join(f"D {o:g}" for o in orders)
-        + " | modes | flops/step | state floats"
-        " | ns/channel-step |",
+        _row(["method", *(f"{k} {o:g}" for k in "ID" for o in orders), *COST_COLUMNS]),
         "|---" * (2 * len(orders) + 5) + "|",
     ]
     for label, r in results["methods"].items():
         cells = [f"{e:.1e}" for sign in (-1, 1) for e in _worst_smooth(r, sign, orders)]
         c = r["cost"]
-        lines.append(
-            f"| {label} | "
-            + " | ".join(cells)
-            + f" | {c['modes']} | {c['flops_per_step']} | {c['state_floats']}"
-            f" | {c['ns_per_channel_step']:.1f} |"
-        )
+        cost = [c[key] for key in ("modes", "flops_per_step", "state_floats")]
+        lines.append(_row([label, *cells, *cost, f"{c['ns_per_channel_step']:.1f}"]))
     lines += [
         "",
         "Non-smooth signals (worst over orders): step and cos (derivative singular at t = 0), "
@@ -180,7 +157,7 @@ def markdown(results: dict) -> str:
     non_smooth = ("step", "cos(0.4t)", "relaxation", "relaxation, t>=1s")
     for label, r in results["methods"].items():
         worst = [max(v[name] for v in r["errors"].values() if name in v) for name in non_smooth]
-        lines.append(f"| {label} | " + " | ".join(f"{w:.1e}" for w in worst) + " |")
+        lines.append(_row([label, *(f"{w:.1e}" for w in worst)]))
     return "\n".join(lines) + "\n"
 
 
@@ -189,10 +166,7 @@ def plot(results: dict, path: pathlib.Path) -> pathlib.Path:
     orders = results["orders"]
     fig = plt.figure(figsize=(11, 4.6), layout="constrained")
     axes = fig.subplots(1, 2, sharey=True)
-    for ax, sign, title in (
-        (axes[0], -1, "integral of order a"),
-        (axes[1], 1, "derivative of order a"),
-    ):
+    for ax, sign in zip(axes, (-1, 1), strict=True):
         markers = ("o", "s", "^", "D", "v", "P", "X")
         for index, (label, r) in enumerate(results["methods"].items()):
             # Hollow markers shrinking with the index: methods whose errors coincide
@@ -202,12 +176,10 @@ def plot(results: dict, path: pathlib.Path) -> pathlib.Path:
                 ms=10 - index, mfc="none", mew=1.3, lw=1.2, label=label,
             )  # fmt: skip
         ax.axhline(1e-4, color="k", ls="--", lw=0.8, label="1e-4")
-        ax.set_xlabel("order a")
-        ax.set_title(title)
+        ax.set(xlabel="order a", title=f"{'integral' if sign < 0 else 'derivative'} of order a")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel(f"worst relative error over {results['horizon_s']:g} s")
-    handles, labels = axes[0].get_legend_handles_labels()
-    style.legend_below(fig, handles, labels, ncol=4)
+    style.legend_below(fig, *axes[0].get_legend_handles_labels(), ncol=4)
     return style.save(fig, path)
 
 

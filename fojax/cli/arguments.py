@@ -10,8 +10,10 @@ outside argparse.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
+from argparse import ArgumentTypeError
 from pathlib import Path
 
 from fojax import settings
@@ -64,15 +66,13 @@ def _integer(text: str, minimum: int, description: str, maximum: int | None = No
         value = int(text)
     except ValueError:
         hint = ""
-        try:
+        with contextlib.suppress(ValueError):
             number = float(text)
             if math.isfinite(number) and number == int(number):
                 hint = f" (write it as {int(number)})"
-        except ValueError:
-            pass
-        raise argparse.ArgumentTypeError(f"expected {description}, got {text!r}{hint}") from None
+        raise ArgumentTypeError(f"expected {description}, got {text!r}{hint}") from None
     if value < minimum or (maximum is not None and value > maximum):
-        raise argparse.ArgumentTypeError(f"expected {description}, got {value}")
+        raise ArgumentTypeError(f"expected {description}, got {value}")
     return value
 
 
@@ -80,9 +80,9 @@ def _real(text: str, allow_zero: bool, description: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected {description}, got {text!r}") from None
+        raise ArgumentTypeError(f"expected {description}, got {text!r}") from None
     if not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
-        raise argparse.ArgumentTypeError(f"expected {description}, got {text}")
+        raise ArgumentTypeError(f"expected {description}, got {text}")
     return value
 
 
@@ -114,15 +114,13 @@ def nonnegative_float(text: str) -> float:
 def listed(text: str, parse, example: str) -> tuple:
     parts = [part.strip() for part in text.split(",")]
     if not text.strip() or any(not part for part in parts):
-        raise argparse.ArgumentTypeError(
-            f"expected a comma-separated list like {example}, got {text!r}"
-        )
+        raise ArgumentTypeError(f"expected a comma-separated list like {example}, got {text!r}")
     values = []
     for part in parts:
         try:
             values.append(parse(part))
-        except argparse.ArgumentTypeError as error:
-            raise argparse.ArgumentTypeError(
+        except ArgumentTypeError as error:
+            raise ArgumentTypeError(
                 f"{error} in {text!r} (expected a comma-separated list like {example})"
             ) from None
     return tuple(values)
@@ -145,14 +143,10 @@ def scenario_ids(text: str) -> tuple[int, ...]:
     try:
         ids = tuple(sorted({int(part) for part in text.split(",") if part.strip()}))
     except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected scenario ids like 1,2,3, got {text!r}"
-        ) from None
+        raise ArgumentTypeError(f"expected scenario ids like 1,2,3, got {text!r}") from None
     bad = [i for i in ids if i not in scenarios.SCENARIO_IDS]
     if not ids or bad:
-        raise argparse.ArgumentTypeError(
-            f"scenarios must be among {scenarios.SCENARIO_IDS}, got {text!r}"
-        )
+        raise ArgumentTypeError(f"scenarios must be among {scenarios.SCENARIO_IDS}, got {text!r}")
     return ids
 
 
@@ -233,16 +227,11 @@ def _path(text: str, what: str) -> Path:
 
 def _existing_ancestor(path: Path) -> Path:
     """The nearest of ``path`` and its parents that exists (``.`` for a relative path)."""
-    candidate = path
-    while True:
-        try:
+    for candidate in (path, *path.parents):
+        with contextlib.suppress(OSError):  # e.g. a name too long
             if candidate.exists():
                 return candidate
-        except OSError:  # e.g. a name too long
-            pass
-        if candidate.parent == candidate:
-            return candidate
-        candidate = candidate.parent if str(candidate.parent) else Path(".")
+    return candidate
 
 
 def check_output_directory(text: str | os.PathLike) -> Path:
@@ -284,9 +273,8 @@ def check_output_file(text: str | os.PathLike, example: str = "results/out.json"
     path = _path(text, f"an output file name (e.g. {example})")
     if path.is_dir():
         raise ValueError(f"{path} is a folder; name a file, e.g. {path / Path(example).name}")
-    parent = path.parent if str(path.parent) else Path(".")
     try:
-        check_output_directory(parent)
+        check_output_directory(path.parent)
     except ValueError as error:
         raise ValueError(f"cannot write {path}: {error}") from None
     if path.exists() and not os.access(path, os.W_OK):
@@ -314,7 +302,7 @@ def _argparse_type(check, *args):
         try:
             return check(text, *args)
         except ValueError as error:
-            raise argparse.ArgumentTypeError(str(error)) from None
+            raise ArgumentTypeError(str(error)) from None
 
     convert.__name__ = check.__name__.removeprefix("check_")
     return convert
@@ -441,7 +429,7 @@ def parse_distributed(values: dict) -> dict:
     try:
         count = None if count is None else _integer(count, 1, "--num-processes, an integer >= 1")
         index = None if index is None else _integer(index, 0, "--process-id, an integer >= 0")
-    except argparse.ArgumentTypeError as error:
+    except ArgumentTypeError as error:
         raise ValueError(str(error)) from None
     if index is not None and count is not None and index >= count:
         raise ValueError(
@@ -451,11 +439,7 @@ def parse_distributed(values: dict) -> dict:
         from fojax import sharding
 
         coordinator = sharding.check_coordinator_address(coordinator, "--coordinator")
-    return {
-        "coordinator_address": coordinator,
-        "num_processes": count,
-        "process_id": index,
-    }
+    return {"coordinator_address": coordinator, "num_processes": count, "process_id": index}
 
 
 def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
@@ -478,6 +462,7 @@ def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
     cache = enable_compile_cache(known.no_compile_cache, found)
     from fojax import sharding
 
+    info = {"process_index": 0, "process_count": 1, "joined": None}
     if distributed:
         try:
             info = sharding.initialize(**options, names=DISTRIBUTED_FLAGS, settings=found)
@@ -485,6 +470,4 @@ def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
             parser.error(str(error))
         except RuntimeError as error:  # e.g. JAX already started in this process
             parser.error(f"cannot join the multi-process run: {error}")
-    else:
-        info = {"process_index": 0, "process_count": 1, "joined": None}
     return {**info, "compile_cache": cache, "settings": found}

@@ -57,12 +57,6 @@ def log(quiet: bool, text: str) -> None:
 # ------------------------------------------------------------------------- provenance
 
 
-def _checkout() -> Path:
-    import fojax
-
-    return Path(fojax.__file__).resolve().parent.parent
-
-
 DOCUMENTS = ("docs", "README.md")
 """Where generated blocks and their figures are written. No result depends on them, so
 changes there do not make a checkout dirty (a generator writes its figures and
@@ -73,34 +67,20 @@ def git_commit(root: Path | None = None, exclude: tuple[str, ...] = DOCUMENTS) -
     """``{"commit", "dirty"}`` of the git checkout ``root`` (default: the one holding
     fojax), or ``{}`` (not one). ``dirty``: uncommitted changes to tracked files, outside
     the paths ``exclude`` (relative to the checkout's root; default :data:`DOCUMENTS`)."""
-    root = _checkout() if root is None else Path(root)
+    root = Path(__file__).resolve().parents[2] if root is None else Path(root)  # fojax/cli/..
     if not (root / ".git").exists():
         return {}
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        command = ["git", "-C", str(root), *args]
+        return subprocess.run(command, capture_output=True, text=True, timeout=10)
+
     try:
-        commit = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
+        commit = git("rev-parse", "HEAD")
         if commit.returncode != 0:
             return {}
-        status = subprocess.run(
-            [
-                "git",
-                "-C",
-                str(root),
-                "status",
-                "--porcelain",
-                "--untracked-files=no",
-                "--",
-                ".",
-                *(f":(top,exclude){path}" for path in exclude),
-            ],
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
+        excluded = (f":(top,exclude){path}" for path in exclude)
+        status = git("status", "--porcelain", "--untracked-files=no", "--", ".", *excluded)
         dirty = bool(status.stdout.strip()) if status.returncode == 0 else None
         return {"commit": commit.stdout.strip(), "dirty": dirty}
     except (OSError, subprocess.SubprocessError):
@@ -153,9 +133,8 @@ def provenance(command: list[str] | None = None, gains: dict | None = None) -> d
 
     import fojax
 
-    command = list(sys.argv if command is None else command)
     record: dict[str, Any] = {
-        "command": shlex.join(command),
+        "command": shlex.join(sys.argv if command is None else command),
         "working_directory": os.getcwd(),
         "fojax_version": _version("fojax") or getattr(fojax, "__version__", None),
         "fojax_git": git_commit() or None,
@@ -171,9 +150,7 @@ def provenance(command: list[str] | None = None, gains: dict | None = None) -> d
         "cpu_count": os.cpu_count(),
         "created_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
-    if gains is not None:
-        record["gains"] = gains
-    return record
+    return record if gains is None else record | {"gains": gains}
 
 
 def load_average() -> list[float]:
@@ -204,10 +181,7 @@ def cpu_model() -> str | None:
 def run_context(command: list[str]) -> dict:
     """Provenance of a study run (:func:`provenance`), the CPU model and the load
     average."""
-    record = provenance(command)
-    record["cpu_model"] = cpu_model()
-    record["load_average"] = load_average()
-    return record
+    return provenance(command) | {"cpu_model": cpu_model(), "load_average": load_average()}
 
 
 # ------------------------------------------------------------------------------- docs
@@ -235,20 +209,18 @@ def block_label(command: str | None = None, root: Path | None = None) -> str:
     same in a line for the reader (:func:`format_label`).
     """
     git = git_commit(root)
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:
-        cores = os.cpu_count()
-    record = {
-        "command": invocation() if command is None else command,
-        "commit": git.get("commit"),
-        "dirty": git.get("dirty"),
-        "cpu": cpu_model(),
-        "cores": cores,
-        "load": load_average(),
-        **versions(),
-    }
-    return format_label(record)
+    affinity = getattr(os, "sched_getaffinity", None)
+    return format_label(
+        {
+            "command": invocation() if command is None else command,
+            "commit": git.get("commit"),
+            "dirty": git.get("dirty"),
+            "cpu": cpu_model(),
+            "cores": os.cpu_count() if affinity is None else len(affinity(0)),
+            "load": load_average(),
+            **versions(),
+        }
+    )
 
 
 def format_label(record: dict) -> str:
@@ -311,6 +283,5 @@ def splice(
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
     if begin not in content or end not in content:
         raise ValueError(f"{document} has no {begin} ... {end} block")
-    head, rest = content.split(begin, 1)
-    _, tail = rest.split(end, 1)
-    atomic_write(document, f"{head}{begin}\n{text}\n{end}{tail}")
+    head, _, rest = content.partition(begin)
+    atomic_write(document, f"{head}{begin}\n{text}\n{end}{rest.partition(end)[2]}")
