@@ -76,30 +76,24 @@ def _signed_power(value: np.ndarray, exponent: np.ndarray) -> np.ndarray:
     return np.where(nonzero, np.sign(value) * np.exp(exponent * np.log(safe)), 0.0)
 
 
-def _switching(kind: str, surface: np.ndarray, width: np.ndarray) -> np.ndarray:
-    if kind == "sign":
-        return np.sign(surface)
-    if kind == "sat":
-        return np.clip(surface / width, -1.0, 1.0)
-    return np.tanh(surface / width)
+_SWITCHING = {
+    "sign": lambda surface, width: np.sign(surface),
+    "sat": lambda surface, width: np.clip(surface / width, -1.0, 1.0),
+    "tanh": lambda surface, width: np.tanh(surface / width),
+}
+"""The switching functions of the reaching law, of the surface and the boundary layer."""
 
 
 def _rotor_speeds_squared(params: dict, inputs):
     """``(n, 4)`` squared rotor speeds of the inverted mixer (10); ``inputs`` ``(n, 4)``,
     ``params`` the plant's (``"thrust_factor"``, ``"drag_factor"``, ``"arm_length"``)."""
-    bd = params["thrust_factor"] * params["arm_length"]
-    common = inputs[:, 0] / (4.0 * params["thrust_factor"])
-    yaw = inputs[:, 3] / (4.0 * params["drag_factor"])
-    tau_x, tau_y = inputs[:, 1], inputs[:, 2]
-    return np.stack(
-        [
-            common - tau_y / (2.0 * bd) - yaw,
-            common - tau_x / (2.0 * bd) + yaw,
-            common + tau_y / (2.0 * bd) - yaw,
-            common + tau_x / (2.0 * bd) + yaw,
-        ],
-        axis=1,
-    )
+    factors = {k: np.asarray(params[k])[..., None] for k in ("thrust_factor", "drag_factor")}
+    bd = factors["thrust_factor"] * np.asarray(params["arm_length"])[..., None]
+    common = inputs[:, :1] / (4.0 * factors["thrust_factor"])
+    yaw = inputs[:, 3:] / (4.0 * factors["drag_factor"])
+    tilt = inputs[:, [2, 1]] / (2.0 * bd)  # rotors 1, 2 subtract (tau_y, tau_x); 3, 4 add it
+    yaw = np.concatenate([yaw, -yaw], axis=1)  # rotors 1, 3 subtract yaw; 2, 4 add it
+    return np.concatenate([common - tilt - yaw, common + tilt - yaw], axis=1)
 
 
 def _rotor_speed_sum(params: dict, inputs):
@@ -151,15 +145,6 @@ def _derivatives(p, state, inputs, disturbance, drag_position, drag_attitude, om
     linear_accel[:, 2] -= p["gravity"]
     accel = np.concatenate([linear_accel, angular_accel], axis=1)
     return np.concatenate([state[:, 6:12], accel + disturbance], axis=1)
-
-
-def _rk4_step(p, state, held, dt):
-    """One RK4 step of :func:`_derivatives`; ``held`` is constant over the step."""
-    k1 = _derivatives(p, state, *held)
-    k2 = _derivatives(p, state + 0.5 * dt * k1, *held)
-    k3 = _derivatives(p, state + 0.5 * dt * k2, *held)
-    k4 = _derivatives(p, state + dt * k3, *held)
-    return state + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
 def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
@@ -303,7 +288,7 @@ def _memory_step(prepared: dict, modes, samples, k: int):
 def _reaching_law(prepared: dict, surface, error, error_rate, adaptive, dt: float):
     """The reaching law with its adaptive bound, and the bound's next estimates."""
     g = prepared["gains"]
-    sw = _switching(prepared["switching"], surface, g["boundary_layer"])
+    sw = _SWITCHING[prepared["switching"]](surface, g["boundary_layer"])
     bound = (
         adaptive[:, :, 0]
         + adaptive[:, :, 1] * np.abs(error)
@@ -380,7 +365,8 @@ def _errors(state, command_filter, ref, ref_vel, dtype):
 
 
 def _plant_step(prepared: dict, scenario, state, inputs, k: int, dt: float):
-    """The plant's RK4 step ``k``, with the inputs, the disturbance and the drag held."""
+    """The plant's RK4 step ``k`` of :func:`_derivatives`, with the inputs, the
+    disturbance and the drag held over the step."""
     plant_params = prepared["plant"]
 
     def held_row(table, hold: float):  # the table's row of step k, each held ``hold`` s
@@ -394,7 +380,11 @@ def _plant_step(prepared: dict, scenario, state, inputs, k: int, dt: float):
     drag_attitude = plant_params["drag_attitude"] * multipliers[:, 3:]
     omega_r = _rotor_speed_sum(plant_params, inputs)
     held = (inputs, disturbance, drag_position, drag_attitude, omega_r)
-    return _rk4_step(plant_params, state, held, dt)
+    k1 = _derivatives(plant_params, state, *held)
+    k2 = _derivatives(plant_params, state + 0.5 * dt * k1, *held)
+    k3 = _derivatives(plant_params, state + 0.5 * dt * k2, *held)
+    k4 = _derivatives(plant_params, state + dt * k3, *held)
+    return state + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
 def _initial(prepared: dict, scenario, n: int):
@@ -406,8 +396,7 @@ def _initial(prepared: dict, scenario, n: int):
         (n, 1),
     ).astype(dtype)
     modes = np.zeros((n, 12, prepared["decay_m1"].shape[0]), dtype)
-    command_filter = np.zeros((n, 2, 2), dtype)
-    command_filter[:, :, 0] = state[:, 3:5]
+    command_filter = np.stack([state[:, 3:5], np.zeros((n, 2), dtype)], axis=2)
     last_inputs = np.zeros((n, 4), dtype)
     last_inputs[:, 0] = nominal["mass"] * nominal["gravity"]
     u_prev, u_prev2, adaptive = (np.zeros(shape, dtype) for shape in ((n, 12), (n, 12), (n, 6, 3)))
