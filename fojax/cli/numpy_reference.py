@@ -19,6 +19,7 @@ only, once per step for all draws.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -129,7 +130,6 @@ def _derivatives(p, state, inputs, disturbance, drag_position, drag_attitude, om
     c_theta, s_theta = np.cos(theta), np.sin(theta)
     c_psi, s_psi = np.cos(psi), np.sin(psi)
     specific_thrust = inputs[:, 0] / p["mass"]
-    mass = p["mass"][:, None]
     linear_accel = (
         np.stack(
             [
@@ -140,7 +140,7 @@ def _derivatives(p, state, inputs, disturbance, drag_position, drag_attitude, om
             axis=1,
         )
         * specific_thrust[:, None]
-        - drag_position / mass * state[:, 6:9]
+        - drag_position / p["mass"][:, None] * state[:, 6:9]
     )
     linear_accel[:, 2] -= p["gravity"]
     accel = np.concatenate([linear_accel, angular_accel], axis=1)
@@ -160,9 +160,7 @@ def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
             f"{law.fractional_method!r}"
         )
 
-    def as_np(x):
-        return np.asarray(x, dtype)
-
+    as_np = functools.partial(np.asarray, dtype=dtype)
     params = controller.prepare(gains, model)
     weights = params.law.surface_weights
     operator = law.memory.operator
@@ -275,9 +273,8 @@ def _memory_step(prepared: dict, modes, samples, k: int):
     """The fractional memory's 12 channels at step ``k >= 1``: ``(integral, rate,
     modes)`` from the inputs ``samples = (u, u_prev, u_prev2)``, each ``(n, 12)``."""
     u, u_prev, u_prev2 = samples
-    u_before = u_prev2 if k > 1 else 2.0 * u_prev - u
+    samples = (u, u_prev, u_prev2 if k > 1 else 2.0 * u_prev - u)  # each (n, 12)
     history = modes @ prepared["readout"].T  # (n, 12, 2)
-    samples = (u, u_prev, u_before)  # each (n, 12)
     local, taps = prepared["local"], prepared["taps"]
     outputs = history + sum(local[:, :, i] * samples[i][:, :, None] for i in range(3))
     increment = prepared["mode_weights"] * sum(taps[i] * samples[i][:, :, None] for i in range(3))
@@ -289,11 +286,8 @@ def _reaching_law(prepared: dict, surface, error, error_rate, adaptive, dt: floa
     """The reaching law with its adaptive bound, and the bound's next estimates."""
     g = prepared["gains"]
     sw = _SWITCHING[prepared["switching"]](surface, g["boundary_layer"])
-    bound = (
-        adaptive[:, :, 0]
-        + adaptive[:, :, 1] * np.abs(error)
-        + adaptive[:, :, 2] * np.abs(error_rate)
-    )
+    a0, a1, a2 = np.moveaxis(adaptive, 2, 0)
+    bound = a0 + a1 * np.abs(error) + a2 * np.abs(error_rate)
     reaching = -g["reaching_h1"] * sw - g["reaching_h2"] * surface - (bound + g["mu"]) * sw
     regressor = np.stack([np.ones_like(error), np.abs(error), np.abs(error_rate)], axis=2)
     adaptive = adaptive + dt * g["adaptation"] * regressor * np.abs(surface)[:, :, None]
@@ -391,10 +385,8 @@ def _initial(prepared: dict, scenario, n: int):
     """The loop's state at ``t = 0``: plant state, memory modes, the last two memory
     inputs, adaptive estimates, command filter, last inputs (hover thrust)."""
     dtype, nominal = prepared["dtype"], prepared["nominal"]
-    state = np.tile(
-        np.concatenate([scenario.initial_position, scenario.initial_attitude, np.zeros(6)]),
-        (n, 1),
-    ).astype(dtype)
+    state = np.zeros((n, 12), dtype)
+    state[:, :6] = np.concatenate([scenario.initial_position, scenario.initial_attitude])
     modes = np.zeros((n, 12, prepared["decay_m1"].shape[0]), dtype)
     command_filter = np.stack([state[:, 3:5], np.zeros((n, 2), dtype)], axis=2)
     last_inputs = np.zeros((n, 4), dtype)
