@@ -123,16 +123,11 @@ def loop_kernels(compiled) -> list[int]:
             bodies[name] = []
         elif line.startswith("}"):
             name = None
-        elif name is not None:
-            found = _INSTRUCTION.search(line)
-            if found:
-                bodies[name].append(found.group(1))
-    counts = []
-    for body in set(_WHILE_BODY.findall(text)):
-        ops = bodies.get(body, [])
-        if ops and "while" not in ops:
-            counts.append(sum(op not in _NOT_KERNELS for op in ops))
-    return sorted(counts, reverse=True)
+        elif name is not None and (found := _INSTRUCTION.search(line)):
+            bodies[name].append(found.group(1))
+    loops = (bodies.get(body, []) for body in set(_WHILE_BODY.findall(text)))
+    innermost = [ops for ops in loops if ops and "while" not in ops]
+    return sorted((sum(op not in _NOT_KERNELS for op in ops) for ops in innermost), reverse=True)
 
 
 def _memory(compiled) -> dict:

@@ -208,9 +208,7 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
         raise ValueError(
             f"config.dt ({config.dt}) must equal the controller's dt ({prepared['dt']})"
         )
-    dtype = prepared["dtype"]
-    dt = config.dt
-    g = prepared["gains"]
+    dtype, dt, g = prepared["dtype"], config.dt, prepared["gains"]
     n = prepared["plant"]["mass"].shape[0]
 
     state, modes, u_prev, u_prev2, adaptive, command_filter, last_inputs = _initial(
