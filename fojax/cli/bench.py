@@ -156,20 +156,15 @@ SMALL = {
 """The sizes ``--small`` sets itself (giving one of these options with it is an error)."""
 
 
-def _given(argv: list[str]) -> set[str]:
-    """The destinations of the options given on the command line (not defaulted)."""
-    probe = build_parser()
-    for action in probe._actions:
-        action.default = argparse.SUPPRESS
-    return set(vars(probe.parse_known_args(argv)[0]))
-
-
 def _parse(argv: list[str]) -> argparse.Namespace:
     """The options, with ``--small``'s sizes applied (an error when one is also given)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.small:
-        clashing = sorted(_given(argv) & set(SMALL))
+        probe = build_parser()  # without defaults: the options given on the command line
+        for action in probe._actions:
+            action.default = argparse.SUPPRESS
+        clashing = sorted(set(vars(probe.parse_known_args(argv)[0])) & set(SMALL))
         if clashing:
             flags = ", ".join("--" + name.replace("_", "-") for name in clashing)
             parser.error(f"--small sets the sizes itself; leave {flags} out or drop --small")
@@ -225,10 +220,7 @@ def main(argv=None) -> dict:
         },
         "provenance": study_layer.provenance(["fojax", "bench", *argv]),
         "units": UNITS,
-        "forward": [],
-        "gradient": [],
-        "numpy": [],
-        "comparison": [],
+        **{section: [] for section in ("forward", "gradient", "numpy", "comparison")},
         "scaling": {},
         "crazyflow": None,
     }
@@ -237,7 +229,6 @@ def main(argv=None) -> dict:
     result["process_max_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     _print_summary(result)
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         study_layer.write_json(args.json, result)
         _log(f"wrote {args.json}")
     return result
@@ -267,12 +258,12 @@ def _measure(args, result: dict, mesh) -> None:
         result["numpy"].append(entry)
         _log(f"  {entry['draw_steps_per_s']:.3g} draw-steps/s")
 
-    forward_by_draws = {e["draws"]: e for e in result["forward"]}
-    for entry in result["numpy"]:
-        jax_entry = forward_by_draws.get(entry["draws"])
-        if jax_entry is not None:
-            ratio = jax_entry["draw_steps_per_s"] / entry["draw_steps_per_s"]
-            result["comparison"].append({"draws": entry["draws"], "jax_over_numpy": ratio})
+    forward_rates = {e["draws"]: e["draw_steps_per_s"] for e in result["forward"]}
+    result["comparison"] = [
+        {"draws": e["draws"], "jax_over_numpy": forward_rates[e["draws"]] / e["draw_steps_per_s"]}
+        for e in result["numpy"]
+        if e["draws"] in forward_rates
+    ]
 
     for count in args.gradient_draws:
         for horizon in args.gradient_horizons:

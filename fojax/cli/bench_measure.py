@@ -5,6 +5,7 @@ and crazyflow, each timed apart from its compilation."""
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 import time
@@ -13,16 +14,15 @@ import time
 class _Workload:
     """The standard workload, built for a given horizon."""
 
-    def __init__(self, horizon: float, switching: str = "sat", save_every: int | None = None):
+    def __init__(self, horizon: float, switching: str = "sat"):
         from fojax import plant, scenarios, simulator
         from fojax.controllers import make_controller, paper_gains
 
         self.dt = 1e-3
         steps = int(round(horizon / self.dt))
-        if save_every is None:
-            # Checkpointed blocks of the divisor of ``steps`` nearest ``sqrt(steps)`` keep
-            # reverse-mode memory ``O(sqrt(steps))``.
-            save_every = simulator.divisor_near(steps, math.sqrt(steps))
+        # Checkpointed blocks of the divisor of ``steps`` nearest ``sqrt(steps)`` keep
+        # reverse-mode memory ``O(sqrt(steps))``.
+        save_every = simulator.divisor_near(steps, math.sqrt(steps))
         self.scenario = scenarios.get_scenario(2)
         self.config = simulator.SimulationConfig(dt=self.dt, horizon=horizon, save_every=save_every)
         # The fractional memory is sized for the scenario's 80 s, whatever the horizon.
@@ -60,15 +60,18 @@ class _Workload:
         return scenarios.batch_first(result)
 
 
-def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
+def _timed(fn) -> tuple[float, float]:
+    """Wall and CPU seconds of one call of ``fn``, up to its results being ready."""
     import jax
 
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    times.sort()
+    start, start_cpu = time.perf_counter(), time.process_time()
+    jax.block_until_ready(fn())
+    return time.perf_counter() - start, time.process_time() - start_cpu
+
+
+def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
+    """The median wall time of ``repeats`` calls of ``fn``, and all of them, sorted."""
+    times = sorted(_timed(fn)[0] for _ in range(repeats))
     return times[len(times) // 2], times
 
 
@@ -79,7 +82,10 @@ def _padded_count(count: int, devices: int) -> int:
 def _compile(fn, *args) -> tuple:
     """``fn`` compiled for ``args``, its compile time (s) and that time by phase:
     ``{"trace_s", "lower_s", "xla_s"}`` (tracing to a jaxpr, lowering to StableHLO,
-    XLA's optimisation and code generation)."""
+    XLA's optimisation and code generation). The compiled ``fn`` has run once on
+    ``args`` (untimed warm-up)."""
+    import jax
+
     stage, phases = fn, {}
     for phase, advance in (
         ("trace_s", lambda jitted: jitted.trace(*args)),
@@ -89,6 +95,7 @@ def _compile(fn, *args) -> tuple:
         start = time.perf_counter()
         stage = advance(stage)
         phases[phase] = time.perf_counter() - start
+    jax.block_until_ready(stage(*args))
     return stage, sum(phases.values()), phases
 
 
@@ -116,16 +123,11 @@ def loop_kernels(compiled) -> list[int]:
             bodies[name] = []
         elif line.startswith("}"):
             name = None
-        elif name is not None:
-            found = _INSTRUCTION.search(line)
-            if found:
-                bodies[name].append(found.group(1))
-    counts = []
-    for body in set(_WHILE_BODY.findall(text)):
-        ops = bodies.get(body, [])
-        if ops and "while" not in ops:
-            counts.append(sum(op not in _NOT_KERNELS for op in ops))
-    return sorted(counts, reverse=True)
+        elif name is not None and (found := _INSTRUCTION.search(line)):
+            bodies[name].append(found.group(1))
+    loops = (bodies.get(body, []) for body in set(_WHILE_BODY.findall(text)))
+    innermost = [ops for ops in loops if ops and "while" not in ops]
+    return sorted((sum(op not in _NOT_KERNELS for op in ops) for ops in innermost), reverse=True)
 
 
 def _memory(compiled) -> dict:
@@ -170,7 +172,6 @@ def measure_forward(
 
     chunks = [place(i * padded_chunk, padded_chunk) for i in range(n_chunks)]
     compiled, compile_s, phases = _compile(run, gains, chunks[0])
-    jax.block_until_ready(compiled(gains, chunks[0]))  # warm
     run_s, times = _median_time(lambda: [compiled(gains, c) for c in chunks], repeats)
     steps = work.config.steps
     entry = {
@@ -188,10 +189,8 @@ def measure_forward(
         "draw_steps_per_s": count * steps / run_s,
     }
     if n_chunks > 1:
-        padded = _padded_count(count, devices)
-        whole = place(0, padded)
+        whole = place(0, _padded_count(count, devices))
         one_call, one_compile_s, _ = _compile(run, gains, whole)
-        jax.block_until_ready(one_call(gains, whole))
         one_s, _ = _median_time(lambda: one_call(gains, whole), repeats)
         entry.update(
             one_call_compile_s=one_compile_s,
@@ -231,23 +230,14 @@ def measure_gradient(count: int, horizon: float, repeats: int, mesh) -> dict:
     gradient_c, gradient_compile_s, gradient_phases = _compile(
         jax.jit(jax.grad(forward)), gains, draws
     )
-    jax.block_until_ready(forward_c(gains, draws))
-    jax.block_until_ready(gradient_c(gains, draws))
     # Interleaved, so that a load that comes and goes falls on both alike; the ratio is
-    # the median of the per-round ratios.
-    forward_all, gradient_all, cpu_forward, cpu_gradient = [], [], [], []
-    for _ in range(repeats):
-        for fn, wall, cpu in (
-            (forward_c, forward_all, cpu_forward),
-            (gradient_c, gradient_all, cpu_gradient),
-        ):
-            start, start_cpu = time.perf_counter(), time.process_time()
-            jax.block_until_ready(fn(gains, draws))
-            wall.append(time.perf_counter() - start)
-            cpu.append(time.process_time() - start_cpu)
-    forward_s, gradient_s = float(np.median(forward_all)), float(np.median(gradient_all))
-    ratios = [g / f for f, g in zip(forward_all, gradient_all, strict=True)]
-    cpu_ratios = [g / f for f, g in zip(cpu_forward, cpu_gradient, strict=True)]
+    # the median of the per-round ratios. Each round: ((wall, cpu) forward, gradient).
+    rounds = [
+        [_timed(functools.partial(fn, gains, draws)) for fn in (forward_c, gradient_c)]
+        for _ in range(repeats)
+    ]
+    forward_s, gradient_s = (float(np.median([r[i][0] for r in rounds])) for i in (0, 1))
+    ratios, cpu_ratios = ([g[i] / f[i] for f, g in rounds] for i in (0, 1))
     steps = work.config.steps
     return {
         "draws": count,
@@ -311,9 +301,4 @@ def measure_crazyflow(count: int, steps: int) -> dict:
     start = time.perf_counter()
     sim.step(steps)
     run_s = time.perf_counter() - start
-    return {
-        "worlds": count,
-        "steps": steps,
-        "run_s": run_s,
-        "drone_steps_per_s": count * steps / run_s,
-    }
+    return dict(worlds=count, steps=steps, run_s=run_s, drone_steps_per_s=count * steps / run_s)

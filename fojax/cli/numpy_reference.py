@@ -19,6 +19,7 @@ only, once per step for all draws.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -76,30 +77,24 @@ def _signed_power(value: np.ndarray, exponent: np.ndarray) -> np.ndarray:
     return np.where(nonzero, np.sign(value) * np.exp(exponent * np.log(safe)), 0.0)
 
 
-def _switching(kind: str, surface: np.ndarray, width: np.ndarray) -> np.ndarray:
-    if kind == "sign":
-        return np.sign(surface)
-    if kind == "sat":
-        return np.clip(surface / width, -1.0, 1.0)
-    return np.tanh(surface / width)
+_SWITCHING = {
+    "sign": lambda surface, width: np.sign(surface),
+    "sat": lambda surface, width: np.clip(surface / width, -1.0, 1.0),
+    "tanh": lambda surface, width: np.tanh(surface / width),
+}
+"""The switching functions of the reaching law, of the surface and the boundary layer."""
 
 
 def _rotor_speeds_squared(params: dict, inputs):
     """``(n, 4)`` squared rotor speeds of the inverted mixer (10); ``inputs`` ``(n, 4)``,
     ``params`` the plant's (``"thrust_factor"``, ``"drag_factor"``, ``"arm_length"``)."""
-    bd = params["thrust_factor"] * params["arm_length"]
-    common = inputs[:, 0] / (4.0 * params["thrust_factor"])
-    yaw = inputs[:, 3] / (4.0 * params["drag_factor"])
-    tau_x, tau_y = inputs[:, 1], inputs[:, 2]
-    return np.stack(
-        [
-            common - tau_y / (2.0 * bd) - yaw,
-            common - tau_x / (2.0 * bd) + yaw,
-            common + tau_y / (2.0 * bd) - yaw,
-            common + tau_x / (2.0 * bd) + yaw,
-        ],
-        axis=1,
-    )
+    factors = {k: np.asarray(params[k])[..., None] for k in ("thrust_factor", "drag_factor")}
+    bd = factors["thrust_factor"] * np.asarray(params["arm_length"])[..., None]
+    common = inputs[:, :1] / (4.0 * factors["thrust_factor"])
+    yaw = inputs[:, 3:] / (4.0 * factors["drag_factor"])
+    tilt = inputs[:, [2, 1]] / (2.0 * bd)  # rotors 1, 2 subtract (tau_y, tau_x); 3, 4 add it
+    yaw = np.concatenate([yaw, -yaw], axis=1)  # rotors 1, 3 subtract yaw; 2, 4 add it
+    return np.concatenate([common - tilt - yaw, common + tilt - yaw], axis=1)
 
 
 def _rotor_speed_sum(params: dict, inputs):
@@ -135,7 +130,6 @@ def _derivatives(p, state, inputs, disturbance, drag_position, drag_attitude, om
     c_theta, s_theta = np.cos(theta), np.sin(theta)
     c_psi, s_psi = np.cos(psi), np.sin(psi)
     specific_thrust = inputs[:, 0] / p["mass"]
-    mass = p["mass"][:, None]
     linear_accel = (
         np.stack(
             [
@@ -146,20 +140,11 @@ def _derivatives(p, state, inputs, disturbance, drag_position, drag_attitude, om
             axis=1,
         )
         * specific_thrust[:, None]
-        - drag_position / mass * state[:, 6:9]
+        - drag_position / p["mass"][:, None] * state[:, 6:9]
     )
     linear_accel[:, 2] -= p["gravity"]
     accel = np.concatenate([linear_accel, angular_accel], axis=1)
     return np.concatenate([state[:, 6:12], accel + disturbance], axis=1)
-
-
-def _rk4_step(p, state, held, dt):
-    """One RK4 step of :func:`_derivatives`; ``held`` is constant over the step."""
-    k1 = _derivatives(p, state, *held)
-    k2 = _derivatives(p, state + 0.5 * dt * k1, *held)
-    k3 = _derivatives(p, state + 0.5 * dt * k2, *held)
-    k4 = _derivatives(p, state + dt * k3, *held)
-    return state + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
 def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
@@ -175,9 +160,7 @@ def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
             f"{law.fractional_method!r}"
         )
 
-    def as_np(x):
-        return np.asarray(x, dtype)
-
+    as_np = functools.partial(np.asarray, dtype=dtype)
     params = controller.prepare(gains, model)
     weights = params.law.surface_weights
     operator = law.memory.operator
@@ -225,9 +208,7 @@ def simulate(prepared: dict, scenario, config) -> NumpyRollout:
         raise ValueError(
             f"config.dt ({config.dt}) must equal the controller's dt ({prepared['dt']})"
         )
-    dtype = prepared["dtype"]
-    dt = config.dt
-    g = prepared["gains"]
+    dtype, dt, g = prepared["dtype"], config.dt, prepared["gains"]
     n = prepared["plant"]["mass"].shape[0]
 
     state, modes, u_prev, u_prev2, adaptive, command_filter, last_inputs = _initial(
@@ -290,9 +271,8 @@ def _memory_step(prepared: dict, modes, samples, k: int):
     """The fractional memory's 12 channels at step ``k >= 1``: ``(integral, rate,
     modes)`` from the inputs ``samples = (u, u_prev, u_prev2)``, each ``(n, 12)``."""
     u, u_prev, u_prev2 = samples
-    u_before = u_prev2 if k > 1 else 2.0 * u_prev - u
+    samples = (u, u_prev, u_prev2 if k > 1 else 2.0 * u_prev - u)  # each (n, 12)
     history = modes @ prepared["readout"].T  # (n, 12, 2)
-    samples = (u, u_prev, u_before)  # each (n, 12)
     local, taps = prepared["local"], prepared["taps"]
     outputs = history + sum(local[:, :, i] * samples[i][:, :, None] for i in range(3))
     increment = prepared["mode_weights"] * sum(taps[i] * samples[i][:, :, None] for i in range(3))
@@ -303,12 +283,9 @@ def _memory_step(prepared: dict, modes, samples, k: int):
 def _reaching_law(prepared: dict, surface, error, error_rate, adaptive, dt: float):
     """The reaching law with its adaptive bound, and the bound's next estimates."""
     g = prepared["gains"]
-    sw = _switching(prepared["switching"], surface, g["boundary_layer"])
-    bound = (
-        adaptive[:, :, 0]
-        + adaptive[:, :, 1] * np.abs(error)
-        + adaptive[:, :, 2] * np.abs(error_rate)
-    )
+    sw = _SWITCHING[prepared["switching"]](surface, g["boundary_layer"])
+    a0, a1, a2 = np.moveaxis(adaptive, 2, 0)
+    bound = a0 + a1 * np.abs(error) + a2 * np.abs(error_rate)
     reaching = -g["reaching_h1"] * sw - g["reaching_h2"] * surface - (bound + g["mu"]) * sw
     regressor = np.stack([np.ones_like(error), np.abs(error), np.abs(error_rate)], axis=2)
     adaptive = adaptive + dt * g["adaptation"] * regressor * np.abs(surface)[:, :, None]
@@ -380,7 +357,8 @@ def _errors(state, command_filter, ref, ref_vel, dtype):
 
 
 def _plant_step(prepared: dict, scenario, state, inputs, k: int, dt: float):
-    """The plant's RK4 step ``k``, with the inputs, the disturbance and the drag held."""
+    """The plant's RK4 step ``k`` of :func:`_derivatives`, with the inputs, the
+    disturbance and the drag held over the step."""
     plant_params = prepared["plant"]
 
     def held_row(table, hold: float):  # the table's row of step k, each held ``hold`` s
@@ -394,20 +372,21 @@ def _plant_step(prepared: dict, scenario, state, inputs, k: int, dt: float):
     drag_attitude = plant_params["drag_attitude"] * multipliers[:, 3:]
     omega_r = _rotor_speed_sum(plant_params, inputs)
     held = (inputs, disturbance, drag_position, drag_attitude, omega_r)
-    return _rk4_step(plant_params, state, held, dt)
+    k1 = _derivatives(plant_params, state, *held)
+    k2 = _derivatives(plant_params, state + 0.5 * dt * k1, *held)
+    k3 = _derivatives(plant_params, state + 0.5 * dt * k2, *held)
+    k4 = _derivatives(plant_params, state + dt * k3, *held)
+    return state + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
 def _initial(prepared: dict, scenario, n: int):
     """The loop's state at ``t = 0``: plant state, memory modes, the last two memory
     inputs, adaptive estimates, command filter, last inputs (hover thrust)."""
     dtype, nominal = prepared["dtype"], prepared["nominal"]
-    state = np.tile(
-        np.concatenate([scenario.initial_position, scenario.initial_attitude, np.zeros(6)]),
-        (n, 1),
-    ).astype(dtype)
+    state = np.zeros((n, 12), dtype)
+    state[:, :6] = np.concatenate([scenario.initial_position, scenario.initial_attitude])
     modes = np.zeros((n, 12, prepared["decay_m1"].shape[0]), dtype)
-    command_filter = np.zeros((n, 2, 2), dtype)
-    command_filter[:, :, 0] = state[:, 3:5]
+    command_filter = np.stack([state[:, 3:5], np.zeros((n, 2), dtype)], axis=2)
     last_inputs = np.zeros((n, 4), dtype)
     last_inputs[:, 0] = nominal["mass"] * nominal["gravity"]
     u_prev, u_prev2, adaptive = (np.zeros(shape, dtype) for shape in ((n, 12), (n, 12), (n, 6, 3)))
