@@ -255,8 +255,7 @@ RESULT_FIELDS = ("wall_time_s", "draw_steps", "steps", "best_step", "validation"
 def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     """One run on a fresh objective; its curve ``[step, wall time (s), draw-steps,
     held-out cost of the answer]`` (the start first) and totals."""
-    load_before = output.load_average()
-    t0 = time.perf_counter()
+    load_before, t0 = output.load_average(), time.perf_counter()
     strategy, budget = setup.strategy(method, seed)
     objective = setup.objective(seed, strategy, setup.args.dt)
     x0 = objective.vector(setup.starts[start])
@@ -296,17 +295,13 @@ BY_METHOD = {
 """The settings a run depends on (its fingerprint), besides its share, start and seed."""
 
 
-def run_fingerprint(args, share: str, start: str, seed: int, method: str) -> dict:
+def _run_key(args, share: str, start: str, seed: int, method: str) -> tuple:
+    """``(folder, stem, fingerprint)`` of a run (:func:`experiments._common.cached`)."""
     import jax
 
     names = COMMON + list(BY_METHOD[method])
     cases = dict(share=share, start=start, seed=seed, method=method, engine="fojax.optimize")
-    return {k: getattr(args, k) for k in names} | cases | {"devices": jax.device_count()}
-
-
-def _run_key(args, share, start, seed, method) -> tuple:
-    """``(folder, stem, fingerprint)`` of a run (:func:`experiments._common.cached`)."""
-    fingerprint = run_fingerprint(args, share, start, seed, method)
+    fingerprint = {k: getattr(args, k) for k in names} | cases | {"devices": jax.device_count()}
     return args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint
 
 

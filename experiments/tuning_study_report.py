@@ -80,12 +80,8 @@ def summarize(runs: list[dict]) -> dict:
             entry["methods"][method] = _method_entry(list(by_seed.values()))
         for seed, cma in sorted(methods.get("cma-es", {}).items()):
             level = _best(cma)
-            row = {
-                "seed": seed,
-                "cma_best": level,
-                "cma_wall_time_s": cma["wall_time_s"],
-                "cma_reached_at_s": _reach(cma["curve"], level)[0],
-            }
+            row = {"seed": seed, "cma_best": level, "cma_wall_time_s": cma["wall_time_s"]}
+            row["cma_reached_at_s"] = _reach(cma["curve"], level)[0]
             for method in CHALLENGERS:
                 if seed in methods.get(method, {}):
                     row[method] = _against(methods[method][seed], level, cma["wall_time_s"])
