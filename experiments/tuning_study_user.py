@@ -24,11 +24,17 @@ from fojax.cli import output
 
 
 def records(args, out: Path, run: bool = True) -> list[dict]:
-    """The user-view records of these settings: run (or read back) ``args.user_view``
-    per command where ``run``, else those already stored under ``out/user_view`` for
-    these settings and this code (:func:`experiments._common.stored`), run by run."""
+    """The user-view records of these settings: where ``run``, each command run (or read
+    back) ``args.user_view`` times, interleaving the commands (:func:`_run`); else those
+    already stored under ``out/user_view`` for these settings and this code
+    (:func:`experiments._common.stored`), run by run."""
     if run and args.user_view:
-        return user_view(args, out)
+        return [
+            _common.cached(
+                *_key(args, out, mode, index), functools.partial(_run, args, out, mode, index)
+            )
+            for index, mode in itertools.product(range(args.user_view), USER_MODES)
+        ]
     found = []
     for index in itertools.count():
         kept = [_common.stored(*_key(args, out, mode, index)) for mode in USER_MODES]
@@ -63,21 +69,10 @@ def user_fingerprint(args, mode: str, index: int) -> dict:
     return {"command": user_command(args, mode, Path("DIR")), "run": index, "cache": "empty"}
 
 
-def user_view(args, out: Path) -> list[dict]:
-    """Run each command ``args.user_view`` times, each in a fresh process with an empty
-    cache (its own ``XDG_CACHE_HOME``, the folder of ``fojax``'s persistent and export
-    caches), interleaving the commands; time the whole command and read its outputs
-    (each run kept under its fingerprint)."""
-    return [
-        _common.cached(
-            *_key(args, out, mode, index), functools.partial(_run, args, out, mode, index)
-        )
-        for index, mode in itertools.product(range(args.user_view), USER_MODES)
-    ]
-
-
 def _run(args, out: Path, mode: str, index: int) -> dict:
-    """One user-view run: the command in a fresh process, timed, and what it wrote."""
+    """One user-view run: the command in a fresh process with an empty cache (its own
+    ``XDG_CACHE_HOME``, the folder of ``fojax``'s persistent and export caches), timed
+    as a whole, and what it wrote (kept under its fingerprint by :func:`records`)."""
     run_dir = out / "user_view" / f"{mode}_{index}"
     if run_dir.exists():
         shutil.rmtree(run_dir)
