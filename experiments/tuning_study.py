@@ -130,9 +130,8 @@ def parse_args(argv) -> argparse.Namespace:
         if not values or any(v not in valid for v in values):
             parser.error(f"--{name} must be among {', '.join(valid)}, got {','.join(values)}")
     if args.tiny:
-        args.horizon, args.draws, args.heldout_draws = 0.3, 3, 4
+        args.horizon, args.draws, args.heldout_draws, args.validation_draws = 0.3, 3, 4, 2
         args.default_steps, args.switch, args.gradient_steps, args.cma_generations = 4, 2, 4, 2
-        args.validation_draws = 2
         args.seeds, args.dtype, args.compile = args.seeds[:1], "float64", "fast"
     return args
 
