@@ -77,20 +77,22 @@ from fojax.optimize.strategies import DEFAULT_STEPS
 __all__ = ["METHODS", "main", "summarize", "table"]
 
 
+CHOICES = {"shares": ("paper", "none"), "starts": ("paper", "naive"), "methods": METHODS}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _common.parser("tuning_study")
     parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
-    _common.add_numbers(parser, horizon=10.0, draws=16)
-    _common.add_numbers(parser, dt=(1e-3, "the tuners' step (s); held-out costs stay at 1 ms"))
-    parser.add_argument("--seeds", default="0,1,2", help="comma-separated (0,1,2)")
-    parser.add_argument("--shares", default="paper,none", help="comma-separated (paper,none)")
-    parser.add_argument("--starts", default="paper,naive", help="comma-separated (paper,naive)")
+    step = (1e-3, "the tuners' step (s); held-out costs stay at 1 ms")
+    _common.add_numbers(parser, horizon=10.0, draws=16, dt=step)
+    for name, default in (("seeds", "0,1,2"), ("shares", "paper,none"), ("starts", "paper,naive")):
+        parser.add_argument(f"--{name}", default=default, help=f"comma-separated ({default})")
     parser.add_argument("--methods", default=",".join(METHODS))
     _common.add_numbers(parser, default_steps=DEFAULT_STEPS["auto"], switch=30)
     _common.add_numbers(parser, gradient_steps=30, max_step=1.0, cma_generations=20)
     _common.add_numbers(parser, cma_sigma=0.5, validation_draws=32)
-    parser.add_argument("--validate-every", type=arguments.positive_int, help="steps between "
-                        "validations (default: the driver's, by the work since the last)")
+    every = (None, "steps between validations (default: the driver's, by the work since the last)")
+    _common.add_numbers(parser, real=arguments.positive_int, validate_every=every)
     _common.add_numbers(parser, heldout_draws=64)
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument(
@@ -122,19 +124,14 @@ def parse_args(argv) -> argparse.Namespace:
         args.seeds = tuple(int(s) for s in args.seeds.split(",") if s.strip())
     except ValueError:
         parser.error(f"--seeds must be comma-separated integers, got {args.seeds!r}")
-    args.shares, args.starts = _common.listed(args.shares), _common.listed(args.starts)
-    args.methods = _common.listed(args.methods)
-    for label, values, valid in (
-        ("--shares", args.shares, ("paper", "none")),
-        ("--starts", args.starts, ("paper", "naive")),
-        ("--methods", args.methods, METHODS),
-    ):
+    for name, valid in CHOICES.items():
+        values = _common.listed(getattr(args, name))
+        setattr(args, name, values)
         if not values or any(v not in valid for v in values):
-            parser.error(f"{label} must be among {', '.join(valid)}, got {','.join(values)}")
+            parser.error(f"--{name} must be among {', '.join(valid)}, got {','.join(values)}")
     if args.tiny:
-        args.horizon, args.draws, args.heldout_draws = 0.3, 3, 4
+        args.horizon, args.draws, args.heldout_draws, args.validation_draws = 0.3, 3, 4, 2
         args.default_steps, args.switch, args.gradient_steps, args.cma_generations = 4, 2, 4, 2
-        args.validation_draws = 2
         args.seeds, args.dtype, args.compile = args.seeds[:1], "float64", "fast"
     return args
 
@@ -174,17 +171,10 @@ class _Setup:
         if strategy is not None:
             lanes = strategies.lanes(strategy, size, args.draws, int(mesh.devices.size))
         tiny = {"effort_weight": 1e-3, "chattering_weight": 1e-3, "attitude_weight": 2.0}
+        cost = optimize.CostConfig(**(tiny if args.tiny else {}))
+        same = {k: getattr(args, k) for k in ("scenario", "horizon", "draws", "dtype", "compile")}
         spec = optimize.ProblemSpec(
-            controller="afonftsmc",
-            scenario=args.scenario,
-            horizon=args.horizon,
-            dt=dt,
-            draws=args.draws,
-            seed=seed,
-            cost=optimize.CostConfig(**(tiny if args.tiny else {})),
-            share=self.share,
-            dtype=args.dtype,
-            compile=args.compile,
+            controller="afonftsmc", dt=dt, seed=seed, cost=cost, share=self.share, **same
         )
         objective = optimize.Objective(spec, self.naive, mesh=mesh, lanes=lanes)
         if args.tiny:
@@ -204,8 +194,7 @@ class _Setup:
         from fojax.optimize import strategies
 
         args = self.args
-        settings = dict(seed=seed, switch=args.switch, sigma=args.cma_sigma)
-        settings["max_step"] = args.max_step
+        settings = dict(seed=seed, switch=args.switch, sigma=args.cma_sigma, max_step=args.max_step)
         if method == "nelder-mead":
             size = self.heldout_objective.size
             per_point = args.draws * self.heldout_objective.spec.steps
@@ -237,33 +226,35 @@ def bench_batched(setup: _Setup, repeats: int) -> dict:
         return np.asarray([alone.loss.values(alone.forward(x[None], keys))[0] for x in candidates])
 
     together(), separate()  # compiled first
-    times, values = {"batched": [], "alone": []}, {}
+    times, values = {"batched": [], "one_at_a_time": []}, {}
     for _ in range(repeats):
-        for name, call in (("batched", together), ("alone", separate)):
+        for name, call in (("batched", together), ("one_at_a_time", separate)):
             t0 = time.perf_counter()
             values[name] = call()
             times[name].append(time.perf_counter() - t0)
-    difference = np.abs(values["batched"] - values["alone"]) / np.abs(values["alone"])
+    single = values["one_at_a_time"]
+    difference = np.abs(values["batched"] - single) / np.abs(single)
     return {
         "share": setup.share,
         "parameters": objective.size,
         "population": setup.popsize,
         "draws": args.draws,
         "horizon_s": args.horizon,
-        "batched_s": times["batched"],
-        "one_at_a_time_s": times["alone"],
-        "median_batched_s": float(np.median(times["batched"])),
-        "median_one_at_a_time_s": float(np.median(times["alone"])),
+        **{f"{name}_s": kept for name, kept in times.items()},
+        **{f"median_{name}_s": float(np.median(kept)) for name, kept in times.items()},
         "largest_relative_difference": float(np.max(difference)),
         "load": output.load_average(),
     }
 
 
+RESULT_FIELDS = ("wall_time_s", "draw_steps", "steps", "best_step", "validation")
+"""What a run keeps of :func:`fojax.optimize.run`'s result."""
+
+
 def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
     """One run on a fresh objective; its curve ``[step, wall time (s), draw-steps,
     held-out cost of the answer]`` (the start first) and totals."""
-    load_before = output.load_average()
-    t0 = time.perf_counter()
+    load_before, t0 = output.load_average(), time.perf_counter()
     strategy, budget = setup.strategy(method, seed)
     objective = setup.objective(seed, strategy, setup.args.dt)
     x0 = objective.vector(setup.starts[start])
@@ -283,11 +274,7 @@ def run_one(setup: _Setup, start: str, seed: int, method: str) -> dict:
         "curve": curve,
         "initial_heldout": float(costs[0]),
         "final_heldout": float(costs[1]),
-        "wall_time_s": result.wall_time_s,
-        "draw_steps": result.draw_steps,
-        "steps": result.steps,
-        "best_step": result.best_step,
-        "validation": result.validation,
+        **{k: getattr(result, k) for k in RESULT_FIELDS},
         "load_before": load_before,
         "load_after": output.load_average(),
         "elapsed_s": round(time.perf_counter() - t0, 1),
@@ -307,27 +294,25 @@ BY_METHOD = {
 """The settings a run depends on (its fingerprint), besides its share, start and seed."""
 
 
-def _devices() -> int:
+def _run_key(args, share: str, start: str, seed: int, method: str) -> tuple:
+    """``(folder, stem, fingerprint)`` of a run (:func:`experiments._common.cached`)."""
     import jax
 
-    return jax.device_count()
-
-
-def run_fingerprint(args, share: str, start: str, seed: int, method: str) -> dict:
     names = COMMON + list(BY_METHOD[method])
     cases = dict(share=share, start=start, seed=seed, method=method, engine="fojax.optimize")
-    cases["devices"] = _devices()
-    return {k: getattr(args, k) for k in names} | cases
+    fingerprint = {k: getattr(args, k) for k in names} | cases | {"devices": jax.device_count()}
+    return args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint
 
 
-def _bench_fingerprint(args, share: str) -> dict:
-    """What the batched-generation bench depends on (not how many generations it times)."""
-    return {k: getattr(args, k) for k in COMMON + ["cma_generations"]} | {"share": share}
+def _bench_key(args, share: str) -> tuple:
+    """``(folder, stem, fingerprint)`` of the batched-generation bench: it depends on
+    these settings, not on how many generations it times."""
+    fingerprint = {k: getattr(args, k) for k in COMMON + ["cma_generations"]} | {"share": share}
+    return args.out, f"bench_{share}", fingerprint
 
 
 def _stored_run(args, share, start, seed, method) -> dict | None:
-    fingerprint = run_fingerprint(args, share, start, seed, method)
-    return _common.stored(args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint)
+    return _common.stored(*_run_key(args, share, start, seed, method))
 
 
 def run_share(args, share: str, settings: dict) -> None:
@@ -335,8 +320,7 @@ def run_share(args, share: str, settings: dict) -> None:
     kept under its fingerprint: :func:`experiments._common.cached`)."""
     cases = itertools.product(args.starts, args.seeds, args.methods)
     pending = [case for case in cases if _stored_run(args, share, *case) is None]
-    bench_fingerprint = _bench_fingerprint(args, share)
-    bench_done = _common.stored(args.out, f"bench_{share}", bench_fingerprint) is not None
+    bench_done = _common.stored(*_bench_key(args, share)) is not None
     if not pending and (not args.bench or bench_done):
         return
     t0 = time.perf_counter()
@@ -347,20 +331,17 @@ def run_share(args, share: str, settings: dict) -> None:
         f"compiled in {time.perf_counter() - t0:.0f} s",
     )
     if args.bench and not bench_done:
-        bench = _common.cached(
-            args.out, f"bench_{share}", bench_fingerprint, lambda: bench_batched(setup, args.bench)
-        )
+        bench = _common.cached(*_bench_key(args, share), lambda: bench_batched(setup, args.bench))
         output.log(
             args.quiet,
             f"  batched generation {bench['median_batched_s']:.2f} s, one at a "
             f"time {bench['median_one_at_a_time_s']:.2f} s (medians)",
         )
     for start, seed, method in pending:
-        fingerprint = run_fingerprint(args, share, start, seed, method)
         record = _common.cached(
-            args.out / "runs", f"{share}_{start}_{seed}_{method}", fingerprint,
+            *_run_key(args, share, start, seed, method),
             lambda case=(start, seed, method): run_one(setup, *case) | {"settings": settings},
-        )  # fmt: skip
+        )
         output.log(
             args.quiet,
             f"  {share} {start} seed {seed} {method}: held-out "
@@ -383,7 +364,7 @@ def report(args, settings: dict, start_all: float) -> int:
             "settings they depend on); run without --report-only, or give the settings "
             "the runs were made with"
         )
-    benches = [_common.stored(out, f"bench_{s}", _bench_fingerprint(args, s)) for s in args.shares]
+    benches = (_common.stored(*_bench_key(args, share)) for share in args.shares)
     results = {
         "user_view": users,
         "bench": [bench for bench in benches if bench is not None],
@@ -396,12 +377,9 @@ def report(args, settings: dict, start_all: float) -> int:
         "this_invocation_s": round(time.perf_counter() - start_all, 1),
         "runs_elapsed_s": round(sum(r["elapsed_s"] for r in runs), 1),
     }
-    figures = [
-        plot(runs, out / "tuning_wall.png", "wall"),
-        plot(runs, out / "tuning_draw_steps.png", "draw_steps"),
-    ]
-    if args.update_doc is not None:
-        for figure in figures:
+    for axis in ("wall", "draw_steps"):
+        figure = plot(runs, out / f"tuning_{axis}.png", axis)
+        if args.update_doc is not None:
             shutil.copyfile(figure, args.update_doc.parent / figure.name)
     wrote = ", tuning_wall.png, tuning_draw_steps.png"
     return _common.finish(

@@ -4,6 +4,7 @@ summarised (median and spread over seeds), the Markdown table of the study's sec
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -79,12 +80,8 @@ def summarize(runs: list[dict]) -> dict:
             entry["methods"][method] = _method_entry(list(by_seed.values()))
         for seed, cma in sorted(methods.get("cma-es", {}).items()):
             level = _best(cma)
-            row = {
-                "seed": seed,
-                "cma_best": level,
-                "cma_wall_time_s": cma["wall_time_s"],
-                "cma_reached_at_s": _reach(cma["curve"], level)[0],
-            }
+            row = {"seed": seed, "cma_best": level, "cma_wall_time_s": cma["wall_time_s"]}
+            row["cma_reached_at_s"] = _reach(cma["curve"], level)[0]
             for method in CHALLENGERS:
                 if seed in methods.get(method, {}):
                     row[method] = _against(methods[method][seed], level, cma["wall_time_s"])
@@ -166,23 +163,16 @@ def _tallies(summary: dict) -> list[str]:
     """Per challenger and start: runs reaching CMA-ES's best in half its time, and
     ending at or below it."""
     lines = []
-    for method in CHALLENGERS:
-        for start in ("paper", "naive"):
-            rows = [
-                t[method]
-                for _, s, entry in _entries(summary)
-                if s == start
-                for t in entry["target"]
-                if method in t
-            ]
-            if rows:
-                met = sum(r["met"] for r in rows)
-                below = sum(r["final_at_or_below"] for r in rows)
-                lines.append(
-                    f"- {LABELS[method]}, from the {start} start: reaches it in half of "
-                    f"CMA-ES's wall time in {met}/{len(rows)} runs, ends at or below it in "
-                    f"{below}/{len(rows)}."
-                )
+    for method, start in itertools.product(CHALLENGERS, ("paper", "naive")):
+        entries = [entry for _, s, entry in _entries(summary) if s == start]
+        rows = [t[method] for entry in entries for t in entry["target"] if method in t]
+        if rows:
+            met, below = (sum(r[k] for r in rows) for k in ("met", "final_at_or_below"))
+            lines.append(
+                f"- {LABELS[method]}, from the {start} start: reaches it in half of "
+                f"CMA-ES's wall time in {met}/{len(rows)} runs, ends at or below it in "
+                f"{below}/{len(rows)}."
+            )
     return lines
 
 
@@ -281,6 +271,10 @@ def plot(runs: list[dict], path: Path, axis: str) -> Path:
     return style.save(fig, path)
 
 
+USER_COLUMNS = ("total_s", "tuning_s", "heldout_tuned")
+"""The user view's columns that are spread over the runs of a command."""
+
+
 def user_table(runs: list[dict]) -> str:
     """The user view: per command, its wall time and held-out costs; whether the default
     from the naive start ends at or below ``--method cma-es`` in at most its wall time,
@@ -290,16 +284,13 @@ def user_table(runs: list[dict]) -> str:
         "cost: start -> returned | returned step"
     )
     by_mode = {mode: [r for r in runs if r["mode"] == mode] for mode in USER_MODES}
-    for chosen in by_mode.values():
-        if chosen:
-            lines.append(
-                f"| `{chosen[0]['command']}` | {len(chosen)} | "
-                f"{_spread([r['total_s'] for r in chosen], '.0f')} | "
-                f"{_spread([r['tuning_s'] for r in chosen], '.0f')} | "
-                f"{chosen[0]['heldout_initial']:.4g} -> "
-                f"{_spread([r['heldout_tuned'] for r in chosen], '.4g')} | "
-                f"{', '.join(str(r['selected_step']) for r in chosen)} |"
-            )
+    for chosen in filter(None, by_mode.values()):
+        total, tuning, tuned = ([r[k] for r in chosen] for k in USER_COLUMNS)
+        lines.append(
+            f"| `{chosen[0]['command']}` | {len(chosen)} | {_spread(total, '.0f')} | "
+            f"{_spread(tuning, '.0f')} | {chosen[0]['heldout_initial']:.4g} -> "
+            f"{_spread(tuned, '.4g')} | {', '.join(str(r['selected_step']) for r in chosen)} |"
+        )
     pairs = list(zip(by_mode["naive-default"], by_mode["naive-cma-es"], strict=False))
     wins = sum(
         a["heldout_tuned"] <= b["heldout_tuned"] and a["total_s"] <= b["total_s"] for a, b in pairs

@@ -24,19 +24,28 @@ from fojax.cli import output
 
 
 def records(args, out: Path, run: bool = True) -> list[dict]:
-    """The user-view records of these settings: run (or read back) ``args.user_view``
-    per command where ``run``, else those already stored under ``out/user_view`` for
-    these settings and this code (:func:`experiments._common.stored`), run by run."""
+    """The user-view records of these settings: where ``run``, each command run (or read
+    back) ``args.user_view`` times, interleaving the commands (:func:`_run`); else those
+    already stored under ``out/user_view`` for these settings and this code
+    (:func:`experiments._common.stored`), run by run."""
     if run and args.user_view:
-        return user_view(args, out)
+        return [
+            _common.cached(
+                *_key(args, out, mode, index), functools.partial(_run, args, out, mode, index)
+            )
+            for index, mode in itertools.product(range(args.user_view), USER_MODES)
+        ]
     found = []
     for index in itertools.count():
-        stems = {mode: f"{mode}_{index}" for mode in USER_MODES}
-        fingerprints = {mode: user_fingerprint(args, mode, index) for mode in USER_MODES}
-        kept = [_common.stored(out / "user_view", stems[m], fingerprints[m]) for m in USER_MODES]
+        kept = [_common.stored(*_key(args, out, mode, index)) for mode in USER_MODES]
         if not any(kept):
             return found
         found += [record for record in kept if record is not None]
+
+
+def _key(args, out: Path, mode: str, index: int) -> tuple:
+    """``(folder, stem, fingerprint)`` of a user-view run (:func:`experiments._common.cached`)."""
+    return out / "user_view", f"{mode}_{index}", user_fingerprint(args, mode, index)
 
 
 def user_command(args, mode: str, out: Path) -> list[str]:
@@ -60,23 +69,11 @@ def user_fingerprint(args, mode: str, index: int) -> dict:
     return {"command": user_command(args, mode, Path("DIR")), "run": index, "cache": "empty"}
 
 
-def user_view(args, out: Path) -> list[dict]:
-    """Run each command ``args.user_view`` times, each in a fresh process with an empty
-    cache (its own ``XDG_CACHE_HOME``, the folder of ``fojax``'s persistent and export
-    caches), interleaving the commands; time the whole command and read its outputs
-    (each run kept under its fingerprint)."""
-    found = []
-    for index in range(args.user_view):
-        for mode in USER_MODES:
-            fingerprint = user_fingerprint(args, mode, index)
-            run = functools.partial(_run, args, out / "user_view", mode, index)
-            found.append(_common.cached(out / "user_view", f"{mode}_{index}", fingerprint, run))
-    return found
-
-
-def _run(args, folder: Path, mode: str, index: int) -> dict:
-    """One user-view run: the command in a fresh process, timed, and what it wrote."""
-    run_dir = folder / f"{mode}_{index}"
+def _run(args, out: Path, mode: str, index: int) -> dict:
+    """One user-view run: the command in a fresh process with an empty cache (its own
+    ``XDG_CACHE_HOME``, the folder of ``fojax``'s persistent and export caches), timed
+    as a whole, and what it wrote (kept under its fingerprint by :func:`records`)."""
+    run_dir = out / "user_view" / f"{mode}_{index}"
     if run_dir.exists():
         shutil.rmtree(run_dir)
     command = user_command(args, mode, run_dir)
