@@ -238,27 +238,22 @@ def main(argv=None) -> int:
                         help="the Markdown file whose block to replace (else: print)")  # fmt: skip
     argv = list(sys.argv[1:] if argv is None else argv)
     args, bench_options = parser.parse_known_args(argv)
-    if args.source is not None:
-        if bench_options:
-            parser.error(f"--from runs nothing: {' '.join(bench_options)} not used")
-        path = args.source
-        if not path.is_file():
-            parser.error(f"--from {path}: no such file (make it with fojax bench --json FILE)")
-    else:
+    if args.source is None:
         if args.commit is not None:
             parser.error("--commit is for --from: a run here records its own commit")
-        path = args.json
-        command = [sys.executable, "-m", "fojax.cli", "bench", "--json", str(path)]
-        done = subprocess.run([*command, *bench_options], check=False)
-        if done.returncode:
-            return done.returncode
-    result = json.loads(path.read_text())
+        bench = [sys.executable, "-m", "fojax.cli", "bench", "--json", str(args.json)]
+        status = subprocess.run([*bench, *bench_options]).returncode
+        if status:
+            return status
+    elif bench_options:
+        parser.error(f"--from runs nothing: {' '.join(bench_options)} not used")
+    elif not args.source.is_file():
+        parser.error(f"--from {args.source}: no such file (make it with fojax bench --json FILE)")
+    result = json.loads((args.source or args.json).read_text())
     invocation = shlex.join(["python", "-m", "experiments.bench_report", *argv])
-    if args.source is not None:
-        command = (result.get("provenance") or {}).get("command") or "unknown"
-        body = render(result, source=invocation)
-    else:
-        command, body = invocation, render(result)
+    source = None if args.source is None else invocation
+    command = (result.get("provenance") or {}).get("command") or "unknown" if source else invocation
+    body = render(result, source)
     try:
         record = label_record(result, command, args.commit)
     except ValueError as error:
