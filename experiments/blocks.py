@@ -310,8 +310,7 @@ def check_docs(
     root = ROOT if root is None else Path(root)
     blocks = BLOCKS if blocks is None else blocks
     found = [line for block in blocks.values() for line in problems(block, root, stale, labels)]
-    listed = {(b.document, b.name) for b in blocks.values() if b.marker is None}
-    markers = {(b.document, b.marker) for b in blocks.values() if b.marker is not None}
+    listed = {(b.document, b.name if b.marker is None else b.marker) for b in blocks.values()}
     for path in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
         if not path.is_file():
             continue
@@ -321,6 +320,6 @@ def check_docs(
                 found.append(f"{document}: block {name!r} is not listed in experiments/blocks.py")
         for line in content.splitlines():
             replaced = "everything below is replaced on regeneration" in line
-            if replaced and line.startswith("<!--") and (document, line) not in markers:
+            if replaced and line.startswith("<!--") and (document, line) not in listed:
                 found.append(f"{document}: marker {line!r} is not listed in experiments/blocks.py")
     return found

@@ -42,8 +42,7 @@ def run(processes: int, out: Path) -> float:
     shutil.rmtree(out, ignore_errors=True)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "SLURM_"))}
     devices = 2 if processes == 1 else 1
-    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
-    env["JAX_PLATFORMS"] = "cpu"
+    env.update(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu")
     base = [sys.executable, "-m", "fojax.cli", *COMMAND, "--out", str(out)]
     port = sharding.free_port()
     commands = [base] if processes == 1 else [

@@ -80,10 +80,9 @@ def render(times: dict) -> str:
         total += entry["seconds"]
         load = ", ".join(f"{x:g}" for x in entry["load_at_start"]) or "unknown"
         commit = (entry["commit"] or "unknown")[:7] + (" (dirty)" if entry["dirty"] else "")
-        present = "yes" if entry["results_present"] else "no"
         rows.append(
             f"| {block.name} | {block.document} | {entry['seconds']:.0f} s | {commit} | "
-            f"{load} | {present} |"
+            f"{load} | {'yes' if entry['results_present'] else 'no'} |"
         )
     timed = [name for name in blocks.BLOCKS if name in times]
     count = sum(block.timed for block in blocks.BLOCKS.values())

@@ -55,10 +55,9 @@ def main(argv=None) -> int:
         status = command.main(["--out", str(out), "--overwrite", *extra])
         if status:
             return status
-        figures = DOCS / doc_name
-        figures.mkdir(exist_ok=True)
+        (DOCS / doc_name).mkdir(exist_ok=True)
         for path in sorted((out / "figures").glob("fig*.png")):
-            shutil.copy2(path, figures / path.name)
+            shutil.copy2(path, DOCS / doc_name / path.name)
         splice(DOCS / f"{doc_name}.md", out / "report.md", doc_name)
         print(f"updated docs/{doc_name}.md and docs/{doc_name}/")
     return 0

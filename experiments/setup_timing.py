@@ -87,10 +87,9 @@ def main(argv=None) -> int:
     parser = _common.parser("setup_timing")
     parser.add_argument("--update-doc", action="store_true", help="write README's setup block")
     args = parser.parse_args(argv)
-    jobs = commands(README.read_text())
     results = {"jobs": {}}
     with tempfile.TemporaryDirectory(prefix="fojax-setup-") as folder:
-        for job, command in jobs.items():
+        for job, command in commands(README.read_text()).items():
             print(f"{job}: {command}", flush=True)
             clone = Path(folder) / job.replace(" ", "-")
             subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
