@@ -67,6 +67,9 @@ _MONTE_CARLO = _CLOSED_LOOP + _words(
 _REPORT = _words("fojax/cli/reproduce fojax/cli/figures.py fojax/cli/style.py")
 _TUNING = _CLOSED_LOOP + _words("fojax/blocks.py fojax/sharding.py optimize experiments/_common.py")
 _REQUIREMENTS = (*_TUNING, "fojax/requirements", "fojax/cli/requirements.py")
+_FRACTIONAL = _words("constraints.txt fojax/fractional fojax/cli/accuracy.py")
+_DISTRIBUTED = (*_MONTE_CARLO, "fojax/cli/arguments.py")
+_SETUP = _words("constraints.txt pyproject.toml fojax tests")
 _BENCH = _CLOSED_LOOP + _words(
     "fojax/settings.py fojax/sharding.py fojax/cli/bench.py fojax/cli/bench_measure.py"
     " fojax/cli/numpy_reference.py"
@@ -104,17 +107,11 @@ BLOCKS: dict[str, Block] = {
             )
             for switching, (folder, _, document) in regenerate_reproduction.RUNS.items()
         ),
-        _block(  # fojax accuracy: every fractional method against exact results
-            "accuracy",
-            "docs/fractional.md",
-            "accuracy_report --update-doc",
-            _words("constraints.txt fojax/fractional fojax/cli/accuracy.py"),
-        ),
-        _block(  # one process against two jax.distributed processes on this machine
-            "distributed",
-            "docs/distributed.md",
-            "distributed_timing --update-doc",
-            (*_MONTE_CARLO, "fojax/cli/arguments.py"),
+        # fojax accuracy: every fractional method against exact results
+        _block("accuracy", "docs/fractional.md", "accuracy_report --update-doc", _FRACTIONAL),
+        # one process against two jax.distributed processes on this machine
+        _block(
+            "distributed", "docs/distributed.md", "distributed_timing --update-doc", _DISTRIBUTED
         ),
         _block(
             "sensitivity",
@@ -200,12 +197,8 @@ BLOCKS: dict[str, Block] = {
             )
             for name in ("bench-gpu", "bench-gpu-large")
         ),
-        _block(  # README's two commands from a fresh clone (its own processes, ~10 min)
-            "setup",
-            "README.md",
-            "setup_timing --update-doc",
-            _words("constraints.txt pyproject.toml fojax tests"),
-        ),
+        # README's two commands from a fresh clone (its own processes, ~10 min)
+        _block("setup", "README.md", "setup_timing --update-doc", _SETUP),
         _block(  # each block's last regeneration time (rewritten after every block)
             "regeneration",
             "README.md",
@@ -225,13 +218,11 @@ def block_text(content: str, block: Block) -> str | None:
     """The text of ``block`` in a document's ``content`` (between its begin and end
     lines, or below its marker line), or ``None`` where the document has no such block."""
     if block.marker is not None:
-        head, found, rest = content.partition(block.marker)
+        _, found, rest = content.partition(block.marker)
         return rest if found else None
-    begin, end = f"<!-- {block.name}:begin -->", f"<!-- {block.name}:end -->"
-    if begin not in content:
-        return None
-    inner, found, _ = content.split(begin, 1)[1].partition(end)
-    return inner if found else None
+    _, found, rest = content.partition(f"<!-- {block.name}:begin -->")
+    inner, closed, _ = rest.partition(f"<!-- {block.name}:end -->")
+    return inner if found and closed else None
 
 
 def read_label(text: str) -> dict | None:
