@@ -28,8 +28,7 @@ from experiments import _common
 from fojax import sharding
 from fojax.cli import output
 
-ROOT = Path(__file__).resolve().parent.parent
-DOC = ROOT / "docs" / "distributed.md"
+DOC = Path(__file__).resolve().parents[1] / "docs" / "distributed.md"
 COMMAND = (
     "simulate --scenario 2 --controller afonftsmc --draws 200 --horizon 20 --seed 3 "
     "--no-figures --no-compile-cache --quiet"

@@ -54,8 +54,7 @@ def record(block: blocks.Block, seconds: float, reused: bool, load: list[float])
     times = _times()
     times[block.name] = {
         "seconds": round(seconds, 1),
-        "commit": git.get("commit"),
-        "dirty": git.get("dirty"),
+        **{name: git.get(name) for name in ("commit", "dirty")},
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "cpu": output.cpu_model(),
         "cores": len(os.sched_getaffinity(0)),
