@@ -48,9 +48,8 @@ def main(argv=None) -> int:
     parser.add_argument("--results", type=Path, default=Path("results"), metavar="DIR")
     parser.add_argument("--only", choices=sorted(RUNS), help="one of the two runs")
     args = parser.parse_args(argv)
-    for switching, (name, extra, doc_name) in RUNS.items():
-        if args.only and args.only != switching:
-            continue
+    for switching in [args.only] if args.only else RUNS:
+        name, extra, doc_name = RUNS[switching]
         out = args.results / name
         status = command.main(["--out", str(out), "--overwrite", *extra])
         if status:
