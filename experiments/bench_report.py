@@ -126,10 +126,10 @@ def _gradient(result: dict) -> list[str]:
         cpu = e.get("gradient_over_forward_cpu_time")
         ratio = f"{e['gradient_over_forward']:.2f}x" + (f" ({cpu:.2f}x)" if cpu else "")
         peak = (e.get("gradient_memory") or {}).get("peak_bytes")
+        memory = f"{peak / 2**20:.1f} MiB" if peak else "n/a"
         lines.append(
             f"| {e['draws']} | {e['horizon_s']:g} s | {_number(e['gradient_draw_steps_per_s'])} "
-            f"| {ratio} | {_compiled(e, 'gradient_')} | "
-            + (f"{peak / 2**20:.1f} MiB |" if peak else "n/a |")
+            f"| {ratio} | {_compiled(e, 'gradient_')} | {memory} |"
         )
     return lines
 
@@ -233,7 +233,8 @@ def main(argv=None) -> int:
     result = json.loads((args.source or args.json).read_text())
     invocation = shlex.join(["python", "-m", "experiments.bench_report", *argv])
     source = None if args.source is None else invocation
-    command = (result.get("provenance") or {}).get("command") or "unknown" if source else invocation
+    recorded = (result.get("provenance") or {}).get("command") or "unknown"
+    command = invocation if source is None else recorded
     body = render(result, source)
     try:
         record = label_record(result, command, args.commit)
