@@ -17,8 +17,7 @@ from pathlib import Path
 
 from fojax.cli import accuracy, output
 
-ROOT = Path(__file__).resolve().parent.parent
-DOC = ROOT / "docs" / "fractional.md"
+DOC = Path(__file__).resolve().parents[1] / "docs" / "fractional.md"
 
 
 def main(argv=None) -> int:

@@ -61,9 +61,7 @@ def label_record(result: dict, command: str, commit: str | None = None) -> dict:
         "cores": machine.get("cores") or machine.get("cpu_count"),
         "load": machine.get("load_average") or [],
         **{name: provenance.get(name) for name in ("python", *output.VERSIONED)},
-        "backend": machine.get("backend"),
-        "device_count": machine.get("device_count"),
-        "device_kind": machine.get("device_kind"),
+        **{name: machine.get(name) for name in ("backend", "device_count", "device_kind")},
         "load_when": "at the start",
     }
     if commit is not None:
@@ -84,14 +82,6 @@ def _number(x: float) -> str:
     return f"{mantissa}e{int(exponent)}"
 
 
-def _seconds(total: float, phases: dict | None) -> str:
-    text = f"{total:.1f} s"
-    if phases:
-        parts = (phases.get(k, float("nan")) for k in ("trace_s", "lower_s", "xla_s"))
-        text += " (" + " + ".join(f"{p:.1f}" for p in parts) + ")"
-    return text
-
-
 def step_loops(counts: list[int] | None) -> list[int]:
     """The step-level loops of :func:`fojax.cli.bench_measure.loop_kernels`' counts:
     those with at least a quarter of the largest one's kernels (the others are small
@@ -100,14 +90,16 @@ def step_loops(counts: list[int] | None) -> list[int]:
     return [c for c in counts if counts and 4 * c >= counts[0]]
 
 
-def _kernels(counts: list[int] | None) -> str:
-    loops = step_loops(counts)
-    return " + ".join(str(c) for c in loops) if loops else "n/a"
-
-
-def _memory(entry: dict) -> str:
-    peak = (entry.get("gradient_memory") or {}).get("peak_bytes")
-    return f"{peak / 2**20:.1f} MiB" if peak else "n/a"
+def _compiled(e: dict, prefix: str = "") -> str:
+    """The compile cell (total, then trace + lower + XLA) and the kernels-per-step cell
+    (:func:`step_loops`) of an entry's forward pass (``prefix`` ``""``) or gradient pass
+    (``"gradient_"``)."""
+    text, phases = f"{e[prefix + 'compile_s']:.1f} s", e.get(prefix + "compile_phases_s")
+    if phases:
+        parts = (phases.get(k, float("nan")) for k in ("trace_s", "lower_s", "xla_s"))
+        text += " (" + " + ".join(f"{p:.1f}" for p in parts) + ")"
+    loops = step_loops(e.get(prefix + "loop_kernels"))
+    return f"{text} | {' + '.join(str(c) for c in loops) if loops else 'n/a'}"
 
 
 def _forward(result: dict) -> list[str]:
@@ -121,11 +113,7 @@ def _forward(result: dict) -> list[str]:
             if "one_call_draw_steps_per_s" in e:
                 rate += f"; as one call {_number(e['one_call_draw_steps_per_s'])}"
             rate += ")"
-        lines.append(
-            f"| {e['draws']} | {e['horizon_s']:g} s | {rate} | "
-            f"{_seconds(e['compile_s'], e.get('compile_phases_s'))} | "
-            f"{_kernels(e.get('loop_kernels'))} |"
-        )
+        lines.append(f"| {e['draws']} | {e['horizon_s']:g} s | {rate} | {_compiled(e)} |")
     return lines
 
 
@@ -137,11 +125,11 @@ def _gradient(result: dict) -> list[str]:
     for e in result["gradient"]:
         cpu = e.get("gradient_over_forward_cpu_time")
         ratio = f"{e['gradient_over_forward']:.2f}x" + (f" ({cpu:.2f}x)" if cpu else "")
+        peak = (e.get("gradient_memory") or {}).get("peak_bytes")
+        memory = f"{peak / 2**20:.1f} MiB" if peak else "n/a"
         lines.append(
-            f"| {e['draws']} | {e['horizon_s']:g} s | "
-            f"{_number(e['gradient_draw_steps_per_s'])} | {ratio} | "
-            f"{_seconds(e['gradient_compile_s'], e.get('gradient_compile_phases_s'))} | "
-            f"{_kernels(e.get('gradient_loop_kernels'))} | {_memory(e)} |"
+            f"| {e['draws']} | {e['horizon_s']:g} s | {_number(e['gradient_draw_steps_per_s'])} "
+            f"| {ratio} | {_compiled(e, 'gradient_')} | {memory} |"
         )
     return lines
 
@@ -168,13 +156,12 @@ def render(result: dict, source: str | None = None) -> str:
     workload, machine = result.get("workload") or {}, result.get("machine") or {}
     provenance = result.get("provenance") or {}
     repeats = {len(e.get("run_s_all") or [None]) for e in result["forward"]}
-    created = provenance.get("created_utc")
     head = []
     if "--small" in str(provenance.get("command") or "").split():
         head.append("**Made with `fojax bench --small`, a smoke test: its figures mean nothing.**")
     if source is not None:
+        created = provenance.get("created_utc")
         head.append(f"Rendered by `{source}`" + (f"; measured {created}." if created else "."))
-    end = machine.get("load_average_end")
     integrator = str(workload.get("integrator", "rk4")).upper()
     devices = f"{machine.get('device_count')} {machine.get('backend')} device(s)"
     if machine.get("device_kind") and machine.get("backend") != "cpu":
@@ -184,38 +171,32 @@ def render(result: dict, source: str | None = None) -> str:
         f"({workload.get('fractional_method', 'soe')}), {integrator}, "
         f"{workload.get('dt_s', 1e-3) * 1e3:g} ms, {workload.get('dtype', 'float32')}; {devices}"
     )
-    if end:
+    if end := machine.get("load_average_end"):
         line += f"; load average at the end {', '.join(f'{x:g}' for x in end)}"
     head.append(line + ".")
-    text = [
+    paragraphs = [
         " ".join(head),
-        "",
         f"Forward rollouts (`{workload.get('switching_forward', 'sat')}` switching; median of "
         f"{'/'.join(str(r) for r in sorted(repeats))} timed runs after a warm call; a batch "
         "larger than `--chunk` runs as consecutive calls of `--chunk` draws):",
-        "",
-        *_forward(result),
-        "",
+        "\n".join(_forward(result)),
         "Reverse-mode gradient of the mean tracking cost with respect to the gains "
         f"(`{workload.get('switching_gradient', 'tanh')}` switching, one copy of the gains per "
         "draw; forward and gradient calls interleaved, the ratio the median of their ratios; "
         "kernels per step of each pass: the loops with at least a quarter of the largest "
         "one's kernels; peak memory: XLA's buffer assignment):",
-        "",
-        *_gradient(result),
-        "",
+        "\n".join(_gradient(result)),
         "The same closed loop in NumPy, vectorised over the draws (float32, one run; "
         "`fojax/cli/numpy_reference.py`), against the forward rollouts above:",
-        "",
-        *_numpy(result),
+        "\n".join(_numpy(result)),
     ]
     crazyflow = result.get("crazyflow")
     if isinstance(crazyflow, list) and crazyflow:
-        rates = ", ".join(
-            f"{e['worlds']} worlds {_number(e['drone_steps_per_s'])}" for e in crazyflow
+        rates = (f"{e['worlds']} worlds {_number(e['drone_steps_per_s'])}" for e in crazyflow)
+        paragraphs.append(
+            f"crazyflow (analytical physics, attitude control), drone-steps/s: {', '.join(rates)}."
         )
-        text += ["", f"crazyflow (analytical physics, attitude control), drone-steps/s: {rates}."]
-    return "\n".join(text) + "\n"
+    return "\n\n".join(paragraphs) + "\n"
 
 
 # ---------------------------------------------------------------------------- writing
@@ -238,27 +219,23 @@ def main(argv=None) -> int:
                         help="the Markdown file whose block to replace (else: print)")  # fmt: skip
     argv = list(sys.argv[1:] if argv is None else argv)
     args, bench_options = parser.parse_known_args(argv)
-    if args.source is not None:
-        if bench_options:
-            parser.error(f"--from runs nothing: {' '.join(bench_options)} not used")
-        path = args.source
-        if not path.is_file():
-            parser.error(f"--from {path}: no such file (make it with fojax bench --json FILE)")
-    else:
+    if args.source is None:
         if args.commit is not None:
             parser.error("--commit is for --from: a run here records its own commit")
-        path = args.json
-        command = [sys.executable, "-m", "fojax.cli", "bench", "--json", str(path)]
-        done = subprocess.run([*command, *bench_options], check=False)
-        if done.returncode:
-            return done.returncode
-    result = json.loads(path.read_text())
+        bench = [sys.executable, "-m", "fojax.cli", "bench", "--json", str(args.json)]
+        status = subprocess.run([*bench, *bench_options]).returncode
+        if status:
+            return status
+    elif bench_options:
+        parser.error(f"--from runs nothing: {' '.join(bench_options)} not used")
+    elif not args.source.is_file():
+        parser.error(f"--from {args.source}: no such file (make it with fojax bench --json FILE)")
+    result = json.loads((args.source or args.json).read_text())
     invocation = shlex.join(["python", "-m", "experiments.bench_report", *argv])
-    if args.source is not None:
-        command = (result.get("provenance") or {}).get("command") or "unknown"
-        body = render(result, source=invocation)
-    else:
-        command, body = invocation, render(result)
+    source = None if args.source is None else invocation
+    recorded = (result.get("provenance") or {}).get("command") or "unknown"
+    command = invocation if source is None else recorded
+    body = render(result, source)
     try:
         record = label_record(result, command, args.commit)
     except ValueError as error:

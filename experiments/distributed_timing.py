@@ -14,7 +14,6 @@ table into the ``distributed`` block of docs/distributed.md.
 
 from __future__ import annotations
 
-import argparse
 import os
 import shlex
 import shutil
@@ -25,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments import _common
 from fojax import sharding
 from fojax.cli import output
 
-ROOT = Path(__file__).resolve().parent.parent
-DOC = ROOT / "docs" / "distributed.md"
+DOC = Path(__file__).resolve().parents[1] / "docs" / "distributed.md"
 COMMAND = (
     "simulate --scenario 2 --controller afonftsmc --draws 200 --horizon 20 --seed 3 "
     "--no-figures --no-compile-cache --quiet"
@@ -42,8 +41,7 @@ def run(processes: int, out: Path) -> float:
     shutil.rmtree(out, ignore_errors=True)
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "SLURM_"))}
     devices = 2 if processes == 1 else 1
-    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
-    env["JAX_PLATFORMS"] = "cpu"
+    env.update(XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu")
     base = [sys.executable, "-m", "fojax.cli", *COMMAND, "--out", str(out)]
     port = sharding.free_port()
     commands = [base] if processes == 1 else [
@@ -72,7 +70,7 @@ def equal_arrays(a: Path, b: Path) -> tuple[int, int]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m experiments.distributed_timing")
+    parser = _common.parser("distributed_timing")
     parser.add_argument("--out", type=Path, default=Path("results/distributed"))
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--update-doc", action="store_true")
@@ -87,19 +85,15 @@ def main(argv=None) -> int:
             print(f"{processes} process(es), run {index + 1}: {seconds:.1f} s", flush=True)
     same, total = equal_arrays(args.out / "p1_0", args.out / "p2_0")
     load = ", ".join(f"{x:g}" for x in output.load_average()) or "unknown"
-
-    def cell(processes):
-        return ", ".join(f"{s:.1f} s" for s in times[processes])
-
+    cell = {p: ", ".join(f"{s:.1f} s" for s in runs) for p, runs in times.items()}
     verdict = "equal to the one-process run's, bit for bit" if same == total else "differ"
     text = "\n".join([
         f"`fojax {' '.join(COMMAND)}`, {args.repeats} runs each way, alternating; load "
         f"average at the end {load}.",
         "",
-        "| run | wall time | per-draw arrays |",
-        "|---|---|---|",
-        f"| one process, 2 host devices | {cell(1)} | - |",
-        f"| two processes on localhost (1 device each) | {cell(2)} | {verdict} ({same} of "
+        *_common.table_head("run | wall time | per-draw arrays"),
+        f"| one process, 2 host devices | {cell[1]} | - |",
+        f"| two processes on localhost (1 device each) | {cell[2]} | {verdict} ({same} of "
         f"{total} arrays) |",
     ])  # fmt: skip
     print(text)

@@ -29,20 +29,13 @@ import subprocess
 import sys
 import time
 
-from experiments import blocks
+from experiments import _common, blocks
 from fojax import records
 from fojax.cli import output
 
 TIMES = blocks.ROOT / "docs" / "data" / "regeneration.json"
 README = blocks.ROOT / "README.md"
 COMMAND = "python -m experiments.regenerate_docs"
-
-
-def _run(block: blocks.Block) -> tuple[int, float]:
-    command = [sys.executable if block.command[0] == "python" else block.command[0]]
-    start = time.perf_counter()
-    done = subprocess.run(command + list(block.command[1:]), cwd=blocks.ROOT, check=False)
-    return done.returncode, time.perf_counter() - start
 
 
 def _reused(block: blocks.Block) -> bool:
@@ -61,8 +54,7 @@ def record(block: blocks.Block, seconds: float, reused: bool, load: list[float])
     times = _times()
     times[block.name] = {
         "seconds": round(seconds, 1),
-        "commit": git.get("commit"),
-        "dirty": git.get("dirty"),
+        **{name: git.get(name) for name in ("commit", "dirty")},
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "cpu": output.cpu_model(),
         "cores": len(os.sched_getaffinity(0)),
@@ -75,10 +67,9 @@ def record(block: blocks.Block, seconds: float, reused: bool, load: list[float])
 def render(times: dict) -> str:
     """README's ``regeneration`` block: each block's last regeneration from ``times``
     (:data:`TIMES`) and the sum of those timed."""
-    rows = [
-        "| block | document | time | at commit | load at its start | results already present |",
-        "|---|---|---|---|---|---|",
-    ]
+    rows = _common.table_head(
+        "block | document | time | at commit | load at its start | results already present"
+    )
     total = 0.0
     for block in (b for b in blocks.BLOCKS.values() if b.timed):
         entry = times.get(block.name)
@@ -88,17 +79,16 @@ def render(times: dict) -> str:
         total += entry["seconds"]
         load = ", ".join(f"{x:g}" for x in entry["load_at_start"]) or "unknown"
         commit = (entry["commit"] or "unknown")[:7] + (" (dirty)" if entry["dirty"] else "")
-        present = "yes" if entry["results_present"] else "no"
         rows.append(
             f"| {block.name} | {block.document} | {entry['seconds']:.0f} s | {commit} | "
-            f"{load} | {present} |"
+            f"{load} | {'yes' if entry['results_present'] else 'no'} |"
         )
     timed = [name for name in blocks.BLOCKS if name in times]
     count = sum(block.timed for block in blocks.BLOCKS.values())
     head = (
         f"Each block's last regeneration by `{COMMAND}` (`--only NAME` or a full run), "
         f"from `docs/data/regeneration.json`: {len(timed)} of {count} blocks timed, "
-        f"{total:.0f} s ({total / 3600:.1f} h) in all. \"Results already present\": the "
+        f'{total:.0f} s ({total / 3600:.1f} h) in all. "Results already present": the '
         "block's results folder held results of an earlier run, which a run reuses where "
         "their settings and code match (a fresh clone has none). Machine of each: "
         + "; ".join(sorted({f"{times[n]['cpu']}, {times[n]['cores']} cores" for n in timed}))
@@ -145,8 +135,10 @@ def main(argv=None) -> int:
         if not block.timed and len(chosen) > 1:
             continue  # rewritten after every block
         print(f"{block.name}: {shlex.join(block.command)}", flush=True)
-        reused, load = _reused(block), output.load_average()
-        status, seconds = _run(block)
+        reused, load, start = _reused(block), output.load_average(), time.perf_counter()
+        program = sys.executable if block.command[0] == "python" else block.command[0]
+        status = subprocess.run([program, *block.command[1:]], cwd=blocks.ROOT).returncode
+        seconds = time.perf_counter() - start
         print(f"{block.name}: {seconds:.0f} s" + (f", exit status {status}" if status else ""))
         if status:
             return status

@@ -48,17 +48,15 @@ def main(argv=None) -> int:
     parser.add_argument("--results", type=Path, default=Path("results"), metavar="DIR")
     parser.add_argument("--only", choices=sorted(RUNS), help="one of the two runs")
     args = parser.parse_args(argv)
-    for switching, (name, extra, doc_name) in RUNS.items():
-        if args.only and args.only != switching:
-            continue
+    for switching in [args.only] if args.only else RUNS:
+        name, extra, doc_name = RUNS[switching]
         out = args.results / name
         status = command.main(["--out", str(out), "--overwrite", *extra])
         if status:
             return status
-        figures = DOCS / doc_name
-        figures.mkdir(exist_ok=True)
+        (DOCS / doc_name).mkdir(exist_ok=True)
         for path in sorted((out / "figures").glob("fig*.png")):
-            shutil.copy2(path, figures / path.name)
+            shutil.copy2(path, DOCS / doc_name / path.name)
         splice(DOCS / f"{doc_name}.md", out / "report.md", doc_name)
         print(f"updated docs/{doc_name}.md and docs/{doc_name}/")
     return 0

@@ -14,7 +14,6 @@ load at the start, the block the load at the end.
 
 from __future__ import annotations
 
-import argparse
 import re
 import subprocess
 import sys
@@ -61,20 +60,17 @@ def run_job(command: str, clone: Path, env: dict) -> dict:
         )
         times.append(time.perf_counter() - start)
         log += done.stdout + done.stderr
-        print(f"  {time.perf_counter() - start:7.1f} s  {part}", flush=True)
+        print(f"  {times[-1]:7.1f} s  {part}", flush=True)
         if done.returncode:
-            return {"parts": parts, "seconds": times, "status": done.returncode, "log": log}
-    return {"parts": parts, "seconds": times, "status": 0, "log": log}
+            break
+    return {"parts": parts, "seconds": times, "status": done.returncode, "log": log}
 
 
 def table(results: dict) -> str:
-    rows = [
-        "| command | installation | the run | both | outcome |",
-        "|---|---|---|---|---|",
-    ]
+    rows = _common.table_head("command | installation | the run | both | outcome")
     for job, result in results["jobs"].items():
         install, run = sum(result["seconds"][:-1]), result["seconds"][-1]
-        outcome = "exit status 0" if result["status"] == 0 else f"exit status {result['status']}"
+        outcome = f"exit status {result['status']}"
         if result.get("summary"):
             outcome += f"; {result['summary']}"
         both = install + run
@@ -88,13 +84,12 @@ def table(results: dict) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m experiments.setup_timing")
+    parser = _common.parser("setup_timing")
     parser.add_argument("--update-doc", action="store_true", help="write README's setup block")
     args = parser.parse_args(argv)
-    jobs = commands(README.read_text())
     results = {"jobs": {}}
     with tempfile.TemporaryDirectory(prefix="fojax-setup-") as folder:
-        for job, command in jobs.items():
+        for job, command in commands(README.read_text()).items():
             print(f"{job}: {command}", flush=True)
             clone = Path(folder) / job.replace(" ", "-")
             subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
