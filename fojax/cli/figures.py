@@ -23,7 +23,9 @@ import numpy as np
 from fojax.cli import style
 
 __all__ = [
+    "block_length",
     "controller_handles",
+    "finish",
     "inputs_envelope",
     "kept_valid",
     "label_axes",
@@ -36,14 +38,18 @@ __all__ = [
     "plot_path",
     "plot_tracking",
     "plot_yield",
+    "six_bands",
     "six_panels",
     "time_grid",
+    "times",
+    "tracking_grid",
 ]
 
 INPUTS = ("u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)")
 
 
-def _time(result) -> np.ndarray:
+def times(result) -> np.ndarray:
+    """``(T,)`` snapshot times of ``result``'s trajectories, s."""
     return np.asarray(result.trajectories.time[0])
 
 
@@ -75,11 +81,38 @@ def six_panels(axes):
     return axes.T.flat
 
 
-def _finish(fig, axes, path, title, caption, handles, ylabels=()):
-    label_axes(axes, ylabels)
+def six_bands(axes, results: dict, values) -> None:
+    """Per controller of ``results``, in its colour, the band (:func:`fojax.cli.style.band`)
+    of ``values(result)`` ``(kept, T, 6)`` over its kept draws that did not diverge, on
+    the panels of :func:`six_panels`."""
+    for i, (name, result) in enumerate(results.items()):
+        data = kept_valid(result, values(result))
+        for axis, ax in enumerate(six_panels(axes)):
+            style.band(ax, times(result), data[:, :, axis], style.color(name, i))
+
+
+def tracking_grid(results: dict, reference):
+    """``(fig, axes, line)``: a 3 x 2 :func:`time_grid` of the states ``x, y, z, phi,
+    theta, psi`` (:func:`six_bands`) and ``reference`` ``(T, 4)`` (``x, y, z, psi``)
+    dashed over them; ``line``: the reference's."""
+    fig, axes = time_grid(3, 2, (11, 8))
+    six_bands(axes, results, lambda result: result.trajectories.state)
+    t = times(next(iter(results.values())))
+    for k, ax in enumerate([*axes[:, 0], axes[2, 1]]):
+        line = style.reference(ax, t, reference[:, k])
+    return fig, axes, line
+
+
+def finish(fig, path, title, caption, handles=(), axes=None, ylabels=(), quantize=False):
+    """:func:`label_axes` of ``axes`` (a grid of time plots, when given), the title and
+    ``caption``, the legend of ``handles`` below (when any) and the files
+    (:func:`fojax.cli.style.save`); returns ``path``."""
+    if axes is not None:
+        label_axes(axes, ylabels)
     style.suptitle(fig, title, caption)
-    style.legend_below(fig, handles)
-    return style.save(fig, path)
+    if handles:
+        style.legend_below(fig, handles)
+    return style.save(fig, path, quantize=quantize)
 
 
 def controller_handles(results: dict):
@@ -94,24 +127,15 @@ def controller_handles(results: dict):
 
 def plot_tracking(results: dict, path: Path, title: str = "Tracking") -> Path:
     """Position ``x, y, z`` and attitude ``phi, theta, psi`` against their references."""
-    fig, axes = time_grid(3, 2, (11, 8))
+    ref = np.asarray(next(iter(results.values())).trajectories.reference)
+    fig, axes, line = tracking_grid(results, np.median(ref[:, :, :4], 0))
     labels = ["x (m)", "y (m)", "z (m)", "phi (rad)", "theta (rad)", "psi (rad)"]
-    first = next(iter(results.values()))
-    t0 = _time(first)
-    for i, (name, result) in enumerate(results.items()):
-        state = kept_valid(result, result.trajectories.state)
-        for axis, ax in enumerate(six_panels(axes)):
-            style.band(ax, _time(result), state[:, :, axis], style.color(name, i))
-    ref = np.asarray(first.trajectories.reference)
-    handles = controller_handles(results)
-    for axis in range(3):
-        line = style.reference(axes[axis, 0], t0, np.median(ref[:, :, axis], 0))
-    style.reference(axes[2, 1], t0, np.median(ref[:, :, 3], 0))
     axes[0, 1].set_title(
         "phi, theta: no reference drawn (each controller commands its own)", fontsize=8
     )
     caption = style.draws_caption(results)
-    return _finish(fig, axes, path, title, caption, handles + [line], labels)
+    handles = controller_handles(results) + [line]
+    return finish(fig, path, title, caption, handles, axes, labels)
 
 
 def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Path:
@@ -120,15 +144,16 @@ def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Pa
     labels = ["e_x (m)", "e_y (m)", "e_z (m)", "e_phi (rad)", "e_theta (rad)", "e_psi (rad)"]
     for ax in axes.flat:
         ax.axhline(0.0, color="0.4", lw=0.6, zorder=1)
-    for i, (name, result) in enumerate(results.items()):
+
+    def errors(result):
         tr = result.trajectories
         position_error = np.asarray(tr.state)[:, :, :3] - np.asarray(tr.reference)[:, :, :3]
         attitude_error = np.asarray(tr.state)[:, :, 3:6] - np.asarray(tr.info.attitude_reference)
-        errors = kept_valid(result, np.concatenate([position_error, attitude_error], axis=-1))
-        for axis, ax in enumerate(six_panels(axes)):
-            style.band(ax, _time(result), errors[:, :, axis], style.color(name, i))
-    handles = controller_handles(results)
-    return _finish(fig, axes, path, title, style.draws_caption(results), handles, labels)
+        return np.concatenate([position_error, attitude_error], axis=-1)
+
+    six_bands(axes, results, errors)
+    caption = style.draws_caption(results)
+    return finish(fig, path, title, caption, controller_handles(results), axes, labels)
 
 
 def inputs_envelope(result):
@@ -159,20 +184,22 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
             continue
         for channel in range(4):
             style.envelope(
-                axes[channel, i], _time(result), low[:, :, channel], high[:, :, channel], color
+                axes[channel, i], times(result), low[:, :, channel], high[:, :, channel], color
             )
     for channel in range(4):
         axes[channel, 0].set_ylabel(INPUTS[channel])
-    label_axes(axes)
-    t = _time(next(iter(results.values())))
-    block = float(t[1] - t[0]) if t.size > 1 else float("nan")
+    block = block_length(times(next(iter(results.values()))))
     caption = style.draws_caption(results).replace(
         "median and 5-95 % band",
         f"band: each command's range (min to max over every step) within each {block:g} s "
         "block, median",
     )
-    style.suptitle(fig, title, caption)
-    return style.save(fig, path)
+    return finish(fig, path, title, caption, axes=axes)
+
+
+def block_length(t) -> float:
+    """The snapshot interval of the times ``t``, s (NaN for a single snapshot)."""
+    return float(t[1] - t[0]) if t.size > 1 else float("nan")
 
 
 def path_figure(height: float):
@@ -206,15 +233,11 @@ def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) ->
     ax3.plot(
         ref[:, 0], ref[:, 1], ref[:, 2], color=style.REFERENCE_COLOR, ls="--", lw=1.3, zorder=10
     )
-    total = first.draws
-    style.suptitle(
-        fig,
-        title,
-        f"one line per draw: the first {shown} of {total} draws per controller "
-        "(diverged draws left out)",
+    caption = (
+        f"one line per draw: the first {shown} of {first.draws} draws per controller "
+        "(diverged draws left out)"
     )
-    style.legend_below(fig, controller_handles(results) + [line])
-    return style.save(fig, path)
+    return finish(fig, path, title, caption, controller_handles(results) + [line])
 
 
 def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") -> Path:
@@ -234,7 +257,7 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
         for axis, ax in enumerate(six_panels(axes)):
             for j, ls in enumerate(style.ESTIMATE_STYLES):
                 ax.plot(
-                    _time(result), np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1
+                    times(result), np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1
                 )
     handles += [
         Line2D([], [], color="0.3", ls=ls, lw=1.1, label=f"b{j}")
@@ -242,7 +265,7 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
     ]
     labels = [f"{text}: b0, b1, b2" for text in ("x", "y", "z", "phi", "theta", "psi")]
     caption = style.draws_caption(results).replace("median and 5-95 % band", "median")
-    return _finish(fig, axes, path, title, caption, handles, labels)
+    return finish(fig, path, title, caption, handles, axes, labels)
 
 
 FIGURES = (

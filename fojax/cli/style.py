@@ -75,22 +75,19 @@ def color(name: str, index: int = 0) -> str:
     return _SPARE_COLORS[index % len(_SPARE_COLORS)]
 
 
-def band(ax, t, values, color_, label=None, alpha=0.22, lw=1.2):
-    """Median line and 5-95 % band over draws of ``values`` ``(draws, time)``.
-
-    Returns the median's line (for a legend), or None when there is no draw.
-    """
+def band(ax, t, values, color_):
+    """Median line and 5-95 % band over draws of ``values`` ``(draws, time)`` (nothing
+    when there is no draw)."""
     values = np.asarray(values, dtype=float)
     if values.shape[0] == 0:
-        return None
+        return
     low, mid, high = np.nanpercentile(values, BAND_PERCENTILES, axis=0)
-    (line,) = ax.plot(t, mid, color=color_, lw=lw, label=label, zorder=3)
+    ax.plot(t, mid, color=color_, lw=1.2, zorder=3)
     if values.shape[0] > 1:
-        ax.fill_between(t, low, high, color=color_, alpha=alpha, lw=0, zorder=2)
-    return line
+        ax.fill_between(t, low, high, color=color_, alpha=0.22, lw=0, zorder=2)
 
 
-def envelope(ax, t, low, high, color_, label=None, alpha=0.25):
+def envelope(ax, t, low, high, color_, alpha=0.25):
     """The full-rate range of a command: the band from ``low`` to ``high``.
 
     ``low``, ``high``: ``(draws, blocks)``, the smallest and largest command within
@@ -105,28 +102,17 @@ def envelope(ax, t, low, high, color_, label=None, alpha=0.25):
         t = np.concatenate([[t[0] - (t[1] - t[0])], t])
         low, high = np.concatenate([low[:1], low]), np.concatenate([high[:1], high])
     ax.fill_between(t, low, high, color=color_, alpha=alpha, lw=0, zorder=2, step="pre")
-    ax.step(t, high, where="pre", color=color_, lw=0.9, zorder=3)
-    (line,) = ax.step(t, low, where="pre", color=color_, lw=0.9, zorder=3, label=label)
-    return line
+    for edge in (high, low):
+        ax.step(t, edge, where="pre", color=color_, lw=0.9, zorder=3)
 
 
-def reference(ax, t, values, *args, label="reference", lw=1.2, **kwargs):
-    """The reference: dashed black, over every curve, with a white edge."""
+def reference(ax, t, values):
+    """The reference: dashed black, over every curve, with a white edge; returns its line."""
     from matplotlib import patheffects
 
-    (line,) = ax.plot(
-        t,
-        values,
-        *args,
-        color=REFERENCE_COLOR,
-        ls="--",
-        lw=lw,
-        label=label,
-        zorder=10,
-        path_effects=[patheffects.withStroke(linewidth=lw + 1.2, foreground="white")],
-        **kwargs,
-    )
-    return line
+    edge = [patheffects.withStroke(linewidth=2.4, foreground="white")]
+    look = dict(color=REFERENCE_COLOR, ls="--", lw=1.2, label="reference", zorder=10)
+    return ax.plot(t, values, **look, path_effects=edge)[0]
 
 
 def legend_below(fig, handles, labels=None, ncol=None, fontsize=9):
@@ -174,8 +160,8 @@ def label(name: str, result) -> str:
     return name if diverged == 0 else f"{name} ({diverged}/{result.draws} diverged)"
 
 
-def save(fig, path: Path, dpi: int = DPI, vector: str = "pdf", quantize: bool = False) -> Path:
-    """``path`` (PNG at ``dpi``) and the same figure as ``path.with_suffix('.pdf')``.
+def save(fig, path: Path, quantize: bool = False) -> Path:
+    """``path`` (PNG at :data:`DPI`) and the same figure as ``path.with_suffix('.pdf')``.
 
     ``quantize``: store the PNG with a 256-colour palette (about a third of the size).
     Returns ``path``.
@@ -189,14 +175,13 @@ def save(fig, path: Path, dpi: int = DPI, vector: str = "pdf", quantize: bool = 
             from PIL import Image
 
             buffer = io.BytesIO()
-            fig.savefig(buffer, dpi=dpi, format="png")
+            fig.savefig(buffer, dpi=DPI, format="png")
             buffer.seek(0)
             with Image.open(buffer) as image:
                 image.convert("RGB").quantize(colors=256).save(path, optimize=True)
         else:
-            fig.savefig(path, dpi=dpi)
-        if vector:
-            fig.savefig(path.with_suffix(f".{vector}"))
+            fig.savefig(path, dpi=DPI)
+        fig.savefig(path.with_suffix(".pdf"))
     finally:
         plt.close(fig)
     return path

@@ -32,13 +32,17 @@ import numpy as np
 
 from fojax.cli import style
 from fojax.cli.figures import (
+    INPUTS,
+    block_length,
     controller_handles,
+    finish,
     inputs_envelope,
     kept_valid,
-    label_axes,
     path_figure,
     six_panels,
     time_grid,
+    times,
+    tracking_grid,
 )
 
 __all__ = ["FIGURE_NUMBERS", "plot_all"]
@@ -72,33 +76,19 @@ def _handles(results: dict, reference: bool = True, extra=()):
     return handles + list(extra)
 
 
-def _finish(
-    fig, path: Path, title: str, results: dict, handles, spread=None, axes=None, ylabels=()
-):
-    """Title with the true draw counts, legend below the axes, PNG and PDF; with
-    ``axes`` (a grid of time plots), :func:`fojax.cli.figures.label_axes` first."""
-    if axes is not None:
-        label_axes(axes, ylabels)
+def _finish(fig, path: Path, title: str, results: dict, handles, spread=None, **grid):
+    """:func:`fojax.cli.figures.finish` (``grid``: its ``axes`` and ``ylabels``) with the
+    true draw counts in the caption, the PNG quantized."""
     spread = spread or style.draws_caption(results).replace(
         "the statistics in summary.json", "the tables"
     )
-    style.suptitle(fig, title, spread)
-    style.legend_below(fig, handles)
-    return style.save(fig, path, quantize=True)
+    return finish(fig, path, title, spread, handles, quantize=True, **grid)
 
 
 def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> Path:
     """Fig. 5/9/13: (a) position tracking, (b) attitude tracking."""
-    fig, axes = time_grid(3, 2, (11, 8))
-    first = next(iter(results.values())).trajectories
-    t = np.asarray(first.time[0])
-    for i, (name, result) in enumerate(results.items()):
-        state = kept_valid(result, result.trajectories.state)
-        for axis, ax in enumerate(six_panels(axes)):
-            style.band(ax, t, state[:, :, axis], style.color(name, i))
-    for axis in range(3):
-        style.reference(axes[axis, 0], t, first.reference[0, :, axis])
-    style.reference(axes[2, 1], t, first.reference[0, :, 3])
+    reference = np.asarray(next(iter(results.values())).trajectories.reference[0])
+    fig, axes, _ = tracking_grid(results, reference)
     labels = ["x (m)", "y (m)", "z (m)", "phi (rad)", "theta (rad)", "psi (rad)"]
     axes[0, 0].set_title("(a) Position tracking", fontsize=9)
     axes[0, 1].set_title("(b) Attitude tracking (phi, theta sampled every snapshot)", fontsize=9)
@@ -109,8 +99,7 @@ def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> P
 def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int) -> Path:
     """Fig. 6/10/14: (a) control inputs, (b) position and velocity tracking errors."""
     fig, axes = time_grid(4, 2, (11, 9))
-    first = next(iter(results.values())).trajectories
-    t = np.asarray(first.time[0])
+    t = times(next(iter(results.values())))
     reference_velocity = _reference_velocity(scenario_id, t)
     colors = {name: style.color(name, i) for i, name in enumerate(results)}
     envelopes = {name: inputs_envelope(result) for name, result in results.items()}
@@ -136,15 +125,13 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
         velocity = kept_valid(result, tr.state)[:, :, 6:9]
         velocity_error = np.linalg.norm(velocity - reference_velocity[None], axis=-1)
         style.band(axes[3, 1], t, velocity_error, colors[name])
-    inputs = ["u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)"]
     errors = ["e_x (m)", "e_y (m)", "e_z (m)", "|e_v| (m/s)"]
     for row in range(4):
-        axes[row, 0].set_ylabel(inputs[row])
+        axes[row, 0].set_ylabel(INPUTS[row])
         axes[row, 1].set_ylabel(errors[row])
         axes[row, 1].axhline(0.0, color="0.4", lw=0.6, zorder=1)
-    block = float(t[1] - t[0]) if t.size > 1 else float("nan")
     axes[0, 0].set_title(
-        f"(a) Control inputs: each command's range within every {block:g} s block "
+        f"(a) Control inputs: each command's range within every {block_length(t):g} s block "
         "(median over draws)",
         fontsize=9,
     )
@@ -156,8 +143,7 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
 def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: int = 3) -> Path:
     """Fig. 7/11/15: (a) 3-D path, (b) 2-D path; median path bold, a few draws faint."""
     fig, ax3, ax2 = path_figure(6)
-    first = next(iter(results.values())).trajectories
-    ref = np.asarray(first.reference[0])
+    ref = np.asarray(next(iter(results.values())).trajectories.reference[0])
     for i, (name, result) in enumerate(results.items()):
         state = kept_valid(result, result.trajectories.state)
         if state.shape[0] == 0:
@@ -191,8 +177,7 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
     from matplotlib.lines import Line2D
 
     fig, axes = time_grid(3, 2, (11, 8))
-    first = next(iter(results.values())).trajectories
-    t = np.asarray(first.time[0])
+    t = times(next(iter(results.values())))
     shown = {}
     for index, (name, result) in enumerate(results.items()):
         if name not in ADAPTIVE:
