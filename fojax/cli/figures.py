@@ -344,19 +344,27 @@ def _read_progress(history_csv: Path, evaluation: dict | None, start: float | No
 
 # Colours of plot_convergence (Okabe-Ito).
 _DARK, _BLUE, _RED, _ORANGE, _GREEN = "#333333", "#0072B2", "#D55E00", "#E69F00", "#009E73"
+_LOOK = {
+    "loss": dict(color=_DARK, lw=1.4, marker="o", ms=2.5),
+    "mean": dict(color=_BLUE, lw=0.9),
+    "worst": dict(color=_BLUE, lw=0.8, ls=":"),
+    "validation": dict(color=_ORANGE, lw=1.2, marker="s", ms=4),
+    "diverged": dict(ls="none", marker="x", color=_RED),
+    "held": dict(ls="none", marker="D", ms=7, mfc="white", mec=_GREEN, mew=2),
+    "lower": dict(lw=1.2, marker="o", ms=2.5),  # coloured _DARK, then _GREEN
+}
+"""The look of each line of :func:`plot_convergence`, in its axes and in its legend."""
 
 
 def _draw_progress(top, bottom, col: int, x: np.ndarray, p: _Progress, evaluation) -> None:
     """One column of :func:`plot_convergence`: the run against ``x`` (step or wall time)."""
     h = p.history
-    top.plot(x, h["loss"], color=_DARK, lw=1.4, marker="o", ms=2.5, zorder=4)
+    top.plot(x, h["loss"], **_LOOK["loss"], zorder=4)
     if p.show_mean:
-        top.plot(x, h["mean_target"], color=_BLUE, lw=0.9)
-    top.plot(x, h["max_target"], color=_BLUE, lw=0.8, ls=":")
+        top.plot(x, h["mean_target"], **_LOOK["mean"])
+    top.plot(x, h["max_target"], **_LOOK["worst"])
     if p.diverged.any():
-        top.scatter(
-            x[p.diverged], np.asarray(h["loss"])[p.diverged], marker="x", color=_RED, zorder=5
-        )
+        top.scatter(x[p.diverged], np.asarray(h["loss"])[p.diverged], **_LOOK["diverged"], zorder=5)
     right = top.twinx() if p.yields else top
     known = np.isfinite(p.validation)
     vx, vy = x[known], p.validation[known]
@@ -364,18 +372,16 @@ def _draw_progress(top, bottom, col: int, x: np.ndarray, p: _Progress, evaluatio
         vx, vy = np.concatenate([[0.0], vx]), np.concatenate([[p.start], vy])
     if vy.size:
         # a validation holds until the next one: steps in both panels
-        right.plot(vx, vy, color=_ORANGE, lw=1.2, marker="s", ms=4, zorder=5,
-                   drawstyle="steps-post")  # fmt: skip
+        right.plot(vx, vy, **_LOOK["validation"], zorder=5, drawstyle="steps-post")
     if evaluation and "initial" in evaluation:
         held = [_held_number(evaluation[k]) for k in ("initial", "tuned")]
         where = [0, x[-1]] if col == 0 else [x[-1]]
-        right.plot(where, held if col == 0 else held[1:], ls="none", marker="D", ms=7,
-                   mfc="white", mec=_GREEN, mew=2, zorder=6)  # fmt: skip
+        right.plot(where, held if col == 0 else held[1:], **_LOOK["held"], zorder=6)
     if p.yields:
         right.set_ylim(-0.02, 1.02)
         right.set_ylabel("yield (validation, held-out)" if col else "")
     for key, color in zip(p.lower, (_DARK, _GREEN), strict=False):
-        bottom.plot(x, h[key], color=color, lw=1.2, marker="o", ms=2.5)
+        bottom.plot(x, h[key], color=color, **_LOOK["lower"])
 
 
 _LOWER_NAMES = {"grad_norm": "gradient norm", "sigma": "CMA-ES step size"}
@@ -386,22 +392,17 @@ def _progress_handles(p: _Progress, evaluation) -> list:
     from matplotlib.lines import Line2D
 
     best = p.history.get("best_step", [math.nan])[-1]
-    handles = [
-        Line2D([], [], color=_DARK, lw=1.4, marker="o", ms=2.5, label="loss (best point)"),
-        *([Line2D([], [], color=_BLUE, lw=0.9, label="sample mean target")] if p.show_mean else []),
-        Line2D([], [], color=_BLUE, lw=0.8, ls=":", label="sample worst target"),
-        Line2D([], [], color=_ORANGE, lw=1.2, marker="s", ms=4,
-               label=f"validation {'yield' if p.yields else 'cost'} (returned: step {best:.0f})"),
-    ]  # fmt: skip
+    validation = f"validation {'yield' if p.yields else 'cost'} (returned: step {best:.0f})"
+    rows = [("loss", "loss (best point)"), ("mean", "sample mean target")][: 1 + p.show_mean]
+    rows += [("worst", "sample worst target"), ("validation", validation)]
     if p.diverged.any():
-        handles.append(Line2D([], [], ls="none", marker="x", color=_RED, label="diverged draws"))
+        rows.append(("diverged", "diverged draws"))
     if evaluation and "initial" in evaluation:
-        label = (f"held-out, initial and tuned ({evaluation['draws']} draws, "
-                 f"{evaluation['switching']}, {evaluation['horizon_s']:g} s)")  # fmt: skip
-        handles.append(Line2D([], [], ls="none", marker="D", ms=7, mfc="white", mec=_GREEN,
-                              mew=2, label=label))  # fmt: skip
+        held = f"held-out, initial and tuned ({evaluation['draws']} draws, "
+        rows.append(("held", held + f"{evaluation['switching']}, {evaluation['horizon_s']:g} s)"))
+    handles = [Line2D([], [], **_LOOK[key], label=label) for key, label in rows]
     return handles + [
-        Line2D([], [], color=color, lw=1.2, marker="o", ms=2.5, label=_LOWER_NAMES[key])
+        Line2D([], [], color=color, **_LOOK["lower"], label=_LOWER_NAMES[key])
         for key, color in zip(p.lower, (_DARK, _GREEN), strict=False)
     ]
 

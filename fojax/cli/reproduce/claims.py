@@ -228,6 +228,7 @@ def compare(difference, margin_value: float) -> dict:
 
     d = np.asarray(difference, dtype=np.float64)
     summary = statistics.mean_ci(d)
+    low, high = summary["ci95"] or (0.0, 0.0)  # None: fewer than two finite values
     return {
         "difference": summary,
         "margin": float(margin_value),
@@ -236,19 +237,8 @@ def compare(difference, margin_value: float) -> dict:
             "worse": statistics.one_sided_p(d, -margin_value, "less"),
             "equivalent": statistics.equivalence_p(d, margin_value),
         },
-        "ci_rule": _ci_rule(summary),
+        "ci_rule": "better" if low > 0 else "worse" if high < 0 else "n.s.",
     }
-
-
-def _ci_rule(summary: dict) -> str:
-    ci = summary.get("ci95")
-    if ci is None:
-        return "n.s."
-    if ci[0] > 0:
-        return "better"
-    if ci[1] < 0:
-        return "worse"
-    return "n.s."
 
 
 def decide(comparisons: list[dict], alpha: float = ALPHA, adjust: bool = True) -> list[dict]:
@@ -279,11 +269,6 @@ def claim_verdict(outcomes) -> str:
     if all(o in ("better", "equivalent") for o in outcomes):
         return "equivalent within the margin"
     return "inconclusive"
-
-
-def counts(outcomes) -> dict:
-    outcomes = list(outcomes)
-    return {k: outcomes.count(k) for k in OUTCOMES}
 
 
 # ------------------------------------------------------------------ scenario claims
@@ -350,7 +335,7 @@ def evaluate_claims(summaries: dict, results_by_scenario: dict) -> list[dict]:
                 # (its results are never 'equivalent')
                 verdict_without_margin=claim_verdict(c["ci_rule"] for c in comparisons),
                 comparisons=comparisons,
-                counts=counts(outcomes),
+                counts={k: outcomes.count(k) for k in OUTCOMES},
             )
         evaluated.append(entry)
     evaluated.append(chatter_claim(summaries))

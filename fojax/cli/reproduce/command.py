@@ -3,8 +3,10 @@
 See :mod:`fojax.cli.reproduce` for what it writes, :mod:`.claims` for the claims and
 the verdict rule, :mod:`.report` for the report.
 
-The studies (one :class:`fojax.cli.simulate.Study` per scenario) are run and summarised
-through :func:`_run_studies` and :func:`_write_outputs` only.
+The studies (one :class:`fojax.cli.simulate.Study` per scenario) are run by
+:func:`fojax.cli.study.run_studies` (the next runs' programs compile while one runs; the
+scenarios run as members of one union, so each controller's program serves every
+scenario) and summarised by :func:`fojax.cli.simulate.write_outputs`, in :func:`main`.
 """
 
 from __future__ import annotations
@@ -29,28 +31,6 @@ compiling the 15 (scenario, controller) rollouts, before the scenarios ran as me
 of one union: now one rollout per controller, 5 in all, each scenario's draws recorded
 up to its own horizon; ``FOJAX_UNION=0`` compiles the 15); the measured time of the
 committed example is in ``docs/reproduction.md``."""
-
-
-# ------------------------------------------------------------------- the study layer
-
-
-def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce, settings=None):
-    """Yields ``(study, results)`` scenario by scenario (:func:`fojax.cli.study.run_studies`:
-    the next runs' programs compile while one runs; the scenarios run as members of one
-    union, so each controller's program serves every scenario)."""
-    from fojax.cli import study as study_layer
-
-    pairs = [(study, out / f"s{study.scenario_id}") for study in studies]
-    yield from study_layer.run_studies(
-        pairs, progress, overwrite, announce=announce, settings=settings
-    )
-
-
-def _write_outputs(study, results: dict, directory: Path) -> dict:
-    summary = simulate.write_outputs(study, results, directory, figures=False)
-    summary["reaching_band"] = list(study.reaching_band)
-    output.write_json(directory / "summary.json", summary)
-    return summary
 
 
 # ------------------------------------------------------------------------- figures
@@ -87,7 +67,14 @@ class _FigureDrawer:
         self.results[scenario_id] = results
         if self.pool is None:
             return
-        light = {name: _without_devices(r) for name, r in results.items()}
+        import jax
+        import numpy as np
+
+        # NumPy arrays only: picklable without JAX
+        light = {
+            name: r._replace(trajectories=jax.tree.map(np.asarray, r.trajectories))
+            for name, r in results.items()
+        }
         self.futures[scenario_id] = self.pool.submit(
             _draw_scenario, scenario_id, light, str(self.directory)
         )
@@ -117,14 +104,6 @@ class _FigureDrawer:
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
             self.pool = None
-
-
-def _without_devices(result):
-    """A result holding NumPy arrays only (picklable without JAX)."""
-    import jax
-    import numpy as np
-
-    return result._replace(trajectories=jax.tree.map(np.asarray, result.trajectories))
 
 
 # ----------------------------------------------------------------------- arguments
@@ -232,6 +211,8 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
 
 
 def main(argv=None) -> int:
+    from fojax.cli import study as study_layer
+
     argv = list(sys.argv[1:] if argv is None else argv)
     runtime = arguments.setup_runtime(argv, "fojax reproduce")
     studies, args = parse_args(argv)
@@ -255,13 +236,19 @@ def main(argv=None) -> int:
             )
 
     drawer = _FigureDrawer(out / "figures", progress) if lead and not args.no_figures else None
+    pairs = [(study, out / f"s{study.scenario_id}") for study in studies]
     try:
-        runs = _run_studies(studies, out, progress, args.overwrite, announce, runtime["settings"])
+        runs = study_layer.run_studies(
+            pairs, progress, args.overwrite, announce=announce, settings=runtime["settings"]
+        )
         for study, results in runs:
             results_by_scenario[study.scenario_id] = results
             if lead:
                 directory = out / f"s{study.scenario_id}"
-                summaries[study.scenario_id] = _write_outputs(study, results, directory)
+                summary = simulate.write_outputs(study, results, directory, figures=False)
+                summary["reaching_band"] = list(study.reaching_band)
+                output.write_json(directory / "summary.json", summary)
+                summaries[study.scenario_id] = summary
                 if drawer is not None:  # while the next scenario runs
                     drawer.submit(study.scenario_id, results)
     except (KeyboardInterrupt, ValueError) as error:
