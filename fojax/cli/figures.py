@@ -25,6 +25,7 @@ from fojax.cli import style
 __all__ = [
     "block_length",
     "controller_handles",
+    "estimate_handles",
     "finish",
     "inputs_envelope",
     "kept_valid",
@@ -125,6 +126,17 @@ def controller_handles(results: dict):
     ]
 
 
+def estimate_handles(labels) -> list:
+    """Legend handles of the adaptive estimates: a grey line in each style of
+    :data:`fojax.cli.style.ESTIMATE_STYLES`, labelled ``labels`` in turn."""
+    from matplotlib.lines import Line2D
+
+    return [
+        Line2D([], [], color="0.3", ls=ls, lw=1.1, label=text)
+        for ls, text in zip(style.ESTIMATE_STYLES, labels, strict=False)
+    ]
+
+
 def plot_tracking(results: dict, path: Path, title: str = "Tracking") -> Path:
     """Position ``x, y, z`` and attitude ``phi, theta, psi`` against their references."""
     ref = np.asarray(next(iter(results.values())).trajectories.reference)
@@ -160,10 +172,9 @@ def inputs_envelope(result):
     """``(low, high)`` ``(draws, blocks, 4)`` of the kept draws that did not diverge;
     the samples themselves where a store predates the envelope."""
     tr = result.trajectories
-    low = getattr(tr, "inputs_low", None)
-    high = getattr(tr, "inputs_high", None)
+    low, high = getattr(tr, "inputs_low", None), getattr(tr, "inputs_high", None)
     if low is None or high is None:
-        return kept_valid(result, tr.inputs), kept_valid(result, tr.inputs)
+        low = high = tr.inputs
     return kept_valid(result, low), kept_valid(result, high)
 
 
@@ -252,17 +263,12 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
         adaptive = kept_valid(result, result.trajectories.info.adaptive)  # (draws, time, 6, 3)
         if adaptive.shape[0] == 0 or not np.any(adaptive):
             continue
-        color = style.color(name, i)
+        color, t = style.color(name, i), times(result)
         handles.append(Line2D([], [], color=color, lw=2, label=style.label(name, result)))
         for axis, ax in enumerate(six_panels(axes)):
             for j, ls in enumerate(style.ESTIMATE_STYLES):
-                ax.plot(
-                    times(result), np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1
-                )
-    handles += [
-        Line2D([], [], color="0.3", ls=ls, lw=1.1, label=f"b{j}")
-        for j, ls in enumerate(style.ESTIMATE_STYLES)
-    ]
+                ax.plot(t, np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1)
+    handles += estimate_handles(f"b{j}" for j in range(3))
     labels = [f"{text}: b0, b1, b2" for text in ("x", "y", "z", "phi", "theta", "psi")]
     caption = style.draws_caption(results).replace("median and 5-95 % band", "median")
     return finish(fig, path, title, caption, handles, axes, labels)
@@ -463,33 +469,27 @@ def plot_yield(results: dict, path: Path, title: str) -> Path:
     share of draws failing each requirement, per controller."""
     plt = style.pyplot()
     names = list(results)
-    first = results[names[0]]
-    requirements = list(first.names)
+    requirements = list(results[names[0]].names)
     size = (10.5, 0.5 + 0.45 * max(4, len(requirements) * len(names) ** 0.5))
     fig, (left, right) = plt.subplots(
         1, 2, figsize=size, layout="constrained", gridspec_kw={"width_ratios": [1, 1.6]}
     )
-    for i, name in enumerate(names):
-        result = results[name]
-        low, high = result.interval
-        value = result.yield_
-        color = style.color(name, i)
+    height = 0.8 / len(names)
+    rows = np.arange(len(requirements))
+    for i, (name, result) in enumerate(results.items()):
+        (low, high), value, color = result.interval, result.yield_, style.color(name, i)
         left.barh(i, 100 * value, color=color, alpha=0.35, height=0.6)
         xerr = [[100 * (value - low)], [100 * (high - value)]]
         left.errorbar(100 * value, i, xerr=xerr, fmt="o", color=color, capsize=4)
         text = f"{value:.0%} ({result.passed}/{result.draws})"
         left.annotate(text, (100 * high, i), xytext=(4, 0), textcoords="offset points",
                       va="center", fontsize=8)  # fmt: skip
+        share = 100 * np.asarray(result.failures) / result.draws
+        offset = (i - (len(names) - 1) / 2) * height
+        right.barh(rows + offset, share, height=height, color=color, label=name)
     _bar_axes(left, names, 125, "yield (%), 95 % Clopper-Pearson interval",
               "draws meeting every requirement")  # fmt: skip
     left.set_xticks([0, 25, 50, 75, 100])
-    height = 0.8 / len(names)
-    rows = np.arange(len(requirements))
-    for i, name in enumerate(names):
-        result = results[name]
-        share = 100 * np.asarray(result.failures) / result.draws
-        offset = (i - (len(names) - 1) / 2) * height
-        right.barh(rows + offset, share, height=height, color=style.color(name, i), label=name)
     _bar_axes(right, requirements, 100, "draws failing the requirement (%)",
               "failures per requirement")  # fmt: skip
     if len(names) > 1:

@@ -196,10 +196,6 @@ def attempt(name: str, draw, *args, **kwargs):
     try:
         return draw(*args, **kwargs)
     except Exception as error:  # noqa: BLE001 - any failure of one figure is reported
-        print(
-            f"warning: figure {name} was not drawn ({type(error).__name__}: {error}); "
-            "the results are written",
-            file=sys.stderr,
-            flush=True,
-        )
+        warning = f"figure {name} was not drawn ({type(error).__name__}: {error})"
+        print(f"warning: {warning}; the results are written", file=sys.stderr, flush=True)
         return None

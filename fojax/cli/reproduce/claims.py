@@ -116,78 +116,66 @@ def per_axis(prefix: str) -> list[str]:
     return [f"{prefix}_{axis}" for axis in ("x", "y", "z")]
 
 
+def _claim(id_: str, scenario: int, metrics: list[str], text: str, mapping: str, **more) -> dict:
+    """One claim of :data:`CLAIMS`: ``more`` holds ``delta_from`` for a difference of
+    scenarios."""
+    return dict(id=id_, scenario=scenario, text=text, metrics=metrics, **more, mapping=mapping)
+
+
 # The paper's Section V conclusions, each mapped to metrics (every one lower-is-better)
 # and to the scenarios it speaks about.
 CLAIMS = [
-    {
-        "id": "S1-transient",
-        "scenario": 1,
-        "text": (
-            "Scenario 1: 'the AFONFTSMC has better performances in terms of overshoot, "
-            "settling/rising time, and steady-state error than other compared techniques'"
-        ),
-        "metrics": per_axis("overshoot") + per_axis("settling_time") + per_axis("itae"),
-        "mapping": (
-            "overshoot_x/y/z, settling_time_x/y/z (0.05 m band) and, for the steady-state "
-            "error, itae_x/y/z (the time-weighted IAE, dominated by late errors). Rising "
-            "time is not measured: the runs track a moving reference from a non-zero "
-            "initial error, and the settling time stands for it."
-        ),
-    },
-    {
-        "id": "S1-robustness",
-        "scenario": 1,
-        "text": (
-            "Scenario 1: 'better robustness performances relative to external disturbances "
-            "and uncertainties'"
-        ),
-        "metrics": ["position_rmse", "attitude_rmse"] + per_axis("max_error"),
-        "mapping": (
-            "position_rmse, attitude_rmse and max_error_x/y/z under scenario 1's drag "
-            "uncertainty and disturbances (53)."
-        ),
-    },
-    {
-        "id": "S2-convergence-tracking",
-        "scenario": 2,
-        "text": (
-            "Scenario 2: 'better in terms of convergence speed, trajectory tracking, and "
-            "rejection of the random disturbances'"
-        ),
-        "metrics": per_axis("settling_time") + ["position_rmse"] + per_axis("rmse"),
-        "mapping": (
-            "convergence speed: settling_time_x/y/z; trajectory tracking: position_rmse and "
-            "rmse_x/y/z under scenario 2. Rejection of the random disturbances: see the "
-            "next claim."
-        ),
-    },
-    {
-        "id": "S2-random-rejection",
-        "scenario": 2,
-        "text": "Scenario 2: 'rejection of the random disturbances'",
-        "metrics": ["position_rmse", "attitude_rmse"],
-        "delta_from": 1,
-        "mapping": (
-            "the increase of position_rmse and attitude_rmse from scenario 1 to scenario 2 "
-            "on the same draw (same drag sample; scenario 2 adds only the Gaussian "
-            "disturbances), compared between controllers (a difference of differences; "
-            "the relative margin is 5 % of the AFONFTSMC's mean increase). Needs "
-            "scenarios 1 and 2 in the run."
-        ),
-    },
-    {
-        "id": "S3-tracking-rejection",
-        "scenario": 3,
-        "text": (
-            "Scenario 3: 'more accurate trajectory tracking, stronger random uncertainty and "
-            "disturbances rejection'"
-        ),
-        "metrics": ["position_rmse"] + per_axis("rmse") + per_axis("max_error"),
-        "mapping": (
-            "position_rmse, rmse_x/y/z and max_error_x/y/z under scenario 3's 30 % mass and "
-            "inertia uncertainty and disturbances (56)."
-        ),
-    },
+    _claim(
+        "S1-transient",
+        1,
+        per_axis("overshoot") + per_axis("settling_time") + per_axis("itae"),
+        "Scenario 1: 'the AFONFTSMC has better performances in terms of overshoot, "
+        "settling/rising time, and steady-state error than other compared techniques'",
+        "overshoot_x/y/z, settling_time_x/y/z (0.05 m band) and, for the steady-state "
+        "error, itae_x/y/z (the time-weighted IAE, dominated by late errors). Rising "
+        "time is not measured: the runs track a moving reference from a non-zero "
+        "initial error, and the settling time stands for it.",
+    ),
+    _claim(
+        "S1-robustness",
+        1,
+        ["position_rmse", "attitude_rmse"] + per_axis("max_error"),
+        "Scenario 1: 'better robustness performances relative to external disturbances "
+        "and uncertainties'",
+        "position_rmse, attitude_rmse and max_error_x/y/z under scenario 1's drag "
+        "uncertainty and disturbances (53).",
+    ),
+    _claim(
+        "S2-convergence-tracking",
+        2,
+        per_axis("settling_time") + ["position_rmse"] + per_axis("rmse"),
+        "Scenario 2: 'better in terms of convergence speed, trajectory tracking, and "
+        "rejection of the random disturbances'",
+        "convergence speed: settling_time_x/y/z; trajectory tracking: position_rmse and "
+        "rmse_x/y/z under scenario 2. Rejection of the random disturbances: see the "
+        "next claim.",
+    ),
+    _claim(
+        "S2-random-rejection",
+        2,
+        ["position_rmse", "attitude_rmse"],
+        "Scenario 2: 'rejection of the random disturbances'",
+        "the increase of position_rmse and attitude_rmse from scenario 1 to scenario 2 "
+        "on the same draw (same drag sample; scenario 2 adds only the Gaussian "
+        "disturbances), compared between controllers (a difference of differences; "
+        "the relative margin is 5 % of the AFONFTSMC's mean increase). Needs "
+        "scenarios 1 and 2 in the run.",
+        delta_from=1,
+    ),
+    _claim(
+        "S3-tracking-rejection",
+        3,
+        ["position_rmse"] + per_axis("rmse") + per_axis("max_error"),
+        "Scenario 3: 'more accurate trajectory tracking, stronger random uncertainty and "
+        "disturbances rejection'",
+        "position_rmse, rmse_x/y/z and max_error_x/y/z under scenario 3's 30 % mass and "
+        "inertia uncertainty and disturbances (56).",
+    ),
 ]
 
 
@@ -338,9 +326,7 @@ def evaluate_claims(summaries: dict, results_by_scenario: dict) -> list[dict]:
                 counts={k: outcomes.count(k) for k in OUTCOMES},
             )
         evaluated.append(entry)
-    evaluated.append(chatter_claim(summaries))
-    evaluated.append(finite_time_claim(summaries, results_by_scenario))
-    return evaluated
+    return evaluated + [chatter_claim(summaries), finite_time_claim(summaries, results_by_scenario)]
 
 
 def paired_tables(summaries: dict, results_by_scenario: dict, metrics: list[str]) -> dict:

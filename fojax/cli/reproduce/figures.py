@@ -35,6 +35,7 @@ from fojax.cli.figures import (
     INPUTS,
     block_length,
     controller_handles,
+    estimate_handles,
     finish,
     inputs_envelope,
     kept_valid,
@@ -65,15 +66,12 @@ def _reference_velocity(scenario_id: int, times: np.ndarray) -> np.ndarray:
     return np.asarray(jax.vmap(velocity)(jnp.asarray(times, jnp.float32)))
 
 
-def _handles(results: dict, reference: bool = True, extra=()):
+def _handles(results: dict) -> list:
+    """The legend: the controllers of ``results`` and the reference."""
     from matplotlib.lines import Line2D
 
-    handles = controller_handles(results)
-    if reference:
-        handles.append(
-            Line2D([], [], color=style.REFERENCE_COLOR, ls="--", lw=1.2, label="reference")
-        )
-    return handles + list(extra)
+    reference = Line2D([], [], color=style.REFERENCE_COLOR, ls="--", lw=1.2, label="reference")
+    return controller_handles(results) + [reference]
 
 
 def _finish(fig, path: Path, title: str, results: dict, handles, spread=None, **grid):
@@ -137,7 +135,7 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
     )
     axes[0, 1].set_title("(b) Tracking errors (position; velocity error norm)", fontsize=9)
     title = f"Fig. {number}: Control inputs & tracking errors in Scenario {scenario_id}"
-    return _finish(fig, path, title, results, _handles(results, reference=False), axes=axes)
+    return _finish(fig, path, title, results, controller_handles(results), axes=axes)
 
 
 def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: int = 3) -> Path:
@@ -174,8 +172,6 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
     """Fig. 8/12/16: adaptive estimates, (a) position axes, (b) attitude axes: each
     controller in its colour, one line style per estimate (solid b0/a0, dashed b1/a1,
     dotted b2/a2)."""
-    from matplotlib.lines import Line2D
-
     fig, axes = time_grid(3, 2, (11, 8))
     t = times(next(iter(results.values())))
     shown = {}
@@ -197,17 +193,12 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
                     ax.fill_between(t, low, high, color=color, alpha=0.12, lw=0, zorder=2)
     axes[0, 0].set_title("(a) Parameters position", fontsize=9)
     axes[0, 1].set_title("(b) Parameters attitude", fontsize=9)
-    styles = [
-        Line2D(
-            [], [], color="0.3", ls=ls, lw=1.1, label=" / ".join(s[j] for s in ADAPTIVE.values())
-        )
-        for j, ls in enumerate(style.ESTIMATE_STYLES)
-    ]
+    styles = estimate_handles(" / ".join(s[j] for s in ADAPTIVE.values()) for j in range(3))
     title = (
         f"Fig. {number}: Parameters estimation in Scenario {scenario_id} "
         "(AFONFTSMC b-hat, ANFTSMC a-hat; band: AFONFTSMC 5-95 %)"
     )
-    handles = _handles(shown or results, reference=False, extra=styles)
+    handles = controller_handles(shown or results) + styles
     labels = [f"{axis} estimates" for axis in ("x", "y", "z", "phi", "theta", "psi")]
     return _finish(fig, path, title, shown or results, handles, axes=axes, ylabels=labels)
 

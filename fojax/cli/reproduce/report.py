@@ -130,7 +130,8 @@ def _applied(summary: dict, option: str) -> str:
 
 
 def _scenario_section(summary: dict, table: dict | None) -> list[str]:
-    names = list(summary["controllers"])
+    controllers = summary["controllers"]
+    names = list(controllers)
     lines = [
         f"### Scenario {summary['scenario']}",
         "",
@@ -144,18 +145,16 @@ def _scenario_section(summary: dict, table: dict | None) -> list[str]:
         "",
         *_head(["metric", "unit", *names]),
     ]
-    first = summary["controllers"][names[0]]["metrics"]
     for metric in TABLE_METRICS:
-        cells = [_cell(summary["controllers"][n]["metrics"][metric]) for n in names]
-        lines.append(_row([metric, first[metric]["unit"], *cells]))
-    diverged = [str(summary["controllers"][n]["diverged"]) for n in names]
+        cells = [_cell(controllers[n]["metrics"][metric]) for n in names]
+        lines.append(_row([metric, controllers[names[0]]["metrics"][metric]["unit"], *cells]))
+    diverged = [str(controllers[n]["diverged"]) for n in names]
     lines.append("| diverged draws | | " + " | ".join(diverged) + " |")
-    wall = [f"{summary['controllers'][n].get('wall_time_s', float('nan')):.0f}" for n in names]
+    wall = [f"{controllers[n].get('wall_time_s', float('nan')):.0f}" for n in names]
     lines.append("| wall time | s | " + " | ".join(wall) + " |")
     if not table:
-        lines.append("")
-        return lines
-    lines += [
+        return lines + [""]
+    return lines + [
         "",
         f"Paired differences, controller minus {BASELINE} on the same draw (mean [95 % CI]), "
         "against the margin delta, each comparison decided on its own (no multiplicity "
@@ -166,7 +165,6 @@ def _scenario_section(summary: dict, table: dict | None) -> list[str]:
         *_differences(TABLE_METRICS, table),
         "",
     ]
-    return lines
 
 
 def _differences(metrics, table: dict) -> list[str]:
@@ -178,20 +176,6 @@ def _differences(metrics, table: dict) -> list[str]:
         cells = [f"{_cell(c['difference'])} {MARK[c['outcome']]}" for c in row]
         lines.append(_row([metric, _fmt(row[0]["margin"]), *cells]))
     return lines
-
-
-def _comparison_table(claim: dict) -> list[str]:
-    table = {}
-    for c in claim["comparisons"]:
-        table.setdefault(c["controller"], {})[c["metric"]] = c
-    head = "(S2 - S1) difference" if claim.get("delta_from") else "difference"
-    return [
-        f"Per comparison: {head}, controller minus {BASELINE} (mean [95 % CI]), and its "
-        "outcome (Holm-adjusted over the claim):",
-        "",
-        *_differences(claim["metrics"], table),
-        "",
-    ]
 
 
 def _claim_section(claim: dict) -> list[str]:
@@ -215,8 +199,18 @@ def _claim_section(claim: dict) -> list[str]:
                 for x in worse
             )
             lines.append(f"Worse: {items}.")
-        lines.append("")
-        lines += _comparison_table(claim)
+        table = {}
+        for x in claim["comparisons"]:
+            table.setdefault(x["controller"], {})[x["metric"]] = x
+        head = "(S2 - S1) difference" if claim.get("delta_from") else "difference"
+        lines += [
+            "",
+            f"Per comparison: {head}, controller minus {BASELINE} (mean [95 % CI]), and its "
+            "outcome (Holm-adjusted over the claim):",
+            "",
+            *_differences(claim["metrics"], table),
+            "",
+        ]
     if claim["id"] == "R2-chatter-free":
         lines += [
             "Mean change per control step relative to the input's RMS "
@@ -331,14 +325,6 @@ def _markdown(out, summaries, claims, settings, figures, wall_time, tables) -> l
 
 def _document(summaries, claims, settings, figures, wall_time, tables) -> dict:
     """``report.json``: the settings, the rule, the claims, each scenario's tables."""
-
-    def scalar_tables(summary):
-        return {
-            name: {m: entry["metrics"][m] for m in TABLE_METRICS}
-            | {"diverged": entry["diverged"], "wall_time_s": entry.get("wall_time_s")}
-            for name, entry in summary["controllers"].items()
-        }
-
     return {
         "settings": settings,
         "wall_time_s": round(wall_time, 1),
@@ -354,7 +340,11 @@ def _document(summaries, claims, settings, figures, wall_time, tables) -> dict:
         "claims": claims,
         "scenarios": {
             str(sid): {
-                "metrics": scalar_tables(summary),
+                "metrics": {
+                    name: {m: entry["metrics"][m] for m in TABLE_METRICS}
+                    | {"diverged": entry["diverged"], "wall_time_s": entry.get("wall_time_s")}
+                    for name, entry in summary["controllers"].items()
+                },
                 "paired_differences": {
                     other: {m: row[m] for m in TABLE_METRICS}
                     for other, row in tables.get(sid, {}).items()
