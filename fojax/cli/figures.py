@@ -200,11 +200,8 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
     for channel in range(4):
         axes[channel, 0].set_ylabel(INPUTS[channel])
     block = block_length(times(next(iter(results.values()))))
-    caption = style.draws_caption(results).replace(
-        "median and 5-95 % band",
-        f"band: each command's range (min to max over every step) within each {block:g} s "
-        "block, median",
-    )
+    curves = f"band: each command's range (min to max over every step) within each {block:g} s"
+    caption = style.draws_caption(results, curves + " block, median")
     return finish(fig, path, title, caption, axes=axes)
 
 
@@ -270,7 +267,7 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
                 ax.plot(t, np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1)
     handles += estimate_handles(f"b{j}" for j in range(3))
     labels = [f"{text}: b0, b1, b2" for text in ("x", "y", "z", "phi", "theta", "psi")]
-    caption = style.draws_caption(results).replace("median and 5-95 % band", "median")
+    caption = style.draws_caption(results, "median")
     return finish(fig, path, title, caption, handles, axes, labels)
 
 

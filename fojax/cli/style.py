@@ -136,16 +136,16 @@ def suptitle(fig, title: str, caption: str = "", fontsize: int = 10):
     return fig.suptitle("\n".join(lines), fontsize=fontsize)
 
 
-def draws_caption(results: dict) -> str:
-    """What the curves show and what the statistics use, with the true counts."""
-    first = next(iter(results.values()))
-    total = first.draws
+def draws_caption(
+    results: dict,
+    curves: str = "median and 5-95 % band",
+    statistics: str = "the statistics in summary.json",
+) -> str:
+    """What the ``curves`` show and what the ``statistics`` use, with the true counts."""
+    total = next(iter(results.values())).draws
     kept = min(r.trajectories.time.shape[0] for r in results.values())
     shown = f"the first {kept} of {total} draws" if kept < total else f"all {total} draws"
-    return (
-        f"median and 5-95 % band over {shown} (diverged draws left out); "
-        f"the statistics in summary.json use all {total} draws"
-    )
+    return f"{curves} over {shown} (diverged draws left out); {statistics} use all {total} draws"
 
 
 def valid_kept(result) -> np.ndarray:

@@ -74,13 +74,12 @@ def _handles(results: dict) -> list:
     return controller_handles(results) + [reference]
 
 
-def _finish(fig, path: Path, title: str, results: dict, handles, spread=None, **grid):
+def _finish(fig, path: Path, title: str, results: dict, handles, *curves, **grid):
     """:func:`fojax.cli.figures.finish` (``grid``: its ``axes`` and ``ylabels``) with the
-    true draw counts in the caption, the PNG quantized."""
-    spread = spread or style.draws_caption(results).replace(
-        "the statistics in summary.json", "the tables"
-    )
-    return finish(fig, path, title, spread, handles, quantize=True, **grid)
+    true draw counts in the caption (:func:`fojax.cli.style.draws_caption`, of ``curves``
+    when given), the PNG quantized."""
+    caption = style.draws_caption(results, *curves, statistics="the tables")
+    return finish(fig, path, title, caption, handles, quantize=True, **grid)
 
 
 def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> Path:
@@ -157,12 +156,7 @@ def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: 
     ax3.set_title("(a) 3-D trajectory tracking", fontsize=9)
     ax2.set_title(f"(b) 2-D trajectory tracking (faint: {faint} single draws)", fontsize=9)
     title = f"Fig. {number}: Path following performance in Scenario {scenario_id}"
-    spread = (
-        style.draws_caption(results)
-        .replace("median and 5-95 % band", "median path")
-        .replace("the statistics in summary.json", "the tables")
-    )
-    return _finish(fig, path, title, results, _handles(results), spread)
+    return _finish(fig, path, title, results, _handles(results), "median path")
 
 
 ADAPTIVE = {"afonftsmc": ("b0", "b1", "b2"), "anftsmc": ("a0", "a1", "a2")}
