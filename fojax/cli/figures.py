@@ -215,10 +215,8 @@ def path_figure(height: float):
     fig = style.pyplot().figure(figsize=(12, height), layout="constrained")
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     ax2 = fig.add_subplot(1, 2, 2)
-    for ax in (ax3, ax2):
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-    ax3.set_zlabel("z (m)")
+    ax3.set(xlabel="x (m)", ylabel="y (m)", zlabel="z (m)")
+    ax2.set(xlabel="x (m)", ylabel="y (m)")
     ax2.set_aspect("equal", adjustable="datalim")
     ax2.grid(alpha=0.3)
     return fig, ax3, ax2

@@ -70,9 +70,7 @@ def pyplot():
 
 def color(name: str, index: int = 0) -> str:
     """The colour of controller ``name`` (a spare colour for an unknown one)."""
-    if name in CONTROLLER_COLORS:
-        return CONTROLLER_COLORS[name]
-    return _SPARE_COLORS[index % len(_SPARE_COLORS)]
+    return CONTROLLER_COLORS.get(name) or _SPARE_COLORS[index % len(_SPARE_COLORS)]
 
 
 def band(ax, t, values, color_):
