@@ -23,7 +23,10 @@ import numpy as np
 from fojax.cli import style
 
 __all__ = [
+    "block_length",
     "controller_handles",
+    "estimate_handles",
+    "finish",
     "inputs_envelope",
     "kept_valid",
     "label_axes",
@@ -36,14 +39,18 @@ __all__ = [
     "plot_path",
     "plot_tracking",
     "plot_yield",
+    "six_bands",
     "six_panels",
     "time_grid",
+    "times",
+    "tracking_grid",
 ]
 
 INPUTS = ("u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)")
 
 
-def _time(result) -> np.ndarray:
+def times(result) -> np.ndarray:
+    """``(T,)`` snapshot times of ``result``'s trajectories, s."""
     return np.asarray(result.trajectories.time[0])
 
 
@@ -75,11 +82,38 @@ def six_panels(axes):
     return axes.T.flat
 
 
-def _finish(fig, axes, path, title, caption, handles, ylabels=()):
-    label_axes(axes, ylabels)
+def six_bands(axes, results: dict, values) -> None:
+    """Per controller of ``results``, in its colour, the band (:func:`fojax.cli.style.band`)
+    of ``values(result)`` ``(kept, T, 6)`` over its kept draws that did not diverge, on
+    the panels of :func:`six_panels`."""
+    for i, (name, result) in enumerate(results.items()):
+        data = kept_valid(result, values(result))
+        for axis, ax in enumerate(six_panels(axes)):
+            style.band(ax, times(result), data[:, :, axis], style.color(name, i))
+
+
+def tracking_grid(results: dict, reference):
+    """``(fig, axes, line)``: a 3 x 2 :func:`time_grid` of the states ``x, y, z, phi,
+    theta, psi`` (:func:`six_bands`) and ``reference`` ``(T, 4)`` (``x, y, z, psi``)
+    dashed over them; ``line``: the reference's."""
+    fig, axes = time_grid(3, 2, (11, 8))
+    six_bands(axes, results, lambda result: result.trajectories.state)
+    t = times(next(iter(results.values())))
+    for k, ax in enumerate([*axes[:, 0], axes[2, 1]]):
+        line = style.reference(ax, t, reference[:, k])
+    return fig, axes, line
+
+
+def finish(fig, path, title, caption, handles=(), axes=None, ylabels=(), quantize=False):
+    """:func:`label_axes` of ``axes`` (a grid of time plots, when given), the title and
+    ``caption``, the legend of ``handles`` below (when any) and the files
+    (:func:`fojax.cli.style.save`); returns ``path``."""
+    if axes is not None:
+        label_axes(axes, ylabels)
     style.suptitle(fig, title, caption)
-    style.legend_below(fig, handles)
-    return style.save(fig, path)
+    if handles:
+        style.legend_below(fig, handles)
+    return style.save(fig, path, quantize=quantize)
 
 
 def controller_handles(results: dict):
@@ -92,26 +126,28 @@ def controller_handles(results: dict):
     ]
 
 
+def estimate_handles(labels) -> list:
+    """Legend handles of the adaptive estimates: a grey line in each style of
+    :data:`fojax.cli.style.ESTIMATE_STYLES`, labelled ``labels`` in turn."""
+    from matplotlib.lines import Line2D
+
+    return [
+        Line2D([], [], color="0.3", ls=ls, lw=1.1, label=text)
+        for ls, text in zip(style.ESTIMATE_STYLES, labels, strict=False)
+    ]
+
+
 def plot_tracking(results: dict, path: Path, title: str = "Tracking") -> Path:
     """Position ``x, y, z`` and attitude ``phi, theta, psi`` against their references."""
-    fig, axes = time_grid(3, 2, (11, 8))
+    ref = np.asarray(next(iter(results.values())).trajectories.reference)
+    fig, axes, line = tracking_grid(results, np.median(ref[:, :, :4], 0))
     labels = ["x (m)", "y (m)", "z (m)", "phi (rad)", "theta (rad)", "psi (rad)"]
-    first = next(iter(results.values()))
-    t0 = _time(first)
-    for i, (name, result) in enumerate(results.items()):
-        state = kept_valid(result, result.trajectories.state)
-        for axis, ax in enumerate(six_panels(axes)):
-            style.band(ax, _time(result), state[:, :, axis], style.color(name, i))
-    ref = np.asarray(first.trajectories.reference)
-    handles = controller_handles(results)
-    for axis in range(3):
-        line = style.reference(axes[axis, 0], t0, np.median(ref[:, :, axis], 0))
-    style.reference(axes[2, 1], t0, np.median(ref[:, :, 3], 0))
     axes[0, 1].set_title(
         "phi, theta: no reference drawn (each controller commands its own)", fontsize=8
     )
     caption = style.draws_caption(results)
-    return _finish(fig, axes, path, title, caption, handles + [line], labels)
+    handles = controller_handles(results) + [line]
+    return finish(fig, path, title, caption, handles, axes, labels)
 
 
 def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Path:
@@ -120,25 +156,25 @@ def plot_errors(results: dict, path: Path, title: str = "Tracking errors") -> Pa
     labels = ["e_x (m)", "e_y (m)", "e_z (m)", "e_phi (rad)", "e_theta (rad)", "e_psi (rad)"]
     for ax in axes.flat:
         ax.axhline(0.0, color="0.4", lw=0.6, zorder=1)
-    for i, (name, result) in enumerate(results.items()):
+
+    def errors(result):
         tr = result.trajectories
         position_error = np.asarray(tr.state)[:, :, :3] - np.asarray(tr.reference)[:, :, :3]
         attitude_error = np.asarray(tr.state)[:, :, 3:6] - np.asarray(tr.info.attitude_reference)
-        errors = kept_valid(result, np.concatenate([position_error, attitude_error], axis=-1))
-        for axis, ax in enumerate(six_panels(axes)):
-            style.band(ax, _time(result), errors[:, :, axis], style.color(name, i))
-    handles = controller_handles(results)
-    return _finish(fig, axes, path, title, style.draws_caption(results), handles, labels)
+        return np.concatenate([position_error, attitude_error], axis=-1)
+
+    six_bands(axes, results, errors)
+    caption = style.draws_caption(results)
+    return finish(fig, path, title, caption, controller_handles(results), axes, labels)
 
 
 def inputs_envelope(result):
     """``(low, high)`` ``(draws, blocks, 4)`` of the kept draws that did not diverge;
     the samples themselves where a store predates the envelope."""
     tr = result.trajectories
-    low = getattr(tr, "inputs_low", None)
-    high = getattr(tr, "inputs_high", None)
+    low, high = getattr(tr, "inputs_low", None), getattr(tr, "inputs_high", None)
     if low is None or high is None:
-        return kept_valid(result, tr.inputs), kept_valid(result, tr.inputs)
+        low = high = tr.inputs
     return kept_valid(result, low), kept_valid(result, high)
 
 
@@ -159,20 +195,19 @@ def plot_inputs(results: dict, path: Path, title: str = "Control inputs") -> Pat
             continue
         for channel in range(4):
             style.envelope(
-                axes[channel, i], _time(result), low[:, :, channel], high[:, :, channel], color
+                axes[channel, i], times(result), low[:, :, channel], high[:, :, channel], color
             )
     for channel in range(4):
         axes[channel, 0].set_ylabel(INPUTS[channel])
-    label_axes(axes)
-    t = _time(next(iter(results.values())))
-    block = float(t[1] - t[0]) if t.size > 1 else float("nan")
-    caption = style.draws_caption(results).replace(
-        "median and 5-95 % band",
-        f"band: each command's range (min to max over every step) within each {block:g} s "
-        "block, median",
-    )
-    style.suptitle(fig, title, caption)
-    return style.save(fig, path)
+    block = block_length(times(next(iter(results.values()))))
+    curves = f"band: each command's range (min to max over every step) within each {block:g} s"
+    caption = style.draws_caption(results, curves + " block, median")
+    return finish(fig, path, title, caption, axes=axes)
+
+
+def block_length(t) -> float:
+    """The snapshot interval of the times ``t``, s (NaN for a single snapshot)."""
+    return float(t[1] - t[0]) if t.size > 1 else float("nan")
 
 
 def path_figure(height: float):
@@ -180,10 +215,8 @@ def path_figure(height: float):
     fig = style.pyplot().figure(figsize=(12, height), layout="constrained")
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     ax2 = fig.add_subplot(1, 2, 2)
-    for ax in (ax3, ax2):
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-    ax3.set_zlabel("z (m)")
+    ax3.set(xlabel="x (m)", ylabel="y (m)", zlabel="z (m)")
+    ax2.set(xlabel="x (m)", ylabel="y (m)")
     ax2.set_aspect("equal", adjustable="datalim")
     ax2.grid(alpha=0.3)
     return fig, ax3, ax2
@@ -206,15 +239,11 @@ def plot_path(results: dict, path: Path, title: str = "Path", draws: int = 8) ->
     ax3.plot(
         ref[:, 0], ref[:, 1], ref[:, 2], color=style.REFERENCE_COLOR, ls="--", lw=1.3, zorder=10
     )
-    total = first.draws
-    style.suptitle(
-        fig,
-        title,
-        f"one line per draw: the first {shown} of {total} draws per controller "
-        "(diverged draws left out)",
+    caption = (
+        f"one line per draw: the first {shown} of {first.draws} draws per controller "
+        "(diverged draws left out)"
     )
-    style.legend_below(fig, controller_handles(results) + [line])
-    return style.save(fig, path)
+    return finish(fig, path, title, caption, controller_handles(results) + [line])
 
 
 def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") -> Path:
@@ -229,20 +258,15 @@ def plot_adaptive(results: dict, path: Path, title: str = "Adaptive estimates") 
         adaptive = kept_valid(result, result.trajectories.info.adaptive)  # (draws, time, 6, 3)
         if adaptive.shape[0] == 0 or not np.any(adaptive):
             continue
-        color = style.color(name, i)
+        color, t = style.color(name, i), times(result)
         handles.append(Line2D([], [], color=color, lw=2, label=style.label(name, result)))
         for axis, ax in enumerate(six_panels(axes)):
             for j, ls in enumerate(style.ESTIMATE_STYLES):
-                ax.plot(
-                    _time(result), np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1
-                )
-    handles += [
-        Line2D([], [], color="0.3", ls=ls, lw=1.1, label=f"b{j}")
-        for j, ls in enumerate(style.ESTIMATE_STYLES)
-    ]
+                ax.plot(t, np.median(adaptive[:, :, axis, j], 0), ls=ls, color=color, lw=1.1)
+    handles += estimate_handles(f"b{j}" for j in range(3))
     labels = [f"{text}: b0, b1, b2" for text in ("x", "y", "z", "phi", "theta", "psi")]
-    caption = style.draws_caption(results).replace("median and 5-95 % band", "median")
-    return _finish(fig, axes, path, title, caption, handles, labels)
+    caption = style.draws_caption(results, "median")
+    return finish(fig, path, title, caption, handles, axes, labels)
 
 
 FIGURES = (
@@ -321,19 +345,27 @@ def _read_progress(history_csv: Path, evaluation: dict | None, start: float | No
 
 # Colours of plot_convergence (Okabe-Ito).
 _DARK, _BLUE, _RED, _ORANGE, _GREEN = "#333333", "#0072B2", "#D55E00", "#E69F00", "#009E73"
+_LOOK = {
+    "loss": dict(color=_DARK, lw=1.4, marker="o", ms=2.5),
+    "mean": dict(color=_BLUE, lw=0.9),
+    "worst": dict(color=_BLUE, lw=0.8, ls=":"),
+    "validation": dict(color=_ORANGE, lw=1.2, marker="s", ms=4),
+    "diverged": dict(ls="none", marker="x", color=_RED),
+    "held": dict(ls="none", marker="D", ms=7, mfc="white", mec=_GREEN, mew=2),
+    "lower": dict(lw=1.2, marker="o", ms=2.5),  # coloured _DARK, then _GREEN
+}
+"""The look of each line of :func:`plot_convergence`, in its axes and in its legend."""
 
 
 def _draw_progress(top, bottom, col: int, x: np.ndarray, p: _Progress, evaluation) -> None:
     """One column of :func:`plot_convergence`: the run against ``x`` (step or wall time)."""
     h = p.history
-    top.plot(x, h["loss"], color=_DARK, lw=1.4, marker="o", ms=2.5, zorder=4)
+    top.plot(x, h["loss"], **_LOOK["loss"], zorder=4)
     if p.show_mean:
-        top.plot(x, h["mean_target"], color=_BLUE, lw=0.9)
-    top.plot(x, h["max_target"], color=_BLUE, lw=0.8, ls=":")
+        top.plot(x, h["mean_target"], **_LOOK["mean"])
+    top.plot(x, h["max_target"], **_LOOK["worst"])
     if p.diverged.any():
-        top.scatter(
-            x[p.diverged], np.asarray(h["loss"])[p.diverged], marker="x", color=_RED, zorder=5
-        )
+        top.scatter(x[p.diverged], np.asarray(h["loss"])[p.diverged], **_LOOK["diverged"], zorder=5)
     right = top.twinx() if p.yields else top
     known = np.isfinite(p.validation)
     vx, vy = x[known], p.validation[known]
@@ -341,18 +373,16 @@ def _draw_progress(top, bottom, col: int, x: np.ndarray, p: _Progress, evaluatio
         vx, vy = np.concatenate([[0.0], vx]), np.concatenate([[p.start], vy])
     if vy.size:
         # a validation holds until the next one: steps in both panels
-        right.plot(vx, vy, color=_ORANGE, lw=1.2, marker="s", ms=4, zorder=5,
-                   drawstyle="steps-post")  # fmt: skip
+        right.plot(vx, vy, **_LOOK["validation"], zorder=5, drawstyle="steps-post")
     if evaluation and "initial" in evaluation:
         held = [_held_number(evaluation[k]) for k in ("initial", "tuned")]
         where = [0, x[-1]] if col == 0 else [x[-1]]
-        right.plot(where, held if col == 0 else held[1:], ls="none", marker="D", ms=7,
-                   mfc="white", mec=_GREEN, mew=2, zorder=6)  # fmt: skip
+        right.plot(where, held if col == 0 else held[1:], **_LOOK["held"], zorder=6)
     if p.yields:
         right.set_ylim(-0.02, 1.02)
         right.set_ylabel("yield (validation, held-out)" if col else "")
     for key, color in zip(p.lower, (_DARK, _GREEN), strict=False):
-        bottom.plot(x, h[key], color=color, lw=1.2, marker="o", ms=2.5)
+        bottom.plot(x, h[key], color=color, **_LOOK["lower"])
 
 
 _LOWER_NAMES = {"grad_norm": "gradient norm", "sigma": "CMA-ES step size"}
@@ -363,22 +393,17 @@ def _progress_handles(p: _Progress, evaluation) -> list:
     from matplotlib.lines import Line2D
 
     best = p.history.get("best_step", [math.nan])[-1]
-    handles = [
-        Line2D([], [], color=_DARK, lw=1.4, marker="o", ms=2.5, label="loss (best point)"),
-        *([Line2D([], [], color=_BLUE, lw=0.9, label="sample mean target")] if p.show_mean else []),
-        Line2D([], [], color=_BLUE, lw=0.8, ls=":", label="sample worst target"),
-        Line2D([], [], color=_ORANGE, lw=1.2, marker="s", ms=4,
-               label=f"validation {'yield' if p.yields else 'cost'} (returned: step {best:.0f})"),
-    ]  # fmt: skip
+    validation = f"validation {'yield' if p.yields else 'cost'} (returned: step {best:.0f})"
+    rows = [("loss", "loss (best point)"), ("mean", "sample mean target")][: 1 + p.show_mean]
+    rows += [("worst", "sample worst target"), ("validation", validation)]
     if p.diverged.any():
-        handles.append(Line2D([], [], ls="none", marker="x", color=_RED, label="diverged draws"))
+        rows.append(("diverged", "diverged draws"))
     if evaluation and "initial" in evaluation:
-        label = (f"held-out, initial and tuned ({evaluation['draws']} draws, "
-                 f"{evaluation['switching']}, {evaluation['horizon_s']:g} s)")  # fmt: skip
-        handles.append(Line2D([], [], ls="none", marker="D", ms=7, mfc="white", mec=_GREEN,
-                              mew=2, label=label))  # fmt: skip
+        held = f"held-out, initial and tuned ({evaluation['draws']} draws, "
+        rows.append(("held", held + f"{evaluation['switching']}, {evaluation['horizon_s']:g} s)"))
+    handles = [Line2D([], [], **_LOOK[key], label=label) for key, label in rows]
     return handles + [
-        Line2D([], [], color=color, lw=1.2, marker="o", ms=2.5, label=_LOWER_NAMES[key])
+        Line2D([], [], color=color, **_LOOK["lower"], label=_LOWER_NAMES[key])
         for key, color in zip(p.lower, (_DARK, _GREEN), strict=False)
     ]
 
@@ -439,33 +464,27 @@ def plot_yield(results: dict, path: Path, title: str) -> Path:
     share of draws failing each requirement, per controller."""
     plt = style.pyplot()
     names = list(results)
-    first = results[names[0]]
-    requirements = list(first.names)
+    requirements = list(results[names[0]].names)
     size = (10.5, 0.5 + 0.45 * max(4, len(requirements) * len(names) ** 0.5))
     fig, (left, right) = plt.subplots(
         1, 2, figsize=size, layout="constrained", gridspec_kw={"width_ratios": [1, 1.6]}
     )
-    for i, name in enumerate(names):
-        result = results[name]
-        low, high = result.interval
-        value = result.yield_
-        color = style.color(name, i)
+    height = 0.8 / len(names)
+    rows = np.arange(len(requirements))
+    for i, (name, result) in enumerate(results.items()):
+        (low, high), value, color = result.interval, result.yield_, style.color(name, i)
         left.barh(i, 100 * value, color=color, alpha=0.35, height=0.6)
         xerr = [[100 * (value - low)], [100 * (high - value)]]
         left.errorbar(100 * value, i, xerr=xerr, fmt="o", color=color, capsize=4)
         text = f"{value:.0%} ({result.passed}/{result.draws})"
         left.annotate(text, (100 * high, i), xytext=(4, 0), textcoords="offset points",
                       va="center", fontsize=8)  # fmt: skip
+        share = 100 * np.asarray(result.failures) / result.draws
+        offset = (i - (len(names) - 1) / 2) * height
+        right.barh(rows + offset, share, height=height, color=color, label=name)
     _bar_axes(left, names, 125, "yield (%), 95 % Clopper-Pearson interval",
               "draws meeting every requirement")  # fmt: skip
     left.set_xticks([0, 25, 50, 75, 100])
-    height = 0.8 / len(names)
-    rows = np.arange(len(requirements))
-    for i, name in enumerate(names):
-        result = results[name]
-        share = 100 * np.asarray(result.failures) / result.draws
-        offset = (i - (len(names) - 1) / 2) * height
-        right.barh(rows + offset, share, height=height, color=style.color(name, i), label=name)
     _bar_axes(right, requirements, 100, "draws failing the requirement (%)",
               "failures per requirement")  # fmt: skip
     if len(names) > 1:

@@ -70,27 +70,22 @@ def pyplot():
 
 def color(name: str, index: int = 0) -> str:
     """The colour of controller ``name`` (a spare colour for an unknown one)."""
-    if name in CONTROLLER_COLORS:
-        return CONTROLLER_COLORS[name]
-    return _SPARE_COLORS[index % len(_SPARE_COLORS)]
+    return CONTROLLER_COLORS.get(name) or _SPARE_COLORS[index % len(_SPARE_COLORS)]
 
 
-def band(ax, t, values, color_, label=None, alpha=0.22, lw=1.2):
-    """Median line and 5-95 % band over draws of ``values`` ``(draws, time)``.
-
-    Returns the median's line (for a legend), or None when there is no draw.
-    """
+def band(ax, t, values, color_):
+    """Median line and 5-95 % band over draws of ``values`` ``(draws, time)`` (nothing
+    when there is no draw)."""
     values = np.asarray(values, dtype=float)
     if values.shape[0] == 0:
-        return None
+        return
     low, mid, high = np.nanpercentile(values, BAND_PERCENTILES, axis=0)
-    (line,) = ax.plot(t, mid, color=color_, lw=lw, label=label, zorder=3)
+    ax.plot(t, mid, color=color_, lw=1.2, zorder=3)
     if values.shape[0] > 1:
-        ax.fill_between(t, low, high, color=color_, alpha=alpha, lw=0, zorder=2)
-    return line
+        ax.fill_between(t, low, high, color=color_, alpha=0.22, lw=0, zorder=2)
 
 
-def envelope(ax, t, low, high, color_, label=None, alpha=0.25):
+def envelope(ax, t, low, high, color_, alpha=0.25):
     """The full-rate range of a command: the band from ``low`` to ``high``.
 
     ``low``, ``high``: ``(draws, blocks)``, the smallest and largest command within
@@ -105,28 +100,17 @@ def envelope(ax, t, low, high, color_, label=None, alpha=0.25):
         t = np.concatenate([[t[0] - (t[1] - t[0])], t])
         low, high = np.concatenate([low[:1], low]), np.concatenate([high[:1], high])
     ax.fill_between(t, low, high, color=color_, alpha=alpha, lw=0, zorder=2, step="pre")
-    ax.step(t, high, where="pre", color=color_, lw=0.9, zorder=3)
-    (line,) = ax.step(t, low, where="pre", color=color_, lw=0.9, zorder=3, label=label)
-    return line
+    for edge in (high, low):
+        ax.step(t, edge, where="pre", color=color_, lw=0.9, zorder=3)
 
 
-def reference(ax, t, values, *args, label="reference", lw=1.2, **kwargs):
-    """The reference: dashed black, over every curve, with a white edge."""
+def reference(ax, t, values):
+    """The reference: dashed black, over every curve, with a white edge; returns its line."""
     from matplotlib import patheffects
 
-    (line,) = ax.plot(
-        t,
-        values,
-        *args,
-        color=REFERENCE_COLOR,
-        ls="--",
-        lw=lw,
-        label=label,
-        zorder=10,
-        path_effects=[patheffects.withStroke(linewidth=lw + 1.2, foreground="white")],
-        **kwargs,
-    )
-    return line
+    edge = [patheffects.withStroke(linewidth=2.4, foreground="white")]
+    look = dict(color=REFERENCE_COLOR, ls="--", lw=1.2, label="reference", zorder=10)
+    return ax.plot(t, values, **look, path_effects=edge)[0]
 
 
 def legend_below(fig, handles, labels=None, ncol=None, fontsize=9):
@@ -150,16 +134,16 @@ def suptitle(fig, title: str, caption: str = "", fontsize: int = 10):
     return fig.suptitle("\n".join(lines), fontsize=fontsize)
 
 
-def draws_caption(results: dict) -> str:
-    """What the curves show and what the statistics use, with the true counts."""
-    first = next(iter(results.values()))
-    total = first.draws
+def draws_caption(
+    results: dict,
+    curves: str = "median and 5-95 % band",
+    statistics: str = "the statistics in summary.json",
+) -> str:
+    """What the ``curves`` show and what the ``statistics`` use, with the true counts."""
+    total = next(iter(results.values())).draws
     kept = min(r.trajectories.time.shape[0] for r in results.values())
     shown = f"the first {kept} of {total} draws" if kept < total else f"all {total} draws"
-    return (
-        f"median and 5-95 % band over {shown} (diverged draws left out); "
-        f"the statistics in summary.json use all {total} draws"
-    )
+    return f"{curves} over {shown} (diverged draws left out); {statistics} use all {total} draws"
 
 
 def valid_kept(result) -> np.ndarray:
@@ -174,8 +158,8 @@ def label(name: str, result) -> str:
     return name if diverged == 0 else f"{name} ({diverged}/{result.draws} diverged)"
 
 
-def save(fig, path: Path, dpi: int = DPI, vector: str = "pdf", quantize: bool = False) -> Path:
-    """``path`` (PNG at ``dpi``) and the same figure as ``path.with_suffix('.pdf')``.
+def save(fig, path: Path, quantize: bool = False) -> Path:
+    """``path`` (PNG at :data:`DPI`) and the same figure as ``path.with_suffix('.pdf')``.
 
     ``quantize``: store the PNG with a 256-colour palette (about a third of the size).
     Returns ``path``.
@@ -189,14 +173,13 @@ def save(fig, path: Path, dpi: int = DPI, vector: str = "pdf", quantize: bool = 
             from PIL import Image
 
             buffer = io.BytesIO()
-            fig.savefig(buffer, dpi=dpi, format="png")
+            fig.savefig(buffer, dpi=DPI, format="png")
             buffer.seek(0)
             with Image.open(buffer) as image:
                 image.convert("RGB").quantize(colors=256).save(path, optimize=True)
         else:
-            fig.savefig(path, dpi=dpi)
-        if vector:
-            fig.savefig(path.with_suffix(f".{vector}"))
+            fig.savefig(path, dpi=DPI)
+        fig.savefig(path.with_suffix(".pdf"))
     finally:
         plt.close(fig)
     return path
@@ -211,10 +194,6 @@ def attempt(name: str, draw, *args, **kwargs):
     try:
         return draw(*args, **kwargs)
     except Exception as error:  # noqa: BLE001 - any failure of one figure is reported
-        print(
-            f"warning: figure {name} was not drawn ({type(error).__name__}: {error}); "
-            "the results are written",
-            file=sys.stderr,
-            flush=True,
-        )
+        warning = f"figure {name} was not drawn ({type(error).__name__}: {error})"
+        print(f"warning: {warning}; the results are written", file=sys.stderr, flush=True)
         return None

@@ -116,78 +116,66 @@ def per_axis(prefix: str) -> list[str]:
     return [f"{prefix}_{axis}" for axis in ("x", "y", "z")]
 
 
+def _claim(id_: str, scenario: int, metrics: list[str], text: str, mapping: str, **more) -> dict:
+    """One claim of :data:`CLAIMS`: ``more`` holds ``delta_from`` for a difference of
+    scenarios."""
+    return dict(id=id_, scenario=scenario, text=text, metrics=metrics, **more, mapping=mapping)
+
+
 # The paper's Section V conclusions, each mapped to metrics (every one lower-is-better)
 # and to the scenarios it speaks about.
 CLAIMS = [
-    {
-        "id": "S1-transient",
-        "scenario": 1,
-        "text": (
-            "Scenario 1: 'the AFONFTSMC has better performances in terms of overshoot, "
-            "settling/rising time, and steady-state error than other compared techniques'"
-        ),
-        "metrics": per_axis("overshoot") + per_axis("settling_time") + per_axis("itae"),
-        "mapping": (
-            "overshoot_x/y/z, settling_time_x/y/z (0.05 m band) and, for the steady-state "
-            "error, itae_x/y/z (the time-weighted IAE, dominated by late errors). Rising "
-            "time is not measured: the runs track a moving reference from a non-zero "
-            "initial error, and the settling time stands for it."
-        ),
-    },
-    {
-        "id": "S1-robustness",
-        "scenario": 1,
-        "text": (
-            "Scenario 1: 'better robustness performances relative to external disturbances "
-            "and uncertainties'"
-        ),
-        "metrics": ["position_rmse", "attitude_rmse"] + per_axis("max_error"),
-        "mapping": (
-            "position_rmse, attitude_rmse and max_error_x/y/z under scenario 1's drag "
-            "uncertainty and disturbances (53)."
-        ),
-    },
-    {
-        "id": "S2-convergence-tracking",
-        "scenario": 2,
-        "text": (
-            "Scenario 2: 'better in terms of convergence speed, trajectory tracking, and "
-            "rejection of the random disturbances'"
-        ),
-        "metrics": per_axis("settling_time") + ["position_rmse"] + per_axis("rmse"),
-        "mapping": (
-            "convergence speed: settling_time_x/y/z; trajectory tracking: position_rmse and "
-            "rmse_x/y/z under scenario 2. Rejection of the random disturbances: see the "
-            "next claim."
-        ),
-    },
-    {
-        "id": "S2-random-rejection",
-        "scenario": 2,
-        "text": "Scenario 2: 'rejection of the random disturbances'",
-        "metrics": ["position_rmse", "attitude_rmse"],
-        "delta_from": 1,
-        "mapping": (
-            "the increase of position_rmse and attitude_rmse from scenario 1 to scenario 2 "
-            "on the same draw (same drag sample; scenario 2 adds only the Gaussian "
-            "disturbances), compared between controllers (a difference of differences; "
-            "the relative margin is 5 % of the AFONFTSMC's mean increase). Needs "
-            "scenarios 1 and 2 in the run."
-        ),
-    },
-    {
-        "id": "S3-tracking-rejection",
-        "scenario": 3,
-        "text": (
-            "Scenario 3: 'more accurate trajectory tracking, stronger random uncertainty and "
-            "disturbances rejection'"
-        ),
-        "metrics": ["position_rmse"] + per_axis("rmse") + per_axis("max_error"),
-        "mapping": (
-            "position_rmse, rmse_x/y/z and max_error_x/y/z under scenario 3's 30 % mass and "
-            "inertia uncertainty and disturbances (56)."
-        ),
-    },
+    _claim(
+        "S1-transient",
+        1,
+        per_axis("overshoot") + per_axis("settling_time") + per_axis("itae"),
+        "Scenario 1: 'the AFONFTSMC has better performances in terms of overshoot, "
+        "settling/rising time, and steady-state error than other compared techniques'",
+        "overshoot_x/y/z, settling_time_x/y/z (0.05 m band) and, for the steady-state "
+        "error, itae_x/y/z (the time-weighted IAE, dominated by late errors). Rising "
+        "time is not measured: the runs track a moving reference from a non-zero "
+        "initial error, and the settling time stands for it.",
+    ),
+    _claim(
+        "S1-robustness",
+        1,
+        ["position_rmse", "attitude_rmse"] + per_axis("max_error"),
+        "Scenario 1: 'better robustness performances relative to external disturbances "
+        "and uncertainties'",
+        "position_rmse, attitude_rmse and max_error_x/y/z under scenario 1's drag "
+        "uncertainty and disturbances (53).",
+    ),
+    _claim(
+        "S2-convergence-tracking",
+        2,
+        per_axis("settling_time") + ["position_rmse"] + per_axis("rmse"),
+        "Scenario 2: 'better in terms of convergence speed, trajectory tracking, and "
+        "rejection of the random disturbances'",
+        "convergence speed: settling_time_x/y/z; trajectory tracking: position_rmse and "
+        "rmse_x/y/z under scenario 2. Rejection of the random disturbances: see the "
+        "next claim.",
+    ),
+    _claim(
+        "S2-random-rejection",
+        2,
+        ["position_rmse", "attitude_rmse"],
+        "Scenario 2: 'rejection of the random disturbances'",
+        "the increase of position_rmse and attitude_rmse from scenario 1 to scenario 2 "
+        "on the same draw (same drag sample; scenario 2 adds only the Gaussian "
+        "disturbances), compared between controllers (a difference of differences; "
+        "the relative margin is 5 % of the AFONFTSMC's mean increase). Needs "
+        "scenarios 1 and 2 in the run.",
+        delta_from=1,
+    ),
+    _claim(
+        "S3-tracking-rejection",
+        3,
+        ["position_rmse"] + per_axis("rmse") + per_axis("max_error"),
+        "Scenario 3: 'more accurate trajectory tracking, stronger random uncertainty and "
+        "disturbances rejection'",
+        "position_rmse, rmse_x/y/z and max_error_x/y/z under scenario 3's 30 % mass and "
+        "inertia uncertainty and disturbances (56).",
+    ),
 ]
 
 
@@ -228,6 +216,7 @@ def compare(difference, margin_value: float) -> dict:
 
     d = np.asarray(difference, dtype=np.float64)
     summary = statistics.mean_ci(d)
+    low, high = summary["ci95"] or (0.0, 0.0)  # None: fewer than two finite values
     return {
         "difference": summary,
         "margin": float(margin_value),
@@ -236,19 +225,8 @@ def compare(difference, margin_value: float) -> dict:
             "worse": statistics.one_sided_p(d, -margin_value, "less"),
             "equivalent": statistics.equivalence_p(d, margin_value),
         },
-        "ci_rule": _ci_rule(summary),
+        "ci_rule": "better" if low > 0 else "worse" if high < 0 else "n.s.",
     }
-
-
-def _ci_rule(summary: dict) -> str:
-    ci = summary.get("ci95")
-    if ci is None:
-        return "n.s."
-    if ci[0] > 0:
-        return "better"
-    if ci[1] < 0:
-        return "worse"
-    return "n.s."
 
 
 def decide(comparisons: list[dict], alpha: float = ALPHA, adjust: bool = True) -> list[dict]:
@@ -279,11 +257,6 @@ def claim_verdict(outcomes) -> str:
     if all(o in ("better", "equivalent") for o in outcomes):
         return "equivalent within the margin"
     return "inconclusive"
-
-
-def counts(outcomes) -> dict:
-    outcomes = list(outcomes)
-    return {k: outcomes.count(k) for k in OUTCOMES}
 
 
 # ------------------------------------------------------------------ scenario claims
@@ -350,12 +323,10 @@ def evaluate_claims(summaries: dict, results_by_scenario: dict) -> list[dict]:
                 # (its results are never 'equivalent')
                 verdict_without_margin=claim_verdict(c["ci_rule"] for c in comparisons),
                 comparisons=comparisons,
-                counts=counts(outcomes),
+                counts={k: outcomes.count(k) for k in OUTCOMES},
             )
         evaluated.append(entry)
-    evaluated.append(chatter_claim(summaries))
-    evaluated.append(finite_time_claim(summaries, results_by_scenario))
-    return evaluated
+    return evaluated + [chatter_claim(summaries), finite_time_claim(summaries, results_by_scenario)]
 
 
 def paired_tables(summaries: dict, results_by_scenario: dict, metrics: list[str]) -> dict:

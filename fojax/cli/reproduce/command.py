@@ -3,8 +3,10 @@
 See :mod:`fojax.cli.reproduce` for what it writes, :mod:`.claims` for the claims and
 the verdict rule, :mod:`.report` for the report.
 
-The studies (one :class:`fojax.cli.simulate.Study` per scenario) are run and summarised
-through :func:`_run_studies` and :func:`_write_outputs` only.
+The studies (one :class:`fojax.cli.simulate.Study` per scenario) are run by
+:func:`fojax.cli.study.run_studies` (the next runs' programs compile while one runs; the
+scenarios run as members of one union, so each controller's program serves every
+scenario) and summarised by :func:`fojax.cli.simulate.write_outputs`, in :func:`main`.
 """
 
 from __future__ import annotations
@@ -31,28 +33,6 @@ up to its own horizon; ``FOJAX_UNION=0`` compiles the 15); the measured time of 
 committed example is in ``docs/reproduction.md``."""
 
 
-# ------------------------------------------------------------------- the study layer
-
-
-def _run_studies(studies, out: Path, progress: bool, overwrite: bool, announce, settings=None):
-    """Yields ``(study, results)`` scenario by scenario (:func:`fojax.cli.study.run_studies`:
-    the next runs' programs compile while one runs; the scenarios run as members of one
-    union, so each controller's program serves every scenario)."""
-    from fojax.cli import study as study_layer
-
-    pairs = [(study, out / f"s{study.scenario_id}") for study in studies]
-    yield from study_layer.run_studies(
-        pairs, progress, overwrite, announce=announce, settings=settings
-    )
-
-
-def _write_outputs(study, results: dict, directory: Path) -> dict:
-    summary = simulate.write_outputs(study, results, directory, figures=False)
-    summary["reaching_band"] = list(study.reaching_band)
-    output.write_json(directory / "summary.json", summary)
-    return summary
-
-
 # ------------------------------------------------------------------------- figures
 
 
@@ -75,8 +55,7 @@ class _FigureDrawer:
         import multiprocessing
 
         self.directory, self.progress = Path(directory), progress
-        self.futures: dict = {}
-        self.results: dict = {}
+        self.pending: dict = {}  # scenario id -> (results, the figure process's future)
         try:
             context = multiprocessing.get_context("spawn")  # no fork of a process using JAX
             self.pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=context)
@@ -84,31 +63,30 @@ class _FigureDrawer:
             self.pool = None
 
     def submit(self, scenario_id: int, results: dict) -> None:
-        self.results[scenario_id] = results
-        if self.pool is None:
-            return
-        light = {name: _without_devices(r) for name, r in results.items()}
-        self.futures[scenario_id] = self.pool.submit(
-            _draw_scenario, scenario_id, light, str(self.directory)
-        )
+        import jax
+        import numpy as np
+
+        future = None
+        if self.pool is not None:  # NumPy arrays only: picklable without JAX
+            light = {
+                name: r._replace(trajectories=jax.tree.map(np.asarray, r.trajectories))
+                for name, r in results.items()
+            }
+            future = self.pool.submit(_draw_scenario, scenario_id, light, str(self.directory))
+        self.pending[scenario_id] = (results, future)
 
     def finish(self) -> list[Path]:
-        if self.progress:
-            print("figures ...", file=sys.stderr, flush=True)
+        output.log(not self.progress, "figures ...")
         paths = []
-        for scenario_id in sorted(self.results):
-            future = self.futures.get(scenario_id)
+        for scenario_id, (results, future) in sorted(self.pending.items()):
             try:
                 drawn = future.result() if future is not None else None
             except Exception as error:  # noqa: BLE001 - the process died: draw them here
-                print(
-                    f"warning: the figure process failed ({type(error).__name__}: {error}); "
-                    "drawing the figures here",
-                    file=sys.stderr,
-                )
+                warning = f"the figure process failed ({type(error).__name__}: {error})"
+                print(f"warning: {warning}; drawing the figures here", file=sys.stderr)
                 drawn = None
             if drawn is None:
-                drawn = _draw_scenario(scenario_id, self.results[scenario_id], self.directory)
+                drawn = _draw_scenario(scenario_id, results, self.directory)
             paths.extend(Path(p) for p in drawn)
         self.close()
         return paths
@@ -117,14 +95,6 @@ class _FigureDrawer:
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
             self.pool = None
-
-
-def _without_devices(result):
-    """A result holding NumPy arrays only (picklable without JAX)."""
-    import jax
-    import numpy as np
-
-    return result._replace(trajectories=jax.tree.map(np.asarray, result.trajectories))
 
 
 # ----------------------------------------------------------------------- arguments
@@ -201,8 +171,7 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
     band = claims_module.reaching_band(args.dt)
     studies = []
     for scenario_id in args.scenarios:
-        scenario = scenarios.get_scenario(scenario_id)
-        horizon = args.horizon if args.horizon is not None else scenario.horizon
+        horizon = args.horizon or scenarios.get_scenario(scenario_id).horizon  # horizon > 0
         steps = arguments.horizon_steps(parser, horizon, args.dt, example=False)
         studies.append(
             simulate.Study(
@@ -232,6 +201,8 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
 
 
 def main(argv=None) -> int:
+    from fojax.cli import study as study_layer
+
     argv = list(sys.argv[1:] if argv is None else argv)
     runtime = arguments.setup_runtime(argv, "fojax reproduce")
     studies, args = parse_args(argv)
@@ -244,24 +215,28 @@ def main(argv=None) -> int:
     results_by_scenario, summaries = {}, {}
 
     def announce(study):
-        if progress:
-            index = [s.scenario_id for s in studies].index(study.scenario_id)
-            print(
-                f"scenario {study.scenario_id} ({index + 1}/{len(studies)}): "
-                f"{len(study.controllers)} controllers x {study.draws} draws, "
-                f"{study.horizon:g} s; {time.perf_counter() - start:.0f} s so far",
-                file=sys.stderr,
-                flush=True,
-            )
+        index = [s.scenario_id for s in studies].index(study.scenario_id)
+        output.log(
+            not progress,
+            f"scenario {study.scenario_id} ({index + 1}/{len(studies)}): "
+            f"{len(study.controllers)} controllers x {study.draws} draws, "
+            f"{study.horizon:g} s; {time.perf_counter() - start:.0f} s so far",
+        )
 
     drawer = _FigureDrawer(out / "figures", progress) if lead and not args.no_figures else None
+    pairs = [(study, out / f"s{study.scenario_id}") for study in studies]
     try:
-        runs = _run_studies(studies, out, progress, args.overwrite, announce, runtime["settings"])
+        runs = study_layer.run_studies(
+            pairs, progress, args.overwrite, announce=announce, settings=runtime["settings"]
+        )
         for study, results in runs:
             results_by_scenario[study.scenario_id] = results
             if lead:
                 directory = out / f"s{study.scenario_id}"
-                summaries[study.scenario_id] = _write_outputs(study, results, directory)
+                summary = simulate.write_outputs(study, results, directory, figures=False)
+                summary["reaching_band"] = list(study.reaching_band)
+                output.write_json(directory / "summary.json", summary)
+                summaries[study.scenario_id] = summary
                 if drawer is not None:  # while the next scenario runs
                     drawer.submit(study.scenario_id, results)
     except (KeyboardInterrupt, ValueError) as error:
@@ -273,14 +248,9 @@ def main(argv=None) -> int:
     figures = drawer.finish() if drawer is not None else []
     claims = claims_module.evaluate_claims(summaries, results_by_scenario)
     tables = claims_module.paired_tables(summaries, results_by_scenario, TABLE_METRICS)
-    settings = {
-        "draws": args.draws,
-        "seed": args.seed,
+    given = ("draws", "seed", "scenarios", "switching", "fractional", "dt", "dtype")
+    settings = {key: getattr(args, key) for key in given} | {
         "scenarios": list(args.scenarios),
-        "switching": args.switching,
-        "fractional": args.fractional,
-        "dt": args.dt,
-        "dtype": args.dtype,
         "horizons_s": {str(s.scenario_id): s.horizon for s in studies},
         "controllers": list(studies[0].controllers),
         "reaching_band": list(studies[0].reaching_band),

@@ -32,13 +32,18 @@ import numpy as np
 
 from fojax.cli import style
 from fojax.cli.figures import (
+    INPUTS,
+    block_length,
     controller_handles,
+    estimate_handles,
+    finish,
     inputs_envelope,
     kept_valid,
-    label_axes,
     path_figure,
     six_panels,
     time_grid,
+    times,
+    tracking_grid,
 )
 
 __all__ = ["FIGURE_NUMBERS", "plot_all"]
@@ -61,44 +66,26 @@ def _reference_velocity(scenario_id: int, times: np.ndarray) -> np.ndarray:
     return np.asarray(jax.vmap(velocity)(jnp.asarray(times, jnp.float32)))
 
 
-def _handles(results: dict, reference: bool = True, extra=()):
+def _handles(results: dict) -> list:
+    """The legend: the controllers of ``results`` and the reference."""
     from matplotlib.lines import Line2D
 
-    handles = controller_handles(results)
-    if reference:
-        handles.append(
-            Line2D([], [], color=style.REFERENCE_COLOR, ls="--", lw=1.2, label="reference")
-        )
-    return handles + list(extra)
+    reference = Line2D([], [], color=style.REFERENCE_COLOR, ls="--", lw=1.2, label="reference")
+    return controller_handles(results) + [reference]
 
 
-def _finish(
-    fig, path: Path, title: str, results: dict, handles, spread=None, axes=None, ylabels=()
-):
-    """Title with the true draw counts, legend below the axes, PNG and PDF; with
-    ``axes`` (a grid of time plots), :func:`fojax.cli.figures.label_axes` first."""
-    if axes is not None:
-        label_axes(axes, ylabels)
-    spread = spread or style.draws_caption(results).replace(
-        "the statistics in summary.json", "the tables"
-    )
-    style.suptitle(fig, title, spread)
-    style.legend_below(fig, handles)
-    return style.save(fig, path, quantize=True)
+def _finish(fig, path: Path, title: str, results: dict, handles, *curves, **grid):
+    """:func:`fojax.cli.figures.finish` (``grid``: its ``axes`` and ``ylabels``) with the
+    true draw counts in the caption (:func:`fojax.cli.style.draws_caption`, of ``curves``
+    when given), the PNG quantized."""
+    caption = style.draws_caption(results, *curves, statistics="the tables")
+    return finish(fig, path, title, caption, handles, quantize=True, **grid)
 
 
 def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> Path:
     """Fig. 5/9/13: (a) position tracking, (b) attitude tracking."""
-    fig, axes = time_grid(3, 2, (11, 8))
-    first = next(iter(results.values())).trajectories
-    t = np.asarray(first.time[0])
-    for i, (name, result) in enumerate(results.items()):
-        state = kept_valid(result, result.trajectories.state)
-        for axis, ax in enumerate(six_panels(axes)):
-            style.band(ax, t, state[:, :, axis], style.color(name, i))
-    for axis in range(3):
-        style.reference(axes[axis, 0], t, first.reference[0, :, axis])
-    style.reference(axes[2, 1], t, first.reference[0, :, 3])
+    reference = np.asarray(next(iter(results.values())).trajectories.reference[0])
+    fig, axes, _ = tracking_grid(results, reference)
     labels = ["x (m)", "y (m)", "z (m)", "phi (rad)", "theta (rad)", "psi (rad)"]
     axes[0, 0].set_title("(a) Position tracking", fontsize=9)
     axes[0, 1].set_title("(b) Attitude tracking (phi, theta sampled every snapshot)", fontsize=9)
@@ -109,8 +96,7 @@ def plot_tracking(results: dict, path: Path, number: int, scenario_id: int) -> P
 def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int) -> Path:
     """Fig. 6/10/14: (a) control inputs, (b) position and velocity tracking errors."""
     fig, axes = time_grid(4, 2, (11, 9))
-    first = next(iter(results.values())).trajectories
-    t = np.asarray(first.time[0])
+    t = times(next(iter(results.values())))
     reference_velocity = _reference_velocity(scenario_id, t)
     colors = {name: style.color(name, i) for i, name in enumerate(results)}
     envelopes = {name: inputs_envelope(result) for name, result in results.items()}
@@ -136,28 +122,25 @@ def plot_inputs_errors(results: dict, path: Path, number: int, scenario_id: int)
         velocity = kept_valid(result, tr.state)[:, :, 6:9]
         velocity_error = np.linalg.norm(velocity - reference_velocity[None], axis=-1)
         style.band(axes[3, 1], t, velocity_error, colors[name])
-    inputs = ["u_F (N)", "tau_x (N m)", "tau_y (N m)", "tau_z (N m)"]
     errors = ["e_x (m)", "e_y (m)", "e_z (m)", "|e_v| (m/s)"]
     for row in range(4):
-        axes[row, 0].set_ylabel(inputs[row])
+        axes[row, 0].set_ylabel(INPUTS[row])
         axes[row, 1].set_ylabel(errors[row])
         axes[row, 1].axhline(0.0, color="0.4", lw=0.6, zorder=1)
-    block = float(t[1] - t[0]) if t.size > 1 else float("nan")
     axes[0, 0].set_title(
-        f"(a) Control inputs: each command's range within every {block:g} s block "
+        f"(a) Control inputs: each command's range within every {block_length(t):g} s block "
         "(median over draws)",
         fontsize=9,
     )
     axes[0, 1].set_title("(b) Tracking errors (position; velocity error norm)", fontsize=9)
     title = f"Fig. {number}: Control inputs & tracking errors in Scenario {scenario_id}"
-    return _finish(fig, path, title, results, _handles(results, reference=False), axes=axes)
+    return _finish(fig, path, title, results, controller_handles(results), axes=axes)
 
 
 def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: int = 3) -> Path:
     """Fig. 7/11/15: (a) 3-D path, (b) 2-D path; median path bold, a few draws faint."""
     fig, ax3, ax2 = path_figure(6)
-    first = next(iter(results.values())).trajectories
-    ref = np.asarray(first.reference[0])
+    ref = np.asarray(next(iter(results.values())).trajectories.reference[0])
     for i, (name, result) in enumerate(results.items()):
         state = kept_valid(result, result.trajectories.state)
         if state.shape[0] == 0:
@@ -173,12 +156,7 @@ def plot_paths(results: dict, path: Path, number: int, scenario_id: int, faint: 
     ax3.set_title("(a) 3-D trajectory tracking", fontsize=9)
     ax2.set_title(f"(b) 2-D trajectory tracking (faint: {faint} single draws)", fontsize=9)
     title = f"Fig. {number}: Path following performance in Scenario {scenario_id}"
-    spread = (
-        style.draws_caption(results)
-        .replace("median and 5-95 % band", "median path")
-        .replace("the statistics in summary.json", "the tables")
-    )
-    return _finish(fig, path, title, results, _handles(results), spread)
+    return _finish(fig, path, title, results, _handles(results), "median path")
 
 
 ADAPTIVE = {"afonftsmc": ("b0", "b1", "b2"), "anftsmc": ("a0", "a1", "a2")}
@@ -188,11 +166,8 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
     """Fig. 8/12/16: adaptive estimates, (a) position axes, (b) attitude axes: each
     controller in its colour, one line style per estimate (solid b0/a0, dashed b1/a1,
     dotted b2/a2)."""
-    from matplotlib.lines import Line2D
-
     fig, axes = time_grid(3, 2, (11, 8))
-    first = next(iter(results.values())).trajectories
-    t = np.asarray(first.time[0])
+    t = times(next(iter(results.values())))
     shown = {}
     for index, (name, result) in enumerate(results.items()):
         if name not in ADAPTIVE:
@@ -212,17 +187,12 @@ def plot_parameters(results: dict, path: Path, number: int, scenario_id: int) ->
                     ax.fill_between(t, low, high, color=color, alpha=0.12, lw=0, zorder=2)
     axes[0, 0].set_title("(a) Parameters position", fontsize=9)
     axes[0, 1].set_title("(b) Parameters attitude", fontsize=9)
-    styles = [
-        Line2D(
-            [], [], color="0.3", ls=ls, lw=1.1, label=" / ".join(s[j] for s in ADAPTIVE.values())
-        )
-        for j, ls in enumerate(style.ESTIMATE_STYLES)
-    ]
+    styles = estimate_handles(" / ".join(s[j] for s in ADAPTIVE.values()) for j in range(3))
     title = (
         f"Fig. {number}: Parameters estimation in Scenario {scenario_id} "
         "(AFONFTSMC b-hat, ANFTSMC a-hat; band: AFONFTSMC 5-95 %)"
     )
-    handles = _handles(shown or results, reference=False, extra=styles)
+    handles = controller_handles(shown or results) + styles
     labels = [f"{axis} estimates" for axis in ("x", "y", "z", "phi", "theta", "psi")]
     return _finish(fig, path, title, shown or results, handles, axes=axes, ylabels=labels)
 

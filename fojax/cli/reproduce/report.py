@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from fojax.cli import output
-from fojax.cli.reproduce import claims as claims_module
+from fojax.cli.reproduce import claims as rule
 from fojax.cli.reproduce.claims import BASELINE, CHATTER_THRESHOLD, per_axis
 from fojax.records import atomic_write
 
@@ -61,9 +61,7 @@ def _cell(stats: dict) -> str:
 
 
 def _rule_lines(settings: dict) -> list[str]:
-    floors = claims_module.MARGIN_FLOORS
-    alpha = claims_module.ALPHA
-    relative = claims_module.RELATIVE_MARGIN
+    floors, alpha = rule.MARGIN_FLOORS, rule.ALPHA
     return [
         "### The verdict rule",
         "",
@@ -73,8 +71,8 @@ def _rule_lines(settings: dict) -> list[str]:
         f"d > 0 means the {BASELINE} is better.",
         "",
         f"*Margin of practical relevance* per comparison: delta = max(floor, "
-        f"{relative * 100:g} % of the {BASELINE}'s mean of the metric), with the floors "
-        f"{floors['m']:g} m, {floors['rad']:g} rad, {floors['s']:g} s, "
+        f"{rule.RELATIVE_MARGIN * 100:g} % of the {BASELINE}'s mean of the metric), with the "
+        f"floors {floors['m']:g} m, {floors['rad']:g} rad, {floors['s']:g} s, "
         f"{floors['1']:g} for a fraction of the run; for an integral of the error the "
         f"integral of a constant error at the floor over the run (floor T for IAE, "
         "floor T^2/2 for ITAE: 3.2 m s^2 over 80 s); forces and torques relative only. "
@@ -104,7 +102,7 @@ def _rule_lines(settings: dict) -> list[str]:
         "",
         "*Finite-time convergence*: the AFONFTSMC's sliding variable of each axis enters "
         "|S| <= band and stays there from before half the run to its end, in every draw, "
-        f"axis and scenario, with band = {claims_module.REACHING_BAND_FACTOR:g} (h1 + mu) "
+        f"axis and scenario, with band = {rule.REACHING_BAND_FACTOR:g} (h1 + mu) "
         f"dt per axis ({_band_text(settings)}). Switching at a fixed step moves S by about "
         "(h1 + mu) dt per step, so `sgn` leaves S chattering in a band of that width "
         "however well the surface is held: a smaller band cannot be kept by construction.",
@@ -132,7 +130,8 @@ def _applied(summary: dict, option: str) -> str:
 
 
 def _scenario_section(summary: dict, table: dict | None) -> list[str]:
-    names = list(summary["controllers"])
+    controllers = summary["controllers"]
+    names = list(controllers)
     lines = [
         f"### Scenario {summary['scenario']}",
         "",
@@ -146,18 +145,16 @@ def _scenario_section(summary: dict, table: dict | None) -> list[str]:
         "",
         *_head(["metric", "unit", *names]),
     ]
-    first = summary["controllers"][names[0]]["metrics"]
     for metric in TABLE_METRICS:
-        cells = [_cell(summary["controllers"][n]["metrics"][metric]) for n in names]
-        lines.append(_row([metric, first[metric]["unit"], *cells]))
-    diverged = [str(summary["controllers"][n]["diverged"]) for n in names]
+        cells = [_cell(controllers[n]["metrics"][metric]) for n in names]
+        lines.append(_row([metric, controllers[names[0]]["metrics"][metric]["unit"], *cells]))
+    diverged = [str(controllers[n]["diverged"]) for n in names]
     lines.append("| diverged draws | | " + " | ".join(diverged) + " |")
-    wall = [f"{summary['controllers'][n].get('wall_time_s', float('nan')):.0f}" for n in names]
+    wall = [f"{controllers[n].get('wall_time_s', float('nan')):.0f}" for n in names]
     lines.append("| wall time | s | " + " | ".join(wall) + " |")
     if not table:
-        lines.append("")
-        return lines
-    lines += [
+        return lines + [""]
+    return lines + [
         "",
         f"Paired differences, controller minus {BASELINE} on the same draw (mean [95 % CI]), "
         "against the margin delta, each comparison decided on its own (no multiplicity "
@@ -168,7 +165,6 @@ def _scenario_section(summary: dict, table: dict | None) -> list[str]:
         *_differences(TABLE_METRICS, table),
         "",
     ]
-    return lines
 
 
 def _differences(metrics, table: dict) -> list[str]:
@@ -180,20 +176,6 @@ def _differences(metrics, table: dict) -> list[str]:
         cells = [f"{_cell(c['difference'])} {MARK[c['outcome']]}" for c in row]
         lines.append(_row([metric, _fmt(row[0]["margin"]), *cells]))
     return lines
-
-
-def _comparison_table(claim: dict) -> list[str]:
-    table = {}
-    for c in claim["comparisons"]:
-        table.setdefault(c["controller"], {})[c["metric"]] = c
-    head = "(S2 - S1) difference" if claim.get("delta_from") else "difference"
-    return [
-        f"Per comparison: {head}, controller minus {BASELINE} (mean [95 % CI]), and its "
-        "outcome (Holm-adjusted over the claim):",
-        "",
-        *_differences(claim["metrics"], table),
-        "",
-    ]
 
 
 def _claim_section(claim: dict) -> list[str]:
@@ -217,8 +199,18 @@ def _claim_section(claim: dict) -> list[str]:
                 for x in worse
             )
             lines.append(f"Worse: {items}.")
-        lines.append("")
-        lines += _comparison_table(claim)
+        table = {}
+        for x in claim["comparisons"]:
+            table.setdefault(x["controller"], {})[x["metric"]] = x
+        head = "(S2 - S1) difference" if claim.get("delta_from") else "difference"
+        lines += [
+            "",
+            f"Per comparison: {head}, controller minus {BASELINE} (mean [95 % CI]), and its "
+            "outcome (Holm-adjusted over the claim):",
+            "",
+            *_differences(claim["metrics"], table),
+            "",
+        ]
     if claim["id"] == "R2-chatter-free":
         lines += [
             "Mean change per control step relative to the input's RMS "
@@ -233,6 +225,7 @@ def _claim_section(claim: dict) -> list[str]:
             lines.append(_row([str(row["scenario"]), row["controller"], *cells, free]))
         lines.append("")
     if claim["id"] == "C-finite-time":
+        head = ["scenario", "axis", "band", "reached", "kept from the first half"]
         lines += [
             f"The {BASELINE}'s sliding variables, per scenario and axis: the band; in how "
             "many draws |S| is in the band at the end of the run (reached) and in it from "
@@ -240,17 +233,15 @@ def _claim_section(claim: dict) -> list[str]:
             "which |S| stays in the band (mean [95 % CI] over the draws that reach it); the "
             "eq. (34) bound from S(0) (mean over the draws):",
             "",
-            "| scenario | axis | band | reached | kept from the first half | reaching time (s) "
-            "| eq. (34) bound (s) |",
-            "|---|---|---|---|---|---|---|",
+            *_head([*head, "reaching time (s)", "eq. (34) bound (s)"]),
         ]
-        lines += [
-            f"| {row['scenario']} | {row['axis']} | {_fmt(row['band'])} | "
-            f"{row['reached']}/{row['valid_draws']} | "
-            f"{row['kept_from_first_half']}/{row['valid_draws']} | "
-            f"{_cell(row['reaching_time_s'])} | {_fmt(row['bound_34_s']['mean'])} |"
-            for row in claim["rows"]
-        ] + [""]
+        for row in claim["rows"]:
+            valid = row["valid_draws"]
+            counts = [f"{row['reached']}/{valid}", f"{row['kept_from_first_half']}/{valid}"]
+            cells = [str(row["scenario"]), row["axis"], _fmt(row["band"]), *counts]
+            cells += [_cell(row["reaching_time_s"]), _fmt(row["bound_34_s"]["mean"])]
+            lines.append(_row(cells))
+        lines.append("")
     return lines
 
 
@@ -269,11 +260,10 @@ def write_report(
     controller -> metric -> comparison) for the per-scenario difference tables.
     """
     tables = tables or {}
+    report_md, report_json = out / "report.md", out / "report.json"
     lines = _markdown(out, summaries, claims, settings, figures, wall_time, tables)
-    report_md = out / "report.md"
     atomic_write(report_md, "\n".join(lines) + "\n")
     document = _document(summaries, claims, settings, figures, wall_time, tables)
-    report_json = out / "report.json"
     output.write_json(report_json, document, default=_json_default)
     return report_md, report_json
 
@@ -305,7 +295,7 @@ def _markdown(out, summaries, claims, settings, figures, wall_time, tables) -> l
     ]
     for claim in claims:
         c = claim.get("counts")
-        tally = " / ".join(str(c[k]) for k in claims_module.OUTCOMES) if c else ""
+        tally = " / ".join(str(c[k]) for k in rule.OUTCOMES) if c else ""
         without = claim.get("verdict_without_margin", claim["verdict"])
         lines.append(_row([claim["text"], f"**{claim['verdict']}**", tally, without]))
     lines += [""] + _rule_lines(settings)
@@ -335,30 +325,26 @@ def _markdown(out, summaries, claims, settings, figures, wall_time, tables) -> l
 
 def _document(summaries, claims, settings, figures, wall_time, tables) -> dict:
     """``report.json``: the settings, the rule, the claims, each scenario's tables."""
-
-    def scalar_tables(summary):
-        return {
-            name: {m: entry["metrics"][m] for m in TABLE_METRICS}
-            | {"diverged": entry["diverged"], "wall_time_s": entry.get("wall_time_s")}
-            for name, entry in summary["controllers"].items()
-        }
-
     return {
         "settings": settings,
         "wall_time_s": round(wall_time, 1),
         "baseline": BASELINE,
         "rule": {
-            "alpha": claims_module.ALPHA,
-            "relative_margin": claims_module.RELATIVE_MARGIN,
-            "margin_floors": claims_module.MARGIN_FLOORS,
+            "alpha": rule.ALPHA,
+            "relative_margin": rule.RELATIVE_MARGIN,
+            "margin_floors": rule.MARGIN_FLOORS,
             "multiplicity": "Holm over the 3 p-values of each of a claim's comparisons",
-            "reaching_band_factor": claims_module.REACHING_BAND_FACTOR,
+            "reaching_band_factor": rule.REACHING_BAND_FACTOR,
             "chatter_threshold": CHATTER_THRESHOLD,
         },
         "claims": claims,
         "scenarios": {
             str(sid): {
-                "metrics": scalar_tables(summary),
+                "metrics": {
+                    name: {m: entry["metrics"][m] for m in TABLE_METRICS}
+                    | {"diverged": entry["diverged"], "wall_time_s": entry.get("wall_time_s")}
+                    for name, entry in summary["controllers"].items()
+                },
                 "paired_differences": {
                     other: {m: row[m] for m in TABLE_METRICS}
                     for other, row in tables.get(sid, {}).items()
