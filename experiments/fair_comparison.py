@@ -188,13 +188,8 @@ def evaluate(args, objectives: dict, points: dict) -> dict:
         scenario = scenarios.get_scenario(k)
         horizon = args.eval_horizon or scenario.horizon
         own = None if k == args.scenario else scenario  # None: the objectives' own (compiled)
-        costs = {
-            name: {
-                which: _common.draw_costs(objectives[name], x, keys, horizon, own)
-                for which, x in p.items()
-            }
-            for name, p in points.items()
-        }
+        draw = functools.partial(_common.draw_costs, keys=keys, horizon=horizon, scenario=own)
+        costs = {n: {w: draw(objectives[n], x) for w, x in p.items()} for n, p in points.items()}
         base = costs[BASELINE]["tuned"]
         evaluation[f"scenario {k}"] = {
             "horizon_s": horizon,
