@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import sys
 import time
 
@@ -53,69 +54,50 @@ TERMS = ("position", "attitude", "effort", "chattering")
 """The cost's terms, in the order of :class:`experiments._common.DrawCosts` ``terms``."""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = _common.parser("fair_comparison")
-    parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
-    _common.add_numbers(
-        parser,
-        horizon=(10.0, "tuning horizon (s)"),
-        draws=(16, "draws per sample (auto: 8 fresh ones per generation)"),
-        steps=(50, "steps (CMA-ES: generations)"),
-    )
-    parser.add_argument(
-        "--method", choices=METHODS, default="auto", help="fojax tune's methods (auto)"
-    )
-    _common.add_numbers(
-        parser, switch=(None, "CMA-ES generations before L-BFGS (8; cma-lbfgs only)")
-    )
-    _common.add_numbers(parser, learning_rate=(None, "Adam's step (0.1; --method adam only)"))
-    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
-    parser.add_argument("--controllers", help="comma-separated names (default: all registered)")
-    _common.add_numbers(parser, eval_draws=64)
-    parser.add_argument(
-        "--eval-scenarios",
-        type=arguments.scenario_ids,
-        default=(1, 2, 3),
-        help="comma-separated scenario ids for the evaluation (default 1,2,3)",
-    )
-    _common.add_numbers(parser, eval_horizon=(None, "s (default: each scenario's)"))
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    block = "markdown file whose <!-- fair-comparison:begin/end --> block to replace"
-    _common.add_outputs(parser, "fair_comparison", update_doc=block)
-    return parser
-
-
 def parse_args(argv) -> argparse.Namespace:
     """Validated arguments; exits with a message naming what to change."""
     from fojax.controllers import registry
 
-    parser = build_parser()
+    parser = _common.parser("fair_comparison")
+    number = functools.partial(_common.add_numbers, parser)
+    parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
+    number(horizon=(10.0, "tuning horizon (s)"))
+    number(draws=(16, "draws per sample (auto: 8 fresh ones per generation)"))
+    number(steps=(50, "steps (CMA-ES: generations)"))
+    parser.add_argument(
+        "--method", choices=METHODS, default="auto", help="fojax tune's methods (auto)"
+    )
+    number(switch=(None, "CMA-ES generations before L-BFGS (8; cma-lbfgs only)"))
+    number(learning_rate=(None, "Adam's step (0.1; --method adam only)"))
+    parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
+    parser.add_argument("--controllers", help="comma-separated names (default: all registered)")
+    number(eval_draws=64)
+    scenarios = "comma-separated scenario ids for the evaluation (default 1,2,3)"
+    parser.add_argument(
+        "--eval-scenarios", type=arguments.scenario_ids, default=(1, 2, 3), help=scenarios
+    )
+    number(eval_horizon=(None, "s (default: each scenario's)"))
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    block = "markdown file whose <!-- fair-comparison:begin/end --> block to replace"
+    _common.add_outputs(parser, "fair_comparison", update_doc=block)
     args = parser.parse_args(argv)
     if args.learning_rate is not None and args.method != "adam":
         parser.error(
             f"--learning-rate applies to --method adam only, not to --method {args.method}; "
             "leave it out or add --method adam"
         )
-    if args.learning_rate is None:
-        args.learning_rate = 0.1
+    args.learning_rate = args.learning_rate or 0.1
     if args.switch is not None and args.method != "cma-lbfgs":
         parser.error(f"--switch applies to --method cma-lbfgs only, not to --method {args.method}")
     known = registry.controller_names()
-    if args.controllers is None:
-        args.controllers = tuple(known)
-    else:
-        names = _common.listed(args.controllers)
-        unknown = [n for n in names if n not in known]
-        if unknown or not names:
-            parser.error(
-                f"--controllers must be among {', '.join(known)}, got {args.controllers!r}"
-            )
-        if BASELINE not in names:
-            parser.error(f"--controllers must include {BASELINE} (the comparison's baseline)")
-        args.controllers = (BASELINE,) + tuple(n for n in names if n != BASELINE)
+    names = known if args.controllers is None else _common.listed(args.controllers)
+    if not names or set(names) - set(known):
+        parser.error(f"--controllers must be among {', '.join(known)}, got {args.controllers!r}")
+    if BASELINE not in names:
+        parser.error(f"--controllers must include {BASELINE} (the comparison's baseline)")
+    args.controllers = (BASELINE,) + tuple(n for n in names if n != BASELINE)
     if args.tiny:
-        args.horizon, args.draws, args.steps = 0.3, 3, 2
-        args.dtype, args.eval_draws = "float64", 3
+        vars(args).update(horizon=0.3, draws=3, steps=2, dtype="float64", eval_draws=3)
         args.eval_horizon = args.eval_horizon or 0.3
         args.eval_scenarios = (args.scenario,)
         args.switch = args.switch or 1  # both of cma-lbfgs's phases
@@ -146,11 +128,11 @@ def tune(args, index: int, name: str):
     )  # fmt: skip
     run_dir = args.out / "tuning" / name
     found = (run_dir / optimize.CHECKPOINT).exists()
+    goes_on = " (its checkpoint goes on if of these settings and code)" if found else ""
     output.log(
         args.quiet,
         f"[{index}/{len(args.controllers)}] tuning {name} ({args.method}): {args.steps} steps "
-        f"x {spec.draws} draws x {spec.horizon:g} s"
-        + (" (its checkpoint goes on if of these settings and code)" if found else ""),
+        f"x {spec.draws} draws x {spec.horizon:g} s{goes_on}",
     )
     t0 = time.perf_counter()
     budget = optimize.Budget(steps=args.steps)
@@ -184,68 +166,55 @@ def _compare(by_gains: dict, base) -> dict:
             "terms_mean": dict(zip(TERMS, np.nanmean(terms, 0).tolist(), strict=True)),
             "diverged": int(np.sum(c.diverged)),
         }
-    tuned = by_gains["tuned"]
-    record["tuned_minus_default"] = statistics.paired_difference(
-        tuned.cost, by_gains["default"].cost
-    )
+    tuned, difference = by_gains["tuned"], statistics.paired_difference
+    record["tuned_minus_default"] = difference(tuned.cost, by_gains["default"].cost)
     if base is not None:
-        record["tuned_minus_baseline"] = statistics.paired_difference(tuned.cost, base.cost)
+        record["tuned_minus_baseline"] = difference(tuned.cost, base.cost)
         record["baseline_better_fraction"] = float(np.mean(base.cost < tuned.cost))
-        record["position_term_minus_baseline"] = statistics.paired_difference(
-            tuned.terms[:, 0], base.terms[:, 0]
-        )
+        record["position_term_minus_baseline"] = difference(tuned.terms[:, 0], base.terms[:, 0])
     return record
 
 
-def evaluate(args, objectives: dict, points: dict, scenario_id: int, keys) -> dict:
-    """Every controller's default and tuned points on the held-out draws ``keys`` of
-    scenario ``scenario_id``, compared with the tuned baseline's."""
+def evaluate(args, objectives: dict, points: dict) -> dict:
+    """Every controller's default and tuned points on the same held-out draws of each
+    scenario of ``--eval-scenarios``, compared with the tuned baseline's."""
     from fojax import scenarios
-
-    scenario = scenarios.get_scenario(scenario_id)
-    horizon = args.eval_horizon or scenario.horizon
-    own = scenario_id == args.scenario  # the objectives' own scenario (compiled)
-    costs = {
-        name: {
-            which: _common.draw_costs(objectives[name], x, keys, horizon, None if own else scenario)
-            for which, x in points[name].items()
-        }
-        for name in args.controllers
-    }
-    base = costs[BASELINE]["tuned"]
-    controllers = {n: _compare(c, None if n == BASELINE else base) for n, c in costs.items()}
-    return {"horizon_s": horizon, "draws": args.eval_draws, "controllers": controllers}
-
-
-def _doc_head(argv, results: dict) -> str:
-    context = output.run_context(["python", "-m", "experiments.fair_comparison", *(argv or [])])
-    return (
-        f"Run: `{context['command']}`; commit {output.commit_label(context)}, "
-        f"{context.get('cpu_model')}, load average {context['load_average'][0]} at the end; "
-        f"{results['total_wall_time_s']:.0f} s in all (tuning resumed from checkpoints "
-        "counts only the steps this invocation ran)."
-    )
-
-
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    _common.enable_float64(args.dtype == "float64")
-    from fojax.controllers import gains_io
     from fojax.optimize import draw_keys
 
-    start_all = time.perf_counter()
-    args.out.mkdir(parents=True, exist_ok=True)
-    # -- tuning: the same problem, method, budget and settings for every controller -----
-    objectives, points, tuning = {}, {}, {}
-    for index, name in enumerate(args.controllers, 1):
-        objectives[name], points[name], tuning[name] = tune(args, index, name)
-    # -- evaluation on the same held-out draws ----------------------------------------
     keys = draw_keys(args.seed, "heldout", args.eval_draws)
     evaluation = {}
     for k in args.eval_scenarios:
         t0 = time.perf_counter()
-        evaluation[f"scenario {k}"] = evaluate(args, objectives, points, k, keys)
+        scenario = scenarios.get_scenario(k)
+        horizon = args.eval_horizon or scenario.horizon
+        own = None if k == args.scenario else scenario  # None: the objectives' own (compiled)
+        draw = functools.partial(_common.draw_costs, keys=keys, horizon=horizon, scenario=own)
+        costs = {n: {w: draw(objectives[n], x) for w, x in p.items()} for n, p in points.items()}
+        base = costs[BASELINE]["tuned"]
+        evaluation[f"scenario {k}"] = {
+            "horizon_s": horizon,
+            "draws": args.eval_draws,
+            "controllers": {
+                n: _compare(c, None if n == BASELINE else base) for n, c in costs.items()
+            },
+        }
         output.log(args.quiet, f"evaluated scenario {k} ({time.perf_counter() - t0:.0f} s)")
+    return evaluation
+
+
+def main(argv=None) -> int:
+    """Tune every controller alike, evaluate and write ``results.json`` and ``table.md``;
+    the document's block with ``--update-doc``."""
+    args = parse_args(argv)
+    _common.enable_float64(args.dtype == "float64")
+    from fojax.controllers import gains_io
+
+    start_all = time.perf_counter()
+    args.out.mkdir(parents=True, exist_ok=True)
+    objectives, points, tuning = {}, {}, {}
+    for index, name in enumerate(args.controllers, 1):
+        objectives[name], points[name], tuning[name] = tune(args, index, name)
+    evaluation = evaluate(args, objectives, points)
     results = {
         "problem": {
             "scenario": args.scenario,
@@ -267,8 +236,15 @@ def main(argv=None) -> int:
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
         "code": _common.code(),
     }
-    text = table(results)
-    doc_text = None if args.update_doc is None else _doc_head(argv, results) + "\n\n" + text
+    text = doc_text = table(results)
+    if args.update_doc is not None:
+        p = output.run_context(["python", "-m", "experiments.fair_comparison", *(argv or [])])
+        doc_text = (
+            f"Run: `{p['command']}`; commit {output.commit_label(p)}, {p.get('cpu_model')}, "
+            f"load average {p['load_average'][0]} at the end; "
+            f"{results['total_wall_time_s']:.0f} s in all (tuning resumed from checkpoints "
+            f"counts only the steps this invocation ran).\n\n{text}"
+        )
     wrote = f" ({results['total_wall_time_s']:.0f} s in all)"
     return _common.finish(
         args.out, results, text, args.update_doc, "fair-comparison", doc_text, wrote
@@ -288,15 +264,13 @@ def table(results: dict) -> str:
     """Markdown tables: held-out cost of default and tuned gains, and paired differences."""
     evaluation = results["evaluation"]
     labels = list(evaluation)
-    names = list(next(iter(evaluation.values()))["controllers"])
+    controllers = [evaluation[label]["controllers"] for label in labels]
+    names = list(controllers[0])
     columns = [f"{label} ({evaluation[label]['horizon_s']:g} s)" for label in labels]
     lines = _common.table_head("controller | gains | " + " | ".join(columns))
     for name in names:
         for which in ("default", "tuned"):
-            cells = [
-                _common.mean_cell(evaluation[label]["controllers"][name][which], "diverged")
-                for label in labels
-            ]
+            cells = [_common.mean_cell(c[name][which], "diverged") for c in controllers]
             lines.append(f"| {name} | {which} | " + " | ".join(cells) + " |")
     total = f"Tuned cost minus the tuned {BASELINE}'s on the same draw (mean [95 % CI]):"
     position = "Position term alone (ISE of the position error, m^2 s), tuned minus the tuned "
@@ -307,7 +281,7 @@ def table(results: dict) -> str:
     for title, key, fraction in paired:
         lines += ["", title, "", *_common.table_head("controller | " + " | ".join(labels))]
         for name in names[1:]:
-            records = [evaluation[label]["controllers"][name] for label in labels]
+            records = [c[name] for c in controllers]
             cells = [_difference(r[key], r[fraction] if fraction else None) for r in records]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     tuning = results["tuning"]

@@ -61,16 +61,14 @@ def _measure(horizon: float, draws: int, block: str, execute: bool) -> dict:
 
 def measure(horizon: float, draws: int, block: str, execute: bool) -> dict:
     """:func:`_measure` in a fresh process (``spawn``: nothing of this one carried over)."""
-    context = multiprocessing.get_context("spawn")
-    with context.Pool(1) as pool:
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
         return pool.apply(_measure, (horizon, draws, block, execute))
 
 
 def main(argv=None) -> int:
     parser = _common.parser("tune_memory")
     parser.add_argument("--horizons", type=float, nargs="+", default=[5, 10, 20, 40, 80])
-    parser.add_argument("--draws", type=int, default=256)
-    parser.add_argument("--execute-up-to", type=float, default=10.0)
+    _common.add_numbers(parser, int, float, draws=256, execute_up_to=10.0)
     choices = (
         "block choices: auto (checkpoint_interval), a number of steps, or full "
         "(one block: no rematerialisation across the horizon)"

@@ -74,6 +74,10 @@ __all__ = ["main", "unseen_reference"]
 
 VALIDATION_OFFSET = 100_000  # the curves' draws: held-out indices from here on
 TUNERS = ("default", "gradient", "cma-es", "nelder-mead")
+LEFT_OUT = ("out", "update_doc", "quiet")  # the arguments that are no tuner setting
+CELLS = ("{2:.4g} ({0:.2g})", "{2:.4g} ({0:.2g}, {1:.0f} s)", "{2:.4g} ({1:.0f} s)")
+"""Convergence cells of a curve point ``(draw-steps, wall time, cost)``: the cost at a
+number of draw-steps; at the end or the best, both; at a wall time."""
 
 
 def unseen_reference(t):
@@ -85,18 +89,14 @@ def unseen_reference(t):
     """
     import jax.numpy as jnp
 
-    t = jnp.asarray(t)
+    t = jnp.pi * jnp.asarray(t)
+    s = jnp.sin(t / 20.0)
     return jnp.stack(
-        [
-            0.8 * jnp.sin(jnp.pi * t / 20.0),
-            0.4 * jnp.sin(jnp.pi * t / 10.0),
-            1.5 * (1.0 - jnp.cos(jnp.pi * t / 40.0)),
-            0.3 + 0.2 * jnp.sin(jnp.pi * t / 20.0),
-        ]
+        [0.8 * s, 0.4 * jnp.sin(t / 10.0), 1.5 * (1.0 - jnp.cos(t / 40.0)), 0.3 + 0.2 * s]
     )
 
 
-def build_parser() -> argparse.ArgumentParser:
+def parse_args(argv) -> argparse.Namespace:
     parser = _common.parser("tune_paper_gains")
     number = functools.partial(_common.add_numbers, parser, int, float)
     number(scenario=2, horizon=(10.0, "tuning horizon (s)"), draws=(16, "draws per sample"))
@@ -105,17 +105,12 @@ def build_parser() -> argparse.ArgumentParser:
     number(learning_rate=(0.1, "Adam's"), max_step=(1.0, "L-BFGS's"), tuner_validation_draws=32)
     number(seed=0)
     parser.add_argument("--dtype", default="float32")
-    number(df_budget_factor=3.0, cma_sigma=0.5, validation_draws=32)
-    number(validate_every=(5, "steps"), eval_draws=64)
-    number(eval_horizon=(None, "s (default: each scenario's)"))
+    number(df_budget_factor=3.0, cma_sigma=0.5, validation_draws=32, validate_every=(5, "steps"))
+    number(eval_draws=64, eval_horizon=(None, "s (default: each scenario's)"))
     _common.add_outputs(parser, "tune_paper_gains")
     # Cost weights (default: the fojax tune defaults).
     number(effort_weight=None, chattering_weight=None, attitude_weight=None)
-    return parser
-
-
-def parse_args(argv) -> argparse.Namespace:
-    args = build_parser().parse_args(argv)
+    args = parser.parse_args(argv)
     if args.tiny:
         # The small problem of the tests (shares their compiled code).
         vars(args).update(
@@ -165,55 +160,48 @@ class _Study:
         self.validate([self.objective.x0])
         return time.perf_counter() - t0
 
-    def strategy(self, name: str, budget: int | None):
-        """``(strategy, budget, validation draws)`` of tuner ``name`` (module docstring);
-        ``budget``: the derivative-free tuners' draw-steps."""
+    def run(self, name: str, budget: int | None = None) -> dict:
+        """Tuner ``name`` (module docstring) from the naive start, within ``budget``
+        draw-steps (the derivative-free tuners) or its steps: its record as JSON: its
+        answer ``x`` and gains, its curve points ``(method, draw-steps, wall time,
+        validation cost)`` and what it spent (``summary``)."""
         from fojax import optimize
+        from fojax.controllers import gains_io
         from fojax.optimize import strategies
 
         args = self.args
-        if name in ("cma-es", "nelder-mead"):
-            strategy = strategies.make(name, seed=args.seed, sigma=args.cma_sigma)
-            return strategy, optimize.Budget(draw_steps=budget), 0
-        method, steps = (args.gradient_method, args.steps)
-        if name == "default":
-            method, steps = "auto", args.default_steps
+        method, steps, validation_draws = {
+            "default": ("auto", args.default_steps, args.tuner_validation_draws),
+            "gradient": (args.gradient_method, args.steps, args.tuner_validation_draws),
+        }.get(name, (name, None, 0))
         strategy = strategies.make(
             method, steps, seed=args.seed, sigma=args.cma_sigma,
             max_step=args.max_step, learning_rate=args.learning_rate,
         )  # fmt: skip
-        return strategy, optimize.Budget(steps=steps), args.tuner_validation_draws
-
-    def run(self, name: str, budget: int | None = None) -> dict:
-        """Tuner ``name`` from the naive start: its record as JSON: its answer ``x`` and
-        gains, its curve points ``(method, draw-steps, wall time, validation cost)`` and
-        what it spent (``summary``)."""
-        from fojax.controllers import gains_io
-
-        strategy, limit, validation_draws = self.strategy(name, budget)
+        limit = optimize.Budget(steps=steps, draw_steps=budget)
         spent = ", ".join(f"{v} {k}" for k, v in dataclasses.asdict(limit).items() if v)
-        output.log(self.args.quiet, f"{name}: {spent}")
-        result, steps = _common.recorded_run(
-            self.objective, strategy, limit, self.objective.x0, progress=not self.args.quiet,
-            validation_draws=validation_draws, validate_every=self.args.validate_every,
+        output.log(args.quiet, f"{name}: {spent}")
+        result, record = _common.recorded_run(
+            self.objective, strategy, limit, self.objective.x0, progress=not args.quiet,
+            validation_draws=validation_draws, validate_every=args.validate_every,
         )  # fmt: skip
-        costs = self.validate([answer for *_, answer in steps])
-        curve = [(name, d, w, float(c)) for (_, w, d, _), c in zip(steps, costs, strict=True)]
-        summary = {
-            "draw_steps": result.draw_steps,
-            "wall_time_s": result.wall_time_s,
-            "steps": result.steps,
-            "evaluations": sum(row["points"] for row in result.history),
-            "final_loss": result.history[-1]["loss"],
-            "method": {"default": "auto", "gradient": self.args.gradient_method}.get(name, name),
-            "returned_step": result.best_step,
-            "validation": result.validation,
-        }
+        costs = self.validate([answer for *_, answer in record])
         return {
             "x": np.asarray(result.x).tolist(),
             "gains": gains_io.gains_to_dict(self.objective.gains(result.x)),
-            "curve": [list(c) for c in curve],
-            "summary": summary,
+            "curve": [
+                [name, d, w, float(c)] for (_, w, d, _), c in zip(record, costs, strict=True)
+            ],
+            "summary": {
+                "draw_steps": result.draw_steps,
+                "wall_time_s": result.wall_time_s,
+                "steps": result.steps,
+                "evaluations": sum(row["points"] for row in result.history),
+                "final_loss": result.history[-1]["loss"],
+                "method": method,
+                "returned_step": result.best_step,
+                "validation": result.validation,
+            },
         }
 
 
@@ -221,17 +209,14 @@ def run_tuners(args, study: _Study) -> dict:
     """Each tuner's record, kept under its fingerprint in ``--out/runs`` (a study started
     again reuses the tuners that finished): the gradient tuner and the default, then
     CMA-ES and Nelder-Mead with ``--df-budget-factor`` times the gradient's draw-steps."""
-    settings = _common.settings(args, leave_out=("out", "update_doc", "quiet"))
-    settings["engine"] = "fojax.optimize"
-    folder = args.out / "runs"
-    found = {
-        name: _common.cached(folder, name, settings, lambda name=name: study.run(name))
-        for name in ("gradient", "default")
-    }
-    budget = int(args.df_budget_factor * found["gradient"]["summary"]["draw_steps"])
-    fingerprint = settings | {"budget": budget}
-    for name in ("cma-es", "nelder-mead"):
-        found[name] = _common.cached(folder, name, fingerprint, lambda n=name: study.run(n, budget))
+    fingerprint = _common.settings(args, leave_out=LEFT_OUT) | {"engine": "fojax.optimize"}
+    found, budget = {}, None
+    for name in ("gradient", "default", "cma-es", "nelder-mead"):
+        if name == "cma-es":
+            budget = int(args.df_budget_factor * found["gradient"]["summary"]["draw_steps"])
+            fingerprint = fingerprint | {"budget": budget}
+        run = functools.partial(study.run, name, budget)
+        found[name] = _common.cached(args.out / "runs", name, fingerprint, run)
     return {name: found[name] for name in TUNERS}
 
 
@@ -283,44 +268,34 @@ def evaluate(args, study: _Study, points: dict) -> dict:
     return evaluation
 
 
+def _by_method(curves) -> dict:
+    """The points ``(draw-steps, wall time, validation cost)`` of each method's curve
+    (``curves``: rows ``(method, draw-steps, wall time, validation cost)``), in order."""
+    by_method = {}
+    for method, *point in curves:
+        by_method.setdefault(method, []).append(tuple(point))
+    return by_method
+
+
 def reaches(curves: list, challenger: str = "gradient") -> dict:
     """Where ``challenger`` first reaches each derivative-free tuner's best."""
+    by_method = _by_method(curves)
     reach = {}
-    challenger_curve = [(s, w, v) for m, s, w, v in curves if m == challenger]
     for method in ("cma-es", "nelder-mead"):
-        points = [(s, w, v) for m, s, w, v in curves if m == method]
-        best = min(v for _, _, v in points)
-        first = next(((s, w) for s, w, v in challenger_curve if v <= best), None)
+        best = min(v for _, _, v in by_method[method])
+        first = next(((s, w) for s, w, v in by_method[challenger] if v <= best), (None, None))
         reach[method] = {
             "best_validation_cost": best,
-            "draw_steps_used": max(s for s, _, _ in points),
-            f"{challenger}_draw_steps_to_reach": first[0] if first else None,
-            f"{challenger}_wall_time_to_reach_s": first[1] if first else None,
+            "draw_steps_used": max(s for s, _, _ in by_method[method]),
+            f"{challenger}_draw_steps_to_reach": first[0],
+            f"{challenger}_wall_time_to_reach_s": first[1],
         }
     return reach
 
 
-def _write(args, results: dict, curves: list, references: dict) -> int:
-    """``results.json``, ``table.md``, ``curves.csv``, ``tuning.png``; the document's
-    block with ``--update-doc``."""
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "curves.csv", "w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["method", "draw_steps", "wall_time_s", "validation_cost"])
-        writer.writerows(curves)
-    results["provenance"]["load_average_end"] = output.load_average()
-    plot(curves, references, out / "tuning.png")
-    doc_text = None
-    if args.update_doc is not None:
-        shutil.copyfile(out / "tuning.png", args.update_doc.parent / "tuning.png")
-        doc_text = report(results)
-    wrote = f", curves.csv, tuning.png ({results['total_wall_time_s']:.0f} s in all)"
-    text = table(results)
-    return _common.finish(out, results, text, args.update_doc, "tune-paper-gains", doc_text, wrote)
-
-
 def main(argv=None) -> int:
+    """Tune, evaluate and write ``results.json``, ``table.md``, ``curves.csv``,
+    ``tuning.png``; the document's block with ``--update-doc``."""
     args = parse_args(argv)
     _common.enable_float64(args.dtype == "float64")
     from fojax.controllers import gains_io
@@ -334,8 +309,8 @@ def main(argv=None) -> int:
     references = {"paper": float(paper), "naive": float(naive)}
     output.log(args.quiet, f"validation cost: paper {paper:.4g}, naive {naive:.4g}")
     tuners = run_tuners(args, study)
-    curves = [(method, 0, 0.0, references["naive"]) for method in TUNERS]
-    curves += [tuple(c) for r in tuners.values() for c in r["curve"]]
+    curves = [[method, 0, 0.0, references["naive"]] for method in TUNERS]
+    curves += [c for r in tuners.values() for c in r["curve"]]
     points = dict(study.starts) | {name: np.asarray(r["x"]) for name, r in tuners.items()}
     evaluation = evaluate(args, study, points)
     validation = {"draws": args.validation_draws, "horizon_s": study.spec.horizon}
@@ -343,7 +318,7 @@ def main(argv=None) -> int:
     gains["naive"] = gains_io.gains_to_dict(study.naive)
     results = {
         "problem": study.spec.as_dict(),
-        "tuner_settings": _common.settings(args, leave_out=("out", "update_doc", "quiet")),
+        "tuner_settings": _common.settings(args, leave_out=LEFT_OUT),
         "validation": validation | {"switching": "sat", **references},
         "tuners": {name: r["summary"] for name, r in tuners.items()},
         "gradient_reaches": reaches(curves),
@@ -353,38 +328,46 @@ def main(argv=None) -> int:
         "compile_time_s": round(compile_s, 1),
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
         "provenance": provenance,
-        "curves": [list(c) for c in curves],
+        "curves": curves,
     }
-    return _write(args, results, curves, references)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "curves.csv", "w", newline="") as handle:
+        header = ("method", "draw_steps", "wall_time_s", "validation_cost")
+        csv.writer(handle).writerows([header, *curves])
+    results["provenance"]["load_average_end"] = output.load_average()
+    plot(curves, references, out / "tuning.png")
+    doc_text = None
+    if args.update_doc is not None:
+        shutil.copyfile(out / "tuning.png", args.update_doc.parent / "tuning.png")
+        doc_text = report(results)
+    wrote = f", curves.csv, tuning.png ({results['total_wall_time_s']:.0f} s in all)"
+    text = table(results)
+    return _common.finish(out, results, text, args.update_doc, "tune-paper-gains", doc_text, wrote)
 
 
 def _minus_paper(cost: dict) -> str:
-    def share(low, high):
-        return f", better on {100 * cost['better_than_paper_fraction']:.0f} %"
-
-    return _common.difference_cell(cost["minus_paper"], share)
+    share = f", better on {100 * cost['better_than_paper_fraction']:.0f} %"
+    return _common.difference_cell(cost["minus_paper"], lambda low, high: share)
 
 
 def table(results: dict) -> str:
     """Markdown tables: held-out costs per gain set, and the tuners' budgets."""
     evaluation = results["evaluation"]
     labels = list(evaluation)
-    names = list(next(iter(evaluation.values()))["gains"])
+    gains = [evaluation[label]["gains"] for label in labels]
+    names = list(gains[0])
     columns = " | ".join(f"{label} ({evaluation[label]['horizon_s']:g} s)" for label in labels)
     lines = _common.table_head(f"gains | {columns} | tuning draw-steps | tuning wall time (s)")
-    tuners = results["tuners"]
     for name in names:
-        cells = [_common.mean_cell(evaluation[label]["gains"][name], "div.") for label in labels]
-        spent = tuners.get(name, {})
-        lines.append(
-            f"| {name} | "
-            + " | ".join(cells)
-            + f" | {spent.get('draw_steps', '-')} | {spent.get('wall_time_s', '-')} |"
-        )
+        cells = [_common.mean_cell(g[name], "div.") for g in gains]
+        spent = results["tuners"].get(name, {})
+        cells += [spent.get(key, "-") for key in ("draw_steps", "wall_time_s")]
+        lines.append(f"| {name} | " + " | ".join(map(str, cells)) + " |")
     columns = " | ".join(f"{label}: minus paper (95 % CI)" for label in labels)
     lines += ["", *_common.table_head(f"gains | {columns}")]
     for name in [n for n in names if n != "paper"]:
-        cells = [_minus_paper(evaluation[label]["gains"][name]["cost"]) for label in labels]
+        cells = [_minus_paper(g[name]["cost"]) for g in gains]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -395,59 +378,68 @@ def _curve_at(points, limit, key):
     return inside[-1] if inside else None
 
 
+def _convergence(method: str, points: list, budget, wall_time) -> str:
+    """The convergence table's row of ``method`` (``points``: its curve, sorted): at half
+    and all of the gradient's draw-steps ``budget``, at the end, at its best point and at
+    the gradient's ``wall_time``."""
+    by_wall = sorted(points, key=lambda q: q[1])
+    at = (
+        (_curve_at(points, budget / 2, 0), CELLS[0]),
+        (_curve_at(points, budget, 0), CELLS[0]),
+        (points[-1], CELLS[1]),
+        (min(points, key=lambda q: q[2]), CELLS[1]),
+        (_curve_at(by_wall, wall_time, 1), CELLS[2]),
+    )
+    cells = ("-" if point is None else text.format(*point) for point, text in at)
+    return f"| {method} | " + " | ".join(cells) + " |"
+
+
 def report(results: dict) -> str:
     """The generated part of docs/tuning.md's section: the run, the tables, the
     convergence and the cost terms."""
-
     p = results["provenance"]
     tuners = results["tuners"]
-    g = tuners["gradient"]
     validation = results["validation"]
-    lines = [
-        f"Run: `{p['command']}`; commit {output.commit_label(p)}, JAX {p['jax']} / jaxlib "
-        f"{p['jaxlib']}, {p.get('cpu_model')}, {p['cpu_count']} cores, load average "
-        f"{p['load_average'][0] if p.get('load_average') else 'n/a'} at the start and "
-        f"{p['load_average_end'][0] if p.get('load_average_end') else 'n/a'} at the end; "
-        f"{results['total_wall_time_s']:.0f} s in all, of which {results['compile_time_s']:.0f} s "
-        "compiling the tuning cost and its gradient. Each tuner's wall time as it ran "
-        "(validation included; a tuner kept in `--out/runs` with the same settings is "
-        "reused, not run again): "
-        + ", ".join(f"{tuners[n]['wall_time_s']:.0f} s {n} ({tuners[n]['method']})" for n in TUNERS)
-        + ".",
-        "",
-        *(
-            f"The {name} tuner returned the gains of step {tuners[name]['returned_step']} of "
-            f"{tuners[name]['steps']} (validation cost {v['best']['cost']:.4g}; "
-            f"{v['initial']['cost']:.4g} at the start, {v['final']['cost']:.4g} at the last "
-            "step)."
-            for name in ("default", "gradient")
-            if (v := tuners[name].get("validation"))
-        ),
-        "",
-        "**Held-out cost** (mean ± 95 % half-width over "
-        f"{next(iter(results['evaluation'].values()))['draws']} draws), paired differences "
-        "against the paper's gains:",
-        "",
-        table(results),
-        "",
-    ]
-    first = next(iter(results["evaluation"].values()))
+    label, first = next(iter(results["evaluation"].items()))
+    start, end = (p[k][0] if p.get(k) else "n/a" for k in ("load_average", "load_average_end"))
     terms = ", ".join(
         f"{name} " + " / ".join(f"{t:.3g}" for t in entry["terms_mean"])
         for name, entry in first["gains"].items()
     )
-    lines += [
-        f"Mean terms on {next(iter(results['evaluation']))} "
-        f"({first['horizon_s']:g} s), `P` / `A` / `E` / `C`: {terms}.",
-        "",
+    g = tuners["gradient"]
+    convergence = [
+        _convergence(method, sorted(points), g["draw_steps"], g["wall_time_s"])
+        for method, points in _by_method(results["curves"]).items()
     ]
-    curves = results.get("curves", [])
-    if curves:
-        by_method = {}
-        for method, steps, wall, value in curves:
-            by_method.setdefault(method, []).append((steps, wall, value))
-        budget = g["draw_steps"]
-        lines += [
+    return "\n".join(
+        [
+            f"Run: `{p['command']}`; commit {output.commit_label(p)}, JAX {p['jax']} / jaxlib "
+            f"{p['jaxlib']}, {p.get('cpu_model')}, {p['cpu_count']} cores, load average "
+            f"{start} at the start and {end} at the end; {results['total_wall_time_s']:.0f} s "
+            f"in all, of which {results['compile_time_s']:.0f} s compiling the tuning cost and "
+            "its gradient. Each tuner's wall time as it ran (validation included; a tuner kept "
+            "in `--out/runs` with the same settings is reused, not run again): "
+            + ", ".join(
+                f"{tuners[n]['wall_time_s']:.0f} s {n} ({tuners[n]['method']})" for n in TUNERS
+            )
+            + ".",
+            "",
+            *(
+                f"The {name} tuner returned the gains of step {tuners[name]['returned_step']} of "
+                f"{tuners[name]['steps']} (validation cost {v['best']['cost']:.4g}; "
+                f"{v['initial']['cost']:.4g} at the start, {v['final']['cost']:.4g} at the last "
+                "step)."
+                for name in ("default", "gradient")
+                if (v := tuners[name].get("validation"))
+            ),
+            "",
+            f"**Held-out cost** (mean ± 95 % half-width over {first['draws']} draws), paired "
+            "differences against the paper's gains:",
+            "",
+            table(results),
+            "",
+            f"Mean terms on {label} ({first['horizon_s']:g} s), `P` / `A` / `E` / `C`: {terms}.",
+            "",
             f"**Convergence** (validation cost: {validation['draws']} held-out draws, "
             f"{validation['horizon_s']:g} s, `sat`; paper {validation['paper']:.4g}, naive "
             f"{validation['naive']:.4g}):",
@@ -456,21 +448,11 @@ def report(results: dict) -> str:
                 "method | at half the gradient's draw-steps | at the gradient's draw-steps | at "
                 "the end | best point | at the gradient's wall time"
             ),
+            *convergence,
+            "",
+            "(draw-steps and tuning wall time, compilation excluded, in parentheses.)",
         ]
-        for method, points in by_method.items():
-            points.sort()
-            cells = []
-            for limit in (budget / 2, budget):
-                at = _curve_at(points, limit, 0)
-                cells.append("-" if at is None else f"{at[2]:.4g} ({at[0]:.2g})")
-            cells.append(f"{points[-1][2]:.4g} ({points[-1][0]:.2g}, {points[-1][1]:.0f} s)")
-            best = min(points, key=lambda q: q[2])
-            cells.append(f"{best[2]:.4g} ({best[0]:.2g}, {best[1]:.0f} s)")
-            at = _curve_at(sorted(points, key=lambda q: q[1]), g["wall_time_s"], 1)
-            cells.append("-" if at is None else f"{at[2]:.4g} ({at[1]:.0f} s)")
-            lines.append(f"| {method} | " + " | ".join(cells) + " |")
-        lines += ["", "(draw-steps and tuning wall time, compilation excluded, in parentheses.)"]
-    return "\n".join(lines)
+    )
 
 
 def plot(curves, references, path: Path) -> None:
@@ -478,14 +460,11 @@ def plot(curves, references, path: Path) -> None:
 
     plt = style.pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
-    colors = {"default": "C3", "gradient": "C0", "cma-es": "C1", "nelder-mead": "C2"}
-    for method, color in colors.items():
-        points = sorted((s, w, v) for m, s, w, v in curves if m == method)
-        if not points:
-            continue
-        s, w, v = (np.asarray(x, float) for x in zip(*points, strict=True))
-        axes[0].plot(s, v, "o-", color=color, ms=3, label=method)
-        axes[1].plot(w, v, "o-", color=color, ms=3, label=method)
+    colors = dict(zip(TUNERS, ("C3", "C0", "C1", "C2"), strict=True))
+    for method, points in _by_method(curves).items():
+        s, w, v = (np.asarray(x, float) for x in zip(*sorted(points), strict=True))
+        for ax, x in zip(axes, (s, w), strict=True):
+            ax.plot(x, v, "o-", color=colors[method], ms=3, label=method)
     for ax in axes:
         ax.axhline(references["paper"], color="k", ls="--", lw=1, label="paper's gains")
         ax.axhline(references["naive"], color="gray", ls=":", lw=1, label="naive start")
