@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import _common
+from experiments.remark3 import table_row
 
 __all__ = ["SURROGATES", "figure", "table"]
 
@@ -44,7 +45,7 @@ def _residual_lines(results: dict) -> list[str]:
                 f"{e['residual']:.3f}" + (f": {_fmt_set(e)}" if point == "paper" else "")
                 for e in analysis[objective]["subsets"]
             ]
-            lines.append(f"| {point} | {objective} | " + " | ".join(cells) + " |")
+            lines.append(table_row(point, objective, *cells))
     columns = "gains | fojax tune's weights (1e-5, 1e-5) | best `(w_E, w_C)` | its residual"
     lines += ["", "Weighted sum `P + A + w_E E + w_C C`: residual at `w = 0` is 1.", ""]
     lines += _common.table_head(columns)
@@ -82,8 +83,7 @@ def table(results: dict) -> str:
     bounds = {r["metric"]: r["max"] for r in results["requirements_found"]["requirements"]}
     for q in results["quantities"]:
         bound = f"<= {bounds[q]:.4g}" if q in bounds else ""
-        cells = [f"{values[n][q]:.4g}" for n in names]
-        lines.append(f"| {q} | {bound} | " + " | ".join(cells) + " |")
+        lines.append(table_row(q, bound, *(f"{values[n][q]:.4g}" for n in names)))
     lines += ["", "Gains field by field (`log10(gain / paper)` in brackets):", ""]
     lines += _common.table_head("parameter | " + " | ".join(names))
     distances = results["distance_to_paper"]
@@ -93,11 +93,11 @@ def table(results: dict) -> str:
             + ("" if n == "paper" else f" ({distances[n]['log10_ratio'][label]:+.2f})")
             for n in names
         ]
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        lines.append(table_row(label, *cells))
     medians = [f"{distances[n]['median_abs_log10']:.2f}" for n in names]
     within = [f"{distances[n]['within_factor_2']}/{distances[n]['parameters']}" for n in names]
     for title, cells in (("median abs log10", medians), ("within a factor 2", within)):
-        lines.append(f"| **{title}** | " + " | ".join(cells) + " |")
+        lines.append(table_row(f"**{title}**", *cells))
     tuning = results["requirement_tuning"]
     t = results["times_s"]
     runs = "; ".join(
