@@ -121,10 +121,9 @@ class _Study:
         out = {}
         for switching, objective in (("sat", self.objective), ("sign", self.sign)):
             _, _, outputs = objective.evaluate(x, self.keys)
-            terms = outputs.terms[0].tolist()
-            named = dict(zip(TERMS, terms, strict=True))
-            diverged = not bool(outputs.valid[0])
-            out[switching] = {"J": terms[0] + terms[1], **named, "diverged": diverged}
+            terms = dict(zip(TERMS, outputs.terms[0].tolist(), strict=True))
+            total = terms["position"] + terms["attitude"]
+            out[switching] = {"J": total, **terms, "diverged": not bool(outputs.valid[0])}
         return out
 
 
@@ -176,9 +175,8 @@ def lbfgs(study: _Study, start: str, args):
     keys = ("step", "J", "accepted", "J_sat", "wall_time_s")
     fields = ("step", "loss", "accepted", "validation", "wall_time_s")  # the driver's history
     trace = [{k: row[f] for k, f in zip(keys, fields, strict=True)} for row in result.history]
-    record = {"trace": trace, "returned_step": result.best_step}
-    record["accepted"] = sum(row["accepted"] for row in trace[1:])  # the first: the start
-    return result.x, record
+    accepted = sum(row["accepted"] for row in trace[1:])  # the first: the start
+    return result.x, {"trace": trace, "returned_step": result.best_step, "accepted": accepted}
 
 
 def main(argv=None) -> int:

@@ -184,10 +184,8 @@ class _Quantities:
         from fojax import requirements as rq
         from fojax.controllers.afonftsmc import paper_gains
 
-        reqs = rq.load(args.requirements)
-        self.settings = settings = dataclasses.replace(
-            reqs.settings, rotor_limited=args.rotor_limited
-        )
+        settings = rq.load(args.requirements).settings
+        self.settings = settings = dataclasses.replace(settings, rotor_limited=args.rotor_limited)
         self.limit = settings.speed_limit() if args.rotor_limited else None
         self.spec = optimize.ProblemSpec(
             "afonftsmc", args.scenario, args.horizon, draws=1, seed=args.seed, dtype="float64"
@@ -393,7 +391,6 @@ def main(argv=None) -> int:
     points, first_s = timed(lambda: {"paper": study.point(study.paper)})
     points["naive"], jacobian_s = timed(study.point, study.naive)
     output.log(args.quiet, f"Jacobians: first {first_s:.0f} s (compile), then {jacobian_s:.1f} s")
-    check = study.finite_difference_check(points["paper"])
     analysis = {k: analyse(p, study.names) for k, p in points.items()}
     reqs = requirements_found(study, points["paper"], analysis["paper"])
     output.log(args.quiet, "tuning from naive, then paper, to: " + ", ".join(reqs.names))
@@ -416,7 +413,7 @@ def main(argv=None) -> int:
         "quantities": list(study.names),
         "values": {k: p["values"].tolist() for k, p in points.items()},
         "status": {k: p["status"] for k, p in points.items()},
-        "finite_difference_check": check,
+        "finite_difference_check": study.finite_difference_check(points["paper"]),
         "analysis": analysis,
         "requirements_found": reqs.to_dict(),
         "requirement_tuning": {k: t["record"] for k, t in tuned.items()},

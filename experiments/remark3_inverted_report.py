@@ -50,11 +50,9 @@ def _residual_lines(results: dict) -> list[str]:
     lines += ["", "Weighted sum `P + A + w_E E + w_C C`: residual at `w = 0` is 1.", ""]
     lines += _common.table_head(columns)
     for point, analysis in results["analysis"].items():
-        w = analysis["weights"]
-        lines.append(
-            f"| {point} | {w['fojax_tune_default']['residual']:.3f} | ({w['best']['w_E']:.3g}, "
-            f"{w['best']['w_C']:.3g}) | {w['best']['residual']:.3f} |"
-        )
+        default, best = analysis["weights"]["fojax_tune_default"], analysis["weights"]["best"]
+        cells = f"{default['residual']:.3f}", f"({best['w_E']:.3g}, {best['w_C']:.3g})"
+        lines.append(table_row(point, *cells, f"{best['residual']:.3f}"))
     return lines
 
 
