@@ -73,15 +73,12 @@ def table(results: dict) -> str:
         *_residual_lines(results),
     ]
     names = list(results["gains"])
-    values = {
-        k: dict(zip(results["quantities"], v, strict=True)) for k, v in results["values"].items()
-    }
     head = "Quantities of each gain set (the requirement set found: bounds at the paper's values):"
     lines += ["", head, "", *_common.table_head("quantity | bound | " + " | ".join(names))]
     bounds = {r["metric"]: r["max"] for r in results["requirements_found"]["requirements"]}
-    for q in results["quantities"]:
+    for i, q in enumerate(results["quantities"]):
         bound = f"<= {bounds[q]:.4g}" if q in bounds else ""
-        lines.append(table_row(q, bound, *(f"{values[n][q]:.4g}" for n in names)))
+        lines.append(table_row(q, bound, *(f"{results['values'][n][i]:.4g}" for n in names)))
     lines += ["", "Gains field by field (`log10(gain / paper)` in brackets):", ""]
     lines += _common.table_head("parameter | " + " | ".join(names))
     distances = results["distance_to_paper"]
