@@ -67,11 +67,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def nominal_scenario_1():
-    """Scenario 1 without its random drag variation: one deterministic run."""
+def nominal_scenario(number: int = 1):
+    """Scenario ``number`` without its random drag variation: one deterministic run."""
     from fojax import scenarios
 
-    return dataclasses.replace(scenarios.get_scenario(1), drag_variation=0.0)
+    return dataclasses.replace(scenarios.get_scenario(number), drag_variation=0.0)
+
+
+def timed(function, *args):
+    """``(function(*args), its wall time (s))``."""
+    began = time.perf_counter()
+    return function(*args), time.perf_counter() - began
 
 
 class _Study:
@@ -89,7 +95,7 @@ class _Study:
             "afonftsmc", 1, args.horizon, draws=1, cost=cost, dtype="float64"
         )
         self.paper = paper_gains(jnp.float64)
-        self.objective = optimize.Objective(spec, self.paper, scenario=nominal_scenario_1())
+        self.objective = optimize.Objective(spec, self.paper, scenario=nominal_scenario())
         self.sign = optimize.Objective(
             spec, self.paper, scenario=self.objective.scenario, switching="sign"
         )
@@ -115,10 +121,9 @@ class _Study:
         out = {}
         for switching, objective in (("sat", self.objective), ("sign", self.sign)):
             _, _, outputs = objective.evaluate(x, self.keys)
-            terms = outputs.terms[0].tolist()
-            named = dict(zip(TERMS, terms, strict=True))
-            diverged = not bool(outputs.valid[0])
-            out[switching] = {"J": terms[0] + terms[1], **named, "diverged": diverged}
+            terms = dict(zip(TERMS, outputs.terms[0].tolist(), strict=True))
+            total = terms["position"] + terms["attitude"]
+            out[switching] = {"J": total, **terms, "diverged": not bool(outputs.valid[0])}
         return out
 
 
@@ -126,12 +131,8 @@ def paper_point(study: _Study, quiet: bool):
     """``J`` and its gradient at the paper's gains, a central finite difference along
     it, and ``J`` along the negative gradient; with the compile and gradient times."""
     x_paper = study.starts["paper"]
-    t0 = time.perf_counter()
-    j_paper, grad = study.gradient(x_paper)
-    compile_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    study.gradient(x_paper)
-    gradient_s = time.perf_counter() - t0
+    (j_paper, grad), compile_s = timed(study.gradient, x_paper)
+    gradient_s = timed(study.gradient, x_paper)[1]
     norm = float(np.linalg.norm(grad))
     direction = -grad / norm
     output.log(quiet, f"paper: J = {j_paper:.6g}, |grad| = {norm:.4g} ({gradient_s:.1f} s)")
@@ -174,9 +175,8 @@ def lbfgs(study: _Study, start: str, args):
     keys = ("step", "J", "accepted", "J_sat", "wall_time_s")
     fields = ("step", "loss", "accepted", "validation", "wall_time_s")  # the driver's history
     trace = [{k: row[f] for k, f in zip(keys, fields, strict=True)} for row in result.history]
-    record = {"trace": trace, "returned_step": result.best_step}
-    record["accepted"] = sum(row["accepted"] for row in trace[1:])  # the first: the start
-    return result.x, record
+    accepted = sum(row["accepted"] for row in trace[1:])  # the first: the start
+    return result.x, {"trace": trace, "returned_step": result.best_step, "accepted": accepted}
 
 
 def main(argv=None) -> int:
@@ -212,7 +212,6 @@ def main(argv=None) -> int:
         "total_wall_time_s": round(time.perf_counter() - start_all, 1),
         "git_commit": output.git_commit().get("commit"),
     }
-    args.out.mkdir(parents=True, exist_ok=True)
     wrote = f" ({results['total_wall_time_s']:.0f} s in all)"
     text = table(results)
     return _common.finish(args.out, results, text, args.update_doc, "remark3", None, wrote)
@@ -227,6 +226,24 @@ AXIS_GROUPS = (("x = y", 0), ("z", 2), ("phi = theta = psi", 3))
 ADAPTATION = ("eta0", "eta1", "eta2")
 
 
+def table_row(*cells) -> str:
+    """A Markdown table's row of ``cells``."""
+    return "| " + " | ".join(cells) + " |"
+
+
+def parameters(gains: dict) -> dict:
+    """``{(symbol, axes): value}`` of a gain set (:func:`fojax.controllers.gains_io.gains_to_dict`):
+    its 33 tuned parameters, one per group of shared axes, the fields of :data:`FIELD_ROWS`
+    then the adaptation rates."""
+    out = {}
+    for field, symbol in [*FIELD_ROWS.items(), ("adaptation", None)]:
+        for axes, index in AXIS_GROUPS:
+            values = np.atleast_1d(np.asarray(gains[field])[index])
+            symbols = ADAPTATION if symbol is None else (symbol,)
+            out |= {(name, axes): float(v) for name, v in zip(symbols, values, strict=True)}
+    return out
+
+
 def table(results: dict) -> str:
     """Markdown: the paper's point (gradient, cost along it), and the gains field by
     field with their costs."""
@@ -238,59 +255,48 @@ def table(results: dict) -> str:
         f"float64, {objective['parameters']} parameters), scored at `sat`; its gradient is "
         f"taken at `tanh` with the width of `sat`'s boundary layer (the engine's tuning law).",
         "",
-        f"At the paper's gains: `J` = {point['J_sat']:.5g} at `sat`, {point['J']:.5g} at "
-        f"`tanh`; gradient norm "
-        f"{point['gradient_norm']:.3g} (directional derivative along the negative gradient "
-        f"{point['directional_derivative']:.4g}, central finite difference "
-        f"{point['finite_difference']:.4g}). Largest components `dJ/du` (u: log of the "
-        "gain, or logit for bounded ones): "
+        f"At the paper's gains: `J` = {point['J_sat']:.5g} at `sat`, {point['J']:.5g} at `tanh`; "
+        f"gradient norm {point['gradient_norm']:.3g} (directional derivative along the negative "
+        f"gradient {point['directional_derivative']:.4g}, central finite difference "
+        f"{point['finite_difference']:.4g}). Largest components `dJ/du` (u: log of the gain, or "
+        "logit for bounded ones): "
         + ", ".join(
             f"`{e['parameter']}` {e['dJ_du']:+.3g}" for e in point["gradient_by_parameter"][:5]
         )
         + ".",
         "",
-        "| step along -grad/|grad| | " + " | ".join(f"{e['step']:g}" for e in along) + " |",
+        table_row("step along -grad/|grad|", *(f"{e['step']:g}" for e in along)),
         "|---|" + "---|" * len(along),
         *(
-            f"| J (`{law}`) | "
-            + " | ".join(f"{e[key]:.4g}" + (" (div.)" if e["diverged"] else "") for e in along)
-            + " |"
+            table_row(f"J (`{law}`)", *(f"{e[key]:.4g}" + " (div.)" * e["diverged"] for e in along))
             for law, key in (("tanh", "J"), ("sat", "J_sat"))
         ),
         "",
     ]
-    gains = results["gains"]
-    names = list(gains)
+    names = list(results["gains"])
+    columns = [parameters(results["gains"][n]) for n in names]
     lines += _common.table_head("field | axes | " + " | ".join(names))
-    for field, symbol in FIELD_ROWS.items():
-        for axes, index in AXIS_GROUPS:
-            cells = [f"{np.asarray(gains[n][field])[index]:.4g}" for n in names]
-            lines.append(f"| {symbol} | {axes} | " + " | ".join(cells) + " |")
-    for axes, index in AXIS_GROUPS:
-        for k, symbol in enumerate(ADAPTATION):
-            cells = [f"{np.asarray(gains[n]['adaptation'])[index][k]:.3g}" for n in names]
-            lines.append(f"| {symbol} | {axes} | " + " | ".join(cells) + " |")
+    for symbol, axes in columns[0]:
+        digits = ".3g" if symbol in ADAPTATION else ".4g"
+        lines.append(table_row(symbol, axes, *(f"{c[symbol, axes]:{digits}}" for c in columns)))
     costs = results["costs"]
-    terms = ("J", "position", "attitude", "effort", "chattering")
-    labels = dict(zip(terms, ("J = P + A", *"PAEC"), strict=True))
+    labels = dict(zip(("J", *TERMS), ("J = P + A", *"PAEC"), strict=True))
     for switching in ("sat", "sign"):
         for term, label in labels.items():
             entries = [costs[n][switching] for n in names]
             cells = ["diverged" if e["diverged"] else f"{e[term]:.4g}" for e in entries]
-            lines.append(f"| **{label}** | `{switching}` | " + " | ".join(cells) + " |")
-    traces = results["lbfgs"]
+            lines.append(table_row(f"**{label}**", f"`{switching}`", *cells))
     lines += [
         "",
         "L-BFGS: "
         + "; ".join(
             f"{name}: {len(t['trace'])} gradient evaluations, {t['accepted']} steps accepted, "
             f"returned step {t['returned_step']}, {t['trace'][-1]['wall_time_s']:.0f} s"
-            for name, t in traces.items()
+            for name, t in results["lbfgs"].items()
             if t["trace"]
         )
-        + f" (a gradient of the {objective['horizon_s']:g} s run: "
-        f"{results['gradient_time_s']:.1f} s; compile "
-        f"{results['compile_time_s']:.0f} s).",
+        + f" (a gradient of the {objective['horizon_s']:g} s run: {results['gradient_time_s']:.1f}"
+        f" s; compile {results['compile_time_s']:.0f} s).",
     ]
     return "\n".join(lines)
 

@@ -59,6 +59,7 @@ import numpy as np
 
 from experiments import _common
 from experiments import remark3 as remark3_study
+from experiments.remark3 import timed
 from experiments.remark3_inverted_report import SURROGATES, figure, table
 from fojax.cli import output
 
@@ -82,7 +83,7 @@ the metric differently in the last digits."""
 # ------------------------------------------------------------------ the cone residual
 
 
-def nnls(A, b, max_iterations: int | None = None) -> tuple[np.ndarray, float]:
+def nnls(A, b) -> tuple[np.ndarray, float]:
     """``(x, |A x - b|)`` with ``x = argmin_{x >= 0} |A x - b|`` (``A`` ``(m, n)``):
     Lawson and Hanson's active-set method (Solving Least Squares Problems, 1974, ch. 23),
     as SciPy's ``nnls``: move the coordinate of the largest gradient ``A^T (b - A x)``
@@ -92,7 +93,7 @@ def nnls(A, b, max_iterations: int | None = None) -> tuple[np.ndarray, float]:
     n = A.shape[1]
     x, passive = np.zeros(n), np.zeros(n, bool)
     tolerance = 10 * max(A.shape) * np.finfo(np.float64).eps * max(np.abs(A).sum(0).max(), 1)
-    for _ in range(max_iterations or 3 * n):
+    for _ in range(3 * n):
         w = A.T @ (b - A @ x)
         if passive.all() or np.max(np.where(passive, -np.inf, w)) <= tolerance:
             break
@@ -179,18 +180,17 @@ class _Quantities:
     def __init__(self, args):
         import jax.numpy as jnp
 
-        from fojax import optimize, scenarios
+        from fojax import optimize
         from fojax import requirements as rq
         from fojax.controllers.afonftsmc import paper_gains
 
-        reqs = rq.load(args.requirements)
-        settings = dataclasses.replace(reqs.settings, rotor_limited=args.rotor_limited)
-        self.base_requirements = dataclasses.replace(reqs, settings=settings)
+        settings = rq.load(args.requirements).settings
+        self.settings = settings = dataclasses.replace(settings, rotor_limited=args.rotor_limited)
         self.limit = settings.speed_limit() if args.rotor_limited else None
         self.spec = optimize.ProblemSpec(
             "afonftsmc", args.scenario, args.horizon, draws=1, seed=args.seed, dtype="float64"
         )
-        self.scenario = dataclasses.replace(scenarios.get_scenario(args.scenario), drag_variation=0)
+        self.scenario = remark3_study.nominal_scenario(args.scenario)
         self.paper = paper_gains(jnp.float64)
         self.naive = optimize.naive_gains("afonftsmc", jnp.float64)
         probes = tuple(
@@ -202,7 +202,6 @@ class _Quantities:
             position_weight=0.0, attitude_weight=0.0, effort_weight=0.0, chattering_weight=1.0
         )
         self.chattering = self.objective(cost=chattering)
-        self.param_map = self.metrics.param_map
         self.names = COST_TERMS + tuple(rq.METRICS)
         self.keys = self.metrics.sample(0)
 
@@ -217,9 +216,6 @@ class _Quantities:
             scenario=self.scenario, rotor_speed_limit=self.limit, switching="tanh",
         )  # fmt: skip
 
-    def vector_of(self, gains) -> np.ndarray:
-        return self.metrics.vector(gains)
-
     def values(self, points) -> tuple[np.ndarray, np.ndarray]:
         """``(values (P, q), status (P,))`` of ``points`` ``(P, 33)``."""
         out = self.metrics.forward(points, self.keys, width=1.0)
@@ -230,7 +226,7 @@ class _Quantities:
         """Values ``(q,)`` and Jacobian ``(q, 33)`` at ``gains``, and its status."""
         from fojax.optimize import Request
 
-        x = self.vector_of(gains)
+        x = self.metrics.vector(gains)
         values, status = self.values(x[None])
 
         def row(objective, loss=None):
@@ -238,10 +234,9 @@ class _Quantities:
 
         rows = [row(self.metrics, _Row(k)) for k in range(1 + len(self.scales))]
         metrics = np.stack(rows[1:]) * self.scales[:, None]
-        by_name = dict(zip(self.names[4:], metrics, strict=True))
-        rmse = dict(zip(self.names[4:], values[0, 4:], strict=True))
-        tracking = [
-            2 * self.spec.horizon * rmse[m] * by_name[m] for m in ("position_rmse", "attitude_rmse")
+        tracking = [  # P = T position_rmse^2, A = T attitude_rmse^2
+            2 * self.spec.horizon * values[0, i] * metrics[i - 4]
+            for i in map(self.names.index, ("position_rmse", "attitude_rmse"))
         ]
         jacobian = np.stack([*tracking, rows[0], row(self.chattering), *metrics])
         return {"x": x, "values": values[0], "jacobian": jacobian, "status": int(status[0])}
@@ -265,31 +260,23 @@ class _Quantities:
 # ------------------------------------------------------------------ the analyses
 
 
-def objective_rows(point: dict, names: tuple[str, ...], objective: str):
-    """``(gradient of f, candidate names, candidate gradients)`` of ``objective``."""
-    jacobian = dict(zip(names, point["jacobian"], strict=True))
-    if objective == "tracking":
-        gradient = jacobian["P"] + jacobian["A"]
-        excluded = TRACKING_FUNCTIONS
-    else:
-        gradient = jacobian["E"]
-        excluded = ("E",) + COST_TERMS
-    candidates = [n for n in names if n not in excluded]
-    return gradient, candidates, np.stack([jacobian[n] for n in candidates])
-
-
 def analyse(point: dict, names: tuple[str, ...]) -> dict:
-    """Both objectives' subset residuals, the effort-weight sweep and fojax tune's
-    default weights, at one point."""
+    """Both objectives' subset residuals (``tracking``: candidates all but the functions
+    of ``P`` or ``A``; ``effort``: all but the cost terms), the effort-weight sweep and
+    fojax tune's default weights, at one point."""
+    jacobian = dict(zip(names, point["jacobian"], strict=True))
+    tracking = jacobian["P"] + jacobian["A"]
     out = {}
-    for objective in ("tracking", "effort"):
-        gradient, candidates, rows = objective_rows(point, names, objective)
+    for objective, gradient, excluded in (
+        ("tracking", tracking, TRACKING_FUNCTIONS),
+        ("effort", jacobian["E"], COST_TERMS),
+    ):
+        candidates = [n for n in names if n not in excluded]
+        rows = np.stack([jacobian[n] for n in candidates])
         out[objective] = {
             "gradient_norm": float(np.linalg.norm(gradient)),
             "subsets": best_subsets(gradient, rows, candidates),
         }
-    jacobian = dict(zip(names, point["jacobian"], strict=True))
-    tracking = jacobian["P"] + jacobian["A"]
     norm = np.linalg.norm(tracking)
     sweep = [float(np.linalg.norm(tracking + w * jacobian["E"]) / norm) for w in WEIGHTS]
     r_ec, (w_e, w_c) = cone_residual(tracking, np.stack([jacobian["E"], jacobian["C"]]))
@@ -321,9 +308,7 @@ def requirements_found(study: _Quantities, paper: dict, analysis: dict):
         made.append(rq.Requirement(metric, metric, "upper", bound, rq.METRICS[metric].unit))
     if not made:
         raise SystemExit("no bound opposes the effort's gradient at the paper's gains")
-    return rq.RequirementSet(
-        tuple(made), study.base_requirements.settings, "the paper's values, active bounds"
-    )
+    return rq.RequirementSet(tuple(made), study.settings, "the paper's values, active bounds")
 
 
 def tune_requirements(study: _Quantities, objective, start: str, args) -> dict:
@@ -333,26 +318,24 @@ def tune_requirements(study: _Quantities, objective, start: str, args) -> dict:
     ``--out/tuned``) and gains."""
     from fojax.controllers import gains_io
 
-    reqs = objective.requirements
-
     def run() -> dict:
         began = time.perf_counter()
         result = _common.to_requirements(
-            objective, study.vector_of(getattr(study, start)), "adam", args.outer_steps,
+            objective, study.metrics.vector(getattr(study, start)), "adam", args.outer_steps,
             args.inner_steps, validation_draws=1, margin=0.0, progress=not args.quiet,
             learning_rate=args.learning_rate,
         )  # fmt: skip
-        paper = objective.evaluate(objective.x0, objective.keys("validation", 1))[1]
         return {
             "gains": gains_io.gains_to_dict(objective.gains(result.x)),
             "selected": {"step": result.best_step, **result.validation["best"]},
             "initial": result.validation["initial"],
-            "paper": paper,
+            "paper": objective.evaluate(objective.x0, objective.keys("validation", 1))[1],
             "wall_time_s": round(time.perf_counter() - began, 1),
         }
 
     settings = _common.settings(args, ("out", "update_doc", "quiet", "requirements"))
-    fingerprint = {"settings": settings, "requirements": reqs.to_dict(), "start": start}
+    requirements = objective.requirements.to_dict()
+    fingerprint = {"settings": settings, "requirements": requirements, "start": start}
     fingerprint["engine"] = "fojax.optimize"
     record = _common.cached(args.out / "tuned", start, fingerprint, run)
     return {"record": record, "gains": gains_io.gains_from_dict("afonftsmc", record["gains"])}
@@ -364,16 +347,12 @@ def distance(gains, paper) -> dict:
     within a factor 2."""
     from fojax.controllers import gains_io
 
-    ours, theirs = gains_io.gains_to_dict(gains), gains_io.gains_to_dict(paper)
-    values, logs = {}, {}
-    for field, symbol in [*remark3_study.FIELD_ROWS.items(), ("adaptation", None)]:
-        for axes, index in remark3_study.AXIS_GROUPS:
-            mine = np.atleast_1d(np.asarray(ours[field])[index])
-            reference = np.atleast_1d(np.asarray(theirs[field])[index])
-            symbols = remark3_study.ADAPTATION if symbol is None else (symbol,)
-            for name, value, base in zip(symbols, mine, reference, strict=True):
-                values[f"{name} [{axes}]"] = float(value)
-                logs[f"{name} [{axes}]"] = float(np.log10(value / base))
+    ours, theirs = (remark3_study.parameters(gains_io.gains_to_dict(g)) for g in (gains, paper))
+    values = {f"{name} [{axes}]": value for (name, axes), value in ours.items()}
+    logs = {
+        f"{name} [{axes}]": float(np.log10(value / theirs[name, axes]))
+        for (name, axes), value in ours.items()
+    }
     size = np.abs(np.asarray(list(logs.values())))
     return {
         "values": values,
@@ -390,8 +369,7 @@ def distance(gains, paper) -> dict:
 def build_parser() -> argparse.ArgumentParser:
     parser = _common.parser("remark3_inverted")
     parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=1)
-    _common.add_numbers(parser, horizon=20.0, outer_steps=10, inner_steps=10)
-    _common.add_numbers(parser, learning_rate=0.1)
+    _common.add_numbers(parser, horizon=20.0, outer_steps=10, inner_steps=10, learning_rate=0.1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--requirements", type=Path, default=EXAMPLE, help="its [settings]")
     parser.add_argument("--rotor-limited", action="store_true", help="default: ideal rotors")
@@ -406,16 +384,13 @@ def main(argv=None) -> int:
     if args.tiny:
         args.horizon, args.outer_steps, args.inner_steps = 0.3, 1, 2
     _common.enable_float64()
+    from fojax.controllers import gains_io
+
     start_all = time.perf_counter()
     study = _Quantities(args)
-    t0 = time.perf_counter()
-    points = {"paper": study.point(study.paper)}
-    first_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    points["naive"] = study.point(study.naive)
-    jacobian_s = time.perf_counter() - t0
+    points, first_s = timed(lambda: {"paper": study.point(study.paper)})
+    points["naive"], jacobian_s = timed(study.point, study.naive)
     output.log(args.quiet, f"Jacobians: first {first_s:.0f} s (compile), then {jacobian_s:.1f} s")
-    check = study.finite_difference_check(points["paper"])
     analysis = {k: analyse(p, study.names) for k, p in points.items()}
     reqs = requirements_found(study, points["paper"], analysis["paper"])
     output.log(args.quiet, "tuning from naive, then paper, to: " + ", ".join(reqs.names))
@@ -423,28 +398,9 @@ def main(argv=None) -> int:
     tuned = {k: tune_requirements(study, objective, k, args) for k in ("naive", "paper")}
     gain_sets = {"naive": study.naive, "paper": study.paper}
     gain_sets |= {f"tuned from {k}": t["gains"] for k, t in tuned.items()}
-    for label in list(gain_sets)[2:]:
-        points[label] = study.point(gain_sets[label])
-        analysis[label] = analyse(points[label], study.names)
-    results = _results(args, study, points, analysis, check, reqs, tuned, gain_sets)
-    results["times_s"] = {
-        "first_jacobian_with_compile": round(first_s, 1),
-        "jacobian": round(jacobian_s, 1),
-        "total": round(time.perf_counter() - start_all, 1),
-    }
-    args.out.mkdir(parents=True, exist_ok=True)
-    figure(results, args.out / "remark3_inverted.png")
-    if args.update_doc:
-        shutil.copyfile(args.out / "remark3_inverted.png", DOC.parent / "remark3_inverted.png")
-    doc = DOC if args.update_doc else None
-    wrote = f", remark3_inverted.png ({results['times_s']['total']:.0f} s in all)"
-    return _common.finish(args.out, results, table(results), doc, "remark3-inverted", None, wrote)
-
-
-def _results(args, study, points, analysis, check, reqs, tuned, gain_sets) -> dict:
-    from fojax.controllers import gains_io
-
-    return {
+    points |= {k: study.point(g) for k, g in list(gain_sets.items())[2:]}
+    analysis |= {k: analyse(points[k], study.names) for k in list(points)[2:]}
+    results = {
         "setting": {
             "scenario": args.scenario,
             "drag": "nominal (random variation off)",
@@ -452,12 +408,12 @@ def _results(args, study, points, analysis, check, reqs, tuned, gain_sets) -> di
             "switching": "tanh at the paper's boundary layers",
             "actuators": "rotor-limited" if args.rotor_limited else "ideal",
             "dtype": "float64",
-            "parameters": study.param_map.size,
+            "parameters": study.metrics.size,
         },
         "quantities": list(study.names),
         "values": {k: p["values"].tolist() for k, p in points.items()},
         "status": {k: p["status"] for k, p in points.items()},
-        "finite_difference_check": check,
+        "finite_difference_check": study.finite_difference_check(points["paper"]),
         "analysis": analysis,
         "requirements_found": reqs.to_dict(),
         "requirement_tuning": {k: t["record"] for k, t in tuned.items()},
@@ -466,7 +422,19 @@ def _results(args, study, points, analysis, check, reqs, tuned, gain_sets) -> di
         "command": ["python", "-m", "experiments.remark3_inverted", *sys.argv[1:]],
         "load_average": output.load_average(),
         "git_commit": output.git_commit().get("commit"),
+        "times_s": {
+            "first_jacobian_with_compile": round(first_s, 1),
+            "jacobian": round(jacobian_s, 1),
+            "total": round(time.perf_counter() - start_all, 1),
+        },
     }
+    args.out.mkdir(parents=True, exist_ok=True)
+    figure(results, args.out / "remark3_inverted.png")
+    if args.update_doc:
+        shutil.copyfile(args.out / "remark3_inverted.png", DOC.parent / "remark3_inverted.png")
+    doc = DOC if args.update_doc else None
+    wrote = f", remark3_inverted.png ({results['times_s']['total']:.0f} s in all)"
+    return _common.finish(args.out, results, table(results), doc, "remark3-inverted", None, wrote)
 
 
 if __name__ == "__main__":

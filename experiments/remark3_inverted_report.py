@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import _common
+from experiments.remark3 import table_row
 
 __all__ = ["SURROGATES", "figure", "table"]
 
@@ -44,16 +45,14 @@ def _residual_lines(results: dict) -> list[str]:
                 f"{e['residual']:.3f}" + (f": {_fmt_set(e)}" if point == "paper" else "")
                 for e in analysis[objective]["subsets"]
             ]
-            lines.append(f"| {point} | {objective} | " + " | ".join(cells) + " |")
+            lines.append(table_row(point, objective, *cells))
     columns = "gains | fojax tune's weights (1e-5, 1e-5) | best `(w_E, w_C)` | its residual"
     lines += ["", "Weighted sum `P + A + w_E E + w_C C`: residual at `w = 0` is 1.", ""]
     lines += _common.table_head(columns)
     for point, analysis in results["analysis"].items():
-        w = analysis["weights"]
-        lines.append(
-            f"| {point} | {w['fojax_tune_default']['residual']:.3f} | ({w['best']['w_E']:.3g}, "
-            f"{w['best']['w_C']:.3g}) | {w['best']['residual']:.3f} |"
-        )
+        default, best = analysis["weights"]["fojax_tune_default"], analysis["weights"]["best"]
+        cells = f"{default['residual']:.3f}", f"({best['w_E']:.3g}, {best['w_C']:.3g})"
+        lines.append(table_row(point, *cells, f"{best['residual']:.3f}"))
     return lines
 
 
@@ -74,16 +73,12 @@ def table(results: dict) -> str:
         *_residual_lines(results),
     ]
     names = list(results["gains"])
-    values = {
-        k: dict(zip(results["quantities"], v, strict=True)) for k, v in results["values"].items()
-    }
     head = "Quantities of each gain set (the requirement set found: bounds at the paper's values):"
     lines += ["", head, "", *_common.table_head("quantity | bound | " + " | ".join(names))]
     bounds = {r["metric"]: r["max"] for r in results["requirements_found"]["requirements"]}
-    for q in results["quantities"]:
+    for i, q in enumerate(results["quantities"]):
         bound = f"<= {bounds[q]:.4g}" if q in bounds else ""
-        cells = [f"{values[n][q]:.4g}" for n in names]
-        lines.append(f"| {q} | {bound} | " + " | ".join(cells) + " |")
+        lines.append(table_row(q, bound, *(f"{results['values'][n][i]:.4g}" for n in names)))
     lines += ["", "Gains field by field (`log10(gain / paper)` in brackets):", ""]
     lines += _common.table_head("parameter | " + " | ".join(names))
     distances = results["distance_to_paper"]
@@ -93,11 +88,11 @@ def table(results: dict) -> str:
             + ("" if n == "paper" else f" ({distances[n]['log10_ratio'][label]:+.2f})")
             for n in names
         ]
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        lines.append(table_row(label, *cells))
     medians = [f"{distances[n]['median_abs_log10']:.2f}" for n in names]
     within = [f"{distances[n]['within_factor_2']}/{distances[n]['parameters']}" for n in names]
     for title, cells in (("median abs log10", medians), ("within a factor 2", within)):
-        lines.append(f"| **{title}** | " + " | ".join(cells) + " |")
+        lines.append(table_row(f"**{title}**", *cells))
     tuning = results["requirement_tuning"]
     t = results["times_s"]
     runs = "; ".join(
