@@ -59,7 +59,6 @@ def user_command(args, mode: str, out: Path) -> list[str]:
     if args.tiny:
         command += ["--horizon", str(args.horizon), "--dtype", "float64", "--draws", "3"]
         command += ["--validation-draws", "2", "--eval-draws", "4", "--steps", "2"]
-        command += ["--switch", "1"] if method == "default" else []
     return command + ["--out", str(out)]
 
 

@@ -89,6 +89,29 @@ def test_remark3_tiny(tmp_path):
     assert "| hbar1 | phi = theta = psi | 1 | 156.4 |" in table
 
 
+@pytest.mark.slow
+def test_tuning_study_user_view_tiny(tmp_path):
+    """The user view end to end: each command of USER_MODES run by ``fojax tune`` in a
+    fresh process (``--tiny``'s small problem), recorded and tabulated."""
+    from experiments import tuning_study
+    from experiments.tuning_study_report import USER_MODES
+
+    out = tmp_path / "study"
+    argv = ["--tiny", "--quiet", "--shares", "paper", "--methods", "default"]
+    assert tuning_study.main(argv + ["--user-view", "1", "--out", str(out)]) == 0
+    users = json.loads((out / "results.json").read_text())["user_view"]
+    assert [u["mode"] for u in users] == list(USER_MODES)
+    by_mode = {u["mode"]: u for u in users}
+    for user in users:
+        assert user["command"].startswith("fojax tune --scenario 2 --controller afonftsmc")
+        assert 0 <= user["selected_step"] <= 2 and user["total_s"] >= user["tuning_s"] > 0
+        assert user["heldout_draws"] == 4
+    # The same start on the same held-out draws: the same initial cost, whatever the method.
+    naive = [by_mode[m]["heldout_initial"] for m in USER_MODES if m.startswith("naive")]
+    assert len(naive) == 2 and naive[0] == pytest.approx(naive[1], rel=1e-12)
+    assert "The user's view" in (out / "table.md").read_text()
+
+
 def test_cached_runs(tmp_path):
     """fojax.records.cached (the studies' runs): computed once per fingerprint, kept
     atomically as ``<stem>-<digest10>.json``, never reused for other settings."""
