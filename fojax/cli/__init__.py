@@ -70,7 +70,7 @@ def main(argv=None) -> int:
         # fojax.cli.output.versions records with every run
         named = {"Python" if k == "python" else k: v for k, v in output.versions().items()}
         others = ", ".join(f"{name} {value or 'not installed'}" for name, value in named.items())
-        print(f"fojax {output._version('fojax') or 'not installed'} ({others})")
+        print(f"fojax {output.package_version('fojax') or 'not installed'} ({others})")
         return 0
     args = parser.parse_args(argv[:1])
     if args.command in HOST_DEVICE_COMMANDS:

@@ -38,6 +38,7 @@ __all__ = [
     "invocation",
     "load_average",
     "log",
+    "package_version",
     "provenance",
     "run_context",
     "splice",
@@ -97,7 +98,8 @@ def commit_label(provenance: dict | None = None, full: bool = False) -> str:
     return commit + (" (with uncommitted changes)" if git.get("dirty") else "")
 
 
-def _version(package: str) -> str | None:
+def package_version(package: str) -> str | None:
+    """The installed version of ``package`` (``None``: not installed)."""
     from importlib import metadata
 
     try:
@@ -114,7 +116,9 @@ programs, and so the float32 numbers, depend on them."""
 def versions() -> dict[str, str | None]:
     """``{"python", "jax", "jaxlib", "optax", "numpy"}``: the versions installed
     (``None``: not installed), read without importing the packages."""
-    return {"python": platform.python_version()} | {name: _version(name) for name in VERSIONED}
+    return {"python": platform.python_version()} | {
+        name: package_version(name) for name in VERSIONED
+    }
 
 
 def provenance(command: list[str] | None = None, gains: dict | None = None) -> dict:
@@ -136,7 +140,7 @@ def provenance(command: list[str] | None = None, gains: dict | None = None) -> d
     record: dict[str, Any] = {
         "command": shlex.join(sys.argv if command is None else command),
         "working_directory": os.getcwd(),
-        "fojax_version": _version("fojax") or getattr(fojax, "__version__", None),
+        "fojax_version": package_version("fojax") or getattr(fojax, "__version__", None),
         "fojax_git": git_commit() or None,
         **versions(),
         "backend": jax.default_backend(),
