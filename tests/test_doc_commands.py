@@ -244,13 +244,16 @@ def _import_path(program: str, env: dict):
     """The folders a command imports from besides the installed packages: the current
     folder for ``python -m`` (not for a console script such as ``fojax``), and those of
     ``PYTHONPATH`` set on its line."""
-    folders = [str(pathlib.Path.cwd())] if program.endswith("python") else []
+    cwd = str(pathlib.Path.cwd())
+    folders = [cwd] if program.endswith("python") else []
     folders += [str(pathlib.Path(p).resolve()) for p in env.get("PYTHONPATH", "").split(":") if p]
-    sys.path[:0] = folders
+    saved = list(sys.path)
+    sys.path[:] = folders + [p for p in saved if p not in ("", ".", cwd)]  # this process's own
+    importlib.invalidate_caches()
     try:
         yield
     finally:
-        del sys.path[: len(folders)]
+        sys.path[:] = saved
 
 
 def check(command: Command, produced: dict) -> None:
