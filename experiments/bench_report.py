@@ -29,6 +29,7 @@ block ``<!-- NAME:begin -->`` ... ``<!-- NAME:end -->`` of DOC (``--name``, defa
 
 from __future__ import annotations
 
+import argparse
 import json
 import shlex
 import subprocess
@@ -38,7 +39,7 @@ from pathlib import Path
 from experiments import _common
 from fojax.cli import output
 
-__all__ = ["label_record", "main", "render", "step_loops"]
+__all__ = ["build_parser", "label_record", "main", "parse_args", "render", "step_loops"]
 
 DEFAULT_JSON = Path("results/bench/bench.json")
 
@@ -202,7 +203,7 @@ def render(result: dict, source: str | None = None) -> str:
 # ---------------------------------------------------------------------------- writing
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = _common.parser(
         "bench_report",
         description="Run fojax bench (or read its JSON with --from) and write its block.",
@@ -217,17 +218,35 @@ def main(argv=None) -> int:
     parser.add_argument("--name", default="bench", help="the block's name (default bench)")
     parser.add_argument("--update-doc", type=Path, metavar="DOC",
                         help="the Markdown file whose block to replace (else: print)")  # fmt: skip
-    argv = list(sys.argv[1:] if argv is None else argv)
+    return parser
+
+
+def parse_args(argv) -> tuple[argparse.Namespace, list[str]]:
+    """``(options, fojax bench's options)``: the options it does not know are passed on to
+    ``fojax bench`` and checked by its parser (none with ``--from``); exits with a
+    message on bad input, before anything runs."""
+    from fojax.cli import bench
+
+    parser = build_parser()
     args, bench_options = parser.parse_known_args(argv)
     if args.source is None:
         if args.commit is not None:
             parser.error("--commit is for --from: a run here records its own commit")
+        bench.parse_args(["--json", str(args.json), *bench_options])
+    elif bench_options:
+        parser.error(f"--from runs nothing: {' '.join(bench_options)} not used")
+    return args, bench_options
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args, bench_options = parse_args(argv)
+    parser = build_parser()  # the errors found later, in its name
+    if args.source is None:
         bench = [sys.executable, "-m", "fojax.cli", "bench", "--json", str(args.json)]
         status = subprocess.run([*bench, *bench_options]).returncode
         if status:
             return status
-    elif bench_options:
-        parser.error(f"--from runs nothing: {' '.join(bench_options)} not used")
     elif not args.source.is_file():
         parser.error(f"--from {args.source}: no such file (make it with fojax bench --json FILE)")
     result = json.loads((args.source or args.json).read_text())

@@ -43,11 +43,15 @@ def splice(document: Path, report: Path, figures_name: str) -> None:
         raise SystemExit(str(error)) from None
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m experiments.regenerate_reproduction")
     parser.add_argument("--results", type=Path, default=Path("results"), metavar="DIR")
     parser.add_argument("--only", choices=sorted(RUNS), help="one of the two runs")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     for switching in [args.only] if args.only else RUNS:
         name, extra, doc_name = RUNS[switching]
         out = args.results / name

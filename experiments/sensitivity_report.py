@@ -407,7 +407,12 @@ def _invocation_lines(meta: dict) -> list[str]:
     for item in history:
         computed = item.get("runs_computed")
         what = "" if computed is None else f", {computed} of {meta['runs']} runs computed"
-        tuning = f", gain tuning {item['tuning_s']:.0f} s of it" if item.get("tuning_s") else ""
+        tuning = (
+            f", {item['tuning_s']:.0f} s of it the gain tuning's process (beside the runs, on "
+            "the same cores)"
+            if item.get("tuning_s")
+            else ""
+        )
         started = f"{item['started']}: " if item.get("started") else ""
         load0, load1 = item["load_average_start"][0], item["load_average_end"][0]
         lines.append(
@@ -425,8 +430,8 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
             f"steps of `fojax tune`'s method `{tuning.get('method', 'auto')}` at "
             f"{tuning['horizon_s']:g} s of scenario 2 per controller, {tuning['draws']} draws per "
             "sample (`auto`: its own 8 fresh draws per generation; the same problem, method, "
-            "steps and draws for all five; its defaults are 50 steps of 10 s)"
-            + (f", {tuning['wall_s']:.0f} s" if tuning.get("wall_s") else "")
+            "steps and draws for all five; its defaults are 50 steps of 10 s; its process's wall "
+            "time is in the invocation line above)"
         )
     else:
         tuning_text = f"the tuned gains of `{tuning['source']}` (experiments/fair_comparison.py)"

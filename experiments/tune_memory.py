@@ -17,6 +17,7 @@ horizon (``--blocks auto 100 full``). Writes ``memory.json`` and prints a table.
 
 from __future__ import annotations
 
+import argparse
 import json
 import multiprocessing
 import sys
@@ -65,7 +66,7 @@ def measure(horizon: float, draws: int, block: str, execute: bool) -> dict:
         return pool.apply(_measure, (horizon, draws, block, execute))
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = _common.parser("tune_memory")
     parser.add_argument("--horizons", type=float, nargs="+", default=[5, 10, 20, 40, 80])
     _common.add_numbers(parser, int, float, draws=256, execute_up_to=10.0)
@@ -76,7 +77,11 @@ def main(argv=None) -> int:
     parser.add_argument("--blocks", nargs="+", default=["auto", "100"], help=choices)
     block = "markdown file whose tune-memory block to replace"
     _common.add_outputs(parser, "tune_memory", update_doc=block, smoke=False)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     rows = []
     for horizon in args.horizons:
         for block in args.blocks:

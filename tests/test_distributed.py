@@ -132,7 +132,7 @@ def _doc_commands(marker: str) -> list[tuple[dict, list[str]]]:
         while "=" in words[0] and not words[0].startswith("-"):
             name, _, value = words.pop(0).partition("=")
             variables[name] = value
-        assert words[0] == "fojax", line
+        assert words[0] == ".venv/bin/fojax", line  # the set-up's environment
         commands.append((variables, words[1:]))
     return commands
 

@@ -21,7 +21,7 @@ def test_example_runs(code, monkeypatch):
     from fojax.controllers import registry
 
     monkeypatch.setattr(registry, "_LAWS", dict(registry._LAWS))  # examples register laws
-    exec(compile(code, "<example>", "exec"), {"__name__": "__example__"})
+    exec(compile(code, "<example>", "exec"), {"__name__": "__main__"})  # as a script
 
 
 def test_there_are_examples():

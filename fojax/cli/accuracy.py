@@ -203,8 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+def parse_args(argv) -> argparse.Namespace:
+    """Parse and check (the extra's modules installed, a horizon the table can use);
+    exits with a message before anything is computed."""
     parser = build_parser()
     args = parser.parse_args(argv)
     require_extra("accuracy", "experiments", EXTRA_MODULES)
@@ -221,6 +222,12 @@ def main(argv=None) -> int:
             f"--horizon / --dt is {steps} steps; at most {MAX_STEPS} (the full-memory "
             "reference costs steps^2): use a shorter --horizon or a larger --dt"
         )
+    return args
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = parse_args(argv)
     settings.enable_float64()
     out = args.out
     out.mkdir(parents=True, exist_ok=True)

@@ -48,6 +48,7 @@ __all__ = [
     "add_options",
     "add_runtime_options",
     "add_study_options",
+    "check_runtime",
     "CACHE_VARIABLE",
     "compile_cache_dir",
     "default_cache_dir",
@@ -442,6 +443,23 @@ def parse_distributed(values: dict) -> dict:
     return {"coordinator_address": coordinator, "num_processes": count, "process_id": index}
 
 
+def check_runtime(argv: list[str], prog: str, distributed: bool = True, environ=None) -> tuple:
+    """:func:`setup_runtime`'s checks, which start nothing: ``(parser, options, settings,
+    distributed options)``, the runtime options of ``argv`` (``--no-compile-cache`` and,
+    with ``distributed``, the flags of a ``jax.distributed`` run, checked by
+    :func:`parse_distributed`) and the :class:`fojax.settings.Settings` of ``environ``
+    (default ``os.environ``). Bad values exit with status 2 and a message."""
+    parser = argparse.ArgumentParser(prog=prog, add_help=False)
+    add_runtime_options(parser, distributed)
+    known, _ = parser.parse_known_args(argv)
+    try:
+        found = settings.read(environ)
+        options = parse_distributed(vars(known)) if distributed else {}
+    except ValueError as error:
+        parser.error(str(error))
+    return parser, known, found, options
+
+
 def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
     """Before a command touches JAX's devices: turn the compilation cache on (unless
     ``--no-compile-cache``) and join a ``jax.distributed`` run when asked or detected
@@ -451,14 +469,7 @@ def setup_runtime(argv: list[str], prog: str, distributed: bool = True) -> dict:
     ``"settings"``, the process's :class:`fojax.settings.Settings`, read here once (a
     variable fojax cannot use exits with status 2 too).
     """
-    parser = argparse.ArgumentParser(prog=prog, add_help=False)
-    add_runtime_options(parser, distributed)
-    known, _ = parser.parse_known_args(argv)
-    try:
-        found = settings.read()
-        options = parse_distributed(vars(known)) if distributed else {}
-    except ValueError as error:
-        parser.error(str(error))
+    parser, known, found, options = check_runtime(argv, prog, distributed)
     cache = enable_compile_cache(known.no_compile_cache, found)
     from fojax import sharding
 

@@ -6,9 +6,10 @@ exponentials), RK4, 1 ms, float32. Measured in one run, on every device JAX sees
 
 * forward rollouts at several draw counts: draw-steps per second (median of
   ``--repeats`` runs) and compile time, apart; batches larger than ``--chunk`` draws
-  run as consecutive calls of ``--chunk`` draws each (as the Monte Carlo layer runs
-  them; one call of a big batch streams the fractional memory from DRAM every step),
-  and are also timed as one call for comparison;
+  run as consecutive calls of ``--chunk`` draws each (one call of a big batch streams
+  the fractional memory from DRAM every step), and are also timed as one call for
+  comparison. ``fojax simulate`` and ``fojax reproduce`` run their draws in blocks of
+  ``--device-batch`` draws per device and call instead (:mod:`fojax.study`);
 * reverse-mode gradient of the rollout cost with respect to the gains (``tanh``
   switching) at several horizons: draw-steps per second, its cost relative to the
   forward pass of the same rollout, compile time, and peak memory (XLA's buffer
@@ -100,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
                                   help="batches up to this size run the long horizon")),
         ("--repeats", dict(type=count, default=3, help="timed runs (median)")),
         ("--chunk", dict(type=count, default=DEFAULT_CHUNK, help="draws per compiled call for "
-                         "bigger forward batches (Monte Carlo chunks)")),
+                         "bigger forward batches (simulate and reproduce: --device-batch)")),
         ("--gradient-draws", dict(type=counts, default=(64, 256), help="draw counts of the "
                                   "gradient runs (comma-separated; default 64,256)")),
         ("--gradient-horizons", dict(type=_horizons, default=(0.25, 1.0, 4.0), help="horizons "
@@ -156,7 +157,7 @@ SMALL = {
 """The sizes ``--small`` sets itself (giving one of these options with it is an error)."""
 
 
-def _parse(argv: list[str]) -> argparse.Namespace:
+def parse_args(argv: list[str]) -> argparse.Namespace:
     """The options, with ``--small``'s sizes applied (an error when one is also given)."""
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -174,7 +175,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
 
 def main(argv=None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = _parse(argv)
+    args = parse_args(argv)
     requested_devices = arguments.use_host_devices(args.devices)
     if args.devices is not None and requested_devices is None:
         _log(
