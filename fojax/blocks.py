@@ -29,7 +29,7 @@ import numpy as np
 
 from fojax import sharding
 
-__all__ = ["EvaluatorCache", "evaluate_in_blocks", "gather"]
+__all__ = ["EvaluatorCache", "abstract", "evaluate_in_blocks", "gather"]
 
 
 def gather(tree: Any, mesh=None) -> Any:
@@ -90,6 +90,23 @@ def evaluate_in_blocks(fn: Callable, shared: Any, keys, mesh=None, block: int | 
         chunk = sharding.shard_draws(chunk, mesh) if placed else chunk
         parts.append(gather(fn(shared, chunk), mesh))
     return jax.tree.map(lambda *xs: np.concatenate(xs)[:count], *parts)
+
+
+def abstract(shared: Any, keys: Any, mesh=None) -> tuple:
+    """``(shared, keys)`` of one call of :func:`evaluate_in_blocks` as its program
+    receives them, from ``jax.ShapeDtypeStruct`` trees (``keys`` those of one whole
+    call): with more than one device, ``shared`` replicated and ``keys`` split over
+    ``mesh``, as the call places them; for compiling the program ahead
+    (``jit(fn).lower(*abstract(...)).compile()``) without running it."""
+    if mesh is None or int(mesh.devices.size) == 1:
+        return shared, keys
+
+    def placed(tree, where):
+        return jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=where), tree)
+
+    return placed(shared, sharding.replicated_sharding(mesh)), placed(
+        keys, sharding.draw_sharding(mesh)
+    )
 
 
 class EvaluatorCache:

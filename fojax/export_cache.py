@@ -66,7 +66,7 @@ def _signature(args) -> tuple:
     leaves, treedef = jax.tree.flatten(args)
     return str(treedef), tuple(
         (
-            np.shape(leaf),
+            tuple(leaf.shape) if hasattr(leaf, "shape") else np.shape(leaf),
             str(getattr(leaf, "dtype", type(leaf).__name__)),
             str(getattr(leaf, "sharding", None)),
         )
@@ -126,10 +126,7 @@ def reusable(
 
     programs: dict[tuple, Callable] = {}
 
-    def call(*args):
-        folder = _folder()
-        if folder is None or jax.process_count() > 1:
-            return jitted(*args)
+    def program_for(args):
         signature = _signature(args)
         program = programs.get(signature)
         if program is None:
@@ -139,6 +136,23 @@ def reusable(
             program = programs[signature] = jax.jit(
                 exported.call, compiler_options=compiler_options
             )
-        return program(*args)
+        return program
 
+    def call(*args):
+        nonlocal folder
+        folder = _folder()
+        if folder is None or jax.process_count() > 1:
+            return jitted(*args)
+        return program_for(args)(*args)
+
+    def ahead(*abstract):
+        """Compile for arguments of these shapes (``jax.ShapeDtypeStruct`` trees, their
+        shardings those the call's arguments will have), running nothing."""
+        nonlocal folder
+        folder = _folder()
+        target = jitted if folder is None or jax.process_count() > 1 else program_for(abstract)
+        target.lower(*abstract).compile()
+
+    folder = None
+    call.ahead = ahead
     return call

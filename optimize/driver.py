@@ -62,22 +62,40 @@ COLUMNS = tuple(
 @dataclasses.dataclass(frozen=True)
 class Budget:
     """Limits of a run (``None``: none): steps (requests), evaluations (points),
-    draw_steps (draws x steps simulated), seconds (wall time, checked between steps)."""
+    draw_steps (draws x steps simulated), seconds (wall time, checked between steps),
+    and convergence: ``patience`` steps over which the best validated score improved by
+    less than ``tolerance`` (relative) ends the run."""
 
     steps: int | None = None
     evaluations: int | None = None
     draw_steps: int | None = None
     seconds: float | None = None
+    patience: int | None = None
+    tolerance: float = 1e-3
 
     def __post_init__(self) -> None:
-        for name in ("steps", "evaluations", "draw_steps"):
+        for name in ("steps", "evaluations", "draw_steps", "patience"):
             value = getattr(self, name)
             if value is not None:
                 checks.integer(name, int(value) if isinstance(value, np.integer) else value)
         if self.seconds is not None:
             checks.number("seconds", self.seconds)
-        if all(getattr(self, f.name) is None for f in dataclasses.fields(self)):
+        checks.number("tolerance", self.tolerance, allow_low=True)
+        limits = ("steps", "evaluations", "draw_steps", "seconds")
+        if all(getattr(self, name) is None for name in limits):
             raise ValueError("a budget needs a limit: steps, evaluations, draw_steps or seconds")
+
+    def converged(self, scores: list, step: int) -> bool:
+        """Whether the best of ``scores`` (``(step, score)`` of the validations so far,
+        lower is better) improved by less than ``tolerance`` (relative) over the last
+        ``patience`` steps, ``step`` the steps done."""
+        if self.patience is None or step < self.patience:
+            return False
+        then = [v for at, v in scores if at <= step - self.patience]
+        if not then:
+            return False
+        before, after = min(then), min(v for _, v in scores)
+        return before - after <= self.tolerance * abs(before)
 
     def allows(self, used: dict, points: int, draw_steps: int) -> bool:
         """Whether a request of ``points`` and ``draw_steps`` fits after ``used``."""
@@ -183,6 +201,7 @@ class _Run:
         self.session, self.excluded = time.perf_counter(), 0.0
         self.keys = objective.keys("validation", self.validation_draws) if self.validating else None
         self._last, self._start = {}, {}  # the last validation; the start's
+        self.durations: dict = {}  # the time of the last request of each kind
         self._thread: threading.Thread | None = None
 
     def _restore(self, header: dict) -> None:
@@ -206,14 +225,37 @@ class _Run:
     def wall(self) -> float:
         return self.wall_before + time.perf_counter() - self.session - self.excluded
 
+    def _kind(self, request) -> tuple:
+        """What a request's time depends on: gradient or not, its law, step and lanes."""
+        points = np.atleast_2d(request.points).shape[0]
+        lanes = points * (request.draws or self.objective.spec.draws)
+        return bool(request.gradient), request.width is None, request.dt, lanes
+
     def fits(self, request) -> bool:
-        """Whether the budget allows ``request``."""
+        """Whether the budget allows ``request``; with a time limit, whether it is
+        expected to end within it (the last request of its kind took as long)."""
         points, spec = np.atleast_2d(request.points).shape[0], self.objective.spec
-        used = {**self.used, "wall_time_s": self.wall()}
-        return self.budget.allows(used, points, points * (request.draws or spec.draws) * spec.steps)
+        expected = self.durations.get(self._kind(request), 0.0)
+        used = {**self.used, "wall_time_s": self.wall() + expected}
+        steps = spec.steps_at(request.dt)
+        return self.budget.allows(used, points, points * (request.draws or spec.draws) * steps)
+
+    def ready(self, request) -> bool:
+        """Whether the program ``request`` needs is compiled, waiting for a compilation
+        ahead (:func:`_compile_ahead`) at most until the time limit: a run never waits
+        past ``seconds`` for a program, and Ctrl-C interrupts the wait."""
+        if self.budget.seconds is None:
+            return True
+        return self.objective.ready(request, max(self.budget.seconds - self.wall(), 0.0))
 
     def more(self) -> bool:
-        """Whether the budget allows another request like the next one."""
+        """Whether the budget allows another request like the next one, and the run has
+        not converged (:meth:`Budget.converged`)."""
+        sign = -1.0 if self.best["initial"] is not None and "yield" in self.best["initial"] else 1.0
+        scores = [(r["step"], sign * r["validation"]) for r in self.history
+                  if r["validation"] is not None]  # fmt: skip
+        if self.budget.converged(scores, self.used["steps"]):
+            return False
         return self.fits(self.strategy.ask(self.state))
 
     def score(self, x):
@@ -282,8 +324,10 @@ class _Run:
     def step(self, request) -> bool:
         """Evaluate ``request``, tell the strategy, record, validate and checkpoint;
         whether the budget is spent."""
+        began = time.perf_counter()
         evaluation = self.objective(request)
         self.state = self.strategy.tell(self.state, request, evaluation)
+        self.durations[self._kind(request)] = time.perf_counter() - began
         self.used["steps"] += 1
         self.used["evaluations"] += np.atleast_2d(request.points).shape[0]
         self.used["draw_steps"] += evaluation.draw_steps
@@ -450,11 +494,11 @@ def run(
         Path(out).mkdir(parents=True, exist_ok=True)
     options = (validation_draws, validate_every, checkpoint_every, progress, callback)
     state = _Run(objective, strategy, budget, x0, out, fingerprint, header, options)
-    warming = _compile_ahead(objective, strategy.needs())
+    _compile_ahead(objective, strategy.needs())
     try:
         while state.used["steps"] < (math.inf if stop_after is None else stop_after):
             request = strategy.ask(state.state)
-            if not state.fits(request) or state.step(request):
+            if not state.fits(request) or not state.ready(request) or state.step(request):
                 break
     except KeyboardInterrupt:
         state.save()
@@ -465,9 +509,6 @@ def run(
                 file=sys.stderr,
             )
         raise
-    finally:
-        if warming is not None:
-            warming.join()
     return state.result()
 
 

@@ -119,6 +119,7 @@ class Objective:
         self.mesh, self._mesh = mesh, mesh or sharding.one_device_mesh()
         self.device_batch, self.lanes, self.loss = device_batch, int(lanes), MeanLoss(spec.cost)
         self._programs: dict = {}
+        self._ahead: dict = {}  # (kind, width, dt) -> set once compiled ahead
         self._lock = threading.Lock()
 
     # -- description, parameters, draws -------------------------------------------
@@ -177,25 +178,25 @@ class Objective:
         return gains._replace(**{w: getattr(self.base_gains, w) * width for w in self._widths})
 
     def _observer(self, config):
-        chain = {"cost": cost_lib.CostObserver(self.spec.cost, self.spec.dt)}
+        chain = {"cost": cost_lib.CostObserver(self.spec.cost, config.dt)}
         if self.requirements is not None:
             chain["requirements"] = rq.RequirementMetrics.for_requirements(
                 self.requirements, config
             )
         return observers.Chain(**chain)
 
-    def _rollout(self, law: str, horizon: float, scenario, save_every: int):
+    def _rollout(self, law: str, horizon: float, scenario, save_every: int, dt: float):
         """``run(x (d, L), width, draws) -> (values (K, L), terms (4, L), metrics,
         status (L,))``: one batch-last rollout of ``draws`` (batch first, as
-        :meth:`draws` makes them), one copy of the gains per lane."""
+        :meth:`draws` makes them, at the step ``dt``), one copy of the gains per lane."""
         spec, dtype = self.spec, self.dtype
         config = simulator.SimulationConfig(
-            dt=spec.dt,
+            dt=dt,
             horizon=horizon,
             save_every=save_every,
             rotor_speed_limit=self.rotor_speed_limit,
         )
-        controller, observer = spec.make_controller(law, horizon), self._observer(config)
+        controller, observer = spec.make_controller(law, horizon, dt), self._observer(config)
         scenario = _covering(scenario, horizon)
         weights = jnp.asarray(spec.cost.weights, dtype)
         model = plant.nominal_params(dtype)
@@ -225,10 +226,11 @@ class Objective:
                 self._programs[key] = make()
         return self._programs[key]
 
-    def _sampler(self, scenario, registered: bool):
-        """The draws of a block of :data:`SAMPLE_BLOCK` keys (a program of its own,
-        shared by every rollout program: compiled once, beside them)."""
-        dt, dtype = self.spec.dt, self.dtype
+    def _sampler(self, scenario, registered: bool, dt: float | None = None):
+        """The draws of a block of :data:`SAMPLE_BLOCK` keys at the step ``dt`` (default
+        the spec's; a program of its own, shared by every rollout program: compiled once,
+        beside them)."""
+        dt, dtype = self.spec.dt if dt is None else dt, self.dtype
 
         def sample(keys, member):
             return scenarios.batch_first(scenarios.sample_draws(scenario, keys, dt, dtype, member))
@@ -236,29 +238,38 @@ class Objective:
         # Without LLVM's optimisation passes: a tenth of the compile time (its calls take
         # milliseconds); the draws agree with an optimised program's to an ulp or two.
         fast = COMPILE_MODES["fast"]
-        key = ("sampler", None if registered else id(scenario))
+        key = ("sampler", None if registered else id(scenario), dt)
         return self._cached(key, lambda: _FirstCall(jax.jit(sample, compiler_options=fast)))
 
-    def draws(self, keys, scenario=None, horizon: float | None = None):
+    def draws(self, keys, scenario=None, horizon: float | None = None, dt: float | None = None):
         """The draws of ``keys`` ``(n, 2)`` (a union's draw ``i`` of member ``i %
-        members``), batch first, on the host: sampled in blocks of :data:`SAMPLE_BLOCK`."""
+        members``) at the step ``dt`` (default the spec's), batch first, on the host:
+        sampled in blocks of :data:`SAMPLE_BLOCK`."""
         registered = scenario is None and self.registered
         scenario = _covering(self.scenario if scenario is None else scenario,
                              self.spec.horizon if horizon is None else horizon)  # fmt: skip
         keys = np.asarray(keys)
         member = self._members(len(keys)).astype(np.int32)
-        program = self._sampler(scenario, registered)
+        program = self._sampler(scenario, registered, self._step(dt))
         return blocks.evaluate_in_blocks(
             lambda shared, batch: program(*batch), None, (keys, member), None, SAMPLE_BLOCK
         )
 
-    def _forward(self, law: str, horizon: float, scenario, registered: bool):
-        """The lanes program of ``law`` at ``horizon`` (lanes first in and out) over the
-        mesh, compiled once."""
+    def _step(self, dt: float | None) -> float | None:
+        """``dt`` checked (a coarser step of the spec's), ``None`` for the spec's own."""
+        if dt is None or dt == self.spec.dt:
+            return None
+        self.spec.check_step(dt)
+        return float(dt)
+
+    def _forward(self, law: str, horizon: float, scenario, registered: bool, dt=None):
+        """The lanes program of ``law`` at ``horizon`` and step ``dt`` (``None``: the
+        spec's; lanes first in and out) over the mesh, compiled once."""
 
         def make():
-            steps = int(round(horizon / self.spec.dt))
-            run = self._rollout(law, horizon, scenario, checkpoint_interval(steps, 100.0))
+            step = self.spec.dt if dt is None else dt
+            steps = int(round(horizon / step))
+            run = self._rollout(law, horizon, scenario, checkpoint_interval(steps, 100.0), step)
 
             def lanes(width, batch):
                 xs, draws = batch
@@ -266,9 +277,12 @@ class Objective:
                 return values.T, terms.T, metrics, status
 
             key = dict(law=law, horizon=horizon, kind="lanes") if registered else None
+            if key is not None and dt is not None:
+                key["dt"] = dt
             return self._program(lanes, key, None)
 
-        return self._cached(("forward", law, horizon, None if registered else id(scenario)), make)
+        key = ("forward", law, horizon, None if registered else id(scenario), dt)
+        return self._cached(key, make)
 
     def _program(self, fn, kind: dict | None, options):
         """``fn(shared, batch)`` compiled for one block per device of the mesh (kept
@@ -289,11 +303,12 @@ class Objective:
         width: float | None = None,
         horizon: float | None = None,
         scenario: scenarios.Scenario | None = None,
+        dt: float | None = None,
     ) -> Outputs:
         """Outputs ``(P, n, ...)`` of ``points`` ``(P, d)`` on the draws ``keys`` ``(n, 2)``
         (common to the points), at the tuning law with ``width`` or the evaluation law
         (``None``), at ``horizon`` (default the spec's) on ``scenario`` (default the
-        objective's)."""
+        objective's), at the step ``dt`` (default the spec's; a whole multiple of it)."""
         points = np.atleast_2d(np.asarray(points, np.float64))
         if points.shape[1] != self.size:
             raise ValueError(f"points must be (P, {self.size}), got {points.shape}")
@@ -302,9 +317,10 @@ class Objective:
         registered = scenario is None and self.registered
         scenario = self.scenario if scenario is None else scenario
         law = self.switching if width is None else "tanh"
-        program = self._forward(law, horizon, scenario, registered)
+        dt = self._step(dt)
+        program = self._forward(law, horizon, scenario, registered, dt)
         count, n = points.shape[0], keys.shape[0]
-        draws = self.draws(keys, None if registered else scenario, horizon)
+        draws = self.draws(keys, None if registered else scenario, horizon, dt)
         xs = np.repeat(points, n, axis=0).astype(self.dtype)
         batch = (xs, jax.tree.map(lambda a: np.tile(a, (count,) + (1,) * (a.ndim - 1)), draws))
         width = jnp.asarray(1.0 if width is None else width, self.dtype)
@@ -331,7 +347,7 @@ class Objective:
         """``per_draw((x, width), (keys, member, cotangent)) -> (values, terms, status,
         gradients)`` of one block of draws (the gradient program before the mesh)."""
         spec = self.spec
-        run = self._rollout(law, spec.horizon, self.scenario, spec.block)
+        run = self._rollout(law, spec.horizon, self.scenario, spec.block, spec.dt)
 
         def per_draw(shared, batch):
             (x, width), (draws, cotangent) = shared, batch
@@ -359,36 +375,62 @@ class Objective:
         out = blocks.evaluate_in_blocks(self._gradient(law), shared, batch, self._mesh, block)
         return jax.tree.map(_float64, out)
 
-    def work(self, lanes: int, block: int | None = None) -> int:
-        """The cost of ``lanes`` lanes in lane-steps of whole calls: rounded up to the
-        calls of ``block`` (default the objective's lanes) per device over the mesh."""
+    def work(self, lanes: int, block: int | None = None, dt: float | None = None) -> int:
+        """The cost of ``lanes`` lanes in lane-steps of whole calls (at the step ``dt``,
+        default the spec's): rounded up to the calls of ``block`` (default the
+        objective's lanes) per device over the mesh."""
         per_call = (block or self.lanes) * int(self._mesh.devices.size)
-        return -(-lanes // per_call) * per_call * self.spec.steps
+        return -(-lanes // per_call) * per_call * self.spec.steps_at(dt)
 
-    def compile(self, kind: str, width: float | None = None) -> None:
-        """Compile a program ahead, e.g. in a thread beside another's compilation or a
-        phase that does not need it yet: ``kind`` ``"sampler"`` (the draws'),
-        ``"forward"`` or ``"gradient"`` (of the law of ``width``: ``None`` the evaluation
-        law), the latter two on blank draws (they do not wait for the sampler)."""
-        if kind == "sampler":
-            self.draws(self.sample(0, 1))
-            return
-        law = "tanh" if width is not None else self.switching
-        count = self.lanes * int(self._mesh.devices.size) if kind == "forward" else self.spec.draws
+    def compile(self, kind: str, width: float | None = None, dt: float | None = None) -> None:
+        """Compile a program ahead of its first call (in a thread beside another's
+        compilation or a phase that does not need it yet), from the shapes of its
+        arguments, running nothing: ``kind`` ``"sampler"`` (the draws' at the step
+        ``dt``), ``"forward"`` (the lanes program of the law of ``width``, ``None`` the
+        evaluation law, at the step ``dt``, default the spec's) or ``"gradient"`` (the
+        per-draw gradient of that law). :meth:`ready` waits for it."""
+        dt, law = self._step(dt), "tanh" if width is not None else self.switching
+        with self._lock:
+            event = self._ahead.setdefault((kind, law, dt), threading.Event())
+        try:
+            self._compile(kind, law, dt)
+        finally:
+            event.set()
+
+    def _compile(self, kind: str, law: str, dt: float | None) -> None:
         blank = [
             jax.ShapeDtypeStruct((SAMPLE_BLOCK,) + s, t)
             for s, t in (((2,), "uint32"), ((), "int32"))
         ]
-        structure = jax.eval_shape(self._sampler(self.scenario, self.registered).program, *blank)
-        draws = jax.tree.map(lambda a: np.zeros((count,) + a.shape[1:], a.dtype), structure)
+        sampler = self._sampler(self.scenario, self.registered, dt)
+        if kind == "sampler":
+            sampler.ahead(*blank)
+            return
+        block = self.lanes if kind == "forward" else self.device_batch or self.spec.draws
+        count = block * int(self._mesh.devices.size)
+        structure = jax.eval_shape(sampler.program, *blank)
+        draws = jax.tree.map(lambda a: jax.ShapeDtypeStruct((count,) + a.shape[1:], a.dtype),
+                             structure)  # fmt: skip
         if kind == "gradient":
-            self._per_draw(law, self.x0, 1.0, draws, np.zeros((count, self.count)))
+            shared = (jax.ShapeDtypeStruct((self.size,), self.dtype),
+                      jax.ShapeDtypeStruct((), self.dtype))  # fmt: skip
+            batch = (draws, jax.ShapeDtypeStruct((count, self.count), self.dtype))
+            program = self._gradient(law)
         else:
-            program = self._forward(law, self.spec.horizon, self.scenario, self.registered)
-            xs = np.zeros((count, self.size), self.dtype)
-            blocks.evaluate_in_blocks(
-                program, jnp.asarray(1.0, self.dtype), (xs, draws), self._mesh, self.lanes
-            )
+            shared = jax.ShapeDtypeStruct((), self.dtype)
+            batch = (jax.ShapeDtypeStruct((count, self.size), self.dtype), draws)
+            program = self._forward(law, self.spec.horizon, self.scenario, self.registered, dt)
+        program.ahead(*blocks.abstract(shared, batch, self._mesh))
+
+    def ready(self, request: Request, timeout: float) -> bool:
+        """Whether the program ``request`` needs is compiled, waiting at most ``timeout``
+        seconds for its compilation ahead (:meth:`compile`); ``True`` for a program not
+        compiled ahead (its first call compiles it)."""
+        kind = "gradient" if request.gradient else "forward"
+        law = "tanh" if request.width is not None else self.switching
+        with self._lock:
+            event = self._ahead.get((kind, law, self._step(request.dt)))
+        return True if event is None else event.wait(timeout)
 
     def lower_gradient(self, x=None, law: str = "tanh"):
         """``(lowered, args)``: the per-draw gradient of the fixed sample in one block on
@@ -410,11 +452,13 @@ class Objective:
         loss = self.loss if request.loss is None else request.loss
         keys = self.sample(request.sample, request.draws)
         points = np.atleast_2d(np.asarray(request.points, np.float64))
-        draw_steps = points.shape[0] * keys.shape[0] * self.spec.steps
+        draw_steps = points.shape[0] * keys.shape[0] * self.spec.steps_at(request.dt)
         if not request.gradient:
-            outputs = self.forward(points, keys, request.width)
-            work = self.work(points.shape[0] * keys.shape[0])
+            outputs = self.forward(points, keys, request.width, dt=request.dt)
+            work = self.work(points.shape[0] * keys.shape[0], dt=request.dt)
             return Evaluation(np.asarray(loss.values(outputs)), None, outputs, 0, draw_steps, work)
+        if request.dt is not None and request.dt != self.spec.dt:
+            raise ValueError("a gradient is taken at the spec's step dt")
         if points.shape[0] != 1:
             raise ValueError("a gradient is taken at one point")
         if self.requirements is not None and isinstance(loss, MeanLoss):
@@ -486,10 +530,22 @@ def _float64(array: np.ndarray) -> np.ndarray:
 
 
 class _FirstCall:
-    """A program whose first call holds a lock: two threads never compile it twice."""
+    """A program whose first call holds a lock (two threads never compile it twice),
+    which :meth:`ahead` compiles from its arguments' shapes without running it."""
 
     def __init__(self, program):
         self.program, self.lock, self.ready = program, threading.Lock(), False
+
+    def ahead(self, *abstract) -> None:
+        """Compile for arguments of these shapes (``jax.ShapeDtypeStruct`` trees), as
+        the first call would, running nothing."""
+        with self.lock:
+            if not self.ready:
+                lower = getattr(self.program, "lower", None)
+                if lower is None:  # fojax.export_cache: it lowers and compiles itself
+                    self.program.ahead(*abstract)
+                else:
+                    lower(*abstract).compile()
 
     def __call__(self, *args):
         if not self.ready:

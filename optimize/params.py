@@ -43,7 +43,7 @@ Array = jax.Array
 
 __all__ = [
     "AXIS_NAMES", "SHARING", "TUNED_ROLES", "FieldMap", "ParameterMap", "default_fields",
-    "make_parameter_map", "naive_gains",
+    "integer_order_gains", "make_parameter_map", "naive_gains",
 ]  # fmt: skip
 
 AXIS_NAMES = ("x", "y", "z", "phi", "theta", "psi")
@@ -232,6 +232,30 @@ class ParameterMap:
         """Flatten to a ``(size,)`` vector and the function that undoes it."""
         return ravel_pytree(params)
 
+    def tie(self, coarser: ParameterMap) -> np.ndarray:
+        """``(size,)`` indices: parameter ``i`` of this map is parameter ``tie[i]`` of
+        ``coarser`` (the same fields, coarser axis groups, e.g. ``share="paper"`` for
+        ``"none"``): the vectors ``x = z[tie]`` are those whose tied axes agree."""
+        if coarser.names != self.names:
+            raise ValueError("a tie maps between parameter maps of the same fields")
+        offsets, start = {}, 0
+        for f in coarser.fields:
+            offsets[f.name] = start
+            start += int(np.prod(f.param_shape, dtype=int))
+        tie = []
+        for fine, coarse in zip(self.fields, coarser.fields, strict=True):
+            rest = int(np.prod(fine.shape[1:], dtype=int)) if fine.groups else 1
+            if fine.groups is None:
+                tie += list(offsets[fine.name] + np.arange(int(np.prod(fine.shape, dtype=int))))
+                continue
+            group_of = {a: g for g, axes in enumerate(coarse.groups) for a in axes}
+            for axes in fine.groups:
+                if len({group_of[a] for a in axes}) != 1:
+                    raise ValueError(f"{fine.name}: axis groups {axes} span coarser groups")
+                first = offsets[fine.name] + group_of[axes[0]] * rest
+                tie += list(first + np.arange(rest))
+        return np.asarray(tie, np.int64)
+
 
 def default_fields(controller: str) -> tuple[str, ...]:
     """Fields tuned by default: those whose declared role is in :data:`TUNED_ROLES`."""
@@ -265,6 +289,21 @@ def make_parameter_map(
         per_axis = len(shape) >= 1 and shape[0] == len(AXIS_NAMES)
         maps.append(FieldMap(name, shape, spec.bounds[name], SHARING[share] if per_axis else None))
     return ParameterMap(controller, tuple(maps), share)
+
+
+def integer_order_gains(gains: Any, margin: float = 0.01) -> Any:
+    """``gains`` with every fractional order (the fields declaring ``integer_order``)
+    moved ``margin`` of its bounds' span inside the bound where its operator is of
+    integer order (for orders in (0, 1): 0.99 or 0.01), a start the parameter maps can
+    represent."""
+    spec = type(gains).spec
+    values = {}
+    for name, edge in spec.integer_orders.items():
+        bounds, reference = spec.bounds[name], jnp.asarray(getattr(gains, name))
+        inward = -1.0 if edge == bounds.high else 1.0
+        value = edge + inward * margin * (bounds.high - bounds.low)
+        values[name] = jnp.full(reference.shape, value, reference.dtype)
+    return gains._replace(**values)
 
 
 def naive_gains(controller: str, dtype: Any = None) -> Any:

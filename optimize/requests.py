@@ -50,6 +50,7 @@ class Request(NamedTuple):
     width: float | None = None
     loss: Any = None
     draws: int | None = None
+    dt: float | None = None
 
 
 class Evaluation(NamedTuple):

@@ -126,6 +126,23 @@ class ProblemSpec:
     def steps(self) -> int:
         return int(round(self.horizon / self.dt))
 
+    def steps_at(self, dt: float | None) -> int:
+        """Steps of the horizon at the step ``dt`` (``None``: the spec's)."""
+        return self.steps if dt is None else int(round(self.horizon / dt))
+
+    def check_step(self, dt: float) -> None:
+        """``ValueError`` unless ``dt`` is a whole multiple of the spec's step that
+        divides the horizon (a coarser step of the same draws)."""
+        factor = dt / self.dt
+        steps = self.horizon / dt
+        if abs(factor - round(factor)) > 1e-9 * factor or round(factor) < 1 or abs(
+            steps - round(steps)
+        ) > 1e-6 * steps:
+            raise ValueError(
+                f"a step of {dt} s must be a whole multiple of dt = {self.dt} s that divides "
+                f"the horizon ({self.horizon} s)"
+            )
+
     @property
     def block(self) -> int:
         return self.save_every or checkpoint_interval(self.steps)
@@ -136,11 +153,12 @@ class ProblemSpec:
         found = [scenarios.get_scenario(i) for i in ids]
         return found[0] if len(found) == 1 else scenarios.union(*found)
 
-    def make_controller(self, switching: str, horizon: float):
-        """The controller over ``horizon`` with ``switching`` and the fractional method,
-        each where the controller has one (the FL has neither)."""
-        options = dict(dt=self.dt, horizon=horizon, fractional_method=self.fractional,
-                       switching=switching)  # fmt: skip
+    def make_controller(self, switching: str, horizon: float, dt: float | None = None):
+        """The controller over ``horizon`` at the step ``dt`` (default the spec's) with
+        ``switching`` and the fractional method, each where the controller has one (the
+        FL has neither)."""
+        options = dict(dt=self.dt if dt is None else dt, horizon=horizon,
+                       fractional_method=self.fractional, switching=switching)  # fmt: skip
         return registry.make_controller(
             self.controller, **registry.options_for(self.controller, options)
         )

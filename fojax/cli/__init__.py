@@ -33,14 +33,16 @@ COMMANDS = {
 }
 """Each command, run by the module ``fojax.cli.<command>``, and what it does."""
 
-HOST_DEVICE_COMMANDS = ("simulate", "reproduce")
-"""Commands whose draws are split over one CPU device per core (set before JAX starts;
-``XLA_FLAGS=--xla_force_host_platform_device_count=1`` keeps one). Their results do not
-depend on it: the draws are computed in fixed blocks, one per device and call
-(``--device-batch``), and draw ``i``'s numbers are the same bit for bit on any number
-of devices and processes (:mod:`fojax.study`). Not ``tune``: a minibatch is one block
-unless ``--device-batch`` splits it, and one device runs its large kernels on every
-core."""
+HOST_DEVICE_COMMANDS = ("simulate", "reproduce", "tune")
+"""Commands whose work is split over one CPU device per core (set before JAX starts;
+``XLA_FLAGS=--xla_force_host_platform_device_count=1`` keeps one). ``simulate`` and
+``reproduce``: their results do not depend on it (the draws are computed in fixed
+blocks, one per device and call, ``--device-batch``, and draw ``i``'s numbers are the
+same bit for bit on any number of devices and processes, :mod:`fojax.study`).
+``tune``: a population's lanes are split over the devices (a generation's time is
+nearly halved on two cores against one device threaded over both); a lane's numbers
+depend on the lanes per device and call, so the last bits of a run may differ
+between machines with other core counts."""
 
 
 def main(argv=None) -> int:

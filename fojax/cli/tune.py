@@ -36,13 +36,13 @@ from typing import Any, NamedTuple
 from fojax import records
 from fojax.cli import arguments, figures, output, style
 from fojax.cli import requirements as requirements_cli
-from fojax.optimize.strategies import DEFAULT_STEPS, METHODS
+from fojax.optimize.strategies import AUTO_DRAWS, METHODS
 
 __all__ = ["METHODS", "OPTIONS", "Run", "build_parser", "main", "parse_args"]
 
 WEIGHTED, CONSTRAINED = ("mean", "cvar"), ("effort", "tracking")
 TERMS = ("position", "attitude", "effort", "chattering")
-GRADIENT = ("cma-lbfgs", "adam", "lbfgs")
+GRADIENT = tuple(name for name, method in METHODS.items() if method.gradient)
 BUILT_IN = {"paper": "defaults", "naive": "naive"}
 
 
@@ -67,6 +67,25 @@ def _methods(*names) -> Callable:
             return f"applies to --method {' or '.join(names)} only, not to --method {a.method}"
 
     return applies
+
+
+def _option_of(name: str) -> tuple[Callable, Callable]:
+    """``(default, applies)`` of the method option ``name``: its default and the
+    methods it applies to, both from the method table (:data:`METHODS`)."""
+    names = tuple(m for m, method in METHODS.items() if name in method.options)
+
+    def default(a):
+        return METHODS[a.method].defaults(a.requirements is not None).get(name)
+
+    return default, _methods(*names)
+
+
+def _draws(a):
+    if a.requirements is None and not METHODS[a.method].draws:
+        return (
+            f"does not apply to --method {a.method}, which scores every point on "
+            f"{AUTO_DRAWS} fresh draws per generation"
+        )
 
 
 def _requirements(a):
@@ -109,7 +128,7 @@ OPTIONS = (
            "defaults, a knowledge-free guess (positive gains 1, p/q 1.5, orders 0.5), or a "
            "gains file (paper)"), "paper"),
     Option("--draws", dict(type=count, help="draws per sample (16; 8 with --requirements)"),
-           lambda a: 8 if a.requirements else 16),
+           lambda a: 8 if a.requirements else 16, _draws),
     Option("--horizon", dict(type=real, help="tuning horizon, s (10)"), 10.0),
     Option("--dt", dict(type=real, help="step, s (1e-3)"), 1e-3),
     Option("--seed", dict(type=arguments.seed, help="the draws' seed (0)"), 0),
@@ -140,29 +159,29 @@ OPTIONS = (
     Option("--margin", dict(type=arguments.nonnegative_float, help="share of each bound a "
            "draw must beat it by (0.05)"), 0.05, _requirements),
     # the method
-    Option("--method", dict(choices=METHODS, help="auto (default): CMA-ES on 8-draw fresh "
-           "samples; cma-lbfgs: then L-BFGS; adam; lbfgs; cma-es (--draws per generation); "
-           "nelder-mead"), "auto"),
-    Option("--steps", dict(type=count, help="steps (generations for CMA-ES): " + ", ".join(
-           f"{m} {n}" for m, n in DEFAULT_STEPS.items())), lambda a: DEFAULT_STEPS[a.method],
+    Option("--method", dict(choices=tuple(METHODS), help="; ".join(
+           f"{name}: {m.summary}" for name, m in METHODS.items()) + " (auto)"), "auto"),
+    Option("--steps", dict(type=count, help="steps (generations for CMA-ES), a cap where the "
+           "method stops once converged: " + ", ".join(
+           f"{m} {n.steps}" for m, n in METHODS.items())), lambda a: METHODS[a.method].steps,
            lambda a: "is set by --outer-steps and --inner-steps with --requirements"
            if a.requirements else None),
     Option("--seconds", dict(type=real, help="stop after this wall time (none)")),
-    Option("--switch", dict(type=count, help="CMA-ES generations before L-BFGS (30)"), 30,
-           _methods("cma-lbfgs")),
-    Option("--sigma", dict(type=real, help="CMA-ES's initial step (0.5)"), 0.5,
-           _methods("auto", "cma-lbfgs", "cma-es")),
-    Option("--popsize", dict(type=count, help="CMA-ES's candidates (4 + 3 ln d)"), None,
-           _methods("auto", "cma-lbfgs", "cma-es")),
+    Option("--switch", dict(type=count, help="CMA-ES generations before L-BFGS (30)"),
+           *_option_of("switch")),
+    Option("--sigma", dict(type=real, help="CMA-ES's initial step (0.5)"), *_option_of("sigma")),
+    Option("--popsize", dict(type=count, help="CMA-ES's candidates (4 + 3 ln d)"),
+           *_option_of("popsize")),
     Option("--learning-rate", dict(type=real, help="Adam's step (0.05; 0.1 with "
-           "--requirements)"), lambda a: 0.1 if a.requirements else 0.05, _methods("adam")),
-    Option("--clip-norm", dict(type=real, help="Adam's gradient clip (1)"), 1.0, _methods("adam")),
-    Option("--anneal-start", dict(type=real, help="Adam's first width scale (4)"), 4.0,
-           _every(_methods("adam"), _smoothing)),
-    Option("--anneal-end", dict(type=real, help="the gradient's (last) width scale (1)"), 1.0,
-           _every(_methods("adam", "lbfgs"), _smoothing)),
+           "--requirements)"), *_option_of("learning_rate")),
+    Option("--clip-norm", dict(type=real, help="Adam's gradient clip (1)"),
+           *_option_of("clip_norm")),
+    Option("--anneal-start", dict(type=real, help="Adam's first width scale (4)"),
+           _option_of("anneal_start")[0], _every(_option_of("anneal_start")[1], _smoothing)),
+    Option("--anneal-end", dict(type=real, help="the gradient's (last) width scale (1)"),
+           _option_of("anneal_end")[0], _every(_option_of("anneal_end")[1], _smoothing)),
     Option("--max-step", dict(type=real, help="L-BFGS's largest change of a parameter (1)"),
-           1.0, _methods("cma-lbfgs", "lbfgs")),
+           *_option_of("max_step")),
     # validation, held-out draws
     Option("--validation-draws", dict(type=whole, help="draws scoring the answer; the best "
            "validated gains are returned (32; 0: the last)"), 32),
@@ -274,28 +293,32 @@ def _build(parser, args) -> Run:
     reqs, limit = requirements_cli.resolve_requirements(args)
     args.requirement_set, args.rotor_speed_limit = reqs, limit
     steps = args.inner_steps if reqs is not None else args.steps  # a fresh Adam per outer step
-    strategy = st.make(
-        args.method, steps, seed=args.seed, switch=args.switch, sigma=args.sigma,
-        popsize=args.popsize, max_step=args.max_step, width=args.anneal_end,
-        learning_rate=args.learning_rate, final_learning_rate=1.0 if reqs else 0.1,
-        clip_norm=args.clip_norm, anneal_start=args.anneal_start,
-        sample="fixed" if reqs else "fresh",
-    )  # fmt: skip
     mesh = sharding.draw_mesh(jax.devices())
-    size = optimize.make_parameter_map(args.controller, fields, args.share).size
-    lanes = st.lanes(strategy, size, args.draws, int(mesh.devices.size))
     target = args.objective if reqs is not None else "cost"
-    objective = optimize.Objective(spec, gains, reqs, target, rotor_speed_limit=limit,
-                                   switching=args.eval_switching, mesh=mesh,
-                                   device_batch=args.device_batch, lanes=lanes)  # fmt: skip
-    x0, steps = objective.vector(gains), args.steps
+
+    def objective_with(lanes):
+        return optimize.Objective(spec, gains, reqs, target, rotor_speed_limit=limit,
+                                  switching=args.eval_switching, mesh=mesh,
+                                  device_batch=args.device_batch, lanes=lanes)  # fmt: skip
+
+    method = st.METHODS[args.method]
+    probe = objective_with(optimize.objective.LANES)
+    x0 = probe.vector(gains)
+    options = {name: getattr(args, name) for name in method.options if hasattr(args, name)}
+    problem = st.Problem(probe, x0, args.seed, reqs is not None)
+    strategy = method.make(problem, steps, **options)
+    lanes = st.lanes(strategy, probe.size, args.draws, int(mesh.devices.size))
+    objective = objective_with(lanes)
+    steps = args.steps
     if reqs is not None:
         share = 0.05 if args.formulation == "chance" else 0.0
         strategy = st.AugmentedLagrangian(strategy, len(reqs), args.outer_steps, args.inner_steps,
                                           formulation=args.formulation, margin=args.margin,
                                           allowed_share=share)  # fmt: skip
         steps = strategy.requests
-    budget = optimize.Budget(steps=steps, seconds=args.seconds)
+    converge = {} if reqs is not None else {"patience": method.patience,
+                                             "tolerance": method.tolerance}  # fmt: skip
+    budget = optimize.Budget(steps=steps, seconds=args.seconds, **converge)
     fingerprint = optimize.describe(
         objective, strategy, budget, x0, args.validation_draws, args.validate_every
     )

@@ -69,8 +69,8 @@ FOBSMC_GAINS = GainSpec(
     "FOBSMCGains",
     [
         *_BSMC_FIELDS,
-        GainField("order", [0.9] * 6, Bounds(0.0, 1.0, symbol="gamma"),
-                  doc="``gamma``: the surface (F1) holds ``D^(gamma-1) e1``."),
+        GainField("order", [0.9] * 6, Bounds(0.0, 1.0, symbol="gamma"), integer_order=1.0,
+                  doc="``gamma``: the surface (F1) holds ``D^(gamma-1) e1`` (1: ``e1``)."),
     ],
     "FOBSMC",
 )

@@ -68,6 +68,8 @@ class GainField:
     name: the field's name. default: its default value (a number or nested
     sequence; its shape is the field's shape, ``(6,)`` per axis or ``(6, 3)``).
     bounds: its feasible set. role: one of :data:`ROLES`. doc: symbol and meaning.
+    integer_order: for a fractional order, the bound at which its operator is of
+    integer order (the limit the order approaches there; ``None``: not an order).
     """
 
     name: str
@@ -75,6 +77,7 @@ class GainField:
     bounds: Bounds
     role: str = "design"
     doc: str = ""
+    integer_order: float | None = None
 
     def __post_init__(self) -> None:
         if self.role not in ROLES:
@@ -82,6 +85,8 @@ class GainField:
         value = np.asarray(self.default, np.float64)
         if not np.all(self.bounds.contains(value)):
             raise ValueError(f"gain field {self.name!r}: its default breaks its bounds")
+        if self.integer_order not in (None, self.bounds.low, self.bounds.high):
+            raise ValueError(f"gain field {self.name!r}: integer_order must be one of its bounds")
         object.__setattr__(self, "default", value)
 
     @property
@@ -121,6 +126,11 @@ class GainSpec:
     @property
     def shapes(self) -> dict[str, tuple[int, ...]]:
         return {f.name: f.shape for f in self.fields}
+
+    @property
+    def integer_orders(self) -> dict[str, float]:
+        """Fractional-order fields and the bound at which each is of integer order."""
+        return {f.name: f.integer_order for f in self.fields if f.integer_order is not None}
 
     def with_role(self, *roles: str) -> tuple[str, ...]:
         """Names of the fields with one of ``roles``."""

@@ -21,15 +21,26 @@ Gradient strategies (:mod:`._gradient`): :class:`Optax` (any optax transformatio
 (:mod:`._population`): :class:`CMAES` and :class:`NelderMead`. Compositions
 (:mod:`._compose`): :class:`Chain` (one strategy hands its answer to the next) and
 :class:`AugmentedLagrangian` (requirements as constraints around any strategy).
-:func:`make` builds the named methods of ``fojax tune --method`` (:mod:`._methods`).
+:class:`MultiStart` (:mod:`._multistart`) runs CMA-ES searches from several starts
+side by side and continues the best: the default method. :data:`METHODS` declares the
+named methods of ``fojax tune --method`` and the studies (:mod:`._methods`).
 """
 
 from fojax.optimize.strategies._compose import AugmentedLagrangian, Chain
 from fojax.optimize.strategies._gradient import LBFGS, Optax, adam
-from fojax.optimize.strategies._methods import AUTO_DRAWS, DEFAULT_STEPS, METHODS, lanes, make
+from fojax.optimize.strategies._methods import (
+    AUTO_DRAWS,
+    METHODS,
+    Method,
+    Problem,
+    lanes,
+    make,
+    starts,
+)
+from fojax.optimize.strategies._multistart import MultiStart
 from fojax.optimize.strategies._population import CMAES, NelderMead
 
 __all__ = [
-    "AUTO_DRAWS", "CMAES", "DEFAULT_STEPS", "LBFGS", "METHODS", "AugmentedLagrangian", "Chain",
-    "NelderMead", "Optax", "adam", "lanes", "make",
+    "AUTO_DRAWS", "CMAES", "LBFGS", "METHODS", "AugmentedLagrangian", "Chain", "Method",
+    "MultiStart", "NelderMead", "Optax", "Problem", "adam", "lanes", "make", "starts",
 ]  # fmt: skip

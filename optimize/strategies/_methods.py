@@ -1,75 +1,201 @@
-"""The named methods of ``fojax tune --method`` and the studies, with their defaults.
-
-``auto`` (the default): CMA-ES on small fresh samples, :data:`AUTO_DRAWS` draws per
-generation (a new sample every generation, common to its candidates: a population of
-``4 + 3 ln d`` candidates is then about one efficient call of 112-128 lanes), 40
-generations (docs/tuning.md, "the default method", has the measurements). ``adam``,
-``lbfgs``, ``cma-es``, ``nelder-mead``: one strategy each
-(:mod:`fojax.optimize.strategies`); ``cma-es`` takes the objective's sample size.
-``cma-lbfgs``: ``auto``'s CMA-ES for ``switch`` generations, its mean then handed to
-L-BFGS at the evaluation law on the fixed sample (the gradient compiled beside the
-generations): a composition, measured beside the default.
+"""The named methods of ``fojax tune --method`` and of every study, each declared once
+(:data:`METHODS`): the strategy it builds, its default budget, the options that apply
+to it and their defaults (with the weighted-sum cost and, where they differ, with a
+requirement set: the inner strategy of the augmented Lagrangian), whether it takes
+gradients and whether the objective's sample size (``--draws``) is what it samples.
+``fojax tune`` derives its method options, their defaults and its "does not apply"
+errors from this table; the studies build their tuners from it, so none can drift.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
+
+import numpy as np
+
 from fojax.optimize import checks
 from fojax.optimize.strategies._compose import Chain
 from fojax.optimize.strategies._gradient import LBFGS, adam
+from fojax.optimize.strategies._multistart import MultiStart
 from fojax.optimize.strategies._population import CMAES, NelderMead
 
-__all__ = ["AUTO_DRAWS", "DEFAULT_STEPS", "METHODS", "lanes", "make"]
+__all__ = ["AUTO_DRAWS", "METHODS", "Method", "Problem", "lanes", "make", "starts"]
 
-METHODS = ("auto", "cma-lbfgs", "adam", "lbfgs", "cma-es", "nelder-mead")
 AUTO_DRAWS = 8
-"""Draws per candidate and generation of ``auto``."""
-DEFAULT_STEPS = {
-    "auto": 40,
-    "cma-lbfgs": 40,
-    "adam": 6,
-    "lbfgs": 6,
-    "cma-es": 20,
-    "nelder-mead": 300,
-}
-"""Steps of a run by method: gradient steps, generations (CMA-ES), simplex steps."""
+"""Draws per point and generation of ``auto`` (and of its CMA-ES with requirements)."""
 
 
-def make(
-    method: str,
-    steps: int | None = None,
-    *,
-    seed: int = 0,
-    switch: int = 30,
-    sigma: float = 0.5,
-    popsize: int | None = None,
-    max_step: float = 1.0,
-    width: float = 1.0,
-    learning_rate: float = 0.05,
-    final_learning_rate: float = 0.1,
-    clip_norm: float = 1.0,
-    anneal_start: float = 4.0,
-    sample: str = "fresh",
-):
-    """The strategy of ``method`` (:data:`METHODS`) for a run of ``steps`` steps (default
-    :data:`DEFAULT_STEPS`; Adam's schedule spans them). seed: CMA-ES's sampling seed.
-    switch: ``cma-lbfgs``'s CMA-ES generations. sigma, popsize: CMA-ES's. max_step:
-    L-BFGS's. width: the gradient's (last) width scale. learning_rate, final_learning_rate,
-    clip_norm, anneal_start, sample: Adam's."""
-    checks.choice("method", method, METHODS)
-    steps = DEFAULT_STEPS[method] if steps is None else steps
-    cma = CMAES(sigma0=sigma, popsize=popsize, seed=seed)
-    lbfgs = LBFGS(max_step=max_step, width=width)
-    if method == "adam":
-        anneal = (anneal_start, width)
-        return adam(steps, learning_rate, final_learning_rate, clip_norm, anneal, sample)
-    if method in ("auto", "cma-lbfgs"):
-        small = CMAES(sigma0=sigma, popsize=popsize, seed=seed, draws=AUTO_DRAWS, name=method)
-        return (
-            small
-            if method == "auto"
-            else Chain(small, LBFGS(max_step=max_step, width=None), switch)
+class Problem(NamedTuple):
+    """What a method's strategy is built for: the objective (its parameter map, base
+    gains and problem spec), the start ``x0`` ``(d,)``, the sampling seed, and whether a
+    requirement set is tuned (the strategy is the augmented Lagrangian's inner one)."""
+
+    objective: Any
+    x0: np.ndarray
+    seed: int = 0
+    constrained: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """One named method. steps: its default budget (requests: generations, gradient
+    steps, simplex steps). options: its options and their defaults. constrained: the
+    defaults that differ with a requirement set. build: ``build(problem, steps,
+    **options) -> strategy``. gradient: it takes gradients (the gradient program's
+    options apply). draws: it samples the objective's sample size (``--draws``).
+    patience, tolerance: it stops once its validated score improved by less than
+    ``tolerance`` over ``patience`` steps (:class:`fojax.optimize.Budget`)."""
+
+    name: str
+    summary: str
+    steps: int
+    options: Mapping[str, Any]
+    build: Callable
+    constrained: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    gradient: bool = False
+    draws: bool = True
+    patience: int | None = None
+    tolerance: float = 1e-3
+
+    def defaults(self, constrained: bool = False) -> dict:
+        """The options' defaults (with a requirement set where ``constrained``)."""
+        return {**self.options, **(self.constrained if constrained else {})}
+
+    def make(self, problem: Problem, steps: int | None = None, **options):
+        """The strategy for ``problem`` over ``steps`` (default :attr:`steps`) with
+        ``options`` (the others at their defaults); ``ValueError`` for an option that
+        does not apply or a budget the method cannot use."""
+        unknown = sorted(set(options) - set(self.options))
+        if unknown:
+            raise ValueError(
+                f"method {self.name} takes no option {', '.join(unknown)} (its options: "
+                f"{', '.join(self.options) or 'none'})"
+            )
+        steps = self.steps if steps is None else steps
+        checks.integer("steps", steps)
+        settings = {**self.defaults(problem.constrained), **options}
+        return self.build(problem, steps, **settings)
+
+
+def _auto(problem: Problem, steps: int, sigma: float):
+    objective = problem.objective
+    if problem.constrained:  # inside the augmented Lagrangian: one CMA-ES on small samples
+        return CMAES(sigma0=sigma, seed=problem.seed, draws=AUTO_DRAWS, name="auto")
+    from fojax.optimize import params
+
+    tie, d = None, objective.size
+    if objective.param_map.share != "paper":
+        coarse = params.make_parameter_map(objective.spec.controller, objective.spec.fields,
+                                           "paper")  # fmt: skip
+        tie = tuple(objective.param_map.tie(coarse).tolist())
+    found = starts(objective, problem.x0)
+    free = found[-1] if found else np.asarray(problem.x0)  # the knowledge-free start
+    found += [free] * (AUTO_SEARCHES - 1 - len(found))
+    k = d if tie is None else max(tie) + 1
+    first = max(s * (CMAES().constants(k)["lam"] + 1) * n for _, s, n in AUTO_STAGES)
+    draws = max(AUTO_DRAWS, first // (CMAES().constants(d)["lam"] + 1))
+    coarse_dt = AUTO_COARSE * objective.spec.dt
+    try:
+        objective.spec.check_step(coarse_dt)
+    except ValueError:  # a horizon of an odd number of steps: no coarse phase
+        coarse_dt = None
+    return MultiStart(
+        starts=tuple(tuple(s) for s in found), tie=tie, sigma0=sigma, seed=problem.seed,
+        stages=AUTO_STAGES, coarse_dt=coarse_dt, draws=draws, name="auto",
+    )  # fmt: skip
+
+
+AUTO_SEARCHES = 4
+"""Searches of ``auto``'s first phase: the start, the start at integer orders and the
+knowledge-free start at integer orders, and copies of the latter up to this count."""
+AUTO_STAGES = ((100, 4, 4), (100, 2, 8))
+"""``auto``'s first phase: 100 generations of its four searches on 4 draws, then the
+best two on 8 (:class:`MultiStart`'s ``stages``)."""
+AUTO_COARSE = 2
+"""``auto``'s first phase runs at this many times the objective's step."""
+
+
+def _cma_lbfgs(problem: Problem, steps: int, sigma: float, popsize, switch: int, max_step: float):
+    if switch >= steps:
+        raise ValueError(
+            f"cma-lbfgs: {steps} steps leave no L-BFGS step after {switch} CMA-ES generations "
+            f"(--switch): give more steps than --switch, or use --method cma-es"
         )
-    return {"lbfgs": lbfgs, "cma-es": cma, "nelder-mead": NelderMead()}[method]
+    first = CMAES(sigma0=sigma, popsize=popsize, seed=problem.seed, draws=AUTO_DRAWS,
+                  name="cma-lbfgs")  # fmt: skip
+    return Chain(first, LBFGS(max_step=max_step, width=None), switch)
+
+
+def _adam(problem, steps, learning_rate, final_learning_rate, clip_norm, anneal_start, anneal_end):
+    sample = "fixed" if problem.constrained else "fresh"
+    anneal = (anneal_start, anneal_end)
+    return adam(steps, learning_rate, final_learning_rate, clip_norm, anneal, sample)
+
+
+_CMA = {"sigma": 0.5, "popsize": None}
+METHODS = {
+    m.name: m
+    for m in (
+        Method(
+            "auto",
+            "CMA-ES from the start, from it at integer fractional orders and from a "
+            "knowledge-free start side by side, the best continued until it converges",
+            400, {"sigma": 0.5}, _auto, draws=False, patience=80,
+        ),
+        Method(
+            "cma-lbfgs", "CMA-ES on 8-draw fresh samples, then L-BFGS on the fixed sample",
+            60, {**_CMA, "switch": 30, "max_step": 1.0}, _cma_lbfgs, gradient=True,
+        ),
+        Method(
+            "adam", "Adam on fresh samples, the tuning law's width annealed",
+            100,
+            {"learning_rate": 0.05, "final_learning_rate": 0.1, "clip_norm": 1.0,
+             "anneal_start": 4.0, "anneal_end": 1.0},
+            _adam, {"learning_rate": 0.1, "final_learning_rate": 1.0}, gradient=True,
+        ),  # fmt: skip
+        Method(
+            "lbfgs", "L-BFGS on the fixed sample", 60, {"max_step": 1.0, "anneal_end": 1.0},
+            lambda p, steps, max_step, anneal_end: LBFGS(max_step=max_step, width=anneal_end),
+            gradient=True,
+        ),
+        Method(
+            "cma-es", "CMA-ES, every generation on a fresh sample of --draws draws", 500, _CMA,
+            lambda p, steps, sigma, popsize: CMAES(sigma0=sigma, popsize=popsize, seed=p.seed),
+        ),
+        Method(
+            "nelder-mead", "Nelder-Mead on the fixed sample", 2000, {},
+            lambda p, steps: NelderMead(),
+        ),
+    )
+}
+"""The methods by name, ``auto`` (the default) first."""
+
+
+def make(method: str, problem: Problem, steps: int | None = None, **options):
+    """``METHODS[method].make(problem, steps, **options)``."""
+    checks.choice("method", method, tuple(METHODS))
+    return METHODS[method].make(problem, steps, **options)
+
+
+def starts(objective, x0) -> list[np.ndarray]:
+    """Other starts than ``x0`` for ``auto``: ``x0`` with its fractional orders at their
+    integer-order bounds (:func:`fojax.optimize.params.integer_order_gains`), and the
+    knowledge-free start (:func:`fojax.optimize.params.naive_gains`: positive gains 1)
+    at integer orders; those equal to ``x0`` or to each other left out."""
+    from fojax.optimize import params
+
+    x0 = np.asarray(x0, np.float64)
+    base, tuned = objective.base_gains, objective.param_map.names
+    naive = params.naive_gains(objective.spec.controller, objective.dtype)
+    naive = base._replace(**{name: getattr(naive, name) for name in tuned})
+    found: list[np.ndarray] = []
+    for gains in (objective.gains(x0), naive):
+        x = objective.vector(params.integer_order_gains(gains))
+        if not any(np.allclose(x, y, rtol=0, atol=1e-6) for y in [x0, *found]):
+            found.append(x)
+    return found
 
 
 def lanes(strategy, size: int, draws: int, devices: int) -> int:
@@ -77,10 +203,11 @@ def lanes(strategy, size: int, draws: int, devices: int) -> int:
     points (or its ``typical_points``) x draws over ``devices`` (the inner strategy's,
     for a wrapper), in ``[8, 128]`` (a population in one call where that fits, with no
     lane padded: a call's time grows far slower than its lanes, docs/tuning.md)."""
-    import numpy as np
-
     inner = getattr(strategy, "inner", strategy)
-    request = inner.ask(inner.init(np.zeros(size)))
-    points = getattr(inner, "typical_points", len(request.points))
-    per_device = -(-points * (request.draws or draws) // devices)
+    if hasattr(inner, "lanes"):
+        per_device = -(-inner.lanes(size) // devices)
+    else:
+        request = inner.ask(inner.init(np.zeros(size)))
+        points = getattr(inner, "typical_points", len(request.points))
+        per_device = -(-points * (request.draws or draws) // devices)
     return int(min(128, max(8, per_device)))
