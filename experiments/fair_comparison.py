@@ -145,7 +145,7 @@ def tune(args, index: int, name: str):
         "this_invocation_s": round(time.perf_counter() - t0, 1),
         "first_objective": result.history[0]["loss"],
         "final_objective": result.history[-1]["loss"],
-        "returned_step": result.best_step,
+        "returned_step": result.returned_step,
         "validation": result.validation,
         "parameters": objective.size,
         "strategy": strategy.settings(),
@@ -293,7 +293,8 @@ def table(results: dict) -> str:
         t = tuning[name]
         returned = "-"
         if v := t.get("validation"):
-            returned = f"{v['best_step']}: {v['initial']['cost']:.4g} -> {v['best']['cost']:.4g}"
+            step, first, best = v["returned_step"], v["initial"]["cost"], v["best"]["cost"]
+            returned = f"{step}: {first:.4g} -> {best:.4g}"
         lines.append(
             f"| {name} | {t['parameters']} | {t['draw_steps']:.3g} | "
             f"{t['tuning_wall_time_s']:.0f} | {t['first_objective']:.4g} -> "

@@ -176,7 +176,7 @@ def lbfgs(study: _Study, start: str, args):
     fields = ("step", "loss", "accepted", "validation", "wall_time_s")  # the driver's history
     trace = [{k: row[f] for k, f in zip(keys, fields, strict=True)} for row in result.history]
     accepted = sum(row["accepted"] for row in trace[1:])  # the first: the start
-    return result.x, {"trace": trace, "returned_step": result.best_step, "accepted": accepted}
+    return result.x, {"trace": trace, "returned_step": result.returned_step, "accepted": accepted}
 
 
 def main(argv=None) -> int:

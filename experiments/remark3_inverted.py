@@ -327,7 +327,7 @@ def tune_requirements(study: _Quantities, objective, start: str, args) -> dict:
         )  # fmt: skip
         return {
             "gains": gains_io.gains_to_dict(objective.gains(result.x)),
-            "selected": {"step": result.best_step, **result.validation["best"]},
+            "selected": {"step": result.returned_step, **result.validation["best"]},
             "initial": result.validation["initial"],
             "paper": objective.evaluate(objective.x0, objective.keys("validation", 1))[1],
             "wall_time_s": round(time.perf_counter() - began, 1),

@@ -69,7 +69,7 @@ def run_method(method: str, out: Path) -> dict:
             else None
         ),
         "validation_draws": (metadata["validation"] or {}).get("draws"),
-        "selected_step": metadata["selected_step"],
+        "returned_step": metadata["returned_step"],
         "draw_steps": metadata["draw_steps"],
         "heldout": {k: evaluation[k] for k in ("draws", "horizon_s", "initial", "tuned")},
         "load_before": load,
@@ -103,7 +103,7 @@ def table(runs: list[dict]) -> str:
         name = f"`{run['method']}`" + (" (the default)" if run["method"] == "auto" else "")
         rows.append(
             f"| {name} | {run['command_s']:.0f} | {run['tuning_s']:.0f} | {when} | "
-            f"{run['selected_step']} | {_yield(tuned)} | {tuned['objective']:.3g} | "
+            f"{run['returned_step']} | {_yield(tuned)} | {tuned['objective']:.3g} | "
             f"{run['draw_steps']:.3g} |"
         )
     heldout = runs[0]["heldout"]

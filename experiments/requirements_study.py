@@ -100,7 +100,7 @@ def tune_one(name: str, reqs, args) -> dict:
     return {
         "controller": name,
         "gains": gains_io.gains_to_dict(objective.gains(result.x)),
-        "selected": {"step": result.best_step, **result.validation["best"]},
+        "selected": {"step": result.returned_step, **result.validation["best"]},
         "initial_validation": result.validation["initial"],
         "history": [
             {k: row[k] for k in ("step", "outer_step", "loss", "penalty", "wall_time_s")}

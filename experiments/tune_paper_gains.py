@@ -199,7 +199,7 @@ class _Study:
                 "evaluations": sum(row["points"] for row in result.history),
                 "final_loss": result.history[-1]["loss"],
                 "method": method,
-                "returned_step": result.best_step,
+                "returned_step": result.returned_step,
                 "validation": result.validation,
             },
         }

@@ -1,6 +1,6 @@
-"""The tables and figures of :mod:`experiments.tuning_study`: the per-run records
-summarised (median and spread over seeds), the Markdown table of the study's section of
-``docs/tuning.md``, and the held-out cost against wall time or draw-steps."""
+"""The tables and figure of :mod:`experiments.tuning_study`: the runs summarised per
+setting against the best-known held-out cost, the default method's targets run by
+run, the reference runs, and the validated cost against wall time."""
 
 from __future__ import annotations
 
@@ -11,297 +11,199 @@ import numpy as np
 
 from experiments import _common
 
-__all__ = ["CHALLENGERS", "METHODS", "USER_MODES", "plot", "summarize", "table", "user_table"]
+__all__ = ["LABELS", "TARGET", "plot", "reference_table", "summarize", "table"]
 
-METHODS = ("default", "lbfgs", "cma-es", "nelder-mead")
-CHALLENGERS = ("default", "lbfgs")
-"""The methods checked against CMA-ES's best held-out cost (the target)."""
-COLORS = {"default": "#CC79A7", "lbfgs": "#0072B2", "cma-es": "#D55E00", "nelder-mead": "#009E73"}
 LABELS = {
-    "default": "default (CMA-ES on 8 fresh draws)",
+    "auto": "default (`auto`)",
+    "cma-lbfgs": "CMA-ES then L-BFGS",
+    "adam": "Adam",
     "lbfgs": "L-BFGS",
-    "cma-es": "CMA-ES (batched)",
+    "cma-es": "CMA-ES",
     "nelder-mead": "Nelder-Mead",
 }
-USER_MODES = ("naive-default", "naive-cma-es", "paper-default")
-"""The user view's commands: ``<start>-<method>`` (``default``: no ``--method``)."""
+COLORS = {"auto": "#CC79A7", "cma-lbfgs": "#56B4E9", "adam": "#E69F00", "lbfgs": "#0072B2",
+          "cma-es": "#D55E00", "nelder-mead": "#009E73"}  # fmt: skip
+TARGET = {"near": 0.02, "far": 0.05, "wall_s": 120.0, "seeds": 0.01}
+"""The default's targets: within 2 % of the best-known cost (5 of 6 runs), within 5 %
+(6 of 6), each run in at most 120 s, the seeds of a setting within 1 % of each other."""
+PARAMETERS = {"paper": 33, "none": 66}
 
 
-def _reach(curve, level):
-    """(wall time, draw-steps) at which ``curve`` (rows ``[step, wall time, draw-steps,
-    held-out cost]``) first reaches ``level``."""
-    for _, wall, draw_steps, cost in curve:
-        if cost <= level:
-            return wall, draw_steps
-    return None, None
+def _best_known(records: list[dict]) -> dict:
+    """Per share: the lowest held-out cost of any run and the run that reached it."""
+    best = {}
+    for r in records:
+        if r["share"] not in best or r["heldout"] < best[r["share"]]["cost"]:
+            best[r["share"]] = {"cost": r["heldout"], "run": r["name"], "command": r["command"]}
+    return best
 
 
-def _best(run: dict) -> float:
-    return min(point[3] for point in run["curve"])
+def summarize(records: list[dict]) -> dict:
+    """The best-known costs, each setting's runs, and the default's targets."""
+    best = _best_known(records)
+    settings: dict = {}
+    for r in records:
+        if r["kind"] != "study":
+            continue
+        key = f"{r['share']}/{r['start']}/{r['method']}"
+        settings.setdefault(key, []).append(r)
+    targets = []
+    for r in records:
+        if r["kind"] == "study" and r["method"] == "auto":
+            above = r["heldout"] / best[r["share"]]["cost"] - 1
+            targets.append({
+                "share": r["share"], "start": r["start"], "seed": r["seed"],
+                "heldout": r["heldout"], "above_best": above, "wall_s": r["wall_s"],
+                "near": above <= TARGET["near"], "far": above <= TARGET["far"],
+                "in_time": r["wall_s"] <= TARGET["wall_s"],
+            })  # fmt: skip
+    spread = {}
+    for share, start in itertools.product(PARAMETERS, ("naive", "paper")):
+        costs = [t["heldout"] for t in targets if (t["share"], t["start"]) == (share, start)]
+        if len(costs) > 1:
+            spread[f"{share}/{start}"] = max(costs) / min(costs) - 1
+    return {"best_known": best, "settings": settings, "targets": targets, "seed_spread": spread}
 
 
-def _method_entry(runs: list[dict]) -> dict:
-    return {
-        "parameters": runs[0]["parameters"],
-        "seeds": sorted(r["seed"] for r in runs),
-        "initial": runs[0]["initial_heldout"],
-        "final": [r["final_heldout"] for r in runs],
-        "best": [_best(r) for r in runs],
-        "wall_time_s": [r["wall_time_s"] for r in runs],
-        "first_step_s": [r["curve"][1][1] for r in runs if len(r["curve"]) > 1],
-        "draw_steps": [r["draw_steps"] for r in runs],
-    }
-
-
-def _against(run: dict, level: float, cma_wall: float) -> dict:
-    """Where ``run`` reaches CMA-ES's best ``level``, against CMA-ES's wall time."""
-    wall, steps = _reach(run["curve"], level)
-    return {
-        "reached_at_s": wall,
-        "draw_steps": steps,
-        "ratio_to_cma_wall_time": None if wall is None else wall / cma_wall,
-        "met": wall is not None and wall <= 0.5 * cma_wall,
-        "final": run["final_heldout"],
-        "final_at_or_below": run["final_heldout"] <= level,
-        "best": _best(run),
-    }
-
-
-def summarize(runs: list[dict]) -> dict:
-    """Per (share, start): per method the held-out costs and times over the seeds, and,
-    per seed, where each of :data:`CHALLENGERS` reaches CMA-ES's best held-out cost."""
-    groups: dict = {}
-    for r in runs:
-        groups.setdefault((r["share"], r["start"]), {}).setdefault(r["method"], {})[r["seed"]] = r
-    out = {}
-    for (share, start), methods in sorted(groups.items()):
-        entry = {"methods": {}, "target": []}
-        for method, by_seed in methods.items():
-            entry["methods"][method] = _method_entry(list(by_seed.values()))
-        for seed, cma in sorted(methods.get("cma-es", {}).items()):
-            level = _best(cma)
-            row = {"seed": seed, "cma_best": level, "cma_wall_time_s": cma["wall_time_s"]}
-            row["cma_reached_at_s"] = _reach(cma["curve"], level)[0]
-            for method in CHALLENGERS:
-                if seed in methods.get(method, {}):
-                    row[method] = _against(methods[method][seed], level, cma["wall_time_s"])
-            entry["target"].append(row)
-        out[f"{share}/{start}"] = entry
-    return out
-
-
-def _spread(values, fmt=".3g") -> str:
-    values = [v for v in values if v is not None]
-    if not values:
-        return "-"
-    median = float(np.median(values))
+def _span(values, fmt: str) -> str:
+    values = sorted(values)
     if len(values) == 1:
-        return format(median, fmt)
-    return f"{median:{fmt}} [{min(values):{fmt}}, {max(values):{fmt}}]"
+        return format(values[0], fmt)
+    return f"{format(float(np.median(values)), fmt)} [{format(values[0], fmt)}, " \
+           f"{format(values[-1], fmt)}]"  # fmt: skip
 
 
-def _entries(summary: dict):
-    """``(share, start, entry)`` per entry of :func:`summarize`'s summary."""
-    for key, entry in summary.items():
-        share, start = key.split("/")
-        yield share, start, entry
+def _full(runs: list[dict], scenario: str, field: str, fmt: str) -> str:
+    values = [r["full_horizon"][scenario][field] for r in runs]
+    if field == "torque_chattering":
+        values = [float(np.mean(v)) for v in values]
+    return _span([v for v in values if v is not None], fmt)
 
 
-def _number(value, fmt: str, missing: str = "-") -> str:
-    return missing if value is None else format(value, fmt)
-
-
-METHOD_COLUMNS = (
-    "parameters | start | method | held-out cost at the start | final held-out cost | "
-    "best held-out cost on the curve | wall time incl. compilation (s) | first step done at "
-    "(s) | draw-steps"
-)
-
-
-def _method_rows(summary: dict):
-    for share, start, entry in _entries(summary):
-        for m, label in ((entry["methods"].get(k), LABELS[k]) for k in METHODS):
-            if m is not None:
-                yield (
-                    f"| {m['parameters']} (`--share {share}`) | {start} | {label} | "
-                    f"{m['initial']:.4g} | {_spread(m['final'], '.4g')} | "
-                    f"{_spread(m['best'], '.4g')} | {_spread(m['wall_time_s'], '.0f')} | "
-                    f"{_spread(m['first_step_s'], '.0f')} | {_spread(m['draw_steps'], '.3g')} |"
-                )
-
-
-TARGET_COLUMNS = "parameters | start | seed | CMA-ES best | CMA-ES wall time (s) (best at) | " + (
-    " | ".join(
-        f"{LABELS[m].split(' (')[0]} {c}"
-        for m in CHALLENGERS
-        for c in ("reached it at (s) (ratio)", "in half", "final (at or below)")
+def _setting_rows(summary: dict) -> list[str]:
+    best = summary["best_known"]
+    rows = _common.table_head(
+        "parameters | start | method | runs (seeds) | held-out cost | above the best-known | "
+        "wall time (s) | steps (returned step) | scenario 2, 80 s: position RMSE (m) | "
+        "scenario 3, 50 s: position RMSE (m) | scenario 3: roll/pitch torque chattering (N m)"
     )
-)
+    for key, runs in sorted(summary["settings"].items(), key=lambda kv: _order(kv[0])):
+        share, start, method = key.split("/")
+        cost = [r["heldout"] for r in runs]
+        above = [c / best[share]["cost"] - 1 for c in cost]
+        steps = ", ".join(f"{r['steps']} ({r['returned_step']})" for r in runs)
+        rows.append(
+            f"| {PARAMETERS[share]} | {start} | {LABELS[method]} | {len(runs)} | "
+            f"{_span(cost, '.4f')} | {_span([100 * a for a in above], '.1f')} % | "
+            f"{_span([r['wall_s'] for r in runs], '.0f')} | {steps} | "
+            f"{_full(runs, '2', 'position_rmse', '.3g')} | "
+            f"{_full(runs, '3', 'position_rmse', '.3g')} | "
+            f"{_full(runs, '3', 'torque_chattering', '.3g')} |"
+        )
+    return rows
 
 
-def _challenger_cells(t: dict | None) -> str:
-    if t is None:
-        return "- | - | -"
-    reached = _number(t["reached_at_s"], ".0f", "not reached")
-    ratio = _number(t["ratio_to_cma_wall_time"], ".2f")
-    final = f"{t['final']:.4g} ({'yes' if t['final_at_or_below'] else 'no'})"
-    return f"{reached} ({ratio}) | {'yes' if t['met'] else 'no'} | {final}"
+def _order(key: str) -> tuple:
+    share, start, method = key.split("/")
+    return (share != "paper", start != "naive", list(LABELS).index(method))
 
 
-def _target_rows(summary: dict):
-    for _, start, entry in _entries(summary):
-        size = next(iter(entry["methods"].values()))["parameters"]
-        for t in entry["target"]:
-            cells = " | ".join(_challenger_cells(t.get(m)) for m in CHALLENGERS)
-            yield (
-                f"| {size} | {start} | {t['seed']} | {t['cma_best']:.4g} | "
-                f"{t['cma_wall_time_s']:.0f} ({_number(t['cma_reached_at_s'], '.0f')}) | {cells} |"
-            )
+def _target_rows(summary: dict) -> list[str]:
+    rows = _common.table_head(
+        "parameters | start | seed | held-out cost | above the best-known | within 2 % | "
+        "within 5 % | wall time (s) | at most 120 s"
+    )
+    yes = {True: "yes", False: "**no**"}
+    for t in sorted(summary["targets"], key=lambda t: (t["share"] != "paper", t["start"],
+                                                       t["seed"])):  # fmt: skip
+        rows.append(
+            f"| {PARAMETERS[t['share']]} | {t['start']} | {t['seed']} | {t['heldout']:.4f} | "
+            f"{100 * t['above_best']:.1f} % | {yes[t['near']]} | {yes[t['far']]} | "
+            f"{t['wall_s']:.0f} | {yes[t['in_time']]} |"
+        )
+    return rows
 
 
 def _tallies(summary: dict) -> list[str]:
-    """Per challenger and start: runs reaching CMA-ES's best in half its time, and
-    ending at or below it."""
     lines = []
-    for method, start in itertools.product(CHALLENGERS, ("paper", "naive")):
-        entries = [entry for _, s, entry in _entries(summary) if s == start]
-        rows = [t[method] for entry in entries for t in entry["target"] if method in t]
-        if rows:
-            met, below = (sum(r[k] for r in rows) for k in ("met", "final_at_or_below"))
-            lines.append(
-                f"- {LABELS[method]}, from the {start} start: reaches it in half of "
-                f"CMA-ES's wall time in {met}/{len(rows)} runs, ends at or below it in "
-                f"{below}/{len(rows)}."
-            )
+    for share, start in itertools.product(PARAMETERS, ("naive", "paper")):
+        runs = [t for t in summary["targets"] if (t["share"], t["start"]) == (share, start)]
+        if not runs:
+            continue
+        spread = summary["seed_spread"].get(f"{share}/{start}")
+        spread_text = "" if spread is None else f"; seeds within {100 * spread:.2f} % of each other"
+        lines.append(
+            f"- {PARAMETERS[share]} parameters, {start} start: within 2 % in "
+            f"{sum(t['near'] for t in runs)}/{len(runs)}, within 5 % in "
+            f"{sum(t['far'] for t in runs)}/{len(runs)}, at most 120 s in "
+            f"{sum(t['in_time'] for t in runs)}/{len(runs)}{spread_text}."
+        )
     return lines
 
 
-def _bench_line(bench: dict) -> str:
-    return (
-        f"One CMA-ES generation, {bench['parameters']} parameters: {bench['population']} "
-        f"candidates x {bench['draws']} draws x {bench['horizon_s']:g} s in one batched "
-        f"call {bench['median_batched_s']:.2f} s, one call per candidate "
-        f"{bench['median_one_at_a_time_s']:.2f} s (medians of {len(bench['batched_s'])}, "
-        f"interleaved; {bench['median_one_at_a_time_s'] / bench['median_batched_s']:.1f}x); "
-        f"costs equal to {bench['largest_relative_difference']:.1g} relative (float32 "
-        "rounding depends on the batch)."
-    )
-
-
-SETTINGS = (
-    "default_steps switch gradient_steps cma_generations draws validation_draws "
-    "validate_every heldout_draws horizon dt dtype"
-).split()
-"""The settings the table's last line states."""
-
-
 def table(results: dict) -> str:
-    """Markdown: per parameter count and start, each method's held-out costs and times
-    (median [min, max] over the seeds), and the target check per seed."""
-    settings = results["settings"]
-    runs = results["runs"]
-    loads = [x for r in runs for x in (r["load_before"][:1] + r["load_after"][:1])]
+    summary, settings = results["summary"], results["settings"]
+    loads = [r["load_before"][0] for r in results["runs"] if r.get("load_before")]
     lines = [
-        f"Runs: {len(runs)}, {results['runs_elapsed_s']:.0f} s in all (held-out evaluation "
-        f"included); commit {results['git_commit']}; 1-minute load average "
-        + (f"{min(loads):.1f}-{max(loads):.1f}" if loads else "n/a")
-        + " over the runs (2 cores).",
+        f"Runs: {len(results['runs'])}, {results['runs_s']:.0f} s of `fojax tune` in all "
+        f"(each in a fresh process with an empty cache, one after another); commit "
+        f"{results['git_commit']}; 1-minute load average {min(loads):.2f}-{max(loads):.2f} "
+        f"before the runs (2 cores). Held-out cost: the returned gains on "
+        f"{settings['heldout_draws']} held-out draws (seed 0, 10 s, `sat`); full horizon: "
+        f"{settings['unseen_draws']} unseen draws (seed {settings['unseen_seed']}, `sat`).",
         "",
-        *_common.table_head(METHOD_COLUMNS),
-        *_method_rows(results["summary"]),
+        *_setting_rows(summary),
         "",
-        "Target: the default (and L-BFGS) reaches CMA-ES's best held-out cost (the lowest on "
-        "CMA-ES's curve) in at most half of CMA-ES's wall time (both with compilation), and "
-        "its final held-out cost is at or below it:",
+        "The default method, run by run, against the best-known cost:",
         "",
-        *_common.table_head(TARGET_COLUMNS),
-        *_target_rows(results["summary"]),
+        *_target_rows(summary),
         "",
-        *_tallies(results["summary"]),
-    ]
-    for bench in results.get("bench", []):
-        lines += ["", _bench_line(bench)]
-    if results.get("user_view"):
-        lines += ["", "The user's view, `fojax tune` in a fresh process with an empty cache:", ""]
-        lines.append(user_table(results["user_view"]))
-    lines += ["", "Settings: " + ", ".join(f"{k} {settings[k]}" for k in SETTINGS) + "."]
-    return "\n".join(lines)
-
-
-def plot(runs: list[dict], path: Path, axis: str) -> Path:
-    """Held-out cost against wall time (compilation included) or draw-steps: one panel
-    per (parameter count, start), one colour per method, one line per seed."""
-    from matplotlib.lines import Line2D
-
-    from fojax.cli import style
-
-    plt = style.pyplot()
-    panels = sorted({(r["parameters"], r["share"], r["start"]) for r in runs})
-    cols = len({p[2] for p in panels}) or 1
-    rows = max(1, len(panels) // cols)
-    fig = plt.figure(figsize=(5.2 * max(cols, 2), 3.6 * rows + 0.6), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(rows, cols)
-    column = 1 if axis == "wall" else 2
-    for index, (size, share, start) in enumerate(panels):
-        ax = axes.flat[index]
-        chosen = [r for r in runs if (r["parameters"], r["share"], r["start"]) == panels[index]]
-        for r in chosen:  # the start at 0, then nothing until the first step
-            curve = np.asarray(r["curve"], float)
-            ax.step(curve[:, column], curve[:, 3], where="post", color=COLORS[r["method"]],
-                    lw=1.2, alpha=0.85)  # fmt: skip
-        if chosen:
-            ax.axhline(chosen[0]["initial_heldout"], color="0.4", ls=":", lw=1)
-        ax.set_yscale("log")
-        ax.grid(alpha=0.3, which="both")
-        origin = "the paper's gains" if start == "paper" else "the naive start"
-        ax.set_title(f"{size} parameters (--share {share}), from {origin}", fontsize=9)
-        ax.set_xlabel(
-            "wall time, compilation included (s)" if axis == "wall" else "simulated draw-steps"
-        )
-        if index % cols == 0:
-            ax.set_ylabel("held-out cost of the current answer")
-    handles = [Line2D([], [], color=COLORS[m], lw=1.4, label=LABELS[m]) for m in METHODS]
-    handles.append(Line2D([], [], color="0.4", ls=":", lw=1, label="the start's held-out cost"))
-    style.legend_below(fig, handles, ncol=3)
-    fig.suptitle(
-        "AFONFTSMC, scenario 2, 10 s: held-out cost of each tuner's current answer "
-        "(one line per seed)",
-        fontsize=10,
-    )
-    return style.save(fig, path)
-
-
-USER_COLUMNS = ("total_s", "tuning_s", "heldout_tuned")
-"""The user view's columns that are spread over the runs of a command."""
-
-
-def user_table(runs: list[dict]) -> str:
-    """The user view: per command, its wall time and held-out costs; whether the default
-    from the naive start ends at or below ``--method cma-es`` in at most its wall time,
-    and whether from the paper's gains it halves the held-out cost."""
-    lines = _common.table_head(
-        "command | runs | wall time (s), compilation included | tuning loop (s) | held-out "
-        "cost: start -> returned | returned step"
-    )
-    by_mode = {mode: [r for r in runs if r["mode"] == mode] for mode in USER_MODES}
-    for chosen in filter(None, by_mode.values()):
-        total, tuning, tuned = ([r[k] for r in chosen] for k in USER_COLUMNS)
-        lines.append(
-            f"| `{chosen[0]['command']}` | {len(chosen)} | {_spread(total, '.0f')} | "
-            f"{_spread(tuning, '.0f')} | {chosen[0]['heldout_initial']:.4g} -> "
-            f"{_spread(tuned, '.4g')} | {', '.join(str(r['selected_step']) for r in chosen)} |"
-        )
-    pairs = list(zip(by_mode["naive-default"], by_mode["naive-cma-es"], strict=False))
-    wins = sum(
-        a["heldout_tuned"] <= b["heldout_tuned"] and a["total_s"] <= b["total_s"] for a, b in pairs
-    )
-    halved = [r["heldout_tuned"] <= 0.5 * r["heldout_initial"] for r in by_mode["paper-default"]]
-    loads = [x for r in runs for x in (r["load_before"][:1] + r["load_after"][:1])]
-    lines += [
-        "",
-        f"From the naive start the default ends at or below `--method cma-es`'s held-out "
-        f"cost in at most its wall time in {wins}/{len(pairs)} pairs of runs; from the "
-        f"paper's gains it halves the held-out cost in {sum(halved)}/{len(halved)} runs "
-        f"(1-minute load average {min(loads, default=0):.1f}-{max(loads, default=0):.1f}).",
+        *_tallies(summary),
     ]
     return "\n".join(lines)
+
+
+def reference_table(results: dict) -> str:
+    """The best-known held-out cost per parameter count and the runs that give it."""
+    best = results["summary"]["best_known"]
+    rows = _common.table_head("parameters | best-known held-out cost | reached by")
+    for share in PARAMETERS:
+        if share in best:
+            rows.append(
+                f"| {PARAMETERS[share]} | {best[share]['cost']:.4f} | `{best[share]['command']}` |"
+            )
+    rows += ["", *_common.table_head("reference run | held-out cost | wall time (s) | steps")]
+    for r in results["runs"]:
+        if r["kind"] == "reference":
+            rows.append(f"| `{r['command']}` | {r['heldout']:.4f} | {r['wall_s']:.0f} | "
+                        f"{r['steps']} |")  # fmt: skip
+    return "\n".join(rows)
+
+
+def plot(records: list[dict], path: Path) -> Path:
+    """Validated cost against wall time, one panel per (parameters, start): every
+    method's runs (the default's seeds in one colour)."""
+    import matplotlib.pyplot as plt
+
+    from fojax.cli import figures, style
+
+    cases = [(share, start) for share in PARAMETERS for start in ("naive", "paper")
+             if any((r["share"], r["start"]) == (share, start) for r in records)]  # fmt: skip
+    fig, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.6), squeeze=False,
+                             sharey=True)  # fmt: skip
+    for ax, (share, start) in zip(axes[0], cases, strict=True):
+        seen = set()
+        for r in records:
+            if (r["share"], r["start"]) != (share, start) or r["kind"] != "study":
+                continue
+            curve = np.asarray(r["curve"], float).reshape(-1, 3)
+            label = None if r["method"] in seen else LABELS[r["method"]]
+            seen.add(r["method"])
+            ax.plot(curve[:, 1], curve[:, 2], color=COLORS[r["method"]], lw=1.2, label=label)
+            ax.plot(r["wall_s"], r["heldout"], "o", color=COLORS[r["method"]], ms=4)
+        ax.axvline(TARGET["wall_s"], color="0.6", lw=0.8, ls=":")
+        ax.set(title=f"{PARAMETERS[share]} parameters, {start} start", xlabel="wall time (s)",
+               yscale="log")  # fmt: skip
+    axes[0][0].set_ylabel("validated cost (lines), held-out cost (dots)")
+    axes[0][0].legend(fontsize=7)
+    return figures.finish(fig, path) if hasattr(figures, "finish") else style.save(fig, path)

@@ -94,7 +94,7 @@ def _run(args, out: Path, mode: str, index: int) -> dict:
         "heldout_initial": evaluation["initial"]["cost"],
         "heldout_tuned": evaluation["tuned"]["cost"],
         "heldout_draws": evaluation["draws"],
-        "selected_step": gains["selected_step"],
+        "returned_step": gains["returned_step"],
         "validation": gains["validation"],
         "load_before": load,
         "load_after": output.load_average(),

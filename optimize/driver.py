@@ -54,7 +54,7 @@ method's time."""
 FORMAT = 3
 COLUMNS = tuple(
     "step loss points mean_target max_target grad_norm width diverged bad_gradients "
-    "draw_steps wall_time_s validation best_step".split()
+    "draw_steps wall_time_s validation returned_step".split()
 )
 """The columns of every history row (a strategy adds its own after them)."""
 
@@ -110,7 +110,7 @@ class Budget:
 class Result(NamedTuple):
     """x: the returned point ``(d,)`` (the best validated answer; the last one without
     validation). final_x: the last answer. history: one dict per step. steps: steps
-    done. best_step: the step ``x`` comes from (0: the start). validation: ``{"draws",
+    done. returned_step: the step ``x`` comes from (0: the start). validation: ``{"draws",
     "switching", "horizon_s", "draw_indices", "initial", "best", "final"}`` (score
     summaries) or ``None``. draw_steps, wall_time_s: what the run spent (every session).
     state: the strategy's last state."""
@@ -119,7 +119,7 @@ class Result(NamedTuple):
     final_x: np.ndarray
     history: list
     steps: int
-    best_step: int
+    returned_step: int
     validation: dict | None
     draw_steps: int
     wall_time_s: float
@@ -174,13 +174,13 @@ def headline(summary: dict | None) -> str:
     """A validation or held-out score summary (:meth:`Objective.score`) in a few words."""
     if summary is None:
         return "n/a"
-    if "yield" in summary:
+    if summary["kind"] == "yield":
         return f"yield {summary['yield']:.1%} ({summary['passed']}/{summary['draws']})"
     return f"cost {summary['cost']:.5g}"
 
 
 def _number(summary: dict) -> float:
-    return summary["yield"] if "yield" in summary else summary["cost"]
+    return summary["score"]
 
 
 class _Run:
@@ -251,7 +251,8 @@ class _Run:
     def more(self) -> bool:
         """Whether the budget allows another request like the next one, and the run has
         not converged (:meth:`Budget.converged`)."""
-        sign = -1.0 if self.best["initial"] is not None and "yield" in self.best["initial"] else 1.0
+        initial = self.best["initial"]
+        sign = -1.0 if initial is not None and initial["kind"] == "yield" else 1.0
         scores = [(r["step"], sign * r["validation"]) for r in self.history
                   if r["validation"] is not None]  # fmt: skip
         if self.budget.converged(scores, self.used["steps"]):
@@ -416,7 +417,7 @@ class _Run:
                 "horizon_s": self.objective.spec.horizon,
                 "draw_indices": f"{VALIDATION_OFFSET} + [0, {self.validation_draws})",
                 **{k: self.best[k] for k in ("initial", "best", "final")},
-                "best_step": self.best["step"],
+                "returned_step": self.best["step"],
             }
         x = self.best_x if self.validating else final_x
         best = self.best["step"] if self.validating else self.used["steps"]

@@ -492,14 +492,17 @@ class Objective:
         """``(key, summary)`` of one point's outputs ``(n, ...)`` at the evaluation law:
         a smaller key is better. Weighted sum: the mean cost. Requirements: more draws
         passing every requirement, then fewer failed (draw, requirement) pairs, then the
-        lower mean target over the valid draws."""
+        lower mean target over the valid draws. Every summary holds ``kind`` (``"cost"``
+        or ``"yield"``) and ``score`` (the mean cost, lower is better, or the yield,
+        higher is better), then the kind's details."""
         valid = outputs.valid
         if self.requirements is None:
             cost = np.where(valid, outputs.values[:, 0], self.spec.cost.divergence_cost)
             mean = float(self.loss.values(outputs))
             terms = dict(zip(("P", "A", "E", "C"), np.mean(outputs.terms, 0).tolist(), strict=True))
             spread = float(np.std(cost, ddof=1)) if len(cost) > 1 else None
-            summary = {"cost": mean, "std": spread, "terms": terms, "diverged": int(np.sum(~valid))}
+            summary = {"kind": "cost", "score": mean, "cost": mean, "std": spread, "terms": terms,
+                       "diverged": int(np.sum(~valid))}  # fmt: skip
             return (mean,), summary
         metrics = rq.draw_metrics(outputs.metrics, outputs.status)
         result = rq.evaluate(self.requirements, metrics, valid=valid)
@@ -507,6 +510,8 @@ class Objective:
         mean = float(np.mean(f[valid])) if np.any(valid) else math.inf
         failures = {n: int(k) for n, k in zip(result.names, result.failures, strict=True)}
         summary = {
+            "kind": "yield",
+            "score": float(result.yield_),
             "passed": int(result.passed),
             "draws": int(result.draws),
             "yield": float(result.yield_),

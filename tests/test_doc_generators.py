@@ -26,7 +26,7 @@ def _run(method, full, passed):
         "command_s": 97.4,
         "tuning_s": 86.2,
         "first_full_validation": full,
-        "selected_step": 22,
+        "returned_step": 22,
         "draw_steps": 1.13e8,
         "heldout": {
             "draws": 128,

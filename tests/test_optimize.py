@@ -437,7 +437,7 @@ def test_the_best_validated_answer_is_returned(learning_rate):
         else:
             assert row["validation"] is None
     best = min((0, 2, 4), key=lambda s: (cost[s], s))
-    assert result.best_step == best
+    assert result.returned_step == best
     np.testing.assert_array_equal(result.x, answers[best])
     assert result.validation["initial"]["cost"] == pytest.approx(cost[0], rel=1e-12)
     if learning_rate == 30.0:

@@ -266,7 +266,7 @@ def test_tune_cma_es_baseline_writes_gains(tmp_path, tiny):
     assert cli.main(argv) == 0
     document = json.loads((out / "gains.json").read_text())
     assert document["metadata"]["method"] == "cma-es"
-    assert document["metadata"]["selected_step"] in (0, 3)  # the start, or the last answer
+    assert document["metadata"]["returned_step"] in (0, 3)  # the start, or the last answer
     history = (out / "history.csv").read_text().splitlines()
     assert len(history) == 4  # header, the scale, one generation, the measurement
     assert [row.split(",")[2] for row in history[1:]] != ["1", "1", "1"]  # a population

@@ -136,7 +136,8 @@ def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     assert [r["points"] for r in table] == ["4", "4", "1"] and table[2]["grad_norm"]
     # The returned gains are the best validated ones, and say which step they are from.
     validation = metadata["validation"]
-    assert metadata["selected_step"] == validation["best_step"] == int(table[-1]["best_step"])
+    returned = metadata["returned_step"]
+    assert returned == validation["returned_step"] == int(table[-1]["returned_step"])
     assert float(table[-1]["validation"]) == pytest.approx(validation["final"]["cost"])
     assert validation["draws"] == 32 and validation["switching"] == "sat"
     assert "returned " in printed and "validation cost" in printed

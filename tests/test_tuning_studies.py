@@ -104,7 +104,7 @@ def test_tuning_study_user_view_tiny(tmp_path):
     by_mode = {u["mode"]: u for u in users}
     for user in users:
         assert user["command"].startswith("fojax tune --scenario 2 --controller afonftsmc")
-        assert 0 <= user["selected_step"] <= 2 and user["total_s"] >= user["tuning_s"] > 0
+        assert 0 <= user["returned_step"] <= 2 and user["total_s"] >= user["tuning_s"] > 0
         assert user["heldout_draws"] == 4
     # The same start on the same held-out draws: the same initial cost, whatever the method.
     naive = [by_mode[m]["heldout_initial"] for m in USER_MODES if m.startswith("naive")]

@@ -36,7 +36,7 @@ def main(outer: int = 10, inner: int = 10) -> None:
     result = optimize.run(
         objective, strategy, optimize.Budget(steps=strategy.requests), validate_every=inner + 1
     )
-    print(f"tuned in {time.perf_counter() - t0:.0f} s; selected step {result.best_step}:")
+    print(f"tuned in {time.perf_counter() - t0:.0f} s; selected step {result.returned_step}:")
     print(result.validation["best"])
     print("tuned gains, held-out:", objective.evaluate(result.x, keys)[1])
 

@@ -14,6 +14,7 @@ has one colour in every figure (:data:`fojax.cli.style.CONTROLLER_COLORS`).
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 from pathlib import Path
 from typing import NamedTuple
@@ -326,21 +327,26 @@ class _Progress(NamedTuple):
     lower: list[str]  # the columns of the lower panels: grad_norm and/or sigma
     show_mean: bool  # the sample's mean target differs from the loss
     diverged: np.ndarray  # steps with diverged draws
+    switch: int | None  # the index of the first step of a strategy's second phase
 
 
-def _read_progress(history_csv: Path, evaluation: dict | None, start: float | None) -> _Progress:
+def _read_progress(history_csv: Path, evaluation: dict | None, start: float | None,
+                   yields: bool) -> _Progress:  # fmt: skip
     h = _read_history(history_csv)
     if not h.get("step"):
         raise ValueError(f"{history_csv} holds no step")
     step, wall = np.asarray(h["step"]), np.asarray(h["wall_time_s"])
     validation = np.asarray(h.get("validation", [math.nan] * len(step)))
-    yields = evaluation is not None and "yield" in evaluation.get("initial", {})
-    if start is not None:
-        yields = yields or (np.nanmax(validation, initial=0) <= 1 and start <= 1)
+    if evaluation is not None and "initial" in evaluation:
+        yields = evaluation["initial"]["kind"] == "yield"
     lower = [k for k in ("grad_norm", "sigma") if np.isfinite(h.get(k, [math.nan])).any()]
     show_mean = not np.allclose(h["loss"], h["mean_target"], rtol=1e-6, equal_nan=True)
     diverged = np.asarray(h.get("diverged", [0] * len(step))) > 0
-    return _Progress(h, step, wall, validation, start, yields, lower, show_mean, diverged)
+    with open(history_csv, newline="") as handle:
+        phases = [row.get("phase") for row in csv.DictReader(handle)]
+    switch = next((i for i, (a, b) in enumerate(itertools.pairwise(phases)) if a != b), None)
+    switch = None if switch is None else switch + 1
+    return _Progress(h, step, wall, validation, start, yields, lower, show_mean, diverged, switch)
 
 
 # Colours of plot_convergence (Okabe-Ito).
@@ -383,6 +389,9 @@ def _draw_progress(top, bottom, col: int, x: np.ndarray, p: _Progress, evaluatio
         right.set_ylabel("yield (validation, held-out)" if col else "")
     for key, color in zip(p.lower, (_DARK, _GREEN), strict=False):
         bottom.plot(x, h[key], color=color, **_LOOK["lower"])
+    if p.switch is not None:  # a strategy's second phase (e.g. auto's, at the full step)
+        for ax in (top, bottom):
+            ax.axvline(x[p.switch], color="0.5", lw=0.9, ls="--")
 
 
 _LOWER_NAMES = {"grad_norm": "gradient norm", "sigma": "CMA-ES step size"}
@@ -392,7 +401,7 @@ def _progress_handles(p: _Progress, evaluation) -> list:
     """The legend of :func:`plot_convergence`."""
     from matplotlib.lines import Line2D
 
-    best = p.history.get("best_step", [math.nan])[-1]
+    best = p.history.get("returned_step", [math.nan])[-1]
     validation = f"validation {'yield' if p.yields else 'cost'} (returned: step {best:.0f})"
     rows = [("loss", "loss (best point)"), ("mean", "sample mean target")][: 1 + p.show_mean]
     rows += [("worst", "sample worst target"), ("validation", validation)]
@@ -402,6 +411,8 @@ def _progress_handles(p: _Progress, evaluation) -> list:
         held = f"held-out, initial and tuned ({evaluation['draws']} draws, "
         rows.append(("held", held + f"{evaluation['switching']}, {evaluation['horizon_s']:g} s)"))
     handles = [Line2D([], [], **_LOOK[key], label=label) for key, label in rows]
+    if p.switch is not None:
+        handles.append(Line2D([], [], color="0.5", lw=0.9, ls="--", label="second phase begins"))
     return handles + [
         Line2D([], [], color=color, **_LOOK["lower"], label=_LOWER_NAMES[key])
         for key, color in zip(p.lower, (_DARK, _GREEN), strict=False)
@@ -414,6 +425,7 @@ def plot_convergence(
     evaluation: dict | None = None,
     title: str = "fojax tune: convergence",
     validation_start: float | None = None,
+    yields: bool = False,
 ) -> Path:
     """A tuning run's progress from ``history.csv`` (:mod:`fojax.optimize.driver`'s
     columns, any method): top, the loss of each step's best point, the sample's mean
@@ -421,8 +433,10 @@ def plot_convergence(
     start as step 0; bottom, the gradient norm (gradient steps) or CMA-ES's step size;
     against step (left) and wall time (right). Steps with diverged draws are marked; the
     held-out score of the initial and the tuned gains is drawn where ``evaluation`` has
-    it."""
-    p = _read_progress(history_csv, evaluation, validation_start)
+    it; a dashed line marks where a strategy's second phase begins (``history.csv``'s
+    ``phase`` column). ``yields``: the validation score is a yield (without
+    ``evaluation``, which says so itself)."""
+    p = _read_progress(history_csv, evaluation, validation_start, yields)
     h, lower = p.history, p.lower
     fig = style.pyplot().figure(figsize=(11, 7), layout="constrained")
     axes = fig.subplots(2, 2, sharex="col", sharey="row")
@@ -432,7 +446,9 @@ def plot_convergence(
         ax.grid(alpha=0.3, which="both")
     loss = np.asarray(h["loss"])
     loss = loss[np.isfinite(loss)]
-    if loss.size and np.all(loss > 0) and loss.max() > 10 * loss.min():
+    scores = np.concatenate([loss, p.validation[np.isfinite(p.validation)],
+                             [] if p.start is None else [p.start]])  # fmt: skip
+    if not p.yields and scores.size and np.all(scores > 0) and scores.max() > 3 * scores.min():
         axes[0, 0].set_yscale("log")
     axes[0, 0].set_ylabel("loss, cost")
     if lower and max(np.nanmax(h[k]) for k in lower) > 30 * min(np.nanmin(h[k]) for k in lower):
@@ -446,7 +462,7 @@ def plot_convergence(
 
 
 def _held_number(summary: dict) -> float:
-    return summary["yield"] if "yield" in summary else summary["cost"]
+    return summary["score"]
 
 
 def _bar_axes(ax, labels, right_end: float, xlabel: str, title: str) -> None:

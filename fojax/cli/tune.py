@@ -167,6 +167,12 @@ OPTIONS = (
            lambda a: "is set by --outer-steps and --inner-steps with --requirements"
            if a.requirements else None),
     Option("--seconds", dict(type=real, help="stop after this wall time (none)")),
+    Option("--patience", dict(type=whole, help="stop once the best validated cost improved by "
+           "less than the method's tolerance over this many steps (" + ", ".join(
+           f"{m} {n.patience}" for m, n in METHODS.items() if n.patience) + "; 0: never)"),
+           lambda a: METHODS[a.method].patience or 0,
+           lambda a: "does not apply with --requirements" if a.requirements else (
+               "applies with validation draws only" if a.validation_draws == 0 else None)),
     Option("--switch", dict(type=count, help="CMA-ES generations before L-BFGS (30)"),
            *_option_of("switch")),
     Option("--sigma", dict(type=real, help="CMA-ES's initial step (0.5)"), *_option_of("sigma")),
@@ -316,9 +322,9 @@ def _build(parser, args) -> Run:
                                           formulation=args.formulation, margin=args.margin,
                                           allowed_share=share)  # fmt: skip
         steps = strategy.requests
-    converge = {} if reqs is not None else {"patience": method.patience,
-                                             "tolerance": method.tolerance}  # fmt: skip
-    budget = optimize.Budget(steps=steps, seconds=args.seconds, **converge)
+    patience = None if reqs is not None or not args.patience else args.patience
+    budget = optimize.Budget(steps=steps, seconds=args.seconds, patience=patience,
+                             tolerance=method.tolerance)  # fmt: skip
     fingerprint = optimize.describe(
         objective, strategy, budget, x0, args.validation_draws, args.validate_every
     )
@@ -447,7 +453,7 @@ def _summary(run: Run, result, wall: float) -> str:
         f"steps, {result.draw_steps:.3g} draw-steps ({wall:.0f} s)"
     )
     if v is not None and v["best"] is not None:
-        step = result.best_step
+        step = result.returned_step
         chosen = "the start's (no answer validated better)" if step == 0 else f"step {step}'s"
         text += (
             f"\nreturned {chosen} gains: validation {headline(v['best'])} against "
@@ -471,7 +477,7 @@ def _save_gains(run: Run, result, record: dict, earlier: str | None) -> None:
         "method": args.method,
         "init": run.init_label,
         "steps": result.steps,
-        "selected_step": result.best_step,
+        "returned_step": result.returned_step,
         "selected_by": "validation" if result.validation else "last step",
         "validation": result.validation,
         "draw_steps": result.draw_steps,
@@ -503,7 +509,7 @@ def _heldout(run: Run, result, session: dict) -> dict:
         "horizon_s": horizon,
         "switching": args.eval_switching,
         "draw_indices": f"{HELDOUT_OFFSET} + [0, {args.eval_draws})",
-        "tuned_gains_from_step": result.best_step,
+        "returned_step": result.returned_step,
     }
     for label, x in (("initial", run.x0), ("tuned", result.x)):
         document[label] = objective.evaluate(x, keys, horizon=horizon)[1]
@@ -519,6 +525,8 @@ def _figure(run: Run, result, evaluation):
     """``convergence.png`` (and ``.pdf``); ``None`` (a warning) when it cannot be drawn."""
     args, spec = run.args, run.objective.spec
     start = result.validation["initial"] if result.validation else None
+    own = args.requirement_set is None and not METHODS[args.method].draws
+    sample = f"{AUTO_DRAWS}-draw samples" if own else f"{spec.draws} draws"
     return style.attempt(
         "convergence.png",
         figures.plot_convergence,
@@ -526,8 +534,9 @@ def _figure(run: Run, result, evaluation):
         Path(args.out) / "convergence.png",
         evaluation,
         f"fojax tune: {spec.controller}, scenario {spec.scenario}, {args.method}, "
-        f"{spec.draws} draws x {spec.horizon:g} s, {args.objective}",
-        None if start is None else (start.get("cost") if "cost" in start else start["yield"]),
+        f"{sample} x {spec.horizon:g} s, {args.objective}",
+        None if start is None else start["score"],
+        start is not None and start["kind"] == "yield",
     )
 
 

@@ -95,7 +95,7 @@ def _auto(problem: Problem, steps: int, sigma: float):
     found += [free] * (AUTO_SEARCHES - 1 - len(found))
     k = d if tie is None else max(tie) + 1
     first = max(s * (CMAES().constants(k)["lam"] + 1) * n for _, s, n in AUTO_STAGES)
-    draws = max(AUTO_DRAWS, first // (CMAES().constants(d)["lam"] + 1))
+    popsize = max(first // AUTO_DRAWS - 1, CMAES().constants(d)["lam"])
     coarse_dt = AUTO_COARSE * objective.spec.dt
     try:
         objective.spec.check_step(coarse_dt)
@@ -103,16 +103,16 @@ def _auto(problem: Problem, steps: int, sigma: float):
         coarse_dt = None
     return MultiStart(
         starts=tuple(tuple(s) for s in found), tie=tie, sigma0=sigma, seed=problem.seed,
-        stages=AUTO_STAGES, coarse_dt=coarse_dt, draws=draws, name="auto",
+        stages=AUTO_STAGES, coarse_dt=coarse_dt, draws=AUTO_DRAWS, popsize=popsize, name="auto",
     )  # fmt: skip
 
 
 AUTO_SEARCHES = 4
 """Searches of ``auto``'s first phase: the start, the start at integer orders and the
 knowledge-free start at integer orders, and copies of the latter up to this count."""
-AUTO_STAGES = ((100, 4, 4), (100, 2, 8))
-"""``auto``'s first phase: 100 generations of its four searches on 4 draws, then the
-best two on 8 (:class:`MultiStart`'s ``stages``)."""
+AUTO_STAGES = ((100, 4, 4),)
+"""``auto``'s first phase: 100 generations of its four searches on 4 draws each
+(:class:`MultiStart`'s ``stages``)."""
 AUTO_COARSE = 2
 """``auto``'s first phase runs at this many times the objective's step."""
 
@@ -142,7 +142,7 @@ METHODS = {
             "auto",
             "CMA-ES from the start, from it at integer fractional orders and from a "
             "knowledge-free start side by side, the best continued until it converges",
-            400, {"sigma": 0.5}, _auto, draws=False, patience=80,
+            400, {"sigma": 0.5}, _auto, draws=False, patience=60, tolerance=2e-3,
         ),
         Method(
             "cma-lbfgs", "CMA-ES on 8-draw fresh samples, then L-BFGS on the fixed sample",

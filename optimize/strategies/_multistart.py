@@ -43,7 +43,8 @@ class MultiStart:
     seed. stages: the first phase, ``(generations, searches, draws)`` each: the best
     ``searches`` of the previous stage (all at first) go on for ``generations`` with
     ``draws`` draws per point. coarse_dt: the first phase's step (s; ``None``: the
-    objective's). draws: the second phase's draws per point. window: generations whose
+    objective's). draws, popsize: the second phase's draws per point and candidates per
+    generation (``None``: ``4 + floor(3 ln d)``). window: generations whose
     means rank the searches. lift: the variance added on the second phase's diagonal,
     relative to the search's mean variance."""
 
@@ -54,6 +55,7 @@ class MultiStart:
     stages: tuple = ((100, 4, 4), (100, 2, 8))
     coarse_dt: float | None = None
     draws: int = 16
+    popsize: int | None = None
     window: int = 20
     lift: float = 0.5
     name: str = "multistart"
@@ -103,7 +105,8 @@ class MultiStart:
     def _search(self, k: int) -> CMAES:
         """Search ``k`` of the first phase (``k = -1``: the second phase's): its own
         sampling seed."""
-        return CMAES(sigma0=self.sigma0, seed=self.seed * 1009 + k + 1)
+        popsize = self.popsize if k < 0 else None
+        return CMAES(sigma0=self.sigma0, seed=self.seed * 1009 + k + 1, popsize=popsize)
 
     def _embed(self, d: int) -> np.ndarray:
         """``(d, k)`` 0/1 matrix: full parameters ``x = E z`` of search parameters ``z``."""
@@ -238,4 +241,4 @@ class MultiStart:
         k = int(self._embed(d).shape[1])
         first = max((s * (CMAES().constants(k)["lam"] + 1) * n for _, s, n in self.stages),
                     default=0)  # fmt: skip
-        return max(first, (CMAES().constants(d)["lam"] + 1) * self.draws)
+        return max(first, (self._search(-1).constants(d)["lam"] + 1) * self.draws)
