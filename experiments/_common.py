@@ -197,19 +197,19 @@ def draw_costs(objective, x, keys, horizon=None, scenario=None):
 
 
 def to_requirements(objective, x0, method, outer_steps, inner_steps, *, validation_draws,
-                    margin=0.05, progress=False, **settings):  # fmt: skip
+                    margin=0.05, progress=False, seed=0, **options):  # fmt: skip
     """Tune ``objective`` (with a requirement set) from ``x0`` as ``fojax tune
-    --requirements`` does: ``method``'s strategy (:func:`fojax.optimize.strategies.make`
-    with ``settings``; the fixed sample, one width, Adam at a constant step) inside the
-    augmented Lagrangian, ``outer_steps`` x ``inner_steps`` steps, validated on
-    ``validation_draws`` draws after every outer step. Returns the driver's result."""
+    --requirements`` does: ``method``'s strategy with its defaults under requirements
+    (:data:`fojax.optimize.strategies.METHODS`; ``options``: those of them the method
+    takes) inside the augmented Lagrangian, ``outer_steps`` x ``inner_steps`` steps,
+    validated on ``validation_draws`` draws after every outer step. Returns the
+    driver's result."""
     from fojax import optimize
     from fojax.optimize import strategies
 
-    inner = strategies.make(
-        method, outer_steps * inner_steps, final_learning_rate=1.0, anneal_start=1.0,
-        sample="fixed", **settings,
-    )  # fmt: skip
+    taken = {k: v for k, v in options.items() if k in strategies.METHODS[method].options}
+    problem = strategies.Problem(objective, x0, seed, constrained=True)
+    inner = strategies.make(method, problem, inner_steps, **taken)
     count = len(objective.requirements)
     strategy = strategies.AugmentedLagrangian(inner, count, outer_steps, inner_steps, margin=margin)
     return optimize.run(

@@ -130,13 +130,20 @@ BLOCKS: dict[str, Block] = {
             _TUNING,
             results="results/sensitivity/tuning",
         ),
-        _block(
+        _block(  # every fojax tune run of the study, the reference runs included
+            "tuning-reference",
+            "docs/tuning.md",
+            "tuning_study --out results/tuning_study --reference --update-doc docs/tuning.md",
+            (*_TUNING, "fojax/cli/tune.py", "fojax/settings.py"),
+            "tuning_study tuning_study_report",
+            results="results/tuning_study",
+        ),
+        _block(  # the same command: its runs are kept, the second only reports
             "tuning-study",
             "docs/tuning.md",
-            "tuning_study --out results/tuning_study --bench 5 --user-view 2"
-            " --update-doc docs/tuning.md",
-            (*_TUNING, "fojax/cli/tune.py"),
-            "tuning_study tuning_study_report tuning_study_user",
+            "tuning_study --out results/tuning_study --reference --update-doc docs/tuning.md",
+            (*_TUNING, "fojax/cli/tune.py", "fojax/settings.py"),
+            "tuning_study tuning_study_report",
             results="results/tuning_study",
         ),
         _block(

@@ -67,8 +67,8 @@ def parse_args(argv) -> argparse.Namespace:
     parser.add_argument(
         "--method", choices=METHODS, default="auto", help="fojax tune's methods (auto)"
     )
-    number(switch=(None, "CMA-ES generations before L-BFGS (8; cma-lbfgs only)"))
-    number(learning_rate=(None, "Adam's step (0.1; --method adam only)"))
+    number(switch=(None, "CMA-ES generations before L-BFGS (the method's; cma-lbfgs only)"))
+    number(learning_rate=(None, "Adam's step (the method's; --method adam only)"))
     parser.add_argument("--seed", type=arguments.nonnegative_int, default=0)
     parser.add_argument("--controllers", help="comma-separated names (default: all registered)")
     number(eval_draws=64)
@@ -86,7 +86,6 @@ def parse_args(argv) -> argparse.Namespace:
             f"--learning-rate applies to --method adam only, not to --method {args.method}; "
             "leave it out or add --method adam"
         )
-    args.learning_rate = args.learning_rate or 0.1
     if args.switch is not None and args.method != "cma-lbfgs":
         parser.error(f"--switch applies to --method cma-lbfgs only, not to --method {args.method}")
     known = registry.controller_names()
@@ -100,8 +99,8 @@ def parse_args(argv) -> argparse.Namespace:
         vars(args).update(horizon=0.3, draws=3, steps=2, dtype="float64", eval_draws=3)
         args.eval_horizon = args.eval_horizon or 0.3
         args.eval_scenarios = (args.scenario,)
-        args.switch = args.switch or 1  # both of cma-lbfgs's phases
-    args.switch = args.switch or 8
+        if args.method == "cma-lbfgs":
+            args.switch = args.switch or 1  # both of cma-lbfgs's phases
     steps = args.horizon / 1e-3
     if abs(steps - round(steps)) > 1e-6 * steps:
         parser.error(f"--horizon must be a whole number of 1 ms steps, got {args.horizon}")
@@ -122,10 +121,11 @@ def tune(args, index: int, name: str):
     )
     defaults = registry.get_controller_class(name).default_gains(jnp.dtype(args.dtype))
     objective = optimize.Objective(spec, defaults)
+    given = {"switch": args.switch, "learning_rate": args.learning_rate}
+    options = {k: v for k, v in given.items() if v is not None}
     strategy = strategies.make(
-        args.method, args.steps, seed=args.seed, switch=args.switch,
-        learning_rate=args.learning_rate,
-    )  # fmt: skip
+        args.method, strategies.Problem(objective, objective.x0, args.seed), args.steps, **options
+    )
     run_dir = args.out / "tuning" / name
     found = (run_dir / optimize.CHECKPOINT).exists()
     goes_on = " (its checkpoint goes on if of these settings and code)" if found else ""

@@ -68,7 +68,7 @@ import numpy as np
 
 from experiments import _common
 from fojax.cli import output
-from fojax.optimize.strategies import DEFAULT_STEPS
+from fojax.optimize.strategies import METHODS
 
 __all__ = ["main", "unseen_reference"]
 
@@ -100,12 +100,14 @@ def parse_args(argv) -> argparse.Namespace:
     parser = _common.parser("tune_paper_gains")
     number = functools.partial(_common.add_numbers, parser, int, float)
     number(scenario=2, horizon=(10.0, "tuning horizon (s)"), draws=(16, "draws per sample"))
-    number(steps=(50, "gradient steps"), default_steps=DEFAULT_STEPS["auto"])
+    number(steps=(50, "gradient steps"), default_steps=METHODS["auto"].steps)
     parser.add_argument("--gradient-method", choices=("lbfgs", "adam"), default="lbfgs")
-    number(learning_rate=(0.1, "Adam's"), max_step=(1.0, "L-BFGS's"), tuner_validation_draws=32)
+    number(learning_rate=(None, "Adam's (the method's)"), tuner_validation_draws=32)
+    number(max_step=(None, "L-BFGS's (the method's)"))
     number(seed=0)
     parser.add_argument("--dtype", default="float32")
-    number(df_budget_factor=3.0, cma_sigma=0.5, validation_draws=32, validate_every=(5, "steps"))
+    number(df_budget_factor=3.0, cma_sigma=(None, "CMA-ES's first step (the method's)"),
+           validation_draws=32, validate_every=(5, "steps"))
     number(eval_draws=64, eval_horizon=(None, "s (default: each scenario's)"))
     _common.add_outputs(parser, "tune_paper_gains")
     # Cost weights (default: the fojax tune defaults).
@@ -174,10 +176,10 @@ class _Study:
             "default": ("auto", args.default_steps, args.tuner_validation_draws),
             "gradient": (args.gradient_method, args.steps, args.tuner_validation_draws),
         }.get(name, (name, None, 0))
-        strategy = strategies.make(
-            method, steps, seed=args.seed, sigma=args.cma_sigma,
-            max_step=args.max_step, learning_rate=args.learning_rate,
-        )  # fmt: skip
+        given = dict(sigma=args.cma_sigma, max_step=args.max_step, learning_rate=args.learning_rate)
+        options = {k: v for k, v in given.items() if v is not None and k in METHODS[method].options}
+        problem = strategies.Problem(self.objective, self.objective.x0, args.seed)
+        strategy = strategies.make(method, problem, steps, **options)
         limit = optimize.Budget(steps=steps, draw_steps=budget)
         spent = ", ".join(f"{v} {k}" for k, v in dataclasses.asdict(limit).items() if v)
         output.log(args.quiet, f"{name}: {spent}")

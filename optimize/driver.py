@@ -428,14 +428,18 @@ class _Run:
 
 
 def _compile_ahead(objective: Objective, needs) -> threading.Thread | None:
-    """Compile in a thread what the run will need (``needs``: the strategy's ``(kind,
-    width)`` pairs, in order): the draws' program beside the first phase's program, then
-    a later phase's gradient program beside the first phase's steps. Not in a
-    multi-process run (None): compiling ahead runs the programs once, and every process
-    must run its programs, collectives included, in the same order. An error is left to
-    the call that needs the program (it compiles again there and reports it)."""
-    if jax.process_count() > 1:
+    """Compile in threads what the run will need (``needs``: the strategy's ``(kind,
+    width[, dt])``, in order), from the shapes of their arguments, running nothing
+    (:meth:`Objective.compile`): the draws' programs and the first phase's program side
+    by side, then a later phase's. The threads are not waited for: a request whose
+    program is still compiling waits for it (:meth:`_Run.ready`), and a run that ends
+    (its budget, Ctrl-C) leaves them behind. Not in a multi-process run (None): every
+    process must run its programs, collectives included, in the same order. An error
+    is left to the call that needs the program (it compiles again there and reports
+    it)."""
+    if jax.process_count() > 1 or not needs:
         return None
+    needs = [tuple(need) + (None,) * (3 - len(need)) for need in needs]
 
     def quietly(*args):
         try:
@@ -444,16 +448,15 @@ def _compile_ahead(objective: Objective, needs) -> threading.Thread | None:
             pass
 
     def compile_all():
-        first = [
-            threading.Thread(target=quietly, args=a, daemon=True) for a in (("sampler",), needs[0])
-        ]
-        for thread in first:
+        steps = dict.fromkeys(dt for _, _, dt in needs)
+        first = [("sampler", None, dt) for dt in steps] + [needs[0]]
+        threads = [threading.Thread(target=quietly, args=a, daemon=True) for a in first]
+        for thread in threads:
             thread.start()
-        for thread in first:
+        for thread in threads:
             thread.join()
-        for kind, width in dict.fromkeys(needs[1:]):
-            if kind == "gradient":
-                quietly(kind, width)
+        for need in dict.fromkeys(needs[1:]):
+            quietly(*need)
 
     thread = threading.Thread(target=compile_all, daemon=True)
     thread.start()

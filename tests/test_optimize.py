@@ -258,7 +258,7 @@ def test_bad_settings_are_rejected():
     with pytest.raises(ValueError, match="a budget needs a limit"):
         driver.Budget()
     with pytest.raises(ValueError, match="method must be one of"):
-        st.make("bfgs")
+        st.make("bfgs", None)
 
 
 # --------------------------------------------------- strategies against references
@@ -512,7 +512,7 @@ def test_short_tuning_lowers_the_heldout_cost():
     objective = small()
     result = driver.run(
         objective,
-        st.make("cma-lbfgs", 8, switch=3, popsize=6),
+        st.make("cma-lbfgs", st.Problem(objective, objective.x0), 8, switch=3, popsize=6),
         driver.Budget(steps=8),
         validation_draws=4,
         progress=False,

@@ -15,7 +15,7 @@ from fojax.controllers.afonftsmc import paper_gains
 # The same small problem as tests/test_optimize.py (shares its compiled code through
 # the persistent compilation cache).
 SMALL = [
-    "--scenario", "2", "--controller", "afonftsmc", "--draws", "3", "--horizon", "0.3",
+    "--scenario", "2", "--controller", "afonftsmc", "--horizon", "0.3",
     "--seed", "5", "--dtype", "float64", "--effort-weight", "1e-3",
     "--chattering-weight", "1e-3", "--attitude-weight", "2", "--init", "naive",
 ]  # fmt: skip
@@ -32,6 +32,9 @@ def _write(path, document):
         (["--objective", "median"], "invalid choice: 'median'"),
         (["--steps", "0"], "expected a positive integer, got 0"),
         (["--draws", "0"], "expected a positive integer, got 0"),
+        (["--draws", "4"], "--draws does not apply to --method auto"),
+        (["--method", "cma-lbfgs", "--steps", "3", "--switch", "3"], "leave no L-BFGS step"),
+        (["--patience", "5", "--validation-draws", "0"], "applies with validation draws only"),
         (["--controller", "pid"], "unknown controller 'pid'"),
         (["--scenario", "4"], "invalid choice"),
         (["--horizon", "0.0005"], "whole, positive number of steps"),
@@ -117,7 +120,8 @@ def test_initial_gains_files_are_validated(capsys, tmp_path):
 
 def test_tune_end_to_end_resume_and_refusals(capsys, tmp_path):
     out = tmp_path / "run"
-    argv = SMALL + ["--method", "cma-lbfgs", "--steps", "3", "--switch", "2", "--popsize", "4",
+    argv = SMALL + ["--method", "cma-lbfgs", "--draws", "3", "--steps", "3", "--switch", "2",
+                    "--popsize", "4",
                     "--checkpoint-every", "1", "--eval-draws", "2", "--validate-every", "2",
                     "--quiet"]  # fmt: skip
     assert cli.main(["tune"] + argv + ["--out", str(out)]) == 0

@@ -13,8 +13,9 @@ resumed run continues exactly), in the style of optax's transformations:
   :class:`AugmentedLagrangian`): forget what depended on it;
 * ``settings() -> dict``: JSON-ready description (part of a run's fingerprint);
 * ``row(state) -> dict``: what the strategy adds to the run's history after a request;
-* ``needs() -> tuple``: the programs it will ask for, in order: ``(kind, width)`` pairs,
-  ``kind`` ``"forward"`` or ``"gradient"``, ``width`` the law's (``None``: evaluation).
+* ``needs() -> tuple``: the programs it will ask for, in order: ``(kind, width[, dt])``,
+  ``kind`` ``"forward"`` or ``"gradient"``, ``width`` the law's (``None``: evaluation),
+  ``dt`` the step (``None``: the objective's).
 
 Gradient strategies (:mod:`._gradient`): :class:`Optax` (any optax transformation;
 :func:`adam` is fojax's setting) and :class:`LBFGS`. Population strategies

@@ -153,7 +153,8 @@ METHODS = {
             100,
             {"learning_rate": 0.05, "final_learning_rate": 0.1, "clip_norm": 1.0,
              "anneal_start": 4.0, "anneal_end": 1.0},
-            _adam, {"learning_rate": 0.1, "final_learning_rate": 1.0}, gradient=True,
+            _adam, {"learning_rate": 0.1, "final_learning_rate": 1.0, "anneal_start": 1.0},
+            gradient=True,
         ),  # fmt: skip
         Method(
             "lbfgs", "L-BFGS on the fixed sample", 60, {"max_step": 1.0, "anneal_end": 1.0},

@@ -234,7 +234,7 @@ class MultiStart:
                 "sigma": float(state["final"]["sigma"])}  # fmt: skip
 
     def needs(self) -> tuple:
-        return (("forward", None),)
+        return (("forward", None, self.coarse_dt), ("forward", None, None))
 
     def lanes(self, d: int) -> int:
         """The most lanes (point x draw) of any request, for ``d`` parameters."""
