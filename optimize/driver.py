@@ -43,7 +43,7 @@ from fojax.optimize import checks
 from fojax.optimize.objective import Objective
 from fojax.optimize.spec import VALIDATION_OFFSET
 
-__all__ = ["CHECKPOINT", "Budget", "Result", "check_resume", "headline", "run"]
+__all__ = ["CHECKPOINT", "Budget", "Result", "check_resume", "compiling", "headline", "run"]
 
 CHECKPOINT = "checkpoint.npz"
 VALIDATION_SHARE = 8
@@ -450,7 +450,8 @@ def _compile_ahead(objective: Objective, needs) -> threading.Thread | None:
     def compile_all():
         steps = dict.fromkeys(dt for _, _, dt in needs)
         first = [("sampler", None, dt) for dt in steps] + [needs[0]]
-        threads = [threading.Thread(target=quietly, args=a, daemon=True) for a in first]
+        threads = [threading.Thread(target=quietly, args=a, name=COMPILING, daemon=True)
+                   for a in first]  # fmt: skip
         for thread in threads:
             thread.start()
         for thread in threads:
@@ -458,9 +459,20 @@ def _compile_ahead(objective: Objective, needs) -> threading.Thread | None:
         for need in dict.fromkeys(needs[1:]):
             quietly(*need)
 
-    thread = threading.Thread(target=compile_all, daemon=True)
+    thread = threading.Thread(target=compile_all, name=COMPILING, daemon=True)
     thread.start()
     return thread
+
+
+COMPILING = "fojax-compile-ahead"
+"""The name of the threads of :func:`_compile_ahead`."""
+
+
+def compiling() -> bool:
+    """Whether a program is still being compiled ahead for a run that has ended (a
+    process that exits meanwhile must not tear JAX down under it: :func:`fojax.cli.main`
+    ends such a process at once, its outputs flushed)."""
+    return any(t.name == COMPILING and t.is_alive() for t in threading.enumerate())
 
 
 def run(

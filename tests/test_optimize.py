@@ -393,8 +393,10 @@ def _rows(result):
         st.LBFGS(max_step=0.5),
         st.adam(4, learning_rate=0.1),
         st.Chain(st.CMAES(popsize=4, seed=1), st.LBFGS(max_step=0.5), 2),
+        st.MultiStart(starts=((0.1,) * 33,), stages=((2, 2, 2),), draws=2, popsize=4,
+                      coarse_dt=2e-3),
     ],
-    ids=["lbfgs", "adam", "chain"],
+    ids=["lbfgs", "adam", "chain", "multistart"],
 )
 def test_resumed_run_equals_uninterrupted_run(tmp_path, strategy):
     full = _run(tmp_path / "full", strategy, 4)
@@ -523,3 +525,143 @@ def test_short_tuning_lowers_the_heldout_cost():
     AFONFTSMC.check_gains(objective.gains(result.x))
     assert after.mean() < 0.8 * before.mean()
     assert np.mean(after < before) >= 0.75  # better on most draws, not on average only
+
+
+# ------------------------------------------------------------------ the default method
+
+
+def test_a_tie_maps_full_parameters_onto_the_shared_ones():
+    """``x = z[tie]``: every axis of a shared group takes its group's parameter, the
+    fields keep their order (checked through the parameters' names)."""
+    fine = params_lib.make_parameter_map("afonftsmc", None, "none")
+    coarse = params_lib.make_parameter_map("afonftsmc", None, "paper")
+    tie = fine.tie(coarse)
+    assert tie.shape == (fine.size,) and sorted(set(tie)) == list(range(coarse.size))
+    groups = {"x": "x=y", "y": "x=y", "z": "z", "phi": "phi=theta=psi", "theta": "phi=theta=psi",
+              "psi": "phi=theta=psi"}  # fmt: skip
+    for label, index in zip(fine.labels(), tie, strict=True):
+        name, axis, *rest = label.replace("]", "").split("[")
+        assert coarse.labels()[index] == name + "".join(f"[{p}]" for p in (groups[axis], *rest))
+    with pytest.raises(ValueError, match="same fields"):
+        fine.tie(params_lib.make_parameter_map("afonftsmc", ("surface_c1",), "paper"))
+
+
+def test_integer_order_gains_move_only_the_declared_orders():
+    gains = params_lib.integer_order_gains(NAIVE)
+    np.testing.assert_allclose(gains.gamma1, 0.99)  # D^(gamma1 - 1): the identity at 1
+    np.testing.assert_allclose(gains.gamma2, 0.01)  # I^gamma2: the identity at 0
+    for name in set(GAINS.names) - {"gamma1", "gamma2"}:
+        np.testing.assert_array_equal(getattr(gains, name), getattr(NAIVE, name))
+    fobsmc = registry.get_controller_class("fobsmc")
+    np.testing.assert_allclose(params_lib.integer_order_gains(fobsmc.default_gains()).order, 0.99)
+    fl = registry.get_controller_class("fl").default_gains()
+    assert params_lib.integer_order_gains(fl) == fl  # no fractional order
+
+
+def test_auto_searches_from_the_start_its_integer_orders_and_the_knowledge_free_start():
+    objective = small()
+    x0 = objective.vector(paper_gains(jnp.float64))
+    found = st.starts(objective, x0)
+    naive = objective.vector(params_lib.integer_order_gains(NAIVE))
+    # The paper's orders are already 0.99 and 0.01: one other start, the naive gains'.
+    assert len(found) == 1 and np.allclose(found[0], naive)
+    from_naive = st.starts(objective, objective.vector(NAIVE))
+    assert len(from_naive) == 1 and np.allclose(from_naive[0], naive)
+    strategy = st.make("auto", st.Problem(objective, x0))
+    assert isinstance(strategy, st.MultiStart) and len(strategy.starts) == 3
+    assert strategy.tie is None and strategy.coarse_dt == 2 * objective.spec.dt
+    constrained = st.make("auto", st.Problem(objective, x0, constrained=True))
+    assert isinstance(constrained, st.CMAES) and constrained.draws == st.AUTO_DRAWS
+
+
+class _Bowls:
+    """A two-basin function of ``d`` parameters for strategies: a shallow bowl at
+    ``+1`` (the start's side) and a deeper one at ``-2`` (``min`` of two quadratics)."""
+
+    spec = spec_lib.ProblemSpec(horizon=0.01, dt=1e-3)
+
+    def __init__(self, d):
+        self.size, self.calls = d, []
+
+    @staticmethod
+    def value(points):
+        a = np.sum((points - 1.0) ** 2, -1) + 1.0
+        b = np.sum((points + 2.0) ** 2, -1)
+        return np.minimum(a, b)
+
+    def __call__(self, request):
+        self.calls.append(request)
+        values = self.value(np.atleast_2d(request.points))
+        outputs = Outputs(values[:, None, None], np.zeros((len(values), 1, 4)),
+                          np.zeros((len(values), 1), np.int32))  # fmt: skip
+        return Evaluation(values, None, outputs, 0, len(values), len(values))
+
+
+def test_multistart_keeps_the_best_search_and_continues_it_lifted():
+    """Two searches, one from the start near the shallow bowl, one from a start near
+    the deep one: the second is kept and continued in the full space (``tie`` pairs the
+    coordinates), at the coarse step first and the full step after."""
+    d, objective = 4, _Bowls(4)
+    strategy = st.MultiStart(starts=((-1.5,) * d,), tie=(0, 0, 1, 1), sigma0=0.3,
+                             stages=((30, 2, 1),), draws=1, coarse_dt=2e-3)  # fmt: skip
+    state = strategy.init(np.full(d, 1.2))
+    for _ in range(80):
+        request = strategy.ask(state)
+        state = strategy.tell(state, request, objective(request))
+    first, later = objective.calls[0], objective.calls[-1]
+    assert first.dt == 2e-3 and later.dt is None
+    # Phase 1: each search's candidates and its mean, tied coordinates equal.
+    lam = st.CMAES().constants(2)["lam"]
+    assert first.points.shape == (2 * (lam + 1), d)
+    np.testing.assert_array_equal(first.points[:, 0], first.points[:, 1])
+    assert int(state["chosen"]) == 1  # the search from the deep bowl's side
+    assert later.points.shape[0] == st.CMAES().constants(d)["lam"]
+    assert not np.array_equal(later.points[:, 0], later.points[:, 1])  # lifted: untied
+    np.testing.assert_allclose(strategy.answer(state), -2.0, atol=0.05)
+
+
+def test_convergence_ends_a_run_whose_validation_stopped_improving():
+    budget = driver.Budget(steps=100, patience=4, tolerance=0.01)
+    scores = [(0, 10.0), (2, 5.0), (4, 4.99), (6, 4.98)]
+    assert not budget.converged(scores[:2], 3)  # fewer steps than the patience
+    assert not budget.converged(scores[:3], 4)  # 10 -> 4.99 since step 0
+    assert budget.converged(scores, 6)  # 5.0 -> 4.98 over the last 4 steps: < 1 %
+    assert not driver.Budget(steps=100).converged(scores, 6)  # no patience: never
+
+
+def test_every_method_declares_its_options_and_refuses_others():
+    problem = st.Problem(small(), small().x0)
+    for name, method in st.METHODS.items():
+        strategy = method.make(problem)  # every default builds
+        assert strategy is not None, name
+        with pytest.raises(ValueError, match=f"method {name} takes no option bogus"):
+            method.make(problem, bogus=1)
+    with pytest.raises(ValueError, match="leave no L-BFGS step after 30"):
+        st.make("cma-lbfgs", problem, 30)
+
+
+def test_compiling_ahead_runs_nothing_and_leaves_nothing_to_compile(monkeypatch):
+    """The programs are compiled from their arguments' shapes (no call on blank
+    inputs), and the first call compiles no program of its own again."""
+    from jax._src import dispatch
+
+    compiled = []
+
+    def listen(event, duration, fun_name=None, **_):
+        if event == dispatch.BACKEND_COMPILE_EVENT:
+            compiled.append(fun_name)
+
+    objective = Objective(SPEC, NAIVE, lanes=6)  # a fresh one: nothing compiled yet
+    calls = []
+    objective.compile("sampler")
+    objective.compile("forward", None, 2e-3)
+    program = objective._forward(objective.switching, HORIZON, objective.scenario, True, 2e-3)
+    real = program.program
+    monkeypatch.setattr(program, "program", lambda *a: calls.append(a) or real(*a))
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        objective.forward(objective.x0[None], objective.sample(0), dt=2e-3)
+    finally:
+        jax._src.monitoring.unregister_event_duration_listener(listen)
+    assert len(calls) == 1  # compile() ran nothing; the call ran the program once
+    assert not [name for name in compiled if "lanes" in str(name)], compiled

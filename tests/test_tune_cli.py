@@ -224,3 +224,68 @@ def test_tuning_study_smoke(tmp_path):
     reused = json.loads((out / "results.json").read_text())
     assert reused["tuners"] == results["tuners"] and reused["curves"] == results["curves"]
     assert json.dumps(reused["evaluation"]) == json.dumps(results["evaluation"])
+
+
+# ------------------------------------------------------- limits that hold (slow tier)
+
+LIMITS = ["--scenario", "2", "--controller", "afonftsmc", "--init", "naive", "--horizon", "2",
+          "--eval-draws", "0", "--quiet", "--no-compile-cache"]  # fmt: skip
+"""A short problem; every program compiled afresh, as on a first run (Ctrl-C may come
+while one is compiling)."""
+
+
+def _tune(argv, **options):
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "fojax.cli", "tune", *argv]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **options)
+
+
+def _interrupt_after(process, history, rows: int) -> float:
+    """Ctrl-C once ``history`` holds ``rows`` steps; the seconds the process then took
+    to end."""
+    import signal
+    import time
+
+    while process.poll() is None:
+        if history.is_file() and len(history.read_text().splitlines()) > rows:
+            break
+        time.sleep(0.05)
+    t0 = time.perf_counter()
+    process.send_signal(signal.SIGINT)
+    process.communicate(timeout=120)
+    return time.perf_counter() - t0
+
+
+@pytest.mark.slow
+def test_a_time_limit_ends_the_run_within_two_seconds(tmp_path):
+    out = tmp_path / "timed"
+    process = _tune(LIMITS + ["--seconds", "12", "--out", str(out)])
+    text = process.communicate(timeout=300)[0].decode()
+    assert process.returncode == 0, text
+    metadata = json.loads((out / "gains.json").read_text())["metadata"]
+    assert 12 <= metadata["wall_time_s"] <= 14, metadata["wall_time_s"]
+    assert metadata["steps"] < tune.METHODS["auto"].steps  # the time, not the steps, ended it
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "method, rows",
+    [(["--steps", "30"], 5), (["--method", "cma-lbfgs", "--draws", "4", "--switch", "2",
+                              "--steps", "4"], 2)],
+    ids=["auto", "cma-lbfgs-while-its-gradient-compiles"],
+)  # fmt: skip
+def test_ctrl_c_ends_the_run_within_two_seconds_and_resumes_exactly(tmp_path, method, rows):
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    process = _tune(LIMITS + method + ["--out", str(full)])
+    assert process.communicate(timeout=600)[0] is not None and process.returncode == 0
+    process = _tune(LIMITS + method + ["--checkpoint-every", "1", "--out", str(cut)])
+    seconds = _interrupt_after(process, cut / "history.csv", rows)
+    assert process.returncode == 130 and seconds <= 2.0, seconds
+    assert (cut / "checkpoint.npz").is_file() and not (cut / "gains.json").exists()
+    process = _tune(LIMITS + method + ["--checkpoint-every", "1", "--resume", "--out", str(cut)])
+    process.communicate(timeout=600)
+    assert process.returncode == 0
+    gains = [json.loads((d / "gains.json").read_text())["gains"] for d in (full, cut)]
+    assert gains[0] == gains[1]

@@ -22,6 +22,7 @@ exit status 130, with what was finished kept.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 COMMANDS = {
@@ -86,14 +87,21 @@ def main(argv=None) -> int:
         status = module.main(argv[1:])
     except KeyboardInterrupt:
         print(f"\nfojax {args.command}: interrupted", file=sys.stderr)
-        return 130
+        status = 130
     except OSError as error:
         reason = error.strerror or str(error)
         if error.filename is not None:  # what failed, on which file, and why
             reason = f"cannot write or read {error.filename}: {reason}"
         print(f"fojax {args.command}: error: {reason}", file=sys.stderr)
-        return 1
-    return status if isinstance(status, int) else 0
+        status = 1
+    status = status if isinstance(status, int) else 0
+    if "fojax.optimize.driver" in sys.modules and sys.modules["fojax.optimize.driver"].compiling():
+        # A program still compiling for a run that has ended (Ctrl-C, a time limit):
+        # end now, rather than tear JAX down under the compiler (an abort).
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    return status
 
 
 def require_extra(command: str, extra: str, modules: tuple[str, ...]) -> None:
