@@ -209,7 +209,7 @@ def to_requirements(objective, x0, method, outer_steps, inner_steps, *, validati
 
     taken = {k: v for k, v in options.items() if k in strategies.METHODS[method].options}
     problem = strategies.Problem(objective, x0, seed, constrained=True)
-    inner = strategies.make(method, problem, inner_steps, **taken)
+    inner = strategies.make(method, problem, outer_steps * inner_steps, **taken)
     count = len(objective.requirements)
     strategy = strategies.AugmentedLagrangian(inner, count, outer_steps, inner_steps, margin=margin)
     return optimize.run(

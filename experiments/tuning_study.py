@@ -30,9 +30,11 @@ Protocol (the defaults; every number of the study's section of ``docs/tuning.md`
   least 5 of 6 runs and within 5 % in 6 of 6 per start, each run in at most 120 s;
   its seeds within 1 % of each other.
 
-Each finished run is kept in ``--out/runs/`` under its fingerprint (its command and the
-code's digest: :func:`experiments._common.cached`): an interrupted study continues where
-it stopped. ``results.json``, ``table.md`` and the figure ``tuning.png`` summarise them;
+Each finished run is kept in ``--out/runs/`` under its fingerprint (its command, the
+scoring's settings and the digest of fojax's source, :func:`fojax.records.cached`; not
+of the studies' code, whose report can change without running anything again): an
+interrupted study continues where it stopped. ``results.json``, ``table.md`` and the
+figure ``tuning.png`` summarise them;
 ``--update-doc FILE`` replaces the blocks ``tuning-reference`` (with ``--reference``)
 and ``tuning-study`` of FILE and copies the figure beside it.
 """
@@ -51,18 +53,16 @@ import time
 
 from experiments import _common
 from experiments.tuning_study_report import plot, reference_table, summarize, table
+from fojax import records
 from fojax.cli import arguments, output
 from fojax.optimize.strategies import METHODS
 
 __all__ = ["REFERENCE", "command", "main"]
 
 CHOICES = {"shares": ("paper", "none"), "starts": ("naive", "paper"), "methods": tuple(METHODS)}
-REFERENCE = {
-    "long-auto": ["--init", "naive", "--steps", "1500", "--patience", "0"],
-    "long-auto-paper": ["--init", "paper", "--steps", "1500", "--patience", "0", "--seed", "1"],
-}
-"""The reference runs per parameter count: ``fojax tune`` options after the problem's
-(the default method, far past its convergence stop)."""
+REFERENCE = {"long": ("naive", 0, ["--steps", "1500", "--patience", "0"])}
+"""The reference runs per parameter count: ``(start, seed, options)``, the default
+method far past its convergence stop."""
 UNSEEN = (2, 3)
 """The scenarios the returned gains are scored on over their full horizon."""
 
@@ -125,8 +125,9 @@ def command(args, share: str, start: str, seed: int, method: str, extra=()) -> l
 
 
 def _key(args, name: str, words: list[str]) -> tuple:
-    """``(folder, stem, fingerprint)`` of a run (:func:`experiments._common.cached`)."""
-    return args.out / "runs", name, {"command": words, "cache": "empty"}
+    """``(folder, stem, fingerprint)`` of a run (:func:`fojax.records.cached`)."""
+    scoring = {k: getattr(args, k) for k in ("heldout_draws", "unseen_draws", "unseen_seed")}
+    return args.out / "runs", name, {"command": words, "cache": "empty", "scoring": scoring}
 
 
 def _run(args, name: str, words: list[str]) -> dict:
@@ -156,6 +157,8 @@ def _run(args, name: str, words: list[str]) -> dict:
         "draw_steps": meta["draw_steps"],
         "validation": meta["validation"],
         "curve": curve,
+        "kept_search": int(float(history[-1]["search"])) if history and history[-1].get("search")
+        else None,
         "gains": gains["gains"],
         "load_before": load,
         "load_after": output.load_average(),
@@ -173,13 +176,13 @@ def runs(args) -> list[tuple[str, list[str], dict]]:
             name = f"{share}_{start}_{method}_{seed}"
             found.append((name, command(args, share, start, seed, method), case))
     if args.reference:
-        for share, (label, extra) in itertools.product(args.shares, REFERENCE.items()):
-            words = command(args, share, "naive", 0, "auto", extra)
-            if args.tiny:
-                words = [w for w in words if w not in ("--steps", "1500")]
-            case = dict(share=share, start=extra[1], method="auto", seed=None, kind="reference",
+        for share, (label, (start, seed, extra)) in itertools.product(
+            args.shares, REFERENCE.items()
+        ):
+            words = command(args, share, start, seed, "auto", [] if args.tiny else extra)
+            case = dict(share=share, start=start, method="auto", seed=seed, kind="reference",
                         label=label)  # fmt: skip
-            found.append((f"{share}_{label}", words, case))
+            found.append((f"{share}_reference_{label}", words, case))
     return found
 
 
@@ -225,10 +228,11 @@ class _Scorer:
                                            seed=self.args.unseen_seed, progress=False)  # fmt: skip
             summary = study.summarize(result)
             metrics = summary["metrics"]
-            torque = metrics["chattering"]
             out[str(scenario_id)] = {
                 "position_rmse": metrics["position_rmse"]["mean"],
-                "torque_chattering": [torque["tau_x"]["mean"], torque["tau_y"]["mean"]],
+                "torque_chattering": [
+                    metrics[f"chattering_{axis}"]["mean"] for axis in ("tau_x", "tau_y")
+                ],
                 "diverged": summary["diverged"],
             }
         return out
@@ -266,22 +270,22 @@ def report(args, records: list[dict], started: float) -> int:
 def main(argv=None) -> int:
     args = parse_args(argv)
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
-    started, scorer, records = time.perf_counter(), _Scorer(args), []
+    started, scorer, found = time.perf_counter(), _Scorer(args), []
     for name, words, case in runs(args):
         key = _key(args, name, words)
         if args.report_only:
-            record = _common.stored(*key)
+            record = records.stored(*key, records.code_digest())
             if record is None:
                 continue
         else:
             compute = functools.partial(_scored, scorer, functools.partial(_run, args, name, words))
-            record = _common.cached(*key, lambda compute=compute, case=case: compute(case))
+            record = records.cached(*key, lambda compute=compute, case=case: compute(case))
             output.log(args.quiet, f"  {name}: {record['wall_s']:.0f} s, held-out "
                                    f"{record['heldout']:.4g}")  # fmt: skip
-        records.append(record)
-    if not records:
+        found.append(record)
+    if not found:
         raise SystemExit(f"{args.out / 'runs'} holds no run of these settings")
-    return report(args, records, started)
+    return report(args, found, started)
 
 
 if __name__ == "__main__":

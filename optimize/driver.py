@@ -3,7 +3,10 @@ checkpointed, with a history and progress.
 
 Each step the strategy asks for a request (:class:`fojax.optimize.Request`), the objective
 evaluates it, the strategy is told. The budget (:class:`Budget`) counts steps, evaluated
-points, simulated draw-steps and seconds; a request that would exceed a count is not started.
+points, simulated draw-steps and seconds, and may end a converged run (its best
+validated score no better by ``tolerance`` over ``patience`` steps); a request that would
+exceed a count is not started, nor one that the last request of its kind says would
+end past ``seconds``, nor one whose program is still compiling when ``seconds`` come.
 
 Validation, so that a run never hands back gains worse than its start: at the start (step
 0), every ``validate_every`` steps (default: once the work since the last validation
@@ -12,8 +15,9 @@ is scored on ``validation_draws`` validation draws (disjoint from the tuning and
 held-out draws) at the evaluation law (:meth:`fojax.optimize.Objective.evaluate`); the run
 returns the best validated answer (the start wins ties) and its step; with
 ``validation_draws=0`` the last answer. The start's validation runs in a thread beside the
-first steps; a program a later phase of the strategy needs (``strategy.needs()``) is
-compiled in a thread from the start, beside the first phase.
+first steps; the programs the strategy needs (``strategy.needs()``) are compiled in
+threads from the start, from their arguments' shapes (nothing is run to compile them),
+and a run that ends does not wait for them.
 
 Checkpoint: every ``checkpoint_every`` steps, at the end and on Ctrl-C, ``DIR/checkpoint.npz``
 holds the strategy's state (a pytree of arrays), the best validated point, the counters,

@@ -18,7 +18,7 @@ from fojax.cli import arguments, bench, simulate, study, tune
 IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
 
 SIM = ["--scenario", "2", "--controller", "afonftsmc", "--draws", "3", "--horizon", "0.2"]
-TUNE = ["--scenario", "2", "--controller", "afonftsmc", "--draws", "2", "--steps", "1"]
+TUNE = ["--scenario", "2", "--controller", "afonftsmc", "--steps", "1"]
 
 
 @pytest.fixture

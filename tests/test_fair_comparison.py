@@ -30,7 +30,8 @@ def test_default_study_tunes_every_controller_from_its_defaults():
     assert args.controllers == registry.controller_names()
     assert (args.steps, args.draws, args.horizon, args.eval_draws) == (50, 16, 10.0, 64)
     assert args.eval_scenarios == (1, 2, 3)
-    assert (args.method, args.switch) == ("auto", 8)  # fojax tune's default method
+    # fojax tune's default method, its options at the method table's defaults
+    assert (args.method, args.switch, args.learning_rate) == ("auto", None, None)
 
 
 @pytest.mark.slow

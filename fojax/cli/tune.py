@@ -298,7 +298,8 @@ def _build(parser, args) -> Run:
     gains, label = _initial_gains(parser, args)
     reqs, limit = requirements_cli.resolve_requirements(args)
     args.requirement_set, args.rotor_speed_limit = reqs, limit
-    steps = args.inner_steps if reqs is not None else args.steps  # a fresh Adam per outer step
+    # With requirements the method's steps are the inner strategy's over the whole run.
+    steps = args.outer_steps * args.inner_steps if reqs is not None else args.steps
     mesh = sharding.draw_mesh(jax.devices())
     target = args.objective if reqs is not None else "cost"
 

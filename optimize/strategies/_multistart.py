@@ -1,25 +1,25 @@
 """Several CMA-ES searches from several starts, the best continued: ``fojax tune``'s
-default method.
+default method (built by :data:`fojax.optimize.strategies.METHODS`).
 
 Two phases, one request a generation:
 
-1. **Search** (``search`` generations): one :class:`CMAES` per start, every search's
-   candidates and its mean on one common fresh sample of ``draws`` draws in one call,
-   at the coarse step ``coarse_dt`` (``None``: the objective's), in the tied subspace
-   ``tie`` when given (a coordinate ``i`` of the full parameters is coordinate
-   ``tie[i]`` of the search's: the axis-shared parameters, so that a search of 66
-   parameters starts as one of 33). The searches are ranked by their means' costs over
-   the last ``window`` generations: common draws, so the comparison is paired.
+1. **Search** (``stages``): one :class:`CMAES` per start, every live search's
+   candidates and its mean on one common fresh sample in one call, at the coarse step
+   ``coarse_dt`` (``None``: the objective's), in the tied subspace ``tie`` when given
+   (coordinate ``i`` of the full parameters is coordinate ``tie[i]`` of the search's:
+   the axis-shared parameters, so that a search of 66 parameters starts as one of 33).
+   Each stage keeps the best of the previous stage's searches, ranked by their means'
+   costs over the last ``window`` generations (common draws: a paired comparison).
 2. **Convergence**: the best search goes on alone at the objective's step, lifted to
    the full parameters (its mean ``E z``, its covariance ``E C E^T`` plus ``lift`` times
-   its mean variance on the diagonal, so that the axes of a group can part), until the
-   budget ends (the driver stops a converged run:
-   :class:`fojax.optimize.Budget`'s ``plateau``).
+   its mean variance on the diagonal, so that the axes of a group can part), with
+   ``popsize`` candidates on ``draws`` draws, until the budget ends (the driver ends a
+   converged run: :class:`fojax.optimize.Budget`'s ``patience``).
 
-The answer is the mean of the best search (phase 1) or of the continued one (phase 2);
-the driver validates it at the objective's step and returns the best validated. The
-state is arrays of fixed shapes: phase 1's searches stacked, phase 2's search in the
-full space, both kept throughout.
+The answer is the mean of the leading search (phase 1) or of the continued one (phase
+2); the driver validates it at the objective's step and returns the best validated.
+The state is arrays of fixed shapes: phase 1's searches stacked with a mask of the live
+ones, phase 2's search in the full space, both kept throughout.
 """
 
 from __future__ import annotations
