@@ -165,4 +165,4 @@ def test_fair_comparison_refuses_adams_step_for_lbfgs(capsys):
     assert "--learning-rate applies to --method adam only" in err
     args = fair_comparison.parse_args(["--method", "adam", "--learning-rate", "0.2"])
     assert args.learning_rate == 0.2
-    assert fair_comparison.parse_args([]).learning_rate == 0.1
+    assert fair_comparison.parse_args([]).learning_rate is None  # the method table's default
