@@ -180,7 +180,10 @@ class _Study:
         options = {k: v for k, v in given.items() if v is not None and k in METHODS[method].options}
         problem = strategies.Problem(self.objective, self.objective.x0, args.seed)
         strategy = strategies.make(method, problem, steps, **options)
-        limit = optimize.Budget(steps=steps, draw_steps=budget)
+        method_table = METHODS[method]
+        patience = method_table.patience if validation_draws else None
+        limit = optimize.Budget(steps=steps, draw_steps=budget, patience=patience,
+                                tolerance=method_table.tolerance)  # fmt: skip
         spent = ", ".join(f"{v} {k}" for k, v in dataclasses.asdict(limit).items() if v)
         output.log(args.quiet, f"{name}: {spent}")
         result, record = _common.recorded_run(

@@ -34,7 +34,7 @@ Each finished run is kept in ``--out/runs/`` under its fingerprint (its command,
 scoring's settings and the digest of fojax's source, :func:`fojax.records.cached`; not
 of the studies' code, whose report can change without running anything again): an
 interrupted study continues where it stopped. ``results.json``, ``table.md`` and the
-figure ``tuning.png`` summarise them;
+figure ``tuning_methods.png`` summarise them;
 ``--update-doc FILE`` replaces the blocks ``tuning-reference`` (with ``--reference``)
 and ``tuning-study`` of FILE and copies the figure beside it.
 """
@@ -257,13 +257,14 @@ def report(args, records: list[dict], started: float) -> int:
         "this_invocation_s": round(time.perf_counter() - started, 1),
         "runs_s": round(sum(r["wall_s"] for r in records), 1),
     }
-    figure = plot(records, args.out / "tuning.png")
+    figure = plot(records, args.out / "tuning_methods.png")
     if args.update_doc is not None:
         shutil.copyfile(figure, args.update_doc.parent / figure.name)
         if args.reference:
             output.splice(args.update_doc, reference_table(results), name="tuning-reference")
     return _common.finish(
-        args.out, results, table(results), args.update_doc, "tuning-study", None, ", tuning.png"
+        args.out, results, table(results), args.update_doc, "tuning-study", None,
+        ", tuning_methods.png",
     )
 
 

@@ -47,7 +47,7 @@ def test_tuning_study_tiny(tmp_path):
     # The report again from the stored runs, into a document's block.
     doc.write_text("<!-- tuning-study:begin -->\n<!-- tuning-study:end -->\n")
     assert tuning_study.main(argv + ["--report-only", "--update-doc", str(doc)]) == 0
-    assert "above the best-known" in doc.read_text() and (tmp_path / "tuning.png").is_file()
+    assert "above the best-known" in doc.read_text() and (tmp_path / "tuning_methods.png").is_file()
 
 
 @pytest.mark.slow

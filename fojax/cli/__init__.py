@@ -40,10 +40,10 @@ HOST_DEVICE_COMMANDS = ("simulate", "reproduce", "tune")
 ``reproduce``: their results do not depend on it (the draws are computed in fixed
 blocks, one per device and call, ``--device-batch``, and draw ``i``'s numbers are the
 same bit for bit on any number of devices and processes, :mod:`fojax.study`).
-``tune``: a population's lanes are split over the devices (a generation's time is
-nearly halved on two cores against one device threaded over both); a lane's numbers
-depend on the lanes per device and call, so the last bits of a run may differ
-between machines with other core counts."""
+``tune``: a population's lanes are split over the devices (on a CPU, one device per
+core runs a generation sooner than one device whose kernels are threaded over the
+cores); a lane's numbers depend on the lanes per device and call, so the last bits of
+a run may differ between machines with other core counts."""
 
 
 def main(argv=None) -> int:

@@ -15,9 +15,11 @@ uninterrupted run gives), ``evaluation.json`` (the initial and the tuned gains o
 versions, backend and devices).
 
 Each option is declared once in :data:`OPTIONS`, with its default and what it applies
-to; argv is parsed once and every option is checked before anything is compiled or
-written. An option that would change nothing (another method's, the other objective's, a
-law's option for a controller without it, ...) is an error naming what it applies to.
+to; a method's options, their defaults and the methods they apply to come from the
+method table (:data:`fojax.optimize.strategies.METHODS`). argv is parsed once and every
+option is checked before anything is compiled or written. An option that would change
+nothing (another method's, the other objective's, a law's option for a controller
+without it, ...) is an error naming what it applies to.
 """
 
 from __future__ import annotations
@@ -78,6 +80,22 @@ def _option_of(name: str) -> tuple[Callable, Callable]:
         return METHODS[a.method].defaults(a.requirements is not None).get(name)
 
     return default, _methods(*names)
+
+
+def _defaults_of(name: str) -> str:
+    """The method option ``name``'s defaults in words, from the method table: ``(0.5)``,
+    or per method and with requirements where they differ."""
+    found = {}
+    for method_name, method in METHODS.items():
+        if name in method.options:
+            for constrained, label in ((False, ""), (True, " with --requirements")):
+                value = method.defaults(constrained)[name]
+                found.setdefault("4 + 3 ln d" if value is None else f"{value:g}", []).append(
+                    f"{method_name}{label}"
+                )
+    if len(found) == 1:
+        return f"({next(iter(found))})"
+    return "(" + "; ".join(f"{value}: {', '.join(where)}" for value, where in found.items()) + ")"
 
 
 def _draws(a):
@@ -173,21 +191,24 @@ OPTIONS = (
            lambda a: METHODS[a.method].patience or 0,
            lambda a: "does not apply with --requirements" if a.requirements else (
                "applies with validation draws only" if a.validation_draws == 0 else None)),
-    Option("--switch", dict(type=count, help="CMA-ES generations before L-BFGS (30)"),
-           *_option_of("switch")),
-    Option("--sigma", dict(type=real, help="CMA-ES's initial step (0.5)"), *_option_of("sigma")),
-    Option("--popsize", dict(type=count, help="CMA-ES's candidates (4 + 3 ln d)"),
+    Option("--switch", dict(type=count, help="CMA-ES generations before L-BFGS "
+           + _defaults_of("switch")), *_option_of("switch")),
+    Option("--sigma", dict(type=real, help="CMA-ES's initial step " + _defaults_of("sigma")),
+           *_option_of("sigma")),
+    Option("--popsize", dict(type=count, help="CMA-ES's candidates " + _defaults_of("popsize")),
            *_option_of("popsize")),
-    Option("--learning-rate", dict(type=real, help="Adam's step (0.05; 0.1 with "
-           "--requirements)"), *_option_of("learning_rate")),
-    Option("--clip-norm", dict(type=real, help="Adam's gradient clip (1)"),
-           *_option_of("clip_norm")),
-    Option("--anneal-start", dict(type=real, help="Adam's first width scale (4)"),
+    Option("--learning-rate", dict(type=real, help="Adam's step "
+           + _defaults_of("learning_rate")), *_option_of("learning_rate")),
+    Option("--clip-norm", dict(type=real, help="Adam's gradient clip "
+           + _defaults_of("clip_norm")), *_option_of("clip_norm")),
+    Option("--anneal-start", dict(type=real, help="Adam's first width scale "
+           + _defaults_of("anneal_start")),
            _option_of("anneal_start")[0], _every(_option_of("anneal_start")[1], _smoothing)),
-    Option("--anneal-end", dict(type=real, help="the gradient's (last) width scale (1)"),
+    Option("--anneal-end", dict(type=real, help="the gradient's (last) width scale "
+           + _defaults_of("anneal_end")),
            _option_of("anneal_end")[0], _every(_option_of("anneal_end")[1], _smoothing)),
-    Option("--max-step", dict(type=real, help="L-BFGS's largest change of a parameter (1)"),
-           *_option_of("max_step")),
+    Option("--max-step", dict(type=real, help="L-BFGS's largest change of a parameter "
+           + _defaults_of("max_step")), *_option_of("max_step")),
     # validation, held-out draws
     Option("--validation-draws", dict(type=whole, help="draws scoring the answer; the best "
            "validated gains are returned (32; 0: the last)"), 32),

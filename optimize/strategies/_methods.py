@@ -200,10 +200,10 @@ def starts(objective, x0) -> list[np.ndarray]:
 
 
 def lanes(strategy, size: int, draws: int, devices: int) -> int:
-    """Lanes per device and call that fit the strategy's requests: its first request's
-    points (or its ``typical_points``) x draws over ``devices`` (the inner strategy's,
-    for a wrapper), in ``[8, 128]`` (a population in one call where that fits, with no
-    lane padded: a call's time grows far slower than its lanes, docs/tuning.md)."""
+    """Lanes per device and call that fit the strategy's requests: its largest request
+    (``lanes(d)``, where it has one) or its first request's points (or its
+    ``typical_points``) x draws over ``devices`` (the inner strategy's, for a wrapper),
+    in ``[8, 128]``: a population in one call where that fits, with no lane padded."""
     inner = getattr(strategy, "inner", strategy)
     if hasattr(inner, "lanes"):
         per_device = -(-inner.lanes(size) // devices)
