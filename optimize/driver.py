@@ -259,7 +259,8 @@ class _Run:
         sign = -1.0 if initial is not None and initial["kind"] == "yield" else 1.0
         scores = [(r["step"], sign * r["validation"]) for r in self.history
                   if r["validation"] is not None]  # fmt: skip
-        if self.budget.converged(scores, self.used["steps"]):
+        settling = getattr(self.strategy, "converging", lambda state: True)(self.state)
+        if settling and self.budget.converged(scores, self.used["steps"]):
             return False
         return self.fits(self.strategy.ask(self.state))
 

@@ -629,6 +629,19 @@ def test_convergence_ends_a_run_whose_validation_stopped_improving():
     assert not driver.Budget(steps=100).converged(scores, 6)  # no patience: never
 
 
+def test_auto_is_not_judged_converged_while_its_searches_are_ranked():
+    """A plateau in the first phase (the leading search's mean validated alike for many
+    generations) does not end the run; in the second phase it does."""
+    strategy = st.MultiStart(starts=((0.0,) * 4,), stages=((30, 2, 1),), draws=1)
+    objective, state = _Bowls(4), strategy.init(np.ones(4))
+    seen = []
+    for _ in range(40):
+        seen.append(strategy.converging(state))
+        request = strategy.ask(state)
+        state = strategy.tell(state, request, objective(request))
+    assert seen == [False] * 30 + [True] * 10
+
+
 def test_every_method_declares_its_options_and_refuses_others():
     problem = st.Problem(small(), small().x0)
     for name, method in st.METHODS.items():

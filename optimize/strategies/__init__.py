@@ -13,6 +13,8 @@ resumed run continues exactly), in the style of optax's transformations:
   :class:`AugmentedLagrangian`): forget what depended on it;
 * ``settings() -> dict``: JSON-ready description (part of a run's fingerprint);
 * ``row(state) -> dict``: what the strategy adds to the run's history after a request;
+* ``converging(state) -> bool`` (optional): whether the budget's convergence test may
+  end the run now (e.g. not while several searches are still being ranked);
 * ``needs() -> tuple``: the programs it will ask for, in order: ``(kind, width[, dt])``,
   ``kind`` ``"forward"`` or ``"gradient"``, ``width`` the law's (``None``: evaluation),
   ``dt`` the step (``None``: the objective's).

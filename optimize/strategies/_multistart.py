@@ -215,6 +215,11 @@ class MultiStart:
     def restart(self, state) -> dict:
         return state
 
+    def converging(self, state) -> bool:
+        """Whether a run may be judged converged: in the second phase only (the first
+        phase's searches are ranked, not converged; :class:`fojax.optimize.Budget`)."""
+        return self._stage(int(state["generation"])) is None
+
     def settings(self) -> dict:
         out = dataclasses.asdict(self)
         out["starts"] = [list(s) for s in self.starts]
