@@ -89,12 +89,14 @@ class Budget:
         if all(getattr(self, name) is None for name in limits):
             raise ValueError("a budget needs a limit: steps, evaluations, draw_steps or seconds")
 
-    def converged(self, scores: list, step: int) -> bool:
+    def converged(self, scores: list, step: int, since: int = 0) -> bool:
         """Whether the best of ``scores`` (``(step, score)`` of the validations so far,
         lower is better) improved by less than ``tolerance`` (relative) over the last
-        ``patience`` steps, ``step`` the steps done."""
-        if self.patience is None or step < self.patience:
+        ``patience`` steps, ``step`` the steps done; only the scores from step ``since``
+        on count (a strategy's phase that may converge, :meth:`_Run.more`)."""
+        if self.patience is None or step - since < self.patience:
             return False
+        scores = [(at, v) for at, v in scores if at >= since]
         then = [v for at, v in scores if at <= step - self.patience]
         if not then:
             return False
@@ -259,8 +261,8 @@ class _Run:
         sign = -1.0 if initial is not None and initial["kind"] == "yield" else 1.0
         scores = [(r["step"], sign * r["validation"]) for r in self.history
                   if r["validation"] is not None]  # fmt: skip
-        settling = getattr(self.strategy, "converging", lambda state: True)(self.state)
-        if settling and self.budget.converged(scores, self.used["steps"]):
+        since = getattr(self.strategy, "settling", lambda state: 0)(self.state)
+        if since is not None and self.budget.converged(scores, self.used["steps"], since):
             return False
         return self.fits(self.strategy.ask(self.state))
 

@@ -627,19 +627,25 @@ def test_convergence_ends_a_run_whose_validation_stopped_improving():
     assert not budget.converged(scores[:3], 4)  # 10 -> 4.99 since step 0
     assert budget.converged(scores, 6)  # 5.0 -> 4.98 over the last 4 steps: < 1 %
     assert not driver.Budget(steps=100).converged(scores, 6)  # no patience: never
+    assert not budget.converged(scores, 6, since=4)  # from step 4: fewer steps than 4
+    late = scores + [(8, 4.97), (10, 4.97)]
+    assert budget.converged(late, 10, since=4)  # 4.99 -> 4.97 since step 6
+    # the first phase's 3.0 does not count: 4.99 -> 4.0 since step 4
+    assert not budget.converged([(2, 3.0), (4, 4.99), (8, 4.0)], 8, since=4)
 
 
 def test_auto_is_not_judged_converged_while_its_searches_are_ranked():
     """A plateau in the first phase (the leading search's mean validated alike for many
-    generations) does not end the run; in the second phase it does."""
+    generations) does not end the run; the second phase is judged from its first step,
+    on its own validations."""
     strategy = st.MultiStart(starts=((0.0,) * 4,), stages=((30, 2, 1),), draws=1)
     objective, state = _Bowls(4), strategy.init(np.ones(4))
     seen = []
     for _ in range(40):
-        seen.append(strategy.converging(state))
+        seen.append(strategy.settling(state))
         request = strategy.ask(state)
         state = strategy.tell(state, request, objective(request))
-    assert seen == [False] * 30 + [True] * 10
+    assert seen == [None] * 30 + [30] * 10
 
 
 def test_every_method_declares_its_options_and_refuses_others():

@@ -13,8 +13,9 @@ resumed run continues exactly), in the style of optax's transformations:
   :class:`AugmentedLagrangian`): forget what depended on it;
 * ``settings() -> dict``: JSON-ready description (part of a run's fingerprint);
 * ``row(state) -> dict``: what the strategy adds to the run's history after a request;
-* ``converging(state) -> bool`` (optional): whether the budget's convergence test may
-  end the run now (e.g. not while several searches are still being ranked);
+* ``settling(state) -> int | None`` (optional): the step from which the budget's
+  convergence test judges the run, on the validations from there on (``None``: not
+  yet, e.g. while several searches are still being ranked; without it, step 0);
 * ``needs() -> tuple``: the programs it will ask for, in order: ``(kind, width[, dt])``,
   ``kind`` ``"forward"`` or ``"gradient"``, ``width`` the law's (``None``: evaluation),
   ``dt`` the step (``None``: the objective's).

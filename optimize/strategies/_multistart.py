@@ -215,10 +215,13 @@ class MultiStart:
     def restart(self, state) -> dict:
         return state
 
-    def converging(self, state) -> bool:
-        """Whether a run may be judged converged: in the second phase only (the first
-        phase's searches are ranked, not converged; :class:`fojax.optimize.Budget`)."""
-        return self._stage(int(state["generation"])) is None
+    def settling(self, state) -> int | None:
+        """The step from which a run is judged converged: the second phase's first, on
+        its own validations (the first phase's searches are ranked, not converged; its
+        validations are of other searches' means; :class:`fojax.optimize.Budget`)."""
+        if self._stage(int(state["generation"])) is not None:
+            return None
+        return sum(generations for generations, _, _ in self.stages)
 
     def settings(self) -> dict:
         out = dataclasses.asdict(self)
