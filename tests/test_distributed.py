@@ -304,10 +304,11 @@ TUNE = [
 @pytest.mark.slow
 def test_two_processes_take_the_tuning_steps_of_one(tmp_path, cache):
     """Adam steps (fresh draws each step), compiled as the suite compiles (unoptimised):
-    bit for bit. The default L-BFGS was checked by hand compiled optimised, as a user's
-    run is (equal bit for bit); unoptimised, its 1- and 2-device gradient programs
-    round apart in their last digits (docs/distributed.md), and compiling the gradient
-    optimised twice would double this test's time."""
+    the objective's values and the gains bit for bit; the gradient's norm to its last
+    digits, where the unoptimised 1- and 2-device gradient programs round apart
+    (docs/distributed.md; equal on some CPUs, not on others). Compiled optimised, as a
+    user's run is, the default L-BFGS was checked by hand (equal bit for bit); compiling
+    the gradient optimised twice would double this test's time."""
     env = _env(cache)
     one, two = tmp_path / "one", tmp_path / "two"
     first = _start(TUNE + ["--out", str(one)], 1, env)
@@ -318,7 +319,11 @@ def test_two_processes_take_the_tuning_steps_of_one(tmp_path, cache):
         [{k: v for k, v in row.items() if k != "wall_time_s"} for row in _history(path)]
         for path in (one, two)
     ]
-    assert rows[0] == rows[1] and len(rows[0]) == 2
+    assert len(rows[0]) == len(rows[1]) == 2
+    for alone, shared in zip(*rows):
+        norms = float(alone.pop("grad_norm")), float(shared.pop("grad_norm"))
+        assert norms[0] == pytest.approx(norms[1], rel=1e-6, abs=0.0)
+        assert alone == shared
     gains = [json.loads((path / "gains.json").read_text())["gains"] for path in (one, two)]
     assert gains[0] == gains[1]
     sessions = json.loads((two / "run.json").read_text())["sessions"]
