@@ -320,7 +320,7 @@ def test_two_processes_take_the_tuning_steps_of_one(tmp_path, cache):
         for path in (one, two)
     ]
     assert len(rows[0]) == len(rows[1]) == 2
-    for alone, shared in zip(*rows):
+    for alone, shared in zip(*rows, strict=True):
         norms = float(alone.pop("grad_norm")), float(shared.pop("grad_norm"))
         assert norms[0] == pytest.approx(norms[1], rel=1e-6, abs=0.0)
         assert alone == shared
