@@ -53,7 +53,7 @@ def summarize(records: list[dict]) -> dict:
             above = r["heldout"] / best[r["share"]]["cost"] - 1
             targets.append({
                 "share": r["share"], "start": r["start"], "seed": r["seed"],
-                "kept": r.get("kept_search"),
+                "kept": r.get("kept_search"), "orders": _orders(r["gains"]),
                 "heldout": r["heldout"], "above_best": above, "wall_s": r["wall_s"],
                 "near": above <= TARGET["near"], "far": above <= TARGET["far"],
                 "in_time": r["wall_s"] <= TARGET["wall_s"],
@@ -64,6 +64,15 @@ def summarize(records: list[dict]) -> dict:
         if len(costs) > 1:
             spread[f"{share}/{start}"] = max(costs) / min(costs) - 1
     return {"best_known": best, "settings": settings, "targets": targets, "seed_spread": spread}
+
+
+def _orders(gains: dict) -> str:
+    """The fractional orders (eq. (14)'s ``gamma1``, ``gamma2``), each as its range over
+    the six axes."""
+    return " / ".join(
+        f"{min(gains[name]):.2f}-{max(gains[name]):.2f}" if name in gains else "-"
+        for name in ("gamma1", "gamma2")
+    )
 
 
 def _span(values, fmt: str) -> str:
@@ -112,7 +121,8 @@ def _order(key: str) -> tuple:
 def _target_rows(summary: dict) -> list[str]:
     rows = _common.table_head(
         "parameters | start | seed | search kept | held-out cost | above the best-known | "
-        "within 2 % | within 5 % | wall time (s) | at most 120 s"
+        "within 2 % | within 5 % | wall time (s) | at most 120 s | orders gamma1 / gamma2 "
+        "(over the axes)"
     )
     yes = {True: "yes", False: "**no**"}
     for t in sorted(summary["targets"], key=lambda t: (t["share"] != "paper", t["start"],
@@ -121,7 +131,7 @@ def _target_rows(summary: dict) -> list[str]:
             f"| {PARAMETERS[t['share']]} | {t['start']} | {t['seed']} | {_kept(t['kept'])} | "
             f"{t['heldout']:.4f} | "
             f"{100 * t['above_best']:.1f} % | {yes[t['near']]} | {yes[t['far']]} | "
-            f"{t['wall_s']:.0f} | {yes[t['in_time']]} |"
+            f"{t['wall_s']:.0f} | {yes[t['in_time']]} | {t['orders']} |"
         )
     return rows
 
@@ -146,6 +156,16 @@ def _tallies(summary: dict) -> list[str]:
             f"{sum(t['near'] for t in runs)}/{len(runs)}, within 5 % in "
             f"{sum(t['far'] for t in runs)}/{len(runs)}, at most 120 s in "
             f"{sum(t['in_time'] for t in runs)}/{len(runs)}{spread_text}."
+        )
+    for start in ("naive", "paper"):
+        runs = [t for t in summary["targets"] if t["start"] == start]
+        if len({t["share"] for t in runs}) < 2:
+            continue
+        lines.append(
+            f"- {start} start, 33 and 66 parameters: within 2 % in "
+            f"{sum(t['near'] for t in runs)}/{len(runs)}, within 5 % in "
+            f"{sum(t['far'] for t in runs)}/{len(runs)}, at most 120 s in "
+            f"{sum(t['in_time'] for t in runs)}/{len(runs)}."
         )
     return lines
 
