@@ -218,8 +218,13 @@ def plot(records: list[dict], path: Path) -> Path:
 
     cases = [(share, start) for share in PARAMETERS for start in ("naive", "paper")
              if any((r["share"], r["start"]) == (share, start) for r in records)]  # fmt: skip
-    fig, axes = plt.subplots(1, len(cases), figsize=(4.2 * len(cases), 3.6), squeeze=False,
-                             sharey=True)  # fmt: skip
+    columns = min(len(cases), 2)
+    rows = -(-len(cases) // columns)
+    fig, grid = plt.subplots(rows, columns, figsize=(5.2 * columns, 3.4 * rows + 1.4),
+                             squeeze=False, sharey=True, layout="constrained")  # fmt: skip
+    axes = [list(grid.flat)[: len(cases)]]
+    for ax in list(grid.flat)[len(cases):]:
+        ax.set_visible(False)
     for ax, (share, start) in zip(axes[0], cases, strict=True):
         for r in records:
             if (r["share"], r["start"]) != (share, start) or r["kind"] != "study":
@@ -231,7 +236,11 @@ def plot(records: list[dict], path: Path) -> Path:
         ax.axvline(TARGET["wall_s"], color="0.6", lw=0.8, ls=":")
         ax.set(title=f"{PARAMETERS[share]} parameters, {start} start", xlabel="wall time (s)",
                yscale="log")  # fmt: skip
-    axes[0][0].set_ylabel("cost")
+        ax.set_yticks([0.12, 0.15, 0.2, 0.3, 0.5, 0.8], ["0.12", "0.15", "0.2", "0.3", "0.5",
+                                                         "0.8"])  # fmt: skip
+        ax.yaxis.set_minor_formatter("")
+    for row in grid:
+        row[0].set_ylabel("cost")
     handles, labels = axes[0][0].get_legend_handles_labels()
     seen = dict(zip(labels, handles, strict=True))
     for ax in axes[0][1:]:
