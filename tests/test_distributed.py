@@ -49,7 +49,7 @@ def slow(self, *args, **kwargs):
     return path
 _store.ChunkStore.save = slow
 from fojax import cli
-sys.exit(cli.main(sys.argv[1:]))
+cli.entry()
 """
 
 

@@ -94,14 +94,21 @@ def main(argv=None) -> int:
             reason = f"cannot write or read {error.filename}: {reason}"
         print(f"fojax {args.command}: error: {reason}", file=sys.stderr)
         status = 1
-    status = status if isinstance(status, int) else 0
+    return status if isinstance(status, int) else 0
+
+
+def entry() -> None:
+    """The ``fojax`` command (and ``python -m fojax.cli``): :func:`main`, then the
+    process's end. A program still compiling for a run that has ended (Ctrl-C, a time
+    limit) ends the process at once (``os._exit``), rather than JAX being torn down under
+    the compiler (an abort); :func:`main` itself returns, so that it can be called from
+    Python (a test, a notebook) without ending the caller."""
+    status = main()
     if "fojax.optimize.driver" in sys.modules and sys.modules["fojax.optimize.driver"].compiling():
-        # A program still compiling for a run that has ended (Ctrl-C, a time limit):
-        # end now, rather than tear JAX down under the compiler (an abort).
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(status)
-    return status
+    sys.exit(status)
 
 
 def require_extra(command: str, extra: str, modules: tuple[str, ...]) -> None:

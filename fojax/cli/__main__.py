@@ -1,7 +1,5 @@
 """``python -m fojax.cli``: the same as the ``fojax`` command."""
 
-import sys
+from fojax.cli import entry
 
-from fojax.cli import main
-
-sys.exit(main())
+entry()
