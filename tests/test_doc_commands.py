@@ -460,17 +460,19 @@ def test_a_tuned_gains_file_exists_for_the_commands_after_the_tuning(clone_view)
     assert "holds gains of 'fl'" in problem
 
 
-def test_a_law_of_ones_own_is_found_where_the_command_imports_from(clone_view):
+def test_a_law_of_ones_own_is_found_where_the_command_imports_from(clone_view, monkeypatch):
     """``fojax`` (a console script) does not import from the current folder, ``python -m``
-    and ``PYTHONPATH=.`` do."""
-    (clone_view / "my_laws.py").write_text("from fojax.controllers.fl import FL as Law\n")
-    argv = "simulate --scenario 1 --controller my_laws:Law --draws 4 --out results/law"
+    and ``PYTHONPATH=.`` do. A module name no other test uses, never imported before
+    (tests/test_controllers.py imports a ``my_laws`` of its own into the same process)."""
+    monkeypatch.delitem(sys.modules, "doc_check_laws", raising=False)
+    (clone_view / "doc_check_laws.py").write_text("from fojax.controllers.fl import FL as Law\n")
+    argv = "simulate --scenario 1 --controller doc_check_laws:Law --draws 4 --out results/law"
     (bare, with_path, module) = commands_of(
         f"```bash\n.venv/bin/fojax {argv}\nPYTHONPATH=. .venv/bin/fojax {argv}\n"
         f".venv/bin/python -m fojax.cli {argv}\n```\n",
         "doc.md",
     )
-    with pytest.raises(Rejected, match="cannot import 'my_laws'"):
+    with pytest.raises(Rejected, match="cannot import 'doc_check_laws'"):
         check(bare, {})
     check(with_path, {})
     check(module, {})
