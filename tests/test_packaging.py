@@ -109,15 +109,15 @@ def test_every_command_runs_from_the_wheel_in_a_clean_environment(tmp_path):
     for name in ("summary.json", "draws.npz", "trajectories.npz", "tracking.png"):
         assert (work / "sim" / name).is_file(), name
 
-    _run([fojax, "tune", *TUNE, "--controller", "afonftsmc", "--init", "paper", "--draws", "3",
-          "--steps", "1", "--out", "tune"], work, env)  # fmt: skip
+    _run([fojax, "tune", *TUNE, "--controller", "afonftsmc", "--init", "paper", "--steps", "1",
+          "--out", "tune"], work, env)  # fmt: skip
     for name in ("gains.json", "history.csv", "evaluation.json", "run.json"):
         assert (work / "tune" / name).is_file(), name
 
     requirements = work / "small_quadrotor.toml"
     shutil.copy(ROOT / "examples" / "requirements" / "small_quadrotor.toml", requirements)
     _run([fojax, "tune", *TUNE, "--controller", "fl", "--requirements", requirements.name,
-          "--draws", "2", "--outer-steps", "1", "--inner-steps", "1", "--out", "tune_req"],
+          "--outer-steps", "1", "--inner-steps", "1", "--out", "tune_req"],
          work, env)  # fmt: skip
     for name in ("gains.json", "history.csv", "evaluation.json"):
         assert (work / "tune_req" / name).is_file(), name

@@ -265,7 +265,8 @@ def test_a_time_limit_ends_the_run_within_two_seconds(tmp_path):
     text = process.communicate(timeout=300)[0].decode()
     assert process.returncode == 0, text
     metadata = json.loads((out / "gains.json").read_text())["metadata"]
-    assert 12 <= metadata["wall_time_s"] <= 14, metadata["wall_time_s"]
+    # within 2 s either side: a request expected to overrun the limit is not started
+    assert 10 <= metadata["wall_time_s"] <= 14, metadata["wall_time_s"]
     assert metadata["steps"] < tune.METHODS["auto"].steps  # the time, not the steps, ended it
 
 
