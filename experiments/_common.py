@@ -201,15 +201,16 @@ def to_requirements(objective, x0, method, outer_steps, inner_steps, *, validati
     """Tune ``objective`` (with a requirement set) from ``x0`` as ``fojax tune
     --requirements`` does: ``method``'s strategy with its defaults under requirements
     (:data:`fojax.optimize.strategies.METHODS`; ``options``: those of them the method
-    takes) inside the augmented Lagrangian, ``outer_steps`` x ``inner_steps`` steps,
+    takes) inside the augmented Lagrangian (restarted after each of ``outer_steps``
+    multiplier updates), ``inner_steps`` steps per outer step,
     validated on ``validation_draws`` draws after every outer step. Returns the
     driver's result."""
     from fojax import optimize
     from fojax.optimize import strategies
 
     taken = {k: v for k, v in options.items() if k in strategies.METHODS[method].options}
-    problem = strategies.Problem(objective, x0, seed, constrained=True)
-    inner = strategies.make(method, problem, outer_steps * inner_steps, **taken)
+    problem = strategies.Problem(objective, x0, seed, constrained=True, outer_steps=outer_steps)
+    inner = strategies.make(method, problem, inner_steps, **taken)  # restarted per outer step
     count = len(objective.requirements)
     strategy = strategies.AugmentedLagrangian(inner, count, outer_steps, inner_steps, margin=margin)
     return optimize.run(

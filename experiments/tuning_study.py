@@ -105,9 +105,8 @@ def parse_args(argv) -> argparse.Namespace:
     return args
 
 
-TINY = ["--horizon", "0.3", "--dtype", "float64", "--validation-draws", "2", "--eval-draws", "2",
-        "--steps", "3"]  # fmt: skip
-"""A seconds-long run (``--tiny``)."""
+TINY = ["--horizon", "0.3", "--validation-draws", "2", "--eval-draws", "2", "--steps", "3"]
+"""A seconds-long run (``--tiny``), in the default float32 as the scorer's evaluation is."""
 
 
 def command(args, share: str, start: str, seed: int, method: str, extra=()) -> list[str]:

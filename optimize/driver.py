@@ -434,11 +434,14 @@ class _Run:
         )  # fmt: skip
 
 
-def _compile_ahead(objective: Objective, needs) -> threading.Thread | None:
+def _compile_ahead(objective: Objective, needs, validating: bool) -> threading.Thread | None:
     """Compile in threads what the run will need (``needs``: the strategy's ``(kind,
     width[, dt])``, in order), from the shapes of their arguments, running nothing
     (:meth:`Objective.compile`): the draws' programs and the first phase's program side
-    by side, then a later phase's. The threads are not waited for: a request whose
+    by side, then (``validating``) the validation's (the evaluation law at the spec's
+    step: the start's validation after the first step and the run's last validation,
+    which a time limit waits for, need it), then a later phase's. The threads are not
+    waited for: a request whose
     program is still compiling waits for it (:meth:`_Run.ready`), and a run that ends
     (its budget, Ctrl-C) leaves them behind. Not in a multi-process run (None): every
     process must run its programs, collectives included, in the same order. An error
@@ -447,6 +450,12 @@ def _compile_ahead(objective: Objective, needs) -> threading.Thread | None:
     if jax.process_count() > 1 or not needs:
         return None
     needs = [tuple(need) + (None,) * (3 - len(need)) for need in needs]
+    samplers = [("sampler", None, dt) for dt in dict.fromkeys(dt for _, _, dt in needs)]
+    first = samplers + [needs[0]]
+    later = [("sampler", None, None), ("forward", None, None)] if validating else []
+    later = [need for need in dict.fromkeys(later + needs[1:]) if need not in first]
+    for kind, width, dt in first + later:
+        objective.expect(kind, width, dt)  # waited for from now on (:meth:`_Run.ready`)
 
     def quietly(*args):
         try:
@@ -455,15 +464,13 @@ def _compile_ahead(objective: Objective, needs) -> threading.Thread | None:
             pass
 
     def compile_all():
-        steps = dict.fromkeys(dt for _, _, dt in needs)
-        first = [("sampler", None, dt) for dt in steps] + [needs[0]]
         threads = [threading.Thread(target=quietly, args=a, name=COMPILING, daemon=True)
                    for a in first]  # fmt: skip
         for thread in threads:
             thread.start()
         for thread in threads:
             thread.join()
-        for need in dict.fromkeys(needs[1:]):
+        for need in later:
             quietly(*need)
 
     thread = threading.Thread(target=compile_all, name=COMPILING, daemon=True)
@@ -517,7 +524,7 @@ def run(
         Path(out).mkdir(parents=True, exist_ok=True)
     options = (validation_draws, validate_every, checkpoint_every, progress, callback)
     state = _Run(objective, strategy, budget, x0, out, fingerprint, header, options)
-    _compile_ahead(objective, strategy.needs())
+    _compile_ahead(objective, strategy.needs(), validation_draws > 0)
     try:
         while state.used["steps"] < (math.inf if stop_after is None else stop_after):
             request = strategy.ask(state.state)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+import time
 from typing import Any
 
 import jax
@@ -119,7 +120,7 @@ class Objective:
         self.mesh, self._mesh = mesh, mesh or sharding.one_device_mesh()
         self.device_batch, self.lanes, self.loss = device_batch, int(lanes), MeanLoss(spec.cost)
         self._programs: dict = {}
-        self._ahead: dict = {}  # (kind, width, dt) -> set once compiled ahead
+        self._ahead: dict = {}  # (kind, law, dt) -> set once compiled ahead (:meth:`expect`)
         self._lock = threading.Lock()
 
     # -- description, parameters, draws -------------------------------------------
@@ -389,13 +390,21 @@ class Objective:
         ``dt``), ``"forward"`` (the lanes program of the law of ``width``, ``None`` the
         evaluation law, at the step ``dt``, default the spec's) or ``"gradient"`` (the
         per-draw gradient of that law). :meth:`ready` waits for it."""
+        event = self.expect(kind, width, dt)
         dt, law = self._step(dt), "tanh" if width is not None else self.switching
-        with self._lock:
-            event = self._ahead.setdefault((kind, law, dt), threading.Event())
         try:
             self._compile(kind, law, dt)
         finally:
             event.set()
+
+    def expect(self, kind: str, width: float | None = None, dt: float | None = None):
+        """The event set once the program of :meth:`compile`'s arguments is compiled
+        ahead; registered before the compiling thread starts, so that :meth:`ready`
+        waits for a compilation that has not begun yet."""
+        dt, law = self._step(dt), "tanh" if width is not None else self.switching
+        key = (kind, "sampler" if kind == "sampler" else law, dt)
+        with self._lock:
+            return self._ahead.setdefault(key, threading.Event())
 
     def _compile(self, kind: str, law: str, dt: float | None) -> None:
         blank = [
@@ -423,14 +432,17 @@ class Objective:
         program.ahead(*blocks.abstract(shared, batch, self._mesh))
 
     def ready(self, request: Request, timeout: float) -> bool:
-        """Whether the program ``request`` needs is compiled, waiting at most ``timeout``
-        seconds for its compilation ahead (:meth:`compile`); ``True`` for a program not
-        compiled ahead (its first call compiles it)."""
+        """Whether the programs ``request`` needs (its draws' and its own) are compiled,
+        waiting at most ``timeout`` seconds in all for their compilations ahead
+        (:meth:`compile`); ``True`` for a program not compiled ahead (its first call
+        compiles it)."""
         kind = "gradient" if request.gradient else "forward"
         law = "tanh" if request.width is not None else self.switching
+        dt = self._step(request.dt)
         with self._lock:
-            event = self._ahead.get((kind, law, self._step(request.dt)))
-        return True if event is None else event.wait(timeout)
+            events = [self._ahead.get(key) for key in (("sampler", "sampler", dt), (kind, law, dt))]
+        end = time.perf_counter() + timeout
+        return all(e is None or e.wait(max(end - time.perf_counter(), 0.0)) for e in events)
 
     def lower_gradient(self, x=None, law: str = "tanh"):
         """``(lowered, args)``: the per-draw gradient of the fixed sample in one block on

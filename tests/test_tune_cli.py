@@ -238,11 +238,16 @@ def _tune(argv, **options):
     import subprocess
     import sys
 
-    command = [sys.executable, "-m", "fojax.cli", "tune", *argv]
+    # Ctrl-C as a terminal delivers it: a test run started in the background of a
+    # non-interactive shell (as CI may start it) ignores SIGINT, and its children inherit
+    # that (Python then installs no KeyboardInterrupt handler); `python -m fojax.cli` else
+    start = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+             "from fojax.cli import entry; entry()")  # fmt: skip
+    command = [sys.executable, "-c", start, "tune", *argv]
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **options)
 
 
-def _interrupt_after(process, history, rows: int) -> float:
+def _interrupt_after(process, history, rows: int) -> tuple[float, str]:
     """Ctrl-C once ``history`` holds ``rows`` steps; the seconds the process then took
     to end."""
     import signal
@@ -254,19 +259,21 @@ def _interrupt_after(process, history, rows: int) -> float:
         time.sleep(0.05)
     t0 = time.perf_counter()
     process.send_signal(signal.SIGINT)
-    process.communicate(timeout=120)
-    return time.perf_counter() - t0
+    text = process.communicate(timeout=120)[0].decode()
+    return time.perf_counter() - t0, text
 
 
 @pytest.mark.slow
 def test_a_time_limit_ends_the_run_within_two_seconds(tmp_path):
     out = tmp_path / "timed"
-    process = _tune(LIMITS + ["--seconds", "12", "--out", str(out)])
+    # long enough for the validation's program to be compiled before the limit on a
+    # loaded machine: a run ends with a validation, however late that program is ready
+    process = _tune(LIMITS + ["--seconds", "20", "--out", str(out)])
     text = process.communicate(timeout=300)[0].decode()
     assert process.returncode == 0, text
     metadata = json.loads((out / "gains.json").read_text())["metadata"]
     # within 2 s either side: a request expected to overrun the limit is not started
-    assert 10 <= metadata["wall_time_s"] <= 14, metadata["wall_time_s"]
+    assert 18 <= metadata["wall_time_s"] <= 22, metadata["wall_time_s"]
     assert metadata["steps"] < tune.METHODS["auto"].steps  # the time, not the steps, ended it
 
 
@@ -282,8 +289,8 @@ def test_ctrl_c_ends_the_run_within_two_seconds_and_resumes_exactly(tmp_path, me
     process = _tune(LIMITS + method + ["--out", str(full)])
     assert process.communicate(timeout=600)[0] is not None and process.returncode == 0
     process = _tune(LIMITS + method + ["--checkpoint-every", "1", "--out", str(cut)])
-    seconds = _interrupt_after(process, cut / "history.csv", rows)
-    assert process.returncode == 130 and seconds <= 2.0, seconds
+    seconds, text = _interrupt_after(process, cut / "history.csv", rows)
+    assert process.returncode == 130 and seconds <= 2.0, (seconds, text)
     assert (cut / "checkpoint.npz").is_file() and not (cut / "gains.json").exists()
     process = _tune(LIMITS + method + ["--checkpoint-every", "1", "--resume", "--out", str(cut)])
     process.communicate(timeout=600)

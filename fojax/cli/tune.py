@@ -319,8 +319,9 @@ def _build(parser, args) -> Run:
     gains, label = _initial_gains(parser, args)
     reqs, limit = requirements_cli.resolve_requirements(args)
     args.requirement_set, args.rotor_speed_limit = reqs, limit
-    # With requirements the method's steps are the inner strategy's over the whole run.
-    steps = args.outer_steps * args.inner_steps if reqs is not None else args.steps
+    # With requirements the method's steps are one outer step's: the augmented Lagrangian
+    # restarts its inner strategy (optimiser and schedule) after every multiplier update.
+    steps = args.inner_steps if reqs is not None else args.steps
     mesh = sharding.draw_mesh(jax.devices())
     target = args.objective if reqs is not None else "cost"
 
@@ -333,7 +334,8 @@ def _build(parser, args) -> Run:
     probe = objective_with(optimize.objective.LANES)
     x0 = probe.vector(gains)
     options = {name: getattr(args, name) for name in method.options if hasattr(args, name)}
-    problem = st.Problem(probe, x0, args.seed, reqs is not None)
+    outer = args.outer_steps if reqs is not None else 1
+    problem = st.Problem(probe, x0, args.seed, reqs is not None, outer)
     strategy = method.make(problem, steps, **options)
     lanes = st.lanes(strategy, probe.size, args.draws, int(mesh.devices.size))
     objective = objective_with(lanes)

@@ -30,12 +30,16 @@ AUTO_DRAWS = 8
 class Problem(NamedTuple):
     """What a method's strategy is built for: the objective (its parameter map, base
     gains and problem spec), the start ``x0`` ``(d,)``, the sampling seed, and whether a
-    requirement set is tuned (the strategy is the augmented Lagrangian's inner one)."""
+    requirement set is tuned (the strategy is the augmented Lagrangian's inner one). With
+    one, ``outer_steps`` is the augmented Lagrangian's: it restarts its inner strategy
+    after every multiplier update, so a method's ``steps`` are one outer step's (an
+    optimiser's schedule), and a chain's switch counts inner requests over all of them."""
 
     objective: Any
     x0: np.ndarray
     seed: int = 0
     constrained: bool = False
+    outer_steps: int = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,10 +122,11 @@ AUTO_COARSE = 2
 
 
 def _cma_lbfgs(problem: Problem, steps: int, sigma: float, popsize, switch: int, max_step: float):
-    if switch >= steps:
+    if switch >= steps * problem.outer_steps:
         raise ValueError(
-            f"cma-lbfgs: {steps} steps leave no L-BFGS step after {switch} CMA-ES generations "
-            f"(--switch): give more steps than --switch, or use --method cma-es"
+            f"cma-lbfgs: {steps * problem.outer_steps} steps leave no L-BFGS step after "
+            f"{switch} CMA-ES generations (--switch): give more steps than --switch, or use "
+            f"--method cma-es"
         )
     first = CMAES(sigma0=sigma, popsize=popsize, seed=problem.seed, draws=AUTO_DRAWS,
                   name="cma-lbfgs")  # fmt: skip
