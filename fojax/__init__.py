@@ -13,6 +13,7 @@ Read top to bottom, each layer uses only those below it:
   it runs (the paper's AFONFTSMC; FL, BSMC, FOBSMC, ANFTSMC), their declared gains,
   the registry and gains files;
 * :mod:`fojax.scenarios` (Section V as data), :mod:`fojax.plant` (eqs. (8)-(11)),
+  :mod:`fojax.vehicle` (other quadrotors, from files),
   :mod:`fojax.fractional` (fractional operators).
 """
 
@@ -28,6 +29,7 @@ from fojax import (
     simulator,
     statistics,
     study,
+    vehicle,
 )
 from fojax.controllers import (
     Cascade,
@@ -47,6 +49,7 @@ from fojax.scenarios import Scenario, get_scenario
 from fojax.simulator import Rollout, SimulationConfig, rollout
 from fojax.study import MonteCarloResult
 from fojax.study import run as run_monte_carlo
+from fojax.vehicle import Vehicle
 
 __all__ = [
     "Cascade",
@@ -58,6 +61,7 @@ __all__ = [
     "Rollout",
     "Scenario",
     "SimulationConfig",
+    "Vehicle",
     "controller_names",
     "controllers",
     "differintegrate",
@@ -80,5 +84,6 @@ __all__ = [
     "simulator",
     "statistics",
     "study",
+    "vehicle",
 ]
 __version__ = "0.1.0"

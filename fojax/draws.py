@@ -153,7 +153,7 @@ def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None, member: A
     else:
         member_steps = math.ceil(scenario.horizon / dt - 1e-9)
 
-    nominal = plant.nominal_params(float_dtype)
+    nominal = scenario.plant_params(float_dtype)
     mass_factor = 1.0 + jax.random.uniform(
         key_mass, (), float_dtype, 0.0, values["mass_uncertainty"]
     )

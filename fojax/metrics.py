@@ -289,7 +289,7 @@ class Metrics:
         return _init(dtype)
 
     def update(self, acc: MetricsState, record) -> MetricsState:
-        mixer = plant.nominal_params(record.state.dtype)
+        mixer = record.model
         return _update(
             self.config, acc, record.time, record.error, record.inputs, record.info.surfaces, mixer
         )

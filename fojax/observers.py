@@ -67,7 +67,8 @@ class StepRecord(NamedTuple):
     inputs: ``(4,)`` the command held over ``[t_k, t_(k+1))``. info: the controller's
     :class:`fojax.controllers.ControlInfo` of that command. error: ``(6,)``
     :func:`tracking_error`. plant: the simulated plant's
-    :class:`fojax.plant.PlantParams` (the draw's).
+    :class:`fojax.plant.PlantParams` (the draw's). model: the controller's nominal plant
+    (the vehicle's, without the draw's uncertainty).
     """
 
     time: Array
@@ -78,6 +79,7 @@ class StepRecord(NamedTuple):
     info: ControlInfo
     error: Array
     plant: plant.PlantParams
+    model: plant.PlantParams
 
 
 def per_component(values: Any, like: Array) -> Array:

@@ -176,7 +176,9 @@ def nominal_params(dtype=None) -> PlantParams:
 def rotor_speed_limit(thrust_to_weight: float = 2.0, params: PlantParams | None = None):
     """``w_max`` (rad/s) at which four rotors give ``thrust_to_weight`` times the weight of
     ``params`` (default :func:`nominal_params`: m = 0.74 kg, rho_b = 3e-3
-    N s^2): ``w_max = sqrt(thrust_to_weight m g / (4 rho_b))``, 34.78 rad/s at 2.
+    N s^2; anything with ``mass``, ``gravity`` and ``thrust_factor``, e.g. a
+    :class:`fojax.vehicle.Vehicle`): ``w_max = sqrt(thrust_to_weight m g / (4 rho_b))``,
+    34.78 rad/s at 2.
 
     Requirement files ask for rotor-limited actuators by this ratio (docs/model.md)."""
     if not (isinstance(thrust_to_weight, int | float) and thrust_to_weight > 0):

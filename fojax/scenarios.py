@@ -271,6 +271,10 @@ class Scenario:
         scenarios it holds. A union is one static structure (one compiled rollout):
         each draw says which member it belongs to (``Draw.member``), and its random
         tables, reference and disturbance follow that member.
+    vehicle: the :class:`fojax.vehicle.Vehicle` flown (``None``: the paper's,
+        :func:`fojax.plant.nominal_params`); :meth:`on` sets it. Disturbances and noise
+        are accelerations and the uncertainties relative, so they carry over to any
+        vehicle as they are (docs/model.md).
     """
 
     scenario_id: int
@@ -288,6 +292,7 @@ class Scenario:
     initial_position: tuple[float, float, float] = _INITIAL_POSITION
     initial_attitude: tuple[float, float, float] = _INITIAL_ATTITUDE
     members: tuple = ()
+    vehicle: Any = None
 
     def __post_init__(self) -> None:
         """``ValueError`` for a setting that would be ignored or misread: a negative
@@ -332,6 +337,25 @@ class Scenario:
                 raise ValueError(
                     f"Scenario {name} must be a function of time, got {getattr(self, name)!r}"
                 )
+        from fojax.vehicle import Vehicle
+
+        if self.vehicle is not None and not isinstance(self.vehicle, Vehicle):
+            raise ValueError(
+                f"Scenario vehicle must be a fojax.vehicle.Vehicle or None, got {self.vehicle!r}"
+            )
+
+    def on(self, vehicle) -> Scenario:
+        """This scenario flown by ``vehicle`` (a :class:`fojax.vehicle.Vehicle`; ``None``:
+        the paper's), a union's members with it."""
+        members = tuple(dataclasses.replace(m, vehicle=vehicle) for m in self.members)
+        return dataclasses.replace(self, vehicle=vehicle, members=members)
+
+    def plant_params(self, dtype=None) -> plant.PlantParams:
+        """The nominal plant of the scenario's vehicle (leaves of ``dtype``): the
+        controllers' model, and the draws' plant before their uncertainty."""
+        if self.vehicle is None:
+            return plant.nominal_params(dtype)
+        return self.vehicle.params(dtype)
 
     @property
     def has_noise(self) -> bool:
@@ -366,13 +390,14 @@ def union(*members: Scenario) -> Scenario:
     ``i`` of that scenario run alone: the same numbers in float64; in float32 within
     about 1e-5 of each signal's scale (up to 3e-4 relative on a value near zero), the
     two programs being fused and rounded apart (``tests/test_scenarios.py``).
-    The members must share the hold times and the initial state.
+    The members must share the hold times, the initial state and the vehicle.
     """
     if len(members) < 1 or not all(isinstance(m, Scenario) and not m.members for m in members):
         raise ValueError("union takes one or more scenarios (not unions)")
     first = members[0]
     for m in members[1:]:
-        for name in ("drag_hold", "noise_hold", "initial_position", "initial_attitude"):
+        for name in ("drag_hold", "noise_hold", "initial_position", "initial_attitude",
+                     "vehicle"):  # fmt: skip
             if getattr(m, name) != getattr(first, name):
                 raise ValueError(
                     f"the scenarios of a union must share {name}: {first.name!r} has "

@@ -256,6 +256,7 @@ def rollout(
         jnp.asarray(draw.params.mass).dtype,
         batch,
         _held_values(scenario, config),
+        model,
     )
     loop0 = loop.first(params, draw)
     final, trajectory = lax.scan(loop.block_body(params, draw), loop0, jnp.arange(config.blocks))
@@ -289,7 +290,8 @@ _STATUS = observers.Status()
 class _Loop:
     """The time loop of one rollout, its static configuration settled in Python before
     tracing: the controller, the scenario, the settings, the observer (``None``: none),
-    the draw's dtype and batch shape, and ``held(draw, k)`` (:func:`_held_values`)."""
+    the draw's dtype and batch shape, ``held(draw, k)`` (:func:`_held_values`), and the
+    controller's nominal plant (for the observers)."""
 
     controller: Any
     scenario: scenarios.Scenario
@@ -298,6 +300,7 @@ class _Loop:
     dtype: Any
     batch: tuple[int, ...]
     held: Any
+    model: plant.PlantParams
 
     def reference_at(self, draw, k):
         """The time, the reference with its two derivatives and the deterministic
@@ -387,6 +390,7 @@ class _Loop:
             info=loop.info,
             error=observers.tracking_error(blocks, reference, loop.info.attitude_reference),
             plant=draw.params,
+            model=self.model,
         )
         status, observed = self.fold(draw, loop, k, record)
         # The control update of step k + 1, from the new state.

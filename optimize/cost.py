@@ -111,7 +111,7 @@ class CostObserver:
     """The cost's running sums as an observer of the rollout (:mod:`fojax.observers`).
 
     config: :class:`CostConfig`. dt: the step. Accelerations are scaled by the
-    controller's nominal plant (:func:`fojax.plant.nominal_params`).
+    controller's nominal plant (the record's ``model``: the vehicle's).
     """
 
     config: CostConfig
@@ -123,7 +123,7 @@ class CostObserver:
 
     def update(self, acc: CostTerms, record) -> CostTerms:
         dtype = record.state.dtype
-        model = plant.nominal_params(dtype)
+        model = record.model
         inputs = record.inputs
         scale = observers.per_component(
             jnp.concatenate([model.mass[None], model.inertia]).astype(dtype), inputs
@@ -165,7 +165,7 @@ def make_batch_cost(
     (the draws' axis last). ``controller`` is built for ``sim_config.horizon``. ``J`` is
     the raw weighted sum (non-finite when a draw diverged). Pure."""
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
-    model = plant.nominal_params(dtype)
+    model = scenario.plant_params(dtype)
     observer = CostObserver(cost_config, sim_config.dt)
     weights = jnp.asarray(cost_config.weights, dtype)
 

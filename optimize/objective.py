@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import blocks, export_cache, observers, plant, scenarios, sharding, simulator
+from fojax import blocks, export_cache, observers, scenarios, sharding, simulator
 from fojax import requirements as rq
 from fojax.controllers import registry
 from fojax.optimize import cost as cost_lib
@@ -182,7 +182,7 @@ class Objective:
         chain = {"cost": cost_lib.CostObserver(self.spec.cost, config.dt)}
         if self.requirements is not None:
             chain["requirements"] = rq.RequirementMetrics.for_requirements(
-                self.requirements, config
+                self.requirements, config, self.scenario.vehicle
             )
         return observers.Chain(**chain)
 
@@ -200,7 +200,7 @@ class Objective:
         controller, observer = spec.make_controller(law, horizon, dt), self._observer(config)
         scenario = _covering(scenario, horizon)
         weights = jnp.asarray(spec.cost.weights, dtype)
-        model = plant.nominal_params(dtype)
+        model = scenario.plant_params(dtype)
 
         def run(xs, width, draws):
             gains = jax.vmap(self._gains_of, in_axes=(-1, None), out_axes=-1)(xs, width)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 
@@ -67,7 +68,8 @@ class ProblemSpec:
     with fractional operators; the others take only ``"soe"``). dtype: ``"float32"`` or
     ``"float64"``. save_every: steps per checkpointed block of the reverse pass (``None``:
     :func:`checkpoint_interval`). compile: ``"optimized"`` or ``"fast"``
-    (:data:`COMPILE_MODES`, the gradient program).
+    (:data:`COMPILE_MODES`, the gradient program). vehicle: the
+    :class:`fojax.vehicle.Vehicle` flown (``None``: the paper's).
     """
 
     controller: str = "afonftsmc"
@@ -83,9 +85,16 @@ class ProblemSpec:
     dtype: str = "float32"
     save_every: int | None = None
     compile: str = "optimized"
+    vehicle: Any = None
 
     def __post_init__(self) -> None:
         registry.get_controller_class(self.controller)
+        from fojax.vehicle import Vehicle
+
+        if self.vehicle is not None and not isinstance(self.vehicle, Vehicle):
+            raise ValueError(
+                f"vehicle must be a fojax.vehicle.Vehicle or None, got {self.vehicle!r}"
+            )
         ids = self.scenario if isinstance(self.scenario, tuple | list) else (self.scenario,)
         if not ids:
             raise ValueError("scenario must name at least one scenario")
@@ -148,9 +157,9 @@ class ProblemSpec:
         return self.save_every or checkpoint_interval(self.steps)
 
     def scenario_object(self) -> scenarios.Scenario:
-        """The scenario (a union for several), its tables covering the horizon."""
+        """The scenario (a union for several) on the spec's vehicle."""
         ids = self.scenario if isinstance(self.scenario, tuple) else (self.scenario,)
-        found = [scenarios.get_scenario(i) for i in ids]
+        found = [scenarios.get_scenario(i).on(self.vehicle) for i in ids]
         return found[0] if len(found) == 1 else scenarios.union(*found)
 
     def make_controller(self, switching: str, horizon: float, dt: float | None = None):

@@ -44,10 +44,12 @@ __all__ = [
     "positive_int",
     "positive_ints",
     "seed",
+    "vehicle_file",
     "add_device_batch",
     "add_options",
     "add_runtime_options",
     "add_study_options",
+    "add_vehicle",
     "check_runtime",
     "CACHE_VARIABLE",
     "compile_cache_dir",
@@ -100,6 +102,27 @@ def nonnegative_int(text: str) -> int:
 def seed(text: str) -> int:
     """A random seed: an integer in ``[0, 2**63 - 1]``."""
     return _integer(text, 0, f"a seed, an integer >= 0 and <= {MAX_SEED}", MAX_SEED)
+
+
+def vehicle_file(text: str):
+    """argparse type: a vehicle file (TOML, :mod:`fojax.vehicle`), loaded and checked;
+    every problem in one message."""
+    from fojax import vehicle
+
+    try:
+        return vehicle.load(check_input_file(text, "vehicle file"))
+    except ValueError as error:  # VehicleError is a ValueError
+        raise ArgumentTypeError(str(error)) from None
+
+
+def add_vehicle(parser) -> None:
+    """``--vehicle FILE``: the quadrotor flown (default the paper's)."""
+    parser.add_argument(
+        "--vehicle", type=vehicle_file, metavar="FILE",
+        help="vehicle file (TOML, every quantity with its unit; e.g. "
+        "examples/vehicles/paper.toml, docs/model.md); default the paper's quadrotor. "
+        "Its rotor speed limit or thrust-to-weight, if any, makes the actuators rotor-limited",
+    )  # fmt: skip
 
 
 def positive_float(text: str) -> float:

@@ -83,14 +83,17 @@ def resolve_requirements(args):
     from fojax import requirements as rq
 
     reqs, ratio = args.requirements, args.rotor_limit
+    vehicle = getattr(args, "vehicle", None)  # a thrust-to-weight ratio is the vehicle's
     if ratio is None:
-        return reqs, None if reqs is None else reqs.settings.simulation_limit()
+        if reqs is not None and reqs.settings.speed_limit() is not None:
+            return reqs, reqs.settings.simulation_limit(vehicle)
+        return reqs, None if vehicle is None else vehicle.speed_limit()
     if reqs is not None:
         settings = dataclasses.replace(
             reqs.settings, thrust_to_weight=ratio, rotor_speed_limit=None, rotor_limited=True
         )
         reqs = dataclasses.replace(reqs, settings=settings)
-    return reqs, rq.rotor_speed_limit(ratio)
+    return reqs, rq.rotor_speed_limit(ratio, vehicle)
 
 
 def actuators_record(limit: float | None, args) -> dict:
@@ -100,11 +103,16 @@ def actuators_record(limit: float | None, args) -> dict:
     if limit is None:
         return {"rotor_limited": False}
     ratio, source = args.rotor_limit, "--rotor-limit"
-    if ratio is None:
+    vehicle = getattr(args, "vehicle", None)
+    reqs = args.requirements
+    if ratio is None and reqs is not None and reqs.settings.speed_limit() is not None:
         source = "the requirement file's settings"
-        ratio = args.requirements.settings.thrust_to_weight
+        ratio = reqs.settings.thrust_to_weight
+    elif ratio is None:
+        source = "the vehicle file"
+        ratio = vehicle.thrust_to_weight
     if ratio is None:
-        ratio = (limit / rq.rotor_speed_limit(1.0)) ** 2
+        ratio = (limit / rq.rotor_speed_limit(1.0, vehicle)) ** 2
     return {"rotor_limited": True, "rotor_speed_limit_rad_s": limit, "source": source,
             "thrust_to_weight": ratio}  # fmt: skip
 

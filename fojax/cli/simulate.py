@@ -93,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     arguments.add_options(parser, ("--out", arguments.OUTPUT_FOLDER))
     requirements_cli.add_simulate_options(parser)  # --requirements, --rotor-limit
+    arguments.add_vehicle(parser)
     arguments.add_runtime_options(parser)
     return parser
 
@@ -176,6 +177,7 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
         keep=min(args.keep, args.draws),
         dtype=dtype,
         gains_sources=sources,
+        vehicle=args.vehicle,
     )
     study = requirements_cli.configure_study(parser, args, study)  # rotor-limited actuators
     arguments.check_controllers(
@@ -242,6 +244,10 @@ def main(argv=None) -> int:
         command=command,
         extra={"wall_time_s": wall},
     )
+    if study.vehicle is not None:
+        v = study.vehicle
+        print(f"vehicle: {v.description or 'the vehicle file'!s} (m = {v.mass:.4g} kg, "
+              f"d = {v.arm_length:.4g} m)")  # fmt: skip
     _print_summary(summary)
     summary = requirements_cli.report_simulate(study, args, out, summary, not args.no_figures)
     for flag, users in args.applied.items():

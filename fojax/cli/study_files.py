@@ -106,6 +106,7 @@ def _header(study: Study, results: dict) -> dict:
             for name in results
         },
         "excluded_from_metrics": "draws flagged nonfinite or tilt_limit (counted in 'diverged')",
+        **({} if study.vehicle is None else {"vehicle": study.vehicle.to_dict()}),
         "controllers": {},
     }
 

@@ -153,6 +153,9 @@ OPTIONS = (
     Option("--fields", dict(help="comma-separated gain fields; 'default' (every bounded design "
            "gain); 'all'"), "default"),
     Option("--share", dict(choices=("paper", "none"), help="axis sharing (paper)"), "paper"),
+    Option("--vehicle", dict(type=arguments.vehicle_file, metavar="FILE", help="vehicle file "
+           "(TOML, docs/model.md); default the paper's quadrotor; its rotor limit, if any, "
+           "makes the actuators rotor-limited")),
     # the objective
     Option("--objective", dict(choices=WEIGHTED + CONSTRAINED, help="mean or cvar of the "
            "weighted-sum cost (mean); with --requirements what is minimised under them: "
@@ -312,7 +315,7 @@ def _build(parser, args) -> Run:
     cost = optimize.CostConfig(args.error, objective=reduction,
                                cvar_fraction=args.cvar_fraction, **weights)  # fmt: skip
     take = ("controller", "scenario", "horizon", "dt", "draws", "seed", "share", "fractional",
-            "dtype", "compile")  # fmt: skip
+            "dtype", "compile", "vehicle")  # fmt: skip
     spec = optimize.ProblemSpec(cost=cost, fields=fields, **{k: getattr(args, k) for k in take})
     if args.eval_horizon is not None:  # checked: a whole number of steps
         dataclasses.replace(spec, horizon=args.eval_horizon)

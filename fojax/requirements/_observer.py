@@ -54,18 +54,23 @@ SETTLING_TEMPERATURE_STEPS = 10.0
 
 
 def simulation_config(
-    requirements: RequirementSet, horizon: float, dt: float = 1e-3, save_every: int | None = None
+    requirements: RequirementSet,
+    horizon: float,
+    dt: float = 1e-3,
+    save_every: int | None = None,
+    vehicle=None,
 ) -> simulator.SimulationConfig:
     """The :class:`fojax.SimulationConfig` the requirements ask for: rotor-limited
-    actuators when their settings give a limit (and ``rotor_limited`` is true), else
-    ideal ones; ``save_every`` defaults to a divisor of the steps near 100."""
+    actuators when their settings give a limit (and ``rotor_limited`` is true; a
+    thrust-to-weight ratio is one of ``vehicle``, None: the paper's), else ideal ones;
+    ``save_every`` defaults to a divisor of the steps near 100."""
     steps = int(round(horizon / dt))
     every = save_every or simulator.divisor_near(steps, 100.0)
     return simulator.SimulationConfig(
         dt=dt,
         horizon=horizon,
         save_every=every,
-        rotor_speed_limit=requirements.settings.simulation_limit(),
+        rotor_speed_limit=requirements.settings.simulation_limit(vehicle),
     )
 
 
@@ -118,9 +123,14 @@ class RequirementMetrics:
     steady_fraction: float = 0.2
 
     @classmethod
-    def for_requirements(cls, requirements: RequirementSet, config: simulator.SimulationConfig):
+    def for_requirements(
+        cls, requirements: RequirementSet, config: simulator.SimulationConfig, vehicle=None
+    ):
+        """The metrics of ``requirements`` on ``config``'s steps; a thrust-to-weight ratio
+        is one of ``vehicle`` (a :class:`fojax.vehicle.Vehicle`; None: the paper's)."""
         s = requirements.settings
-        return cls(config.dt, config.steps, s.speed_limit(), s.position_band, s.steady_fraction)
+        limit = s.speed_limit(vehicle)
+        return cls(config.dt, config.steps, limit, s.position_band, s.steady_fraction)
 
     def init(self, dtype) -> RequirementState:
         z = jnp.zeros((), dtype)
@@ -191,7 +201,7 @@ class RequirementMetrics:
         smooth = jax.nn.sigmoid(excess / SATURATION_TEMPERATURE)
 
         jump = jnp.abs(inputs - acc.previous)
-        model = plant.nominal_params(dtype)
+        model = record.model
         thrust_deviation = inputs[0] - model.mass * model.gravity
         return RequirementState(
             count=acc.count + 1,
@@ -323,8 +333,8 @@ def measure(
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     if scenario.horizon < config.horizon:
         scenario = dataclasses.replace(scenario, horizon=config.horizon)
-    observer = RequirementMetrics.for_requirements(requirements, config)
-    model = plant.nominal_params(dtype)
+    observer = RequirementMetrics.for_requirements(requirements, config, scenario.vehicle)
+    model = scenario.plant_params(dtype)
     run = _evaluator(controller, scenario, config, observer, dtype, model)
     gains = type(gains)(*(jnp.asarray(g, dtype) for g in gains))
     keys = np.asarray(keys)

@@ -291,19 +291,20 @@ class Settings:
             out.append(f"settings: steady_fraction must be in (0, 1], got {fraction!r}")
         return out
 
-    def speed_limit(self) -> float | None:
-        """``w_max`` (rad/s), or ``None`` when neither limit is given."""
+    def speed_limit(self, params=None) -> float | None:
+        """``w_max`` (rad/s), or ``None`` when neither limit is given; a thrust-to-weight
+        ratio is one of the plant ``params`` (default the paper's)."""
         if self.rotor_speed_limit is not None:
             return float(self.rotor_speed_limit)
         if self.thrust_to_weight is not None:
             from fojax.plant import rotor_speed_limit
 
-            return rotor_speed_limit(self.thrust_to_weight)
+            return rotor_speed_limit(self.thrust_to_weight, params)
         return None
 
-    def simulation_limit(self) -> float | None:
+    def simulation_limit(self, params=None) -> float | None:
         """The ``rotor_speed_limit`` the simulation should use (``None``: ideal)."""
-        return self.speed_limit() if self.rotor_limited else None
+        return self.speed_limit(params) if self.rotor_limited else None
 
 
 _SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(Settings))

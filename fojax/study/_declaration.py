@@ -67,6 +67,8 @@ class Study:
     """``fojax.metrics.MetricsConfig.reaching_band``: one band, or six (one per axis)."""
     rotor_speed_limit: float | None = None
     """``w_max`` (rad/s) of rotor-limited actuators (None: ideal; ``--rotor-limit``)."""
+    vehicle: Any = None
+    """The :class:`fojax.vehicle.Vehicle` flown (None: the paper's; ``--vehicle``)."""
 
     def metrics_config(self, steps: int) -> metrics.MetricsConfig:
         return metrics.MetricsConfig(dt=self.dt, steps=steps, reaching_band=self.reaching_band)
@@ -88,8 +90,9 @@ def snapshot_interval(steps: int, dt: float, target: float = 0.1) -> int:
 
 
 def scenario_of(study: Study) -> scenarios.Scenario:
-    """The study's scenario, with the study's horizon."""
-    return dataclasses.replace(scenarios.get_scenario(study.scenario_id), horizon=study.horizon)
+    """The study's scenario, on the study's vehicle, with the study's horizon."""
+    scenario = scenarios.get_scenario(study.scenario_id).on(study.vehicle)
+    return dataclasses.replace(scenario, horizon=study.horizon)
 
 
 def _law_options(study: Study) -> dict:

@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fojax import metrics, plant, scenarios, sharding, simulator
+from fojax import metrics, scenarios, sharding, simulator
 from fojax import settings as process_settings
 from fojax.controllers.cascade import as_controller
 from fojax.records import code_digest as code_version
@@ -215,7 +215,7 @@ def make_chunk_runner(
     """
     dtype = jnp.dtype(jnp.result_type(float)) if dtype is None else jnp.dtype(dtype)
     metrics_config = metrics_config or metrics.MetricsConfig(dt=config.dt, steps=config.steps)
-    model = plant.nominal_params(dtype)
+    model = scenario.plant_params(dtype)
     controller = as_controller(controller)
     check_settings(controller, scenario, config, metrics_config)
     observer = metrics.Metrics(metrics_config)

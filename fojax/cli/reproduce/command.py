@@ -156,6 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     arguments.add_study_options(
         parser, 32, "draws whose trajectories are kept for the figures (32)"
     )
+    arguments.add_vehicle(parser)
     arguments.add_runtime_options(parser)
     return parser
 
@@ -189,6 +190,8 @@ def parse_args(argv) -> tuple[list, argparse.Namespace]:
                 keep=min(args.keep, args.draws),
                 dtype=args.dtype,
                 reaching_band=band,
+                vehicle=args.vehicle,
+                rotor_speed_limit=None if args.vehicle is None else args.vehicle.speed_limit(),
             )
         )
     arguments.check_controllers(
@@ -254,6 +257,7 @@ def main(argv=None) -> int:
         "horizons_s": {str(s.scenario_id): s.horizon for s in studies},
         "controllers": list(studies[0].controllers),
         "reaching_band": list(studies[0].reaching_band),
+        **({} if args.vehicle is None else {"vehicle": args.vehicle.to_dict()}),
     }
     wall = time.perf_counter() - start
     report_md, _ = write_report(out, summaries, claims, settings, figures, wall, tables)

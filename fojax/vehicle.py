@@ -1,0 +1,281 @@
+"""A quadrotor's physical parameters, from a file of its own (:class:`Vehicle`).
+
+A vehicle file is TOML: an optional ``description``, a ``[vehicle]`` table with every
+quantity of :class:`fojax.plant.PlantParams` as ``{ value = ..., unit = "..." }``, and
+optionally the rotors' limit as ``rotor_speed_limit`` (rad/s or rpm) or
+``thrust_to_weight`` (a plain number, the ratio of full thrust to the weight)::
+
+    description = "the paper's quadrotor (Section V)"
+
+    [vehicle]
+    mass = { value = 0.74, unit = "kg" }
+    inertia = { value = [0.004, 0.004, 0.0084], unit = "kg m^2" }
+    arm_length = { value = 0.21, unit = "m" }
+    drag_position = { value = [0.01, 0.01, 0.01], unit = "N s/m" }
+    drag_attitude = { value = [0.012, 0.012, 0.012], unit = "N m s^2" }
+    thrust_factor = { value = 3e-3, unit = "N s^2" }
+    drag_factor = { value = 3.24e-2, unit = "N m s^2" }
+    rotor_inertia = { value = 2.8385e-5, unit = "kg m^2" }
+    gravity = { value = 9.81, unit = "m/s^2" }
+
+Every field is required (a vehicle is never half the paper's); units are converted to
+SI by the factors of :data:`FIELDS`. :func:`load` checks the whole file and raises one
+:class:`VehicleError` listing every problem (the field, what is wrong, what to write),
+before anything is simulated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from fojax import plant
+
+__all__ = ["FIELDS", "Field", "Vehicle", "VehicleError", "load", "parse"]
+
+
+class VehicleError(ValueError):
+    """A vehicle file or table that cannot be used; the message lists every problem."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Field:
+    """One quantity of a vehicle. size: ``None`` a scalar, else a vector's length.
+    units: accepted units and their factors to the first (SI) one. symbol: the model's
+    (docs/model.md)."""
+
+    name: str
+    size: int | None
+    units: Mapping[str, float]
+    symbol: str
+    summary: str
+
+    @property
+    def unit(self) -> str:
+        """The SI unit (the first of :attr:`units`)."""
+        return next(iter(self.units))
+
+
+_MASS = {"kg": 1.0, "g": 1e-3}
+_INERTIA = {"kg m^2": 1.0, "g m^2": 1e-3, "g cm^2": 1e-7, "g mm^2": 1e-9}
+_LENGTH = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
+_TORQUE_S2 = {"N m s^2": 1.0}
+
+FIELDS: dict[str, Field] = {
+    f.name: f
+    for f in (
+        Field("mass", None, _MASS, "m", "the vehicle's mass"),
+        Field("inertia", 3, _INERTIA, "I", "the diagonal of the inertia about the body axes"),
+        Field("arm_length", None, _LENGTH, "d", "from the centre to a rotor's axis"),
+        Field("drag_position", 3, {"N s/m": 1.0}, "K_p", "translational drag, per axis"),
+        Field("drag_attitude", 3, _TORQUE_S2, "K_phi",
+              "rotational drag, torque per w|w| of the body rates"),  # fmt: skip
+        Field("thrust_factor", None, {"N s^2": 1.0}, "rho_b",
+              "a rotor's thrust per squared speed (rad/s)"),  # fmt: skip
+        Field("drag_factor", None, _TORQUE_S2, "rho_c",
+              "a rotor's drag torque per squared speed (rad/s)"),  # fmt: skip
+        Field("rotor_inertia", None, _INERTIA, "J_r", "a rotor's inertia about its axis"),
+        Field("gravity", None, {"m/s^2": 1.0}, "g", "the gravitational acceleration"),
+    )
+}
+"""The quantities of a vehicle file (each a field of :class:`fojax.plant.PlantParams`)."""
+
+_SPEED = {"rad/s": 1.0, "rpm": 2.0 * math.pi / 60.0}
+_TOP = ("description", "vehicle")
+_LIMITS = ("rotor_speed_limit", "thrust_to_weight")
+
+
+@dataclasses.dataclass(frozen=True)
+class Vehicle:
+    """A quadrotor: its :data:`FIELDS` in SI units (floats; tuples for vectors), the
+    rotors' speed limit (rad/s) or thrust-to-weight ratio where it has one, and a
+    description. :meth:`params` is the simulator's :class:`fojax.plant.PlantParams`."""
+
+    mass: float
+    inertia: tuple[float, float, float]
+    arm_length: float
+    drag_position: tuple[float, float, float]
+    drag_attitude: tuple[float, float, float]
+    thrust_factor: float
+    drag_factor: float
+    rotor_inertia: float
+    gravity: float
+    rotor_speed_limit: float | None = None
+    thrust_to_weight: float | None = None
+    description: str = ""
+
+    @classmethod
+    def paper(cls) -> Vehicle:
+        """The paper's vehicle (Section V; :func:`fojax.plant.nominal_params`)."""
+        values = {name: _python(getattr(plant, constant)) for name, constant in _PAPER.items()}
+        return cls(**values, description="the paper's quadrotor (Section V)")
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike) -> Vehicle:
+        """:func:`load`."""
+        return load(path)
+
+    def params(self, dtype=None) -> plant.PlantParams:
+        """The plant's parameters (leaves of ``dtype``, default float32 or float64 with
+        x64 enabled), as :func:`fojax.plant.nominal_params` builds the paper's."""
+        import jax.numpy as jnp
+
+        dtype = plant._default_float(dtype)
+        return plant.PlantParams(**{name: jnp.asarray(getattr(self, name), dtype)
+                                    for name in FIELDS})  # fmt: skip
+
+    def speed_limit(self) -> float | None:
+        """``w_max`` in rad/s: the given one, or the one at which four rotors give
+        :attr:`thrust_to_weight` times the weight; ``None`` for unlimited rotors."""
+        if self.rotor_speed_limit is not None:
+            return self.rotor_speed_limit
+        if self.thrust_to_weight is None:
+            return None
+        weight = self.mass * self.gravity
+        return math.sqrt(self.thrust_to_weight * weight / (4.0 * self.thrust_factor))
+
+    def to_dict(self) -> dict:
+        """The file's content in SI units (what a run's fingerprint records)."""
+        out = {name: _listed(getattr(self, name)) for name in FIELDS}
+        for name in _LIMITS:
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
+        return {"description": self.description, "vehicle": out}
+
+
+_PAPER = {
+    "mass": "_NOMINAL_MASS",
+    "inertia": "_NOMINAL_INERTIA",
+    "arm_length": "_NOMINAL_ARM_LENGTH",
+    "drag_position": "_NOMINAL_DRAG_POSITION",
+    "drag_attitude": "_NOMINAL_DRAG_ATTITUDE",
+    "thrust_factor": "_NOMINAL_THRUST_FACTOR",
+    "drag_factor": "_NOMINAL_DRAG_FACTOR",
+    "rotor_inertia": "_NOMINAL_ROTOR_INERTIA",
+    "gravity": "_GRAVITY",
+}
+
+
+def _python(value: Any):
+    if isinstance(value, tuple | list):
+        return tuple(float(v) for v in value)
+    return float(value)
+
+
+def _listed(value: Any):
+    return list(value) if isinstance(value, tuple) else value
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _quantity(field: Field, entry: Any, problems: list[str]):
+    """The SI value of ``entry`` (``{value, unit}``), or ``None`` with its problems."""
+    where = f"vehicle.{field.name}"
+    units = ", ".join(f'"{u}"' for u in field.units)
+    if not isinstance(entry, Mapping):
+        problems.append(
+            f"{where}: expected {{ value = ..., unit = ... }} with a unit among {units}, "
+            f"got {entry!r}"
+        )
+        return None
+    unknown = sorted(set(entry) - {"value", "unit"})
+    if unknown:
+        problems.append(f"{where}: unknown key(s) {', '.join(unknown)} (expected value, unit)")
+    if "unit" not in entry:
+        problems.append(f"{where}: missing unit (one of {units})")
+        return None
+    unit = entry["unit"]
+    if unit not in field.units:
+        problems.append(f"{where}: unit {unit!r} is not one of {units}")
+        return None
+    if "value" not in entry:
+        problems.append(f"{where}: missing value")
+        return None
+    value, scale = entry["value"], field.units[unit]
+    shape = "a number" if field.size is None else f"a list of {field.size} numbers"
+    values = [value] if field.size is None else value
+    if (
+        (field.size is not None and not (isinstance(value, list) and len(value) == field.size))
+        or not all(_number(v) for v in values)
+    ):
+        problems.append(f"{where}: expected {shape}, got {value!r}")
+        return None
+    if not all(math.isfinite(v) and v > 0 for v in values):
+        problems.append(f"{where}: every value must be finite and > 0, got {value!r}")
+        return None
+    converted = [float(v) * scale for v in values]
+    return converted[0] if field.size is None else tuple(converted)
+
+
+def parse(data: Mapping, source: str = "vehicle") -> Vehicle:
+    """The :class:`Vehicle` of a vehicle file's content (module docstring);
+    :class:`VehicleError` listing every problem, each naming its field."""
+    problems: list[str] = []
+    if not isinstance(data, Mapping):
+        raise VehicleError(f"{source}: expected a table, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(_TOP))
+    if unknown:
+        problems.append(f"unknown top-level key(s) {', '.join(unknown)} (expected "
+                        f"{', '.join(_TOP)})")  # fmt: skip
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        problems.append(f"description: expected a string, got {description!r}")
+        description = ""
+    table = data.get("vehicle")
+    if not isinstance(table, Mapping):
+        problems.append("missing [vehicle] table (the vehicle's quantities, with units)")
+        raise VehicleError(_message(source, problems))
+    unknown = sorted(set(table) - set(FIELDS) - set(_LIMITS))
+    if unknown:
+        problems.append(
+            f"vehicle: unknown field(s) {', '.join(unknown)} (the fields: "
+            f"{', '.join([*FIELDS, *_LIMITS])})"
+        )
+    values: dict[str, Any] = {}
+    for name, field in FIELDS.items():
+        if name not in table:
+            problems.append(f"vehicle.{name}: missing ({field.summary}, {field.symbol}, "
+                            f"in {field.unit})")  # fmt: skip
+            continue
+        values[name] = _quantity(field, table[name], problems)
+    if all(name in table for name in _LIMITS):
+        problems.append("vehicle: give rotor_speed_limit or thrust_to_weight, not both")
+    if "rotor_speed_limit" in table:
+        limit = Field("rotor_speed_limit", None, _SPEED, "w_max", "the rotors' speed limit")
+        values["rotor_speed_limit"] = _quantity(limit, table["rotor_speed_limit"], problems)
+    if "thrust_to_weight" in table:
+        ratio = table["thrust_to_weight"]
+        if not (_number(ratio) and math.isfinite(ratio) and ratio > 1):
+            problems.append(
+                f"vehicle.thrust_to_weight: expected a number > 1 (full thrust over the "
+                f"weight; at or below 1 the vehicle cannot hover), got {ratio!r}"
+            )
+        else:
+            values["thrust_to_weight"] = float(ratio)
+    if problems:
+        raise VehicleError(_message(source, problems))
+    return Vehicle(**values, description=description)
+
+
+def _message(source: str, problems: list[str]) -> str:
+    return f"{source} is not a usable vehicle file:\n" + "\n".join(f"  {p}" for p in problems)
+
+
+def load(path: str | os.PathLike) -> Vehicle:
+    """The :class:`Vehicle` of the TOML file at ``path``; :class:`VehicleError` (one
+    message, every problem) for a file that cannot be read or used."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as error:
+        raise VehicleError(f"{path}: cannot read it: {error.strerror or error}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        raise VehicleError(f"{path} is not valid TOML: {error}") from None
+    return parse(data, str(path))

@@ -1,0 +1,193 @@
+"""Vehicle files: the paper's file is the paper's plant, units convert, and every bad
+file is one error naming its field."""
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+from fojax import plant, vehicle
+
+PAPER_FILE = "examples/vehicles/paper.toml"
+
+
+def _table(**changes):
+    """The paper's vehicle as a file's content, with ``changes`` to its [vehicle] table
+    (a value of None removes the field)."""
+    paper = vehicle.Vehicle.paper()
+    table = {
+        name: {"value": list(v) if isinstance(v, tuple) else v, "unit": field.unit}
+        for name, field in vehicle.FIELDS.items()
+        for v in [getattr(paper, name)]
+    }
+    for name, value in changes.items():
+        if value is None:
+            table.pop(name)
+        else:
+            table[name] = value
+    return {"description": "test", "vehicle": table}
+
+
+def test_the_paper_file_is_the_paper_plant():
+    loaded = vehicle.Vehicle.from_file(PAPER_FILE)
+    assert loaded == vehicle.Vehicle.paper()
+    for dtype in ("float32", "float64"):
+        got, want = loaded.params(dtype), plant.nominal_params(dtype)
+        for name, a, b in zip(plant.PlantParams._fields, got, want, strict=True):
+            assert a.dtype == b.dtype and np.array_equal(a, b), name
+
+
+def test_units_convert_to_si():
+    parsed = vehicle.parse(_table(
+        mass={"value": 30, "unit": "g"},
+        inertia={"value": [16.6, 16.6, 29.3], "unit": "g cm^2"},
+        arm_length={"value": 46, "unit": "mm"},
+        rotor_speed_limit={"value": 6000, "unit": "rpm"},
+    ))  # fmt: skip
+    assert parsed.mass == pytest.approx(0.030, rel=1e-15)
+    assert parsed.inertia == pytest.approx((16.6e-7, 16.6e-7, 29.3e-7), rel=1e-15)
+    assert parsed.arm_length == pytest.approx(0.046, rel=1e-15)
+    assert parsed.speed_limit() == pytest.approx(6000 * 2 * math.pi / 60, rel=1e-15)
+
+
+def test_thrust_to_weight_gives_the_plants_rotor_speed_limit():
+    parsed = vehicle.parse(_table(thrust_to_weight=2.0))
+    assert parsed.speed_limit() == pytest.approx(plant.rotor_speed_limit(2.0), rel=1e-12)
+    assert vehicle.Vehicle.paper().speed_limit() is None
+
+
+@pytest.mark.parametrize(
+    "changes, named",
+    [
+        ({"mass": None}, "vehicle.mass: missing"),
+        ({"mass": 0.74}, "vehicle.mass: expected { value = ..., unit = ... }"),
+        ({"mass": {"value": 0.74}}, "vehicle.mass: missing unit"),
+        ({"mass": {"value": 0.74, "unit": "lb"}}, "vehicle.mass: unit 'lb' is not one of"),
+        ({"mass": {"value": -0.74, "unit": "kg"}}, "vehicle.mass: every value must be finite"),
+        ({"mass": {"value": math.nan, "unit": "kg"}}, "vehicle.mass: every value must be"),
+        ({"mass": {"value": math.inf, "unit": "kg"}}, "vehicle.mass: every value must be"),
+        ({"mass": {"value": "0.74", "unit": "kg"}}, "vehicle.mass: expected a number"),
+        ({"inertia": {"value": [0.004, 0.004], "unit": "kg m^2"}},
+         "vehicle.inertia: expected a list of 3 numbers"),
+        ({"inertia": {"value": [0.004, 0.0, 0.0084], "unit": "kg m^2"}},
+         "vehicle.inertia: every value must be finite and > 0"),
+        ({"gravity": {"value": 9.81, "unit": "m/s^2", "sigma": 1}},
+         "vehicle.gravity: unknown key(s) sigma"),
+        ({"wingspan": {"value": 1, "unit": "m"}}, "vehicle: unknown field(s) wingspan"),
+        ({"thrust_to_weight": 1.0}, "vehicle.thrust_to_weight: expected a number > 1"),
+        ({"thrust_to_weight": 0.5}, "vehicle.thrust_to_weight: expected a number > 1"),
+        ({"thrust_to_weight": 2.0, "rotor_speed_limit": {"value": 40, "unit": "rad/s"}},
+         "give rotor_speed_limit or thrust_to_weight, not both"),
+        ({"rotor_speed_limit": {"value": 40, "unit": "rad"}},
+         "vehicle.rotor_speed_limit: unit 'rad' is not one of"),
+    ],
+)  # fmt: skip
+def test_a_bad_vehicle_is_one_error_naming_its_field(changes, named):
+    with pytest.raises(vehicle.VehicleError) as caught:
+        vehicle.parse(_table(**changes), "v.toml")
+    message = str(caught.value)
+    assert message.startswith("v.toml is not a usable vehicle file:") and named in message
+    assert message.count("\n") == 1  # the one problem, on a line of its own
+
+
+def test_every_problem_of_a_file_in_one_error(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[vehicle]\nmass = { value = -1, unit = "kg" }\n')
+    with pytest.raises(vehicle.VehicleError) as caught:
+        vehicle.load(bad)
+    message = str(caught.value)
+    assert "vehicle.mass: every value must be finite and > 0" in message
+    for name in set(vehicle.FIELDS) - {"mass"}:
+        assert f"vehicle.{name}: missing" in message
+    assert "missing [vehicle] table" in str(pytest.raises(vehicle.VehicleError,
+                                                           vehicle.parse, {}).value)  # fmt: skip
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[vehicle\n")
+    with pytest.raises(vehicle.VehicleError, match="is not valid TOML"):
+        vehicle.load(broken)
+    with pytest.raises(vehicle.VehicleError, match="cannot read it"):
+        vehicle.load(tmp_path / "none.toml")
+
+
+def test_a_vehicle_flies_as_the_paper_plant_with_its_values():
+    """A vehicle of another mass and inertia: its draws and rollout are those of the
+    paper's plant with those values put in by hand (float64: the draws' uncertainty
+    multiplies the vehicle's values; the controller's model is the vehicle's)."""
+    import jax
+
+    from fojax import observers, scenarios, simulator
+    from fojax.controllers.afonftsmc import AFONFTSMC, paper_gains
+
+    mass, inertia = 1.1, (0.006, 0.0065, 0.011)
+    heavy = vehicle.parse(_table(mass={"value": mass, "unit": "kg"},
+                                 inertia={"value": list(inertia), "unit": "kg m^2"}))  # fmt: skip
+    scenario = dataclasses.replace(scenarios.get_scenario(2), horizon=0.2)
+    config = simulator.SimulationConfig(dt=1e-3, horizon=0.2, save_every=100)
+    keys = scenarios.draw_keys(3, range(4))
+    dtype = jax.numpy.float64
+    theirs = scenarios.sample_draws(scenario.on(heavy), keys, config.dt, dtype)
+    paper = scenarios.sample_draws(scenario, keys, config.dt, dtype)
+    nominal = plant.nominal_params(dtype)
+    by_hand_mass = paper.params.mass / nominal.mass * mass
+    by_hand_inertia = paper.params.inertia / nominal.inertia[:, None] * np.asarray(inertia)[:, None]
+    np.testing.assert_allclose(theirs.params.mass, by_hand_mass, rtol=1e-14)
+    np.testing.assert_allclose(theirs.params.inertia, by_hand_inertia, rtol=1e-14)
+    model = nominal._replace(mass=jax.numpy.asarray(mass, dtype),
+                             inertia=jax.numpy.asarray(inertia, dtype))  # fmt: skip
+    by_hand = paper._replace(params=paper.params._replace(mass=by_hand_mass,
+                                                          inertia=by_hand_inertia))  # fmt: skip
+    controller = AFONFTSMC(dt=config.dt, horizon=config.horizon)
+    gains = paper_gains(dtype)
+    ise = observers.TrackingISE(config.dt)
+    got = simulator.rollout(controller, gains, scenario.on(heavy).plant_params(dtype),
+                            scenario.on(heavy), theirs, config, ise)  # fmt: skip
+    want = simulator.rollout(controller, gains, model, scenario, by_hand, config, ise)
+    np.testing.assert_allclose(got.final_state, want.final_state, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(got.outputs, want.outputs, rtol=1e-12, atol=1e-15)
+    # and the vehicle matters: the paper's plant ends elsewhere
+    other = simulator.rollout(controller, gains, nominal, scenario, paper, config, ise)
+    assert not np.allclose(other.final_state, got.final_state, rtol=1e-6)
+
+
+SIMULATE = ["simulate", "--scenario", "2", "--controller", "afonftsmc", "--draws", "3",
+            "--horizon", "0.3", "--keep", "0", "--quiet"]  # fmt: skip
+
+
+def test_simulate_with_the_paper_file_equals_the_default_draw_for_draw(tmp_path, capsys):
+    from fojax import cli
+
+    assert cli.main([*SIMULATE, "--out", str(tmp_path / "a")]) == 0
+    assert cli.main([*SIMULATE, "--vehicle", PAPER_FILE, "--out", str(tmp_path / "b")]) == 0
+    a, b = (np.load(tmp_path / name / "draws.npz") for name in "ab")
+    assert sorted(a.files) == sorted(b.files)
+    for name in a.files:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert summary["vehicle"] == vehicle.Vehicle.paper().to_dict()
+    assert "vehicle: the paper's quadrotor (Section V) (m = 0.74 kg" in capsys.readouterr().out
+
+
+def test_a_bad_vehicle_file_stops_simulate_before_anything_is_written(tmp_path, capsys):
+    from conftest import usage_error
+
+    from fojax.cli import simulate
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[vehicle]\nmass = { value = 0.74, unit = "lb" }\n')
+    out = tmp_path / "out"
+    argv = [*SIMULATE[1:], "--vehicle", str(bad), "--out", str(out)]
+    err = usage_error(capsys, simulate.main, argv)
+    assert "argument --vehicle" in err and "vehicle.mass: unit 'lb' is not one of" in err
+    assert not out.exists()
+
+
+def test_the_documented_vehicle_file_is_the_paper_file():
+    import pathlib
+    import re
+    import tomllib
+
+    text = pathlib.Path("docs/model.md").read_text()
+    (block,) = re.findall(r"```toml\n(.*?)```", text, re.S)
+    assert vehicle.parse(tomllib.loads(block)) == vehicle.Vehicle.paper()
