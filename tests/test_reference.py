@@ -1,0 +1,142 @@
+"""References from waypoints: the quintic spline through them, its smoothness and ends,
+its peaks against the exact curve, and one error per bad file."""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fojax import reference, scenarios
+
+SAMPLED = np.arange(0.0, 81.0, 2.0)
+
+
+def _paper_waypoints(ends="not-a-knot"):
+    """(54)-(55) sampled every 2 s over 80 s."""
+    values = np.array([np.asarray(scenarios.reference_54_55(jnp.asarray(t))) for t in SAMPLED])
+    return reference.Waypoints(tuple(SAMPLED), tuple(map(tuple, values[:, :3])),
+                               tuple(values[:, 3]), ends=ends), values  # fmt: skip
+
+
+def _table(**changes):
+    table = {"time": {"value": [0, 5, 10], "unit": "s"}, "x": {"value": [0, 1, 1], "unit": "m"},
+             "y": {"value": [0, 0, 1], "unit": "m"}, "z": {"value": [0, 1, 1], "unit": "m"},
+             "yaw": {"value": [0, 0, 0], "unit": "rad"}}  # fmt: skip
+    for name, value in changes.items():
+        if value is None:
+            table.pop(name)
+        else:
+            table[name] = value
+    return {"description": "test", "reference": table}
+
+
+def test_the_spline_passes_through_the_waypoints_with_four_continuous_derivatives():
+    waypoints, values = _paper_waypoints("rest")
+    spline = waypoints.reference()
+    at = np.array([np.asarray(spline(jnp.asarray(t))) for t in SAMPLED])
+    np.testing.assert_allclose(at, values, atol=1e-12)
+    inner = SAMPLED[1:-1]
+    for order in range(5):  # value and four derivatives agree on both sides of each break
+        left = spline.derivative(inner - 1e-9, order)
+        right = spline.derivative(inner + 1e-9, order)
+        scale = np.max(np.abs(left)) + 1e-12
+        assert np.max(np.abs(left - right)) < 1e-6 * scale + 1e-7, order
+    # at rest at both ends, then held
+    for t in (0.0, SAMPLED[-1]):
+        _, velocity, acceleration = scenarios.reference_with_derivatives(spline, jnp.asarray(t))
+        np.testing.assert_allclose(velocity, 0, atol=1e-12)
+        np.testing.assert_allclose(acceleration, 0, atol=1e-12)
+    np.testing.assert_allclose(spline(jnp.asarray(200.0)), values[-1], atol=1e-12)
+
+
+def test_autodiff_derivatives_equal_the_polynomials_and_jit_equals_eager():
+    spline = _paper_waypoints()[0].reference()
+    times = np.linspace(0, 80, 97)
+    _, velocity, acceleration = jax.vmap(
+        lambda t: scenarios.reference_with_derivatives(spline, t)
+    )(jnp.asarray(times))
+    np.testing.assert_allclose(velocity, spline.derivative(times, 1), atol=1e-12)
+    np.testing.assert_allclose(acceleration, spline.derivative(times, 2), atol=1e-12)
+    eager = np.array([np.asarray(spline(jnp.asarray(t))) for t in times])
+    np.testing.assert_allclose(jax.jit(jax.vmap(spline))(jnp.asarray(times)), eager, atol=1e-14)
+
+
+def test_sampled_from_the_paper_curve_it_follows_the_curve_and_its_peaks():
+    waypoints, _ = _paper_waypoints()
+    spline = waypoints.reference()
+    times = np.linspace(0, 80, 1601)
+    exact = np.array([np.asarray(scenarios.reference_54_55(jnp.asarray(t))) for t in times])
+    np.testing.assert_allclose(np.asarray(jax.vmap(spline)(jnp.asarray(times))), exact, atol=1e-4)
+    # (54)-(55): |v| = (pi/20) sqrt(0.25 + 4 sin^2), |a| = (pi/20)^2 sqrt(0.25 + 4 cos^2)
+    w = math.pi / 20
+    peaks = waypoints.peaks()
+    assert peaks["speed"] == pytest.approx(w * math.sqrt(4.25), rel=1e-3)
+    assert peaks["acceleration"] == pytest.approx(w * w * math.sqrt(4.25), rel=1e-3)
+    tilt = max(math.atan2(w * w * 0.5, 9.81 + w * w * 2 * c) for c in np.cos(w * times))
+    assert peaks["tilt"] == pytest.approx(tilt, rel=1e-2)
+
+
+def test_a_waypoint_reference_flies_in_a_scenario():
+    from fojax import observers, plant, simulator
+    from fojax.controllers.afonftsmc import AFONFTSMC, paper_gains
+
+    spline = _paper_waypoints()[0].reference()
+    base = dataclasses.replace(scenarios.get_scenario(2), horizon=0.2)
+    config = simulator.SimulationConfig(dt=1e-3, horizon=0.2, save_every=100)
+    keys = scenarios.draw_keys(0, range(2))
+    controller = AFONFTSMC(dt=1e-3, horizon=0.2)
+    runs = [
+        simulator.rollout_from_keys(controller, paper_gains(), plant.nominal_params(), s, keys,
+                                    config, observers.TrackingISE(config.dt))  # fmt: skip
+        for s in (base, dataclasses.replace(base, reference=spline))
+    ]
+    # the spline is within 1e-4 m of (54)-(55): the closed loops' positions and tracking
+    # errors agree to about that
+    np.testing.assert_allclose(runs[1].final_state[:3], runs[0].final_state[:3], atol=1e-3)
+    np.testing.assert_allclose(runs[1].outputs, runs[0].outputs, rtol=0.05, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "changes, named",
+    [
+        ({"time": None}, "reference.time: missing"),
+        ({"x": [0, 1, 1]}, "reference.x: expected { value = [...], unit = ... }"),
+        ({"x": {"value": [0, 1, 1], "unit": "ft"}}, "reference.x: unit 'ft' is not one of"),
+        ({"x": {"value": [0, 1], "unit": "m"}}, "the lists differ in length"),
+        ({"y": {"value": [0, math.nan, 1], "unit": "m"}}, "reference.y: every value must be"),
+        ({"z": {"value": [0, "1", 1], "unit": "m"}}, "reference.z: expected a list of numbers"),
+        ({"time": {"value": [0, 5, 5], "unit": "s"}}, "reference.time: times must increase"),
+        ({"time": {"value": [0, 5, 4], "unit": "s"}}, "waypoint 2 (4.0 s) is not after"),
+        ({"time": {"value": [1, 5, 10], "unit": "s"}}, "the first waypoint must be at 0 s"),
+        ({"speed": {"value": [1], "unit": "m/s"}}, "reference: unknown list(s) speed"),
+        ({"ends": "free"}, "reference.ends: expected one of rest, not-a-knot"),
+        ({"ends": "not-a-knot"}, "not-a-knot needs at least 6 waypoints"),
+    ],
+)  # fmt: skip
+def test_a_bad_reference_is_one_error_naming_its_list(changes, named):
+    with pytest.raises(reference.ReferenceError) as caught:
+        reference.parse(_table(**changes), "r.toml")
+    message = str(caught.value)
+    assert message.startswith("r.toml is not a usable reference file:") and named in message
+    assert message.count("\n") == 1
+
+
+def test_units_convert_and_files_load(tmp_path):
+    parsed = reference.parse(_table(x={"value": [0, 100, 100], "unit": "cm"},
+                                    yaw={"value": [0, 90, 90], "unit": "deg"}))  # fmt: skip
+    assert [p[0] for p in parsed.positions] == [0.0, 1.0, 1.0]
+    assert parsed.yaw[1] == pytest.approx(math.pi / 2)
+    good = tmp_path / "r.toml"
+    good.write_text('[reference]\ntime = { value = [0, 4], unit = "s" }\n'
+                    + "".join(f'{a} = {{ value = [0, 1], unit = "m" }}\n' for a in "xyz")
+                    + 'yaw = { value = [0, 0], unit = "rad" }\n')  # fmt: skip
+    assert reference.load(good).times == (0.0, 4.0)
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[reference\n")
+    with pytest.raises(reference.ReferenceError, match="is not valid TOML"):
+        reference.load(broken)
+    with pytest.raises(reference.ReferenceError, match="missing \\[reference\\] table"):
+        reference.parse({})
