@@ -13,7 +13,8 @@ Read top to bottom, each layer uses only those below it:
   it runs (the paper's AFONFTSMC; FL, BSMC, FOBSMC, ANFTSMC), their declared gains,
   the registry and gains files;
 * :mod:`fojax.scenarios` (Section V as data), :mod:`fojax.plant` (eqs. (8)-(11)),
-  :mod:`fojax.vehicle` (other quadrotors, from files),
+  :mod:`fojax.vehicle` (other quadrotors, from files), :mod:`fojax.reference`
+  (references from waypoint files),
   :mod:`fojax.fractional` (fractional operators).
 """
 
@@ -23,6 +24,7 @@ from fojax import (
     metrics,
     observers,
     plant,
+    reference,
     requirements,
     scenarios,
     sharding,
@@ -74,6 +76,7 @@ __all__ = [
     "observers",
     "paper_gains",
     "plant",
+    "reference",
     "register",
     "requirements",
     "rollout",

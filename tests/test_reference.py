@@ -55,9 +55,9 @@ def test_the_spline_passes_through_the_waypoints_with_four_continuous_derivative
 def test_autodiff_derivatives_equal_the_polynomials_and_jit_equals_eager():
     spline = _paper_waypoints()[0].reference()
     times = np.linspace(0, 80, 97)
-    _, velocity, acceleration = jax.vmap(
-        lambda t: scenarios.reference_with_derivatives(spline, t)
-    )(jnp.asarray(times))
+    _, velocity, acceleration = jax.vmap(lambda t: scenarios.reference_with_derivatives(spline, t))(
+        jnp.asarray(times)
+    )
     np.testing.assert_allclose(velocity, spline.derivative(times, 1), atol=1e-12)
     np.testing.assert_allclose(acceleration, spline.derivative(times, 2), atol=1e-12)
     eager = np.array([np.asarray(spline(jnp.asarray(t))) for t in times])
@@ -89,8 +89,15 @@ def test_a_waypoint_reference_flies_in_a_scenario():
     keys = scenarios.draw_keys(0, range(2))
     controller = AFONFTSMC(dt=1e-3, horizon=0.2)
     runs = [
-        simulator.rollout_from_keys(controller, paper_gains(), plant.nominal_params(), s, keys,
-                                    config, observers.TrackingISE(config.dt))  # fmt: skip
+        simulator.rollout_from_keys(
+            controller,
+            paper_gains(),
+            plant.nominal_params(),
+            s,
+            keys,
+            config,
+            observers.TrackingISE(config.dt),
+        )  # fmt: skip
         for s in (base, dataclasses.replace(base, reference=spline))
     ]
     # the spline is within 1e-4 m of (54)-(55): the closed loops' positions and tracking
@@ -140,3 +147,79 @@ def test_units_convert_and_files_load(tmp_path):
         reference.load(broken)
     with pytest.raises(reference.ReferenceError, match="missing \\[reference\\] table"):
         reference.parse({})
+
+
+SIMULATE = ["--scenario", "2", "--controller", "afonftsmc", "--draws", "4", "--horizon", "10",
+            "--keep", "0", "--quiet"]  # fmt: skip
+
+
+def _sampled_file(path, span=10.0, step=1.0, climb=1.0):
+    """(54)-(55) sampled every ``step`` s over ``span`` s; ``climb`` scales ``z_r`` (a
+    negative one dives: below -g its acceleration asks for a tilt past 90 deg)."""
+    t = np.arange(0.0, span + 1e-9, step)
+    w = math.pi * t / 20
+    lists = {"x": 0.5 * np.cos(w), "y": 0.5 * np.sin(w), "z": climb * (2 - 2 * np.cos(w))}
+    text = '[reference]\nends = "not-a-knot"\n'
+    text += f'time = {{ value = {t.tolist()}, unit = "s" }}\n'
+    text += "".join(f'{k} = {{ value = {v.tolist()}, unit = "m" }}\n' for k, v in lists.items())
+    text += f'yaw = {{ value = {[0.5] * t.size}, unit = "rad" }}\n'
+    path.write_text(text)
+    return path
+
+
+def test_simulate_with_sampled_waypoints_tracks_as_the_built_in_reference(tmp_path, capsys):
+    import json
+
+    from fojax.cli import simulate
+
+    file = _sampled_file(tmp_path / "r.toml")
+    assert simulate.main([*SIMULATE, "--out", str(tmp_path / "a")]) == 0
+    assert simulate.main([*SIMULATE, "--reference", str(file), "--out", str(tmp_path / "b")]) == 0
+    rmse = [json.loads((tmp_path / d / "summary.json").read_text())["controllers"]["afonftsmc"]
+            ["metrics"]["position_rmse"]["mean"] for d in "ab"]  # fmt: skip
+    assert rmse[1] == pytest.approx(rmse[0], rel=0.01)
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert summary["reference"]["ends"] == "not-a-knot" and len(summary["reference"]["times"]) == 11
+    assert "reference: 11 waypoints over 10 s; peak speed" in capsys.readouterr().out
+
+
+def test_bad_references_stop_simulate_before_anything_is_written(tmp_path, capsys):
+    from conftest import usage_error
+
+    from fojax.cli import simulate
+
+    out = tmp_path / "out"
+    late = _sampled_file(tmp_path / "late.toml", span=12.0)
+    err = usage_error(
+        capsys, simulate.main, [*SIMULATE, "--reference", str(late), "--out", str(out)]
+    )
+    assert "its last waypoint (12 s) is after the end of the run (10 s)" in err
+    steep = _sampled_file(tmp_path / "steep.toml", climb=-1e3)
+    err = usage_error(
+        capsys, simulate.main, [*SIMULATE, "--reference", str(steep), "--out", str(out)]
+    )
+    assert "at or beyond the plant's limit of 90 deg" in err
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[reference]\ntime = { value = [0, 1], unit = "min" }\n')
+    err = usage_error(
+        capsys, simulate.main, [*SIMULATE, "--reference", str(bad), "--out", str(out)]
+    )
+    assert "argument --reference" in err and "reference.time: unit 'min' is not one of" in err
+    assert not out.exists()
+
+
+def test_the_documented_reference_file_parses_and_the_example_is_the_paper_curve():
+    import pathlib
+    import re
+    import tomllib
+
+    text = pathlib.Path("docs/model.md").read_text()
+    (block,) = [b for b in re.findall(r"```toml\n(.*?)```", text, re.S) if "[reference]" in b]
+    documented = reference.parse(tomllib.loads(block))
+    assert documented.ends == "rest" and documented.times[-1] == 25.0
+    assert documented.peaks()["tilt"] < 0.5 * math.pi
+    example = reference.load("examples/references/paper_54_55.toml")
+    assert example.times == tuple(SAMPLED)
+    expected = _paper_waypoints()[0]
+    np.testing.assert_allclose(example.positions, expected.positions, atol=1e-6)
+    np.testing.assert_allclose(example.yaw, expected.yaw, atol=0)

@@ -45,6 +45,8 @@ __all__ = [
     "positive_ints",
     "seed",
     "vehicle_file",
+    "reference_file",
+    "check_reference",
     "add_device_batch",
     "add_options",
     "add_runtime_options",
@@ -113,6 +115,37 @@ def vehicle_file(text: str):
         return vehicle.load(check_input_file(text, "vehicle file"))
     except ValueError as error:  # VehicleError is a ValueError
         raise ArgumentTypeError(str(error)) from None
+
+
+def reference_file(text: str):
+    """argparse type: a reference file (TOML, :mod:`fojax.reference`), loaded and
+    checked; every problem in one message."""
+    from fojax import reference
+
+    try:
+        return reference.load(check_input_file(text, "reference file"))
+    except ValueError as error:  # ReferenceError is a ValueError
+        raise ArgumentTypeError(str(error)) from None
+
+
+def check_reference(parser, waypoints, horizon: float) -> dict:
+    """The peaks of ``waypoints`` (:meth:`fojax.reference.Waypoints.peaks`); a usage
+    error (exit 2) when they leave the horizon or ask for a tilt at or beyond the
+    plant's limit (pi/2, where a draw is flagged ``tilt_limit``)."""
+    if waypoints is None:
+        return {}
+    if waypoints.times[-1] > horizon + 1e-9:
+        parser.error(
+            f"--reference: its last waypoint ({waypoints.times[-1]:g} s) is after the end of "
+            f"the run ({horizon:g} s); shorten the waypoints or give a longer --horizon"
+        )
+    peaks = waypoints.peaks()
+    if peaks["tilt"] >= 0.5 * math.pi:
+        parser.error(
+            f"--reference: its acceleration asks for a tilt of {math.degrees(peaks['tilt']):.0f}"
+            " deg, at or beyond the plant's limit of 90 deg; slow the waypoints down"
+        )
+    return peaks
 
 
 def add_vehicle(parser) -> None:

@@ -42,6 +42,7 @@ Every input is checked before anything is compiled. The study itself
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -94,6 +95,11 @@ def build_parser() -> argparse.ArgumentParser:
     arguments.add_options(parser, ("--out", arguments.OUTPUT_FOLDER))
     requirements_cli.add_simulate_options(parser)  # --requirements, --rotor-limit
     arguments.add_vehicle(parser)
+    parser.add_argument(
+        "--reference", type=arguments.reference_file, metavar="FILE",
+        help="reference file of timed waypoints (TOML, docs/model.md), flown in place of the "
+        "scenario's reference; its last waypoint within the run",
+    )  # fmt: skip
     arguments.add_runtime_options(parser)
     return parser
 
@@ -144,6 +150,7 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
     scenario = scenarios.get_scenario(args.scenario)
     horizon = args.horizon if args.horizon is not None else scenario.horizon
     steps = arguments.horizon_steps(parser, horizon, args.dt)
+    args.reference_peaks = arguments.check_reference(parser, args.reference, horizon)
     gains, sources = {}, {}
     dtype = args.dtype
     arguments.enable_dtype(dtype)
@@ -178,6 +185,7 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
         dtype=dtype,
         gains_sources=sources,
         vehicle=args.vehicle,
+        reference=args.reference,
     )
     study = requirements_cli.configure_study(parser, args, study)  # rotor-limited actuators
     arguments.check_controllers(
@@ -244,6 +252,12 @@ def main(argv=None) -> int:
         command=command,
         extra={"wall_time_s": wall},
     )
+    if study.reference is not None:
+        peaks = args.reference_peaks
+        print(f"reference: {len(study.reference.times)} waypoints over "
+              f"{study.reference.times[-1]:g} s; peak speed {peaks['speed']:.3g} m/s, "
+              f"acceleration {peaks['acceleration']:.3g} m/s^2, implied tilt "
+              f"{math.degrees(peaks['tilt']):.3g} deg")  # fmt: skip
     if study.vehicle is not None:
         v = study.vehicle
         print(f"vehicle: {v.description or 'the vehicle file'!s} (m = {v.mass:.4g} kg, "

@@ -107,6 +107,7 @@ def _header(study: Study, results: dict) -> dict:
         },
         "excluded_from_metrics": "draws flagged nonfinite or tilt_limit (counted in 'diverged')",
         **({} if study.vehicle is None else {"vehicle": study.vehicle.to_dict()}),
+        **({} if study.reference is None else {"reference": study.reference.to_dict()}),
         "controllers": {},
     }
 

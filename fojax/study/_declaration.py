@@ -69,6 +69,8 @@ class Study:
     """``w_max`` (rad/s) of rotor-limited actuators (None: ideal; ``--rotor-limit``)."""
     vehicle: Any = None
     """The :class:`fojax.vehicle.Vehicle` flown (None: the paper's; ``--vehicle``)."""
+    reference: Any = None
+    """The :class:`fojax.reference.Waypoints` flown (None: the scenario's; ``--reference``)."""
 
     def metrics_config(self, steps: int) -> metrics.MetricsConfig:
         return metrics.MetricsConfig(dt=self.dt, steps=steps, reaching_band=self.reaching_band)
@@ -90,8 +92,11 @@ def snapshot_interval(steps: int, dt: float, target: float = 0.1) -> int:
 
 
 def scenario_of(study: Study) -> scenarios.Scenario:
-    """The study's scenario, on the study's vehicle, with the study's horizon."""
+    """The study's scenario, on the study's vehicle and reference, with the study's
+    horizon."""
     scenario = scenarios.get_scenario(study.scenario_id).on(study.vehicle)
+    if study.reference is not None:
+        scenario = dataclasses.replace(scenario, reference=study.reference.reference())
     return dataclasses.replace(scenario, horizon=study.horizon)
 
 
