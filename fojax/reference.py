@@ -12,14 +12,19 @@ equally long lists, each with its unit::
     z = { value = [0, 2, 2, 2, 2], unit = "m" }
     yaw = { value = [0.1, 0.1, 0.1, 0.1, 0.1], unit = "rad" }
 
-The reference through them (:meth:`Waypoints.reference`) is, per axis, the quintic
+Or a named built-in reference (:data:`BUILTINS`), the table holding only its name::
+
+    [reference]
+    builtin = "paper-54-55"
+
+The reference through waypoints (:meth:`Waypoints.reference`) is, per axis, the quintic
 interpolating spline (degree 5, four continuous derivatives), by default at rest at
 both ends (zero velocity and acceleration at the first and last waypoint; ``ends =
 "not-a-knot"`` lets the ends follow the waypoints instead), and holds the last waypoint
 after it. The laws use the reference and its first two derivatives (exact,
 by forward-mode autodiff: :func:`fojax.scenarios.reference_with_derivatives`).
-:meth:`Waypoints.peaks` reports its peak speed, acceleration and the tilt its
-acceleration asks of the thrust. :func:`load` checks the file and raises one
+:meth:`Waypoints.peaks` (:meth:`Builtin.peaks`) reports its peak speed, acceleration and
+the tilt its acceleration asks of the thrust. :func:`load` checks the file and raises one
 :class:`ReferenceError` listing every problem.
 """
 
@@ -37,7 +42,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["AXES", "ReferenceError", "SplineReference", "Waypoints", "load", "parse"]
+__all__ = [
+    "AXES", "BUILTINS", "Builtin", "ReferenceError", "SplineReference", "Waypoints", "load",
+    "parse",
+]  # fmt: skip
 
 
 class ReferenceError(ValueError):
@@ -57,6 +65,65 @@ DEGREE = 5
 """The splines' degree: four continuous derivatives."""
 ENDS = ("rest", "not-a-knot")
 """The end conditions of a reference file's ``ends`` (:attr:`Waypoints.ends`)."""
+BUILTINS = {
+    "paper-54-55": ("reference_54_55", "the paper's (54)-(55): scenarios 1 and 2"),
+    "paper-57": ("reference_57", "the paper's (57) as printed: scenario 3"),
+    "paper-57-smoothed": ("reference_57_smoothed", "(57) with its start at 7 s smoothed"),
+}
+"""Named references of a file's ``builtin``: the :mod:`fojax.scenarios` function and
+what it is."""
+
+
+def _peaks(derivatives, start: float, end: float, samples_per_second: int) -> dict:
+    """Peak speed, acceleration and implied tilt over ``[start, end]`` of
+    ``derivatives(t, order) -> (len(t), 4)``."""
+    t = np.linspace(start, end, max(2, int(samples_per_second * (end - start)) + 1))
+    velocity = derivatives(t, 1)[:, :3]
+    acceleration = derivatives(t, 2)[:, :3]
+    vertical = acceleration[:, 2] + 9.81
+    horizontal = np.hypot(acceleration[:, 0], acceleration[:, 1])
+    return {
+        "speed": float(np.max(np.linalg.norm(velocity, axis=1))),
+        "acceleration": float(np.max(np.linalg.norm(acceleration, axis=1))),
+        "tilt": float(np.max(np.arctan2(horizontal, vertical))),
+    }
+
+
+@dataclasses.dataclass(frozen=True)
+class Builtin:
+    """A named reference of :mod:`fojax.scenarios` (:data:`BUILTINS`), defined at every
+    time (``end`` is ``None``)."""
+
+    name: str
+    description: str = ""
+    end = None
+
+    def reference(self):
+        """The scenarios' function ``t -> (4,)``."""
+        from fojax import scenarios
+
+        return getattr(scenarios, BUILTINS[self.name][0])
+
+    def fingerprint(self) -> str:
+        return self.name
+
+    def peaks(self, until: float, samples_per_second: int = 100) -> dict:
+        """As :meth:`Waypoints.peaks`, over ``[0, until]`` (one-sided derivatives where
+        the reference has a kink)."""
+        import jax
+
+        from fojax import scenarios
+
+        function = self.reference()
+        each = jax.jit(jax.vmap(lambda t: scenarios.reference_with_derivatives(function, t)))
+
+        def derivatives(t, order):
+            return np.asarray(each(np.asarray(t))[order], np.float64)
+
+        return _peaks(derivatives, 0.0, float(until), samples_per_second)
+
+    def to_dict(self) -> dict:
+        return {"description": self.description, "builtin": self.name}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,27 +158,23 @@ class Waypoints:
         coefficients = np.stack([np.asarray(axis.c)[:, keep] for axis in axes], axis=-1)
         return SplineReference(breaks, coefficients, self.fingerprint())
 
+    @property
+    def end(self) -> float:
+        """The last waypoint's time, s (held after it)."""
+        return self.times[-1]
+
     def fingerprint(self) -> str:
         """A digest of the waypoints (the reference's name in a run's fingerprint)."""
         text = json.dumps([self.times, self.positions, self.yaw, self.ends])
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
-    def peaks(self, samples_per_second: int = 100) -> dict:
+    def peaks(self, until: float | None = None, samples_per_second: int = 100) -> dict:
         """Peak speed (m/s), acceleration (m/s^2) and implied tilt (rad) of
-        :meth:`reference` over the waypoints' span: the tilt is that of the thrust
-        direction ``(a_x, a_y, a_z + g)`` the acceleration asks for, ``g = 9.81``."""
+        :meth:`reference` over the waypoints' span (held still after it, so ``until``
+        changes nothing): the tilt is that of the thrust direction ``(a_x, a_y, a_z + g)``
+        the acceleration asks for, ``g = 9.81``."""
         reference = self.reference()
-        span = self.times[-1] - self.times[0]
-        t = np.linspace(self.times[0], self.times[-1], max(2, int(samples_per_second * span) + 1))
-        velocity = reference.derivative(t, 1)[:, :3]
-        acceleration = reference.derivative(t, 2)[:, :3]
-        vertical = acceleration[:, 2] + 9.81
-        horizontal = np.hypot(acceleration[:, 0], acceleration[:, 1])
-        return {
-            "speed": float(np.max(np.linalg.norm(velocity, axis=1))),
-            "acceleration": float(np.max(np.linalg.norm(acceleration, axis=1))),
-            "tilt": float(np.max(np.arctan2(horizontal, vertical))),
-        }
+        return _peaks(reference.derivative, self.times[0], self.times[-1], samples_per_second)
 
     def to_dict(self) -> dict:
         return {"description": self.description, "times": list(self.times),
@@ -169,9 +232,9 @@ def _number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def parse(data: Mapping, source: str = "reference") -> Waypoints:
-    """The :class:`Waypoints` of a reference file's content; :class:`ReferenceError`
-    listing every problem, each naming its list."""
+def parse(data: Mapping, source: str = "reference") -> Waypoints | Builtin:
+    """The :class:`Waypoints` (or :class:`Builtin`) of a reference file's content;
+    :class:`ReferenceError` listing every problem, each naming its list."""
     problems: list[str] = []
     if not isinstance(data, Mapping):
         raise ReferenceError(f"{source}: expected a table, got {type(data).__name__}")
@@ -188,9 +251,25 @@ def parse(data: Mapping, source: str = "reference") -> Waypoints:
         raise ReferenceError(
             _message(
                 source,
-                problems + ["missing [reference] table (time, x, y, z, yaw: lists with units)"],
+                problems
+                + [
+                    "missing [reference] table (time, x, y, z, yaw: lists with units; "
+                    "or builtin = a name)"
+                ],
             )
         )
+    if "builtin" in table:
+        name = table["builtin"]
+        if name not in BUILTINS:
+            problems.append(f"reference.builtin: expected one of {', '.join(BUILTINS)}, got "
+                            f"{name!r}")  # fmt: skip
+        others = sorted(set(table) - {"builtin"})
+        if others:
+            problems.append(f"reference: builtin names the whole reference; remove "
+                            f"{', '.join(others)}")  # fmt: skip
+        if problems:
+            raise ReferenceError(_message(source, problems))
+        return Builtin(name, description or BUILTINS[name][1])
     unknown = sorted(set(table) - set(AXES) - {"ends"})
     if unknown:
         problems.append(f"reference: unknown list(s) {', '.join(unknown)} (the lists: "
@@ -255,9 +334,10 @@ def _message(source: str, problems: list[str]) -> str:
     return f"{source} is not a usable reference file:\n" + "\n".join(f"  {p}" for p in problems)
 
 
-def load(path: str | os.PathLike) -> Waypoints:
-    """The :class:`Waypoints` of the TOML file at ``path``; :class:`ReferenceError`
-    (one message, every problem) for a file that cannot be read or used."""
+def load(path: str | os.PathLike) -> Waypoints | Builtin:
+    """The :class:`Waypoints` (or :class:`Builtin`) of the TOML file at ``path``;
+    :class:`ReferenceError` (one message, every problem) for a file that cannot be read or
+    used."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())

@@ -69,7 +69,9 @@ class ProblemSpec:
     ``"float64"``. save_every: steps per checkpointed block of the reverse pass (``None``:
     :func:`checkpoint_interval`). compile: ``"optimized"`` or ``"fast"``
     (:data:`COMPILE_MODES`, the gradient program). vehicle: the
-    :class:`fojax.vehicle.Vehicle` flown (``None``: the paper's).
+    :class:`fojax.vehicle.Vehicle` flown (``None``: the paper's). reference: the
+    :mod:`fojax.reference` waypoints or built-in flown in place of every scenario's
+    reference (``None``: the scenarios' own).
     """
 
     controller: str = "afonftsmc"
@@ -86,11 +88,18 @@ class ProblemSpec:
     save_every: int | None = None
     compile: str = "optimized"
     vehicle: Any = None
+    reference: Any = None
 
     def __post_init__(self) -> None:
         registry.get_controller_class(self.controller)
+        from fojax.reference import Builtin, Waypoints
         from fojax.vehicle import Vehicle
 
+        if self.reference is not None and not isinstance(self.reference, Waypoints | Builtin):
+            raise ValueError(
+                "reference must be fojax.reference.Waypoints, a fojax.reference.Builtin or "
+                f"None, got {self.reference!r}"
+            )
         if self.vehicle is not None and not isinstance(self.vehicle, Vehicle):
             raise ValueError(
                 f"vehicle must be a fojax.vehicle.Vehicle or None, got {self.vehicle!r}"
@@ -144,9 +153,11 @@ class ProblemSpec:
         divides the horizon (a coarser step of the same draws)."""
         factor = dt / self.dt
         steps = self.horizon / dt
-        if abs(factor - round(factor)) > 1e-9 * factor or round(factor) < 1 or abs(
-            steps - round(steps)
-        ) > 1e-6 * steps:
+        if (
+            abs(factor - round(factor)) > 1e-9 * factor
+            or round(factor) < 1
+            or abs(steps - round(steps)) > 1e-6 * steps
+        ):
             raise ValueError(
                 f"a step of {dt} s must be a whole multiple of dt = {self.dt} s that divides "
                 f"the horizon ({self.horizon} s)"
@@ -157,9 +168,12 @@ class ProblemSpec:
         return self.save_every or checkpoint_interval(self.steps)
 
     def scenario_object(self) -> scenarios.Scenario:
-        """The scenario (a union for several) on the spec's vehicle."""
+        """The scenario (a union for several) on the spec's vehicle and reference."""
         ids = self.scenario if isinstance(self.scenario, tuple) else (self.scenario,)
         found = [scenarios.get_scenario(i).on(self.vehicle) for i in ids]
+        if self.reference is not None:
+            flown = self.reference.reference()
+            found = [dataclasses.replace(s, reference=flown) for s in found]
         return found[0] if len(found) == 1 else scenarios.union(*found)
 
     def make_controller(self, switching: str, horizon: float, dt: float | None = None):

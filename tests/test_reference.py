@@ -223,3 +223,83 @@ def test_the_documented_reference_file_parses_and_the_example_is_the_paper_curve
     expected = _paper_waypoints()[0]
     np.testing.assert_allclose(example.positions, expected.positions, atol=1e-6)
     np.testing.assert_allclose(example.yaw, expected.yaw, atol=0)
+
+
+def _builtin_file(path, name="paper-54-55", extra=""):
+    path.write_text(f'[reference]\nbuiltin = "{name}"\n{extra}')
+    return path
+
+
+def test_a_builtin_reference_is_the_scenarios_function_with_its_analytic_peaks(tmp_path):
+    from fojax import reference, scenarios
+
+    found = reference.load(_builtin_file(tmp_path / "b.toml"))
+    assert isinstance(found, reference.Builtin) and found.end is None
+    assert found.reference() is scenarios.reference_54_55
+    assert found.description == reference.BUILTINS["paper-54-55"][1]
+    # (54)-(55) over 10 s, w = pi / 20: speed^2 = (0.5 w)^2 + (2 w sin(w t))^2, largest
+    # at 10 s; acceleration w^2 sqrt(0.5^2 + (2 cos(w t))^2), largest at 0 s; the tilt
+    # atan2(0.5 w^2, g + 2 w^2 cos(w t)), largest at 10 s.
+    w = math.pi / 20
+    peaks = found.peaks(10.0)
+    assert peaks["speed"] == pytest.approx(w * math.hypot(0.5, 2.0), rel=1e-5)
+    assert peaks["acceleration"] == pytest.approx(w**2 * math.hypot(0.5, 2.0), rel=1e-5)
+    assert peaks["tilt"] == pytest.approx(math.atan2(0.5 * w**2, 9.81), rel=1e-4)
+    assert reference.load(_builtin_file(tmp_path / "c.toml", "paper-57")).reference() is (
+        scenarios.reference_57
+    )
+    with pytest.raises(reference.ReferenceError, match="reference.builtin: expected one of"):
+        reference.load(_builtin_file(tmp_path / "d.toml", "paper-56"))
+    with pytest.raises(reference.ReferenceError, match="builtin names the whole reference; "
+                       "remove ends"):  # fmt: skip
+        reference.load(_builtin_file(tmp_path / "e.toml", extra='ends = "rest"\n'))
+
+
+def test_simulate_with_the_builtin_file_equals_the_default_draw_for_draw(tmp_path, capsys):
+    import json
+
+    from fojax.cli import simulate
+
+    file = _builtin_file(tmp_path / "r.toml")
+    assert simulate.main([*SIMULATE, "--out", str(tmp_path / "a")]) == 0
+    assert simulate.main([*SIMULATE, "--reference", str(file), "--out", str(tmp_path / "b")]) == 0
+    a, b = (np.load(tmp_path / d / "draws.npz") for d in "ab")
+    assert set(a.files) == set(b.files) and a.files
+    for name in a.files:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert summary["reference"]["builtin"] == "paper-54-55"
+    assert summary["reference"]["peaks"]["speed_m_per_s"] == pytest.approx(0.3238, abs=1e-4)
+    assert "reference: built-in paper-54-55; peak speed 0.324 m/s" in capsys.readouterr().out
+
+
+TUNE = ["--scenario", "2", "--controller", "afonftsmc", "--horizon", "0.3", "--seed", "5",
+        "--dtype", "float64", "--init", "naive", "--method", "cma-es", "--steps", "1",
+        "--popsize", "4", "--draws", "2", "--validation-draws", "2", "--eval-draws", "2",
+        "--quiet"]  # fmt: skip
+
+
+def test_tune_flies_a_reference_file_and_a_resume_with_another_is_refused(tmp_path, capsys):
+    from conftest import usage_error
+
+    from fojax.cli import tune
+    from fojax.controllers import gains_io
+
+    builtin = _builtin_file(tmp_path / "b.toml")
+    assert tune.main([*TUNE, "--out", str(tmp_path / "a")]) == 0
+    assert tune.main([*TUNE, "--reference", str(builtin), "--out", str(tmp_path / "b")]) == 0
+    (_, a, _), (_, b, metadata) = (gains_io.load_gains(tmp_path / d / "gains.json") for d in "ab")
+    for field in a._fields:  # the built-in (54)-(55) is scenario 2's own reference
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+    assert metadata["settings"]["objective"]["problem"]["reference"]["name"] == "paper-54-55"
+    waypoints = _sampled_file(tmp_path / "w.toml", span=0.3, step=0.05)
+    err = usage_error(capsys, tune.parse_args,
+                      [*TUNE, "--reference", str(waypoints), "--resume", "--out",
+                       str(tmp_path / "b")])  # fmt: skip
+    assert 'objective.problem.reference.name: checkpoint "paper-54-55", now "<absent>"' in err
+    late = _sampled_file(tmp_path / "late.toml", span=1.0, step=0.1)
+    out = tmp_path / "c"
+    err = usage_error(capsys, tune.parse_args,
+                      [*TUNE, "--reference", str(late), "--out", str(out)])  # fmt: skip
+    assert "its last waypoint (1 s) is after the end of the run (0.3 s)" in err
+    assert "longer --horizon" in err and not out.exists()

@@ -4,6 +4,7 @@ file is one error naming its field."""
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -191,3 +192,51 @@ def test_the_documented_vehicle_file_is_the_paper_file():
     text = pathlib.Path("docs/model.md").read_text()
     (block,) = [b for b in re.findall(r"```toml\n(.*?)```", text, re.S) if "[vehicle]" in b]
     assert vehicle.parse(tomllib.loads(block)) == vehicle.Vehicle.paper()
+
+
+TUNE = ["tune", "--scenario", "2", "--controller", "afonftsmc", "--horizon", "0.3", "--seed",
+        "5", "--dtype", "float64", "--init", "naive", "--method", "cma-es", "--steps", "1",
+        "--popsize", "4", "--draws", "2", "--validation-draws", "2", "--eval-draws", "2",
+        "--quiet"]  # fmt: skip
+
+
+def test_tune_with_the_paper_file_equals_the_default_and_resume_names_it(tmp_path, capsys):
+    from conftest import usage_error
+
+    from fojax import cli
+    from fojax.cli import tune
+    from fojax.controllers import gains_io
+
+    assert cli.main([*TUNE, "--out", str(tmp_path / "a")]) == 0
+    assert cli.main([*TUNE, "--vehicle", PAPER_FILE, "--out", str(tmp_path / "b")]) == 0
+    (_, a, _), (_, b, metadata) = (gains_io.load_gains(tmp_path / d / "gains.json") for d in "ab")
+    for field in a._fields:
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+    evaluations = [json.loads((tmp_path / d / "evaluation.json").read_text()) for d in "ab"]
+    assert evaluations[0]["tuned"] == evaluations[1]["tuned"]
+    assert metadata["settings"]["objective"]["problem"]["vehicle"]["mass"] == 0.74
+    heavy = tmp_path / "heavy.toml"
+    heavy.write_text(Path(PAPER_FILE).read_text().replace("value = 0.74,", "value = 0.9,"))
+    err = usage_error(capsys, tune.parse_args, [*TUNE[1:], "--vehicle", str(heavy), "--resume",
+                                                "--out", str(tmp_path / "b")])  # fmt: skip
+    assert "objective.problem.vehicle.mass: checkpoint 0.74, now 0.9" in err
+
+
+@pytest.mark.slow
+def test_reproduce_with_the_paper_file_equals_the_default(tmp_path):
+    from fojax import cli
+
+    argv = ["reproduce", "--draws", "2", "--device-batch", "2", "--keep", "0", "--horizon",
+            "0.2", "--seed", "4", "--scenarios", "2", "--quiet"]  # fmt: skip
+    assert cli.main([*argv, "--out", str(tmp_path / "a")]) == 0
+    assert cli.main([*argv, "--vehicle", PAPER_FILE, "--out", str(tmp_path / "b")]) == 0
+    a, b = (json.loads((tmp_path / d / "report.json").read_text()) for d in "ab")
+
+    def timeless(tree):  # every number but the wall times
+        if isinstance(tree, dict):
+            return {k: timeless(v) for k, v in tree.items() if k != "wall_time_s"}
+        return [timeless(v) for v in tree] if isinstance(tree, list) else tree
+
+    assert timeless(a["scenarios"]) == timeless(b["scenarios"])
+    assert timeless(a["claims"]) == timeless(b["claims"])
+    assert b["settings"]["vehicle"] == vehicle.Vehicle.paper().to_dict()

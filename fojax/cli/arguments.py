@@ -47,6 +47,7 @@ __all__ = [
     "vehicle_file",
     "reference_file",
     "check_reference",
+    "describe_reference",
     "add_device_batch",
     "add_options",
     "add_runtime_options",
@@ -128,24 +129,35 @@ def reference_file(text: str):
         raise ArgumentTypeError(str(error)) from None
 
 
-def check_reference(parser, waypoints, horizon: float) -> dict:
-    """The peaks of ``waypoints`` (:meth:`fojax.reference.Waypoints.peaks`); a usage
-    error (exit 2) when they leave the horizon or ask for a tilt at or beyond the
-    plant's limit (pi/2, where a draw is flagged ``tilt_limit``)."""
-    if waypoints is None:
+def check_reference(parser, reference, horizon: float, option: str = "--horizon") -> dict:
+    """The peaks of ``reference`` (waypoints or a built-in, :mod:`fojax.reference`) over
+    the run; a usage error (exit 2) when its waypoints leave the horizon (``option``
+    sets it) or it asks for a tilt at or beyond the plant's limit (pi/2, where a draw is
+    flagged ``tilt_limit``)."""
+    if reference is None:
         return {}
-    if waypoints.times[-1] > horizon + 1e-9:
+    if reference.end is not None and reference.end > horizon + 1e-9:
         parser.error(
-            f"--reference: its last waypoint ({waypoints.times[-1]:g} s) is after the end of "
-            f"the run ({horizon:g} s); shorten the waypoints or give a longer --horizon"
+            f"--reference: its last waypoint ({reference.end:g} s) is after the end of "
+            f"the run ({horizon:g} s); shorten the waypoints or give a longer {option}"
         )
-    peaks = waypoints.peaks()
+    peaks = reference.peaks(horizon)
     if peaks["tilt"] >= 0.5 * math.pi:
         parser.error(
             f"--reference: its acceleration asks for a tilt of {math.degrees(peaks['tilt']):.0f}"
             " deg, at or beyond the plant's limit of 90 deg; slow the waypoints down"
         )
     return peaks
+
+
+def describe_reference(reference, peaks: dict) -> str:
+    """One line: what the reference is and its peaks."""
+    what = (f"{len(reference.times)} waypoints over {reference.end:g} s"
+            if reference.end is not None else f"built-in {reference.name}")  # fmt: skip
+    return (
+        f"reference: {what}; peak speed {peaks['speed']:.3g} m/s, acceleration "
+        f"{peaks['acceleration']:.3g} m/s^2, tilt {math.degrees(peaks['tilt']):.1f} deg"
+    )
 
 
 def add_vehicle(parser) -> None:

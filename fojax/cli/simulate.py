@@ -42,7 +42,6 @@ Every input is checked before anything is compiled. The study itself
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -253,11 +252,7 @@ def main(argv=None) -> int:
         extra={"wall_time_s": wall},
     )
     if study.reference is not None:
-        peaks = args.reference_peaks
-        print(f"reference: {len(study.reference.times)} waypoints over "
-              f"{study.reference.times[-1]:g} s; peak speed {peaks['speed']:.3g} m/s, "
-              f"acceleration {peaks['acceleration']:.3g} m/s^2, implied tilt "
-              f"{math.degrees(peaks['tilt']):.3g} deg")  # fmt: skip
+        print(arguments.describe_reference(study.reference, args.reference_peaks))
     if study.vehicle is not None:
         v = study.vehicle
         print(f"vehicle: {v.description or 'the vehicle file'!s} (m = {v.mass:.4g} kg, "

@@ -5,6 +5,7 @@ figures (:mod:`fojax.cli.figures`)."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -107,8 +108,22 @@ def _header(study: Study, results: dict) -> dict:
         },
         "excluded_from_metrics": "draws flagged nonfinite or tilt_limit (counted in 'diverged')",
         **({} if study.vehicle is None else {"vehicle": study.vehicle.to_dict()}),
-        **({} if study.reference is None else {"reference": study.reference.to_dict()}),
+        **({} if study.reference is None else {"reference": reference_record(study)}),
         "controllers": {},
+    }
+
+
+def reference_record(study: Study) -> dict:
+    """The study's reference file as ``summary.json`` records it, with its peaks over the
+    run (speed m/s, acceleration m/s^2, the tilt it implies in degrees)."""
+    peaks = study.reference.peaks(study.horizon)
+    return {
+        **study.reference.to_dict(),
+        "peaks": {
+            "speed_m_per_s": peaks["speed"],
+            "acceleration_m_per_s2": peaks["acceleration"],
+            "tilt_deg": math.degrees(peaks["tilt"]),
+        },  # fmt: skip
     }
 
 

@@ -156,6 +156,9 @@ OPTIONS = (
     Option("--vehicle", dict(type=arguments.vehicle_file, metavar="FILE", help="vehicle file "
            "(TOML, docs/model.md); default the paper's quadrotor; its rotor limit, if any, "
            "makes the actuators rotor-limited")),
+    Option("--reference", dict(type=arguments.reference_file, metavar="FILE", help="reference "
+           "file (TOML, docs/model.md: timed waypoints or a built-in) flown in place of the "
+           "scenario's; its last waypoint within --horizon")),
     # the objective
     Option("--objective", dict(choices=WEIGHTED + CONSTRAINED, help="mean or cvar of the "
            "weighted-sum cost (mean); with --requirements what is minimised under them: "
@@ -293,6 +296,7 @@ def parse_args(argv) -> Run:
         reason = option.applies(args) if option.applies and option.dest in given else None
         if reason:
             parser.error(f"{option.flag} {reason}; leave it out")
+    args.reference_peaks = arguments.check_reference(parser, args.reference, args.horizon)
     try:
         return _build(parser, args)
     except ValueError as error:
@@ -315,9 +319,9 @@ def _build(parser, args) -> Run:
     cost = optimize.CostConfig(args.error, objective=reduction,
                                cvar_fraction=args.cvar_fraction, **weights)  # fmt: skip
     take = ("controller", "scenario", "horizon", "dt", "draws", "seed", "share", "fractional",
-            "dtype", "compile", "vehicle")  # fmt: skip
+            "dtype", "compile", "vehicle", "reference")  # fmt: skip
     spec = optimize.ProblemSpec(cost=cost, fields=fields, **{k: getattr(args, k) for k in take})
-    if args.eval_horizon is not None:  # checked: a whole number of steps
+    if args.eval_horizon is not None:  # a ValueError unless a whole number of steps
         dataclasses.replace(spec, horizon=args.eval_horizon)
     gains, label = _initial_gains(parser, args)
     reqs, limit = requirements_cli.resolve_requirements(args)
@@ -464,10 +468,18 @@ def _announce(run: Run) -> str:
     what = "the weighted-sum cost"
     if reqs is not None:
         what = f"{args.objective} under {len(reqs)} requirements ({', '.join(reqs.names)})"
-    return (
+    lines = [
         f"tuning {spec.controller} on scenario {spec.scenario}: {what}, {args.method}, "
         f"{spec.draws} draws x {spec.horizon:g} s, {run.objective.size} parameters"
-    )
+    ]
+    if spec.vehicle is not None:
+        lines.append(
+            f"vehicle: {spec.vehicle.description or 'the vehicle file'} "
+            f"(m = {spec.vehicle.mass:.4g} kg, d = {spec.vehicle.arm_length:.4g} m)"
+        )
+    if spec.reference is not None:
+        lines.append(arguments.describe_reference(spec.reference, args.reference_peaks))
+    return "\n".join(lines)
 
 
 def _summary(run: Run, result, wall: float) -> str:
