@@ -114,6 +114,18 @@ def finish(out: Path, results: dict, text: str, doc=None, block=None, doc_text=N
     return 0
 
 
+def yield_cell(summary: dict) -> str:
+    """``passed/draws, yield % (interval %)`` of a requirement yield (its ``to_dict``),
+    and its failing requirements, most failures first."""
+    low, high = (100 * v for v in summary["interval"])
+    failed = [(k, n) for k, n in summary["failures"].items() if n]
+    failures = ", ".join(f"{n} on {k}" for k, n in sorted(failed, key=lambda kn: -kn[1]))
+    return (
+        f"{summary['passed']}/{summary['draws']}, {100 * summary['yield']:.1f} % "
+        f"({low:.1f}-{high:.1f} %)" + (f", failures: {failures}" if failures else "")
+    )
+
+
 def mean_cell(entry: dict, diverged: str) -> str:
     """``mean ± half-width`` of ``entry["cost"]`` (:func:`fojax.statistics.mean_ci`), and
     ``(n <diverged>)`` where draws diverged; ``n/a`` without a mean."""

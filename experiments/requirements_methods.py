@@ -77,16 +77,6 @@ def run_method(method: str, out: Path) -> dict:
     }
 
 
-def _yield(summary: dict) -> str:
-    low, high = (100 * v for v in summary["interval"])
-    failed = [(k, n) for k, n in summary["failures"].items() if n]
-    failures = ", ".join(f"{n} on {k}" for k, n in sorted(failed, key=lambda kn: -kn[1]))
-    return (
-        f"{summary['passed']}/{summary['draws']}, {100 * summary['yield']:.1f} % "
-        f"({low:.1f}-{high:.1f} %)" + (f", failures: {failures}" if failures else "")
-    )
-
-
 def table(runs: list[dict]) -> str:
     first = runs[0]["heldout"]["initial"]
     rows = [
@@ -103,7 +93,7 @@ def table(runs: list[dict]) -> str:
         name = f"`{run['method']}`" + (" (the default)" if run["method"] == "auto" else "")
         rows.append(
             f"| {name} | {run['command_s']:.0f} | {run['tuning_s']:.0f} | {when} | "
-            f"{run['returned_step']} | {_yield(tuned)} | {tuned['objective']:.3g} | "
+            f"{run['returned_step']} | {_common.yield_cell(tuned)} | {tuned['objective']:.3g} | "
             f"{run['draw_steps']:.3g} |"
         )
     heldout = runs[0]["heldout"]

@@ -1,0 +1,223 @@
+"""The paper's gains, and the five controllers tuned from the naive start, on the vehicles
+of ``examples/vehicles/`` other than the paper's.
+
+    python -m experiments.vehicles [--out results/vehicles] [--vehicles crazyflie,iris]
+        [--controllers afonftsmc,anftsmc,fobsmc,bsmc,fl] [--draws 64] [--retune]
+        [--update-doc]
+
+Per vehicle ``V`` (``examples/vehicles/V.toml``, judged by ``examples/requirements/V.toml``),
+every step a ``fojax`` command in a process of its own, as a user runs it:
+
+1. **Tuning.** For each controller ``fojax tune --vehicle V --scenario 2 --controller C
+   --init naive`` with the default method (its held-out evaluation: 64 draws x 10 s).
+   A controller whose ``gains.json`` is in ``--out`` is not tuned again unless
+   ``--retune``.
+2. **Yields.** ``fojax simulate --vehicle V --scenario 2 --controller all --requirements
+   examples/requirements/V.toml --horizon 10 --seed 1`` with the paper's gains, then
+   with the tuned gains: each controller's yield (Clopper-Pearson 95 % interval), the
+   requirement failing most, the diverged draws. Seed 1 draws are none of the tuner's.
+3. **The full horizon.** The same two studies over scenario 2's 80 s (no requirements):
+   diverged draws and position RMSE.
+
+Writes ``results.json`` and ``table.md`` to ``--out``; ``--update-doc`` replaces the
+``vehicles`` block of docs/vehicles.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from experiments import _common
+from fojax.cli import output
+
+ROOT = Path(__file__).resolve().parent.parent
+DOC = ROOT / "docs" / "vehicles.md"
+CONTROLLERS = ("afonftsmc", "anftsmc", "fobsmc", "bsmc", "fl")
+SEED = 1
+"""The seed of the yield and full-horizon draws (the tuner draws from seed 0)."""
+
+
+def files(vehicle: str) -> tuple[str, str]:
+    """The vehicle file and requirement file of ``vehicle`` (relative to the root)."""
+    return f"examples/vehicles/{vehicle}.toml", f"examples/requirements/{vehicle}.toml"
+
+
+def tune_command(vehicle: str, controller: str, out: Path) -> list[str]:
+    return [
+        *("fojax", "tune", "--vehicle", files(vehicle)[0], "--scenario", "2"),
+        *("--controller", controller, "--init", "naive", "--quiet", "--out", str(out)),
+    ]
+
+
+def simulate_command(vehicle: str, controllers, draws: int, gains, out: Path, full: bool):
+    """``fojax simulate`` of ``controllers`` with ``gains`` (files; none: the paper's):
+    the requirements over 10 s, or (``full``) scenario 2's own horizon without them."""
+    words = ["fojax", "simulate", "--vehicle", files(vehicle)[0], "--scenario", "2"]
+    words += ["--controller", ",".join(controllers), "--draws", str(draws), "--seed", str(SEED)]
+    words += [] if full else ["--horizon", "10", "--requirements", files(vehicle)[1]]
+    for path in gains:
+        words += ["--gains", str(path)]
+    return [*words, "--keep", "0", "--no-figures", "--quiet", "--out", str(out)]
+
+
+def _run(words: list[str]) -> float:
+    """Run a ``fojax`` command from the root; its wall time (s)."""
+    start = time.perf_counter()
+    argv = [sys.executable, "-m", "fojax.cli", *words[1:]]
+    subprocess.run(argv, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - start
+
+
+def tune(vehicle: str, controller: str, out: Path, again: bool) -> dict:
+    """Tune ``controller`` for ``vehicle`` (unless done and not ``again``); what it wrote."""
+    seconds = None
+    if again or not (out / "gains.json").is_file():
+        if out.exists():
+            shutil.rmtree(out)
+        print(f"  {' '.join(tune_command(vehicle, controller, out))}", flush=True)
+        load = output.load_average()
+        seconds = round(_run(tune_command(vehicle, controller, out)), 1)
+        print(f"    {seconds:.0f} s", flush=True)
+    else:
+        load = None
+    metadata = json.loads((out / "gains.json").read_text())["metadata"]
+    evaluation = json.loads((out / "evaluation.json").read_text())
+    return {
+        "command": " ".join(tune_command(vehicle, controller, Path("DIR"))),
+        "command_s": seconds,
+        "load_before": load,
+        "tuning_s": metadata["wall_time_s"],
+        "steps": metadata["steps"],
+        "returned_step": metadata["returned_step"],
+        "heldout": {k: evaluation[k] for k in ("draws", "horizon_s", "initial", "tuned")},
+    }
+
+
+def study(vehicle: str, controllers, draws: int, gains, out: Path, full: bool) -> dict:
+    """One ``fojax simulate`` run; per controller its diverged draws, position RMSE and
+    (requirements) yield."""
+    words = simulate_command(vehicle, controllers, draws, gains, out, full)
+    print(f"  {' '.join(words)}", flush=True)
+    seconds = _run(words)
+    summary = json.loads((out / "summary.json").read_text())
+    rows = {}
+    for name, entry in summary["controllers"].items():
+        rmse = entry["metrics"]["position_rmse"]
+        rows[name] = {
+            "diverged": entry["diverged"],
+            "draws": entry["draws"],
+            "position_rmse": rmse["mean"],
+            "position_rmse_ci95": rmse["ci95"],
+            **({"requirements": entry["requirements"]} if "requirements" in entry else {}),
+        }
+    return {
+        "command": " ".join(simulate_command(vehicle, controllers, draws,
+                                             ["GAINS"] * bool(gains), Path("DIR"), full)),
+        "seconds": round(seconds, 1),
+        "horizon_s": summary["horizon_s"],
+        "actuators": summary.get("actuators"),
+        "controllers": rows,
+    }  # fmt: skip
+
+
+def run_vehicle(vehicle: str, controllers, draws: int, out: Path, again: bool) -> dict:
+    print(f"{vehicle}:", flush=True)
+    tuned = {c: tune(vehicle, c, out / "tune" / c, again) for c in controllers}
+    gains = [out / "tune" / c / "gains.json" for c in controllers]
+    return {
+        "vehicle": files(vehicle)[0],
+        "requirements": files(vehicle)[1],
+        "tuning": tuned,
+        "paper": study(vehicle, controllers, draws, [], out / "paper", False),
+        "tuned": study(vehicle, controllers, draws, gains, out / "tuned", False),
+        "paper_full": study(vehicle, controllers, draws, [], out / "paper_full", True),
+        "tuned_full": study(vehicle, controllers, draws, gains, out / "tuned_full", True),
+    }
+
+
+def _rmse(row: dict) -> str:
+    if row["position_rmse"] is None:
+        return "n/a"
+    diverged = f", {row['diverged']} diverged" if row["diverged"] else ""
+    return f"{row['position_rmse']:.3g}{diverged}"
+
+
+def table(results: dict) -> str:
+    parts = []
+    for vehicle, run in results["vehicles"].items():
+        draws = next(iter(run["tuned"]["controllers"].values()))["draws"]
+        actuators = run["tuned"]["actuators"] or {}
+        limit = (
+            f"rotor-limited at {actuators['rotor_speed_limit_rad_s']:.4g} rad/s (thrust-to-weight "
+            f"{actuators['thrust_to_weight']:.3g})"
+            if actuators.get("rotor_limited")
+            else "ideal actuators"
+        )
+        parts.append(
+            f"#### {vehicle} (`{run['vehicle']}`, `{run['requirements']}`; {limit})\n\n"
+            f"Yields on {draws} draws x 10 s of scenario 2 (seed {SEED}, none of the tuner's), "
+            f"Clopper-Pearson 95 %; position RMSE (m) on the same draws over "
+            f"{run['tuned_full']['horizon_s']:g} s; the tuning's own held-out cost "
+            f"({run['tuning'][next(iter(run['tuning']))]['heldout']['draws']} draws x 10 s).\n"
+        )
+        rows = [
+            "| controller | paper's gains: yield | paper's gains: RMSE, 80 s | tuned from naive: "
+            "steps, time (s) | held-out cost (start) | tuned: yield | tuned: RMSE, 80 s |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for name, tuning in run["tuning"].items():
+            held = tuning["heldout"]
+            start, end = held["initial"], held["tuned"]
+            cost = f"{end['score']:.4g}" + (f", {end['diverged']} diverged" if end["diverged"]
+                                             else "")  # fmt: skip
+            paper, tuned = (run[k]["controllers"][name]["requirements"] for k in ("paper", "tuned"))
+            rows.append(
+                f"| {name} | {_common.yield_cell(paper)} | "
+                f"{_rmse(run['paper_full']['controllers'][name])} | {tuning['steps']}, "
+                f"{tuning['tuning_s']:.0f} | {cost} ({start['score']:.3g}) | "
+                f"{_common.yield_cell(tuned)} | {_rmse(run['tuned_full']['controllers'][name])} |"
+            )
+        parts.append("\n".join(rows))
+    commands = next(iter(results["vehicles"].values()))
+    parts.append(
+        "Commands (V the vehicle, C the controller): `"
+        + commands["tuning"][next(iter(commands["tuning"]))]["command"]
+        + "`, then `"
+        + commands["tuned"]["command"]
+        + "` with each tuned gains file, and without `--gains` for the paper's; the 80 s runs "
+        "drop `--horizon` and `--requirements`."
+    )
+    return "\n\n".join(parts)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m experiments.vehicles")
+    parser.add_argument("--out", type=Path, default=Path("results/vehicles"))
+    parser.add_argument("--vehicles", default="crazyflie,iris")
+    parser.add_argument("--controllers", default=",".join(CONTROLLERS))
+    parser.add_argument("--draws", type=int, default=64)
+    parser.add_argument("--retune", action="store_true", help="tune again what is in --out")
+    parser.add_argument("--update-doc", action="store_true")
+    args = parser.parse_args(argv)
+    vehicles, controllers = _common.listed(args.vehicles), _common.listed(args.controllers)
+    missing = [p for v in vehicles for p in files(v) if not (ROOT / p).is_file()]
+    if missing:
+        parser.error(f"--vehicles: no {', '.join(missing)}")
+    results = {
+        "vehicles": {
+            v: run_vehicle(v, controllers, args.draws, args.out / v, args.retune) for v in vehicles
+        },
+        "command": output.invocation(),
+    }
+    doc = DOC if args.update_doc else None
+    return _common.finish(args.out, results, table(results), doc, "vehicles")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
