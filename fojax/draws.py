@@ -75,6 +75,10 @@ def draw_keys(seed: int, indices: Iterable[int] | Array) -> Array:
     return jax.vmap(lambda i: jax.random.fold_in(base, i))(indices)
 
 
+_VEHICLE_TAG = 0x5E41
+"""Folded into a draw's key for its vehicle file's uncertainty (:meth:`Vehicle.perturb`)."""
+
+
 def hold_layout(horizon: float, hold: float, dt: float) -> tuple[int, int]:
     """``(steps per hold, number of holds)`` covering steps ``0 ... ceil(horizon/dt)``."""
     hold_steps = max(1, round(hold / dt))
@@ -163,6 +167,9 @@ def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None, member: A
     params = nominal._replace(
         mass=nominal.mass * mass_factor, inertia=nominal.inertia * inertia_factor
     )
+    if scenario.vehicle is not None and scenario.vehicle.uncertainty:
+        # a key of its own: the scenario's processes draw as without it
+        params = scenario.vehicle.perturb(params, jax.random.fold_in(key, _VEHICLE_TAG))
 
     drag_hold_steps, n_drag = hold_layout(scenario.horizon, scenario.drag_hold, dt)
     if scenario.has_drag_variation:

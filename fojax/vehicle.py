@@ -18,6 +18,13 @@ optionally the rotors' limit as ``rotor_speed_limit`` (rad/s or rpm) or
     rotor_inertia = { value = 2.8385e-5, unit = "kg m^2" }
     gravity = { value = 9.81, unit = "m/s^2" }
 
+An optional ``[uncertainty]`` table gives relative half-widths of the fields (not
+gravity) that vary from draw to draw, as a per cent or a plain share::
+
+    [uncertainty]
+    mass = { value = 5, unit = "%" }
+    thrust_factor = { value = 0.1, unit = "1" }
+
 Every field is required (a vehicle is never half the paper's); units are converted to
 SI by the factors of :data:`FIELDS`. :func:`load` checks the whole file and raises one
 :class:`VehicleError` listing every problem (the field, what is wrong, what to write),
@@ -36,7 +43,7 @@ from typing import Any
 
 from fojax import plant
 
-__all__ = ["FIELDS", "Field", "Vehicle", "VehicleError", "load", "parse"]
+__all__ = ["FIELDS", "UNCERTAIN", "Field", "Vehicle", "VehicleError", "load", "parse"]
 
 
 class VehicleError(ValueError):
@@ -86,7 +93,10 @@ FIELDS: dict[str, Field] = {
 """The quantities of a vehicle file (each a field of :class:`fojax.plant.PlantParams`)."""
 
 _SPEED = {"rad/s": 1.0, "rpm": 2.0 * math.pi / 60.0}
-_TOP = ("description", "vehicle")
+_TOP = ("description", "vehicle", "uncertainty")
+_RELATIVE = {"1": 1.0, "%": 1e-2}
+UNCERTAIN = tuple(name for name in FIELDS if name != "gravity")
+"""The fields an ``[uncertainty]`` table may name."""
 _LIMITS = ("rotor_speed_limit", "thrust_to_weight")
 
 
@@ -94,7 +104,10 @@ _LIMITS = ("rotor_speed_limit", "thrust_to_weight")
 class Vehicle:
     """A quadrotor: its :data:`FIELDS` in SI units (floats; tuples for vectors), the
     rotors' speed limit (rad/s) or thrust-to-weight ratio where it has one, and a
-    description. :meth:`params` is the simulator's :class:`fojax.plant.PlantParams`."""
+    description. :meth:`params` is the simulator's :class:`fojax.plant.PlantParams`.
+    uncertainty: ``((field, a), ...)``, relative half-widths in :data:`FIELDS` order:
+    every draw's plant has ``field (1 + U[-a, a])``, independently per component
+    (:meth:`perturb`); the controllers keep the nominal values as their model."""
 
     mass: float
     inertia: tuple[float, float, float]
@@ -108,6 +121,7 @@ class Vehicle:
     rotor_speed_limit: float | None = None
     thrust_to_weight: float | None = None
     description: str = ""
+    uncertainty: tuple[tuple[str, float], ...] = ()
 
     @classmethod
     def paper(cls) -> Vehicle:
@@ -129,6 +143,20 @@ class Vehicle:
         return plant.PlantParams(**{name: jnp.asarray(getattr(self, name), dtype)
                                     for name in FIELDS})  # fmt: skip
 
+    def perturb(self, params: plant.PlantParams, key) -> plant.PlantParams:
+        """``params`` with every field of :attr:`uncertainty` multiplied by ``1 + U[-a,
+        a]`` (one factor per component), drawn from ``key``; ``params`` itself without
+        uncertainty. Pure; ``vmap``-able over ``key``."""
+        import jax
+
+        changes = {}
+        for name, half_width in self.uncertainty:
+            value = getattr(params, name)
+            subkey = jax.random.fold_in(key, UNCERTAIN.index(name))
+            factor = jax.random.uniform(subkey, value.shape, value.dtype, -half_width, half_width)
+            changes[name] = value * (1.0 + factor)
+        return params._replace(**changes)
+
     def speed_limit(self) -> float | None:
         """``w_max`` in rad/s: the given one, or the one at which four rotors give
         :attr:`thrust_to_weight` times the weight; ``None`` for unlimited rotors."""
@@ -145,7 +173,8 @@ class Vehicle:
         for name in _LIMITS:
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name)
-        return {"description": self.description, "vehicle": out}
+        uncertainty = {"uncertainty": dict(self.uncertainty)} if self.uncertainty else {}
+        return {"description": self.description, "vehicle": out, **uncertainty}
 
 
 _PAPER = {
@@ -259,9 +288,39 @@ def parse(data: Mapping, source: str = "vehicle") -> Vehicle:
             )
         else:
             values["thrust_to_weight"] = float(ratio)
+    uncertainty = _uncertainty(data.get("uncertainty", {}), problems)
     if problems:
         raise VehicleError(_message(source, problems))
-    return Vehicle(**values, description=description)
+    return Vehicle(**values, description=description, uncertainty=uncertainty)
+
+
+def _uncertainty(table: Any, problems: list[str]) -> tuple[tuple[str, float], ...]:
+    """The ``[uncertainty]`` table's relative half-widths in :data:`FIELDS` order."""
+    if not isinstance(table, Mapping):
+        problems.append(f"uncertainty: expected a table of fields, got {table!r}")
+        return ()
+    unknown = sorted(set(table) - set(UNCERTAIN))
+    if unknown:
+        problems.append(f"uncertainty: unknown field(s) {', '.join(unknown)} (the fields: "
+                        f"{', '.join(UNCERTAIN)})")  # fmt: skip
+    found = []
+    for name in (n for n in UNCERTAIN if n in table):
+        entry, where = table[name], f"uncertainty.{name}"
+        if not (isinstance(entry, Mapping) and set(entry) == {"value", "unit"}):
+            problems.append(f'{where}: expected {{ value = ..., unit = "%" }} (or unit "1"), '
+                            f"got {entry!r}")  # fmt: skip
+            continue
+        if entry["unit"] not in _RELATIVE:
+            problems.append(f'{where}: unit {entry["unit"]!r} is not one of "1", "%"')
+            continue
+        value = entry["value"]
+        share = float(value) * _RELATIVE[entry["unit"]] if _number(value) else math.nan
+        if not 0 <= share < 1:
+            problems.append(f"{where}: expected a relative half-width in [0, 1) (below 100 %), "
+                            f"got {value!r} {entry['unit']}")  # fmt: skip
+            continue
+        found.append((name, share))
+    return tuple(found)
 
 
 def _message(source: str, problems: list[str]) -> str:

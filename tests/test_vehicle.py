@@ -240,3 +240,51 @@ def test_reproduce_with_the_paper_file_equals_the_default(tmp_path):
     assert timeless(a["scenarios"]) == timeless(b["scenarios"])
     assert timeless(a["claims"]) == timeless(b["claims"])
     assert b["settings"]["vehicle"] == vehicle.Vehicle.paper().to_dict()
+
+
+@pytest.mark.parametrize(
+    "uncertainty, named",
+    [
+        ({"gravity": {"value": 1, "unit": "%"}}, "uncertainty: unknown field(s) gravity"),
+        ({"mass": 0.1}, 'uncertainty.mass: expected { value = ..., unit = "%" }'),
+        ({"mass": {"value": 5, "unit": "kg"}}, "uncertainty.mass: unit 'kg' is not one of"),
+        ({"mass": {"value": 100, "unit": "%"}}, "uncertainty.mass: expected a relative"),
+        ({"mass": {"value": -0.1, "unit": "1"}}, "uncertainty.mass: expected a relative"),
+        ({"mass": {"value": "5", "unit": "%"}}, "uncertainty.mass: expected a relative"),
+        ("5 %", "uncertainty: expected a table of fields"),
+    ],
+)  # fmt: skip
+def test_a_bad_uncertainty_is_one_error_naming_its_field(uncertainty, named):
+    with pytest.raises(vehicle.VehicleError) as caught:
+        vehicle.parse({**_table(), "uncertainty": uncertainty}, "v.toml")
+    message = str(caught.value)
+    assert named in message and message.count("\n") == 1
+
+
+def test_a_vehicles_uncertainty_varies_each_draws_plant_within_its_bounds():
+    import jax.numpy as jnp
+
+    from fojax import draws, scenarios
+
+    table = {**_table(), "uncertainty": {"thrust_factor": {"value": 10, "unit": "%"},
+                                         "inertia": {"value": 0.2, "unit": "1"}}}  # fmt: skip
+    uncertain = vehicle.parse(table)
+    assert uncertain.uncertainty == (("inertia", 0.2), ("thrust_factor", 0.1))
+    assert uncertain.to_dict()["uncertainty"] == {"inertia": 0.2, "thrust_factor": 0.1}
+    base = scenarios.get_scenario(2)
+    keys = scenarios.draw_keys(0, jnp.arange(2000))
+    plain = draws.sample_draws(base.on(vehicle.parse(_table())), keys, 1e-3, jnp.float64)
+    varied = draws.sample_draws(base.on(uncertain), keys, 1e-3, jnp.float64)
+    paper = vehicle.Vehicle.paper()
+    thrust = np.asarray(varied.params.thrust_factor) / paper.thrust_factor
+    inertia = np.asarray(varied.params.inertia) / np.asarray(paper.inertia)[:, None]
+    # U[1 - a, 1 + a]: inside the bounds, spread over them, mean 1, axes independent
+    assert thrust.min() >= 0.9 and thrust.max() <= 1.1 and np.ptp(thrust) > 0.19
+    assert abs(thrust.mean() - 1) < 3 * 0.1 / math.sqrt(3 * 2000)
+    assert inertia.min() >= 0.8 and inertia.max() <= 1.2
+    assert abs(np.corrcoef(inertia[0], inertia[1])[0, 1]) < 0.1
+    # the other fields and the scenario's own processes are drawn as without it
+    np.testing.assert_array_equal(varied.params.mass, plain.params.mass)
+    np.testing.assert_array_equal(varied.params.arm_length, plain.params.arm_length)
+    np.testing.assert_array_equal(varied.drag_multipliers, plain.drag_multipliers)
+    np.testing.assert_array_equal(varied.noise_accel, plain.noise_accel)
