@@ -170,17 +170,37 @@ def test_simulate_with_the_paper_file_equals_the_default_draw_for_draw(tmp_path,
     assert "vehicle: the paper's quadrotor (Section V) (m = 0.74 kg" in capsys.readouterr().out
 
 
-def test_a_bad_vehicle_file_stops_simulate_before_anything_is_written(tmp_path, capsys):
+COMMANDS = {
+    "simulate": SIMULATE[1:],
+    "tune": ["--scenario", "2", "--controller", "afonftsmc"],
+    "reproduce": ["--draws", "2"],
+}
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
+@pytest.mark.parametrize(
+    "text, named",
+    [
+        ('[vehicle]\nmass = { value = 0.74, unit = "lb" }\n', "vehicle.mass: unit 'lb' is not"),
+        ("[vehicle\nmass = 1\n", "is not valid TOML"),
+        (None, "does not exist"),
+    ],
+)  # fmt: skip
+def test_a_bad_vehicle_file_stops_every_command_before_anything_is_written(
+    tmp_path, capsys, command, text, named
+):
+    import importlib
+
     from conftest import usage_error
 
-    from fojax.cli import simulate
-
+    module = importlib.import_module(f"fojax.cli.{command}")
     bad = tmp_path / "bad.toml"
-    bad.write_text('[vehicle]\nmass = { value = 0.74, unit = "lb" }\n')
+    if text is not None:
+        bad.write_text(text)
     out = tmp_path / "out"
-    argv = [*SIMULATE[1:], "--vehicle", str(bad), "--out", str(out)]
-    err = usage_error(capsys, simulate.main, argv)
-    assert "argument --vehicle" in err and "vehicle.mass: unit 'lb' is not one of" in err
+    err = usage_error(capsys, module.main, [*COMMANDS[command], "--vehicle", str(bad), "--out",
+                                            str(out)])  # fmt: skip
+    assert "argument --vehicle" in err and named in err and "Traceback" not in err
     assert not out.exists()
 
 
