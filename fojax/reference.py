@@ -35,12 +35,12 @@ import hashlib
 import json
 import math
 import os
-import tomllib
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from fojax import _files
 
 __all__ = [
     "AXES", "BUILTINS", "Builtin", "ReferenceError", "SplineReference", "Waypoints", "load",
@@ -338,11 +338,5 @@ def load(path: str | os.PathLike) -> Waypoints | Builtin:
     """The :class:`Waypoints` (or :class:`Builtin`) of the TOML file at ``path``;
     :class:`ReferenceError` (one message, every problem) for a file that cannot be read or
     used."""
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except OSError as error:
-        raise ReferenceError(f"{path}: cannot read it: {error.strerror or error}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
-        raise ReferenceError(f"{path} is not valid TOML: {error}") from None
+    data = _files.read_table(path, ReferenceError, "reference file")
     return parse(data, str(path))

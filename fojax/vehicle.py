@@ -36,12 +36,10 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import tomllib
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
-from fojax import plant
+from fojax import _files, plant
 
 __all__ = ["FIELDS", "UNCERTAIN", "Field", "Vehicle", "VehicleError", "load", "parse"]
 
@@ -330,11 +328,5 @@ def _message(source: str, problems: list[str]) -> str:
 def load(path: str | os.PathLike) -> Vehicle:
     """The :class:`Vehicle` of the TOML file at ``path``; :class:`VehicleError` (one
     message, every problem) for a file that cannot be read or used."""
-    path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except OSError as error:
-        raise VehicleError(f"{path}: cannot read it: {error.strerror or error}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
-        raise VehicleError(f"{path} is not valid TOML: {error}") from None
+    data = _files.read_table(path, VehicleError, "vehicle file")
     return parse(data, str(path))

@@ -108,7 +108,7 @@ def test_every_problem_of_a_file_in_one_error(tmp_path):
     broken.write_text("[vehicle\n")
     with pytest.raises(vehicle.VehicleError, match="is not valid TOML"):
         vehicle.load(broken)
-    with pytest.raises(vehicle.VehicleError, match="cannot read it"):
+    with pytest.raises(vehicle.VehicleError, match="cannot read the vehicle file"):
         vehicle.load(tmp_path / "none.toml")
 
 

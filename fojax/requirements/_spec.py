@@ -8,13 +8,12 @@ problem listed in one :class:`RequirementError`) before anything is traced or co
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
-import tomllib
 from collections.abc import Iterable, Mapping
-from pathlib import Path
 from typing import Any
+
+from fojax import _files
 
 __all__ = [
     "BOUNDS",
@@ -492,19 +491,5 @@ def parse(data: Mapping, source: str = "requirements") -> RequirementSet:
 
 def load(path: str | os.PathLike) -> RequirementSet:
     """A :class:`RequirementSet` from a ``.toml`` or ``.json`` file (:func:`parse`)."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise RequirementError(f"cannot read the requirement file {path}: {error}") from None
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".toml":
-            data = tomllib.loads(text)
-        elif suffix == ".json":
-            data = json.loads(text)
-        else:
-            raise RequirementError(f"{path}: the requirement file must end in .toml or .json")
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as error:
-        raise RequirementError(f"{path} is not valid {suffix[1:].upper()}: {error}") from None
+    data = _files.read_table(path, RequirementError, "requirement file", (".toml", ".json"))
     return parse(data, str(path))
