@@ -186,6 +186,20 @@ BLOCKS: dict[str, Block] = {
             "requirements_methods --update-doc",
             (*_REQUIREMENTS, "fojax/cli/tune.py", "examples/requirements/small_quadrotor.toml"),
         ),
+        _block(  # the default tuner from the naive start on the published vehicles
+            "vehicles",
+            "docs/vehicles.md",
+            "vehicles --out results/vehicles --update-doc",
+            (
+                *_REQUIREMENTS,
+                *_MONTE_CARLO[len(_CLOSED_LOOP) :],
+                *_words(
+                    "fojax/cli/tune.py fojax/settings.py fojax/vehicle.py examples/vehicles"
+                    " examples/requirements/crazyflie.toml examples/requirements/iris.toml"
+                ),
+            ),
+            results="results/vehicles",
+        ),
         _block(
             "remark3-inverted",
             "docs/requirements.md",

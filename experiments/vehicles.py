@@ -13,11 +13,13 @@ every step a ``fojax`` command in a process of its own, as a user runs it:
    A controller whose ``gains.json`` is in ``--out`` is not tuned again unless
    ``--retune``.
 2. **Yields.** ``fojax simulate --vehicle V --scenario 2 --controller all --requirements
-   examples/requirements/V.toml --horizon 10 --seed 1`` with the paper's gains, then
-   with the tuned gains: each controller's yield (Clopper-Pearson 95 % interval), the
-   requirement failing most, the diverged draws. Seed 1 draws are none of the tuner's.
-3. **The full horizon.** The same two studies over scenario 2's 80 s (no requirements):
-   diverged draws and position RMSE.
+   examples/requirements/V.toml --horizon 10 --seed 1 --switching sat`` with the
+   paper's gains, then with the tuned gains (also with ``--switching sign``, the
+   paper's): each controller's yield (Clopper-Pearson 95 % interval), the requirements
+   failing, the diverged draws. Seed 1 draws are none of the tuner's; ``sat`` is the
+   switching the tuner validates with.
+3. **The full horizon.** The paper's and the tuned gains over scenario 2's 80 s (no
+   requirements, ``sat``): diverged draws and position RMSE.
 
 Writes ``results.json`` and ``table.md`` to ``--out``; ``--update-doc`` replaces the
 ``vehicles`` block of docs/vehicles.md.
@@ -55,11 +57,13 @@ def tune_command(vehicle: str, controller: str, out: Path) -> list[str]:
     ]
 
 
-def simulate_command(vehicle: str, controllers, draws: int, gains, out: Path, full: bool):
+def simulate_command(vehicle: str, controllers, draws: int, gains, out: Path, full: bool,
+                     switching: str = "sat"):  # fmt: skip
     """``fojax simulate`` of ``controllers`` with ``gains`` (files; none: the paper's):
     the requirements over 10 s, or (``full``) scenario 2's own horizon without them."""
     words = ["fojax", "simulate", "--vehicle", files(vehicle)[0], "--scenario", "2"]
     words += ["--controller", ",".join(controllers), "--draws", str(draws), "--seed", str(SEED)]
+    words += ["--switching", switching]
     words += [] if full else ["--horizon", "10", "--requirements", files(vehicle)[1]]
     for path in gains:
         words += ["--gains", str(path)]
@@ -99,10 +103,11 @@ def tune(vehicle: str, controller: str, out: Path, again: bool) -> dict:
     }
 
 
-def study(vehicle: str, controllers, draws: int, gains, out: Path, full: bool) -> dict:
+def study(vehicle: str, controllers, draws: int, gains, out: Path, full: bool,
+          switching: str = "sat") -> dict:  # fmt: skip
     """One ``fojax simulate`` run; per controller its diverged draws, position RMSE and
     (requirements) yield."""
-    words = simulate_command(vehicle, controllers, draws, gains, out, full)
+    words = simulate_command(vehicle, controllers, draws, gains, out, full, switching)
     print(f"  {' '.join(words)}", flush=True)
     seconds = _run(words)
     summary = json.loads((out / "summary.json").read_text())
@@ -117,8 +122,8 @@ def study(vehicle: str, controllers, draws: int, gains, out: Path, full: bool) -
             **({"requirements": entry["requirements"]} if "requirements" in entry else {}),
         }
     return {
-        "command": " ".join(simulate_command(vehicle, controllers, draws,
-                                             ["GAINS"] * bool(gains), Path("DIR"), full)),
+        "command": " ".join(simulate_command(vehicle, controllers, draws, ["GAINS"] * bool(gains),
+                                             Path("DIR"), full, switching)),
         "seconds": round(seconds, 1),
         "horizon_s": summary["horizon_s"],
         "actuators": summary.get("actuators"),
@@ -136,9 +141,16 @@ def run_vehicle(vehicle: str, controllers, draws: int, out: Path, again: bool) -
         "tuning": tuned,
         "paper": study(vehicle, controllers, draws, [], out / "paper", False),
         "tuned": study(vehicle, controllers, draws, gains, out / "tuned", False),
+        "tuned_sign": study(vehicle, controllers, draws, gains, out / "tuned_sign", False, "sign"),
         "paper_full": study(vehicle, controllers, draws, [], out / "paper_full", True),
         "tuned_full": study(vehicle, controllers, draws, gains, out / "tuned_full", True),
     }
+
+
+def _yield(row: dict) -> str:
+    entry = row["requirements"]
+    diverged = f"; {entry['diverged']} diverged" if entry["diverged"] else ""
+    return _common.yield_cell(entry) + diverged
 
 
 def _rmse(row: dict) -> str:
@@ -162,36 +174,41 @@ def table(results: dict) -> str:
         parts.append(
             f"#### {vehicle} (`{run['vehicle']}`, `{run['requirements']}`; {limit})\n\n"
             f"Yields on {draws} draws x 10 s of scenario 2 (seed {SEED}, none of the tuner's), "
-            f"Clopper-Pearson 95 %; position RMSE (m) on the same draws over "
+            f"Clopper-Pearson 95 %, with `sat` switching unless marked `sign`; position RMSE "
+            f"(m) on the same draws over "
             f"{run['tuned_full']['horizon_s']:g} s; the tuning's own held-out cost "
             f"({run['tuning'][next(iter(run['tuning']))]['heldout']['draws']} draws x 10 s).\n"
         )
         rows = [
             "| controller | paper's gains: yield | paper's gains: RMSE, 80 s | tuned from naive: "
-            "steps, time (s) | held-out cost (start) | tuned: yield | tuned: RMSE, 80 s |",
-            "|---|---|---|---|---|---|---|",
+            "steps, time (s) | held-out cost (start) | tuned: yield | tuned: yield, `sign` | "
+            "tuned: RMSE, 80 s |",
+            "|---|---|---|---|---|---|---|---|",
         ]
         for name, tuning in run["tuning"].items():
             held = tuning["heldout"]
             start, end = held["initial"], held["tuned"]
             cost = f"{end['score']:.4g}" + (f", {end['diverged']} diverged" if end["diverged"]
                                              else "")  # fmt: skip
-            paper, tuned = (run[k]["controllers"][name]["requirements"] for k in ("paper", "tuned"))
+            paper, tuned, sign = (
+                run[k]["controllers"][name] for k in ("paper", "tuned", "tuned_sign")
+            )
             rows.append(
-                f"| {name} | {_common.yield_cell(paper)} | "
+                f"| {name} | {_yield(paper)} | "
                 f"{_rmse(run['paper_full']['controllers'][name])} | {tuning['steps']}, "
-                f"{tuning['tuning_s']:.0f} | {cost} ({start['score']:.3g}) | "
-                f"{_common.yield_cell(tuned)} | {_rmse(run['tuned_full']['controllers'][name])} |"
+                f"{tuning['tuning_s']:.0f} | {cost} ({start['score']:.3g}"
+                f"{f', {d} diverged' if (d := start['diverged']) else ''}) | "
+                f"{_yield(tuned)} | {_yield(sign) if name != 'fl' else 'no switching'} | "
+                f"{_rmse(run['tuned_full']['controllers'][name])} |"
             )
         parts.append("\n".join(rows))
-    commands = next(iter(results["vehicles"].values()))
+    tune_words = " ".join(tune_command("V", "C", Path("DIR")))
+    yield_words = " ".join(simulate_command("V", ["all"], draws, ["GAINS"], Path("DIR"), False))
     parts.append(
-        "Commands (V the vehicle, C the controller): `"
-        + commands["tuning"][next(iter(commands["tuning"]))]["command"]
-        + "`, then `"
-        + commands["tuned"]["command"]
-        + "` with each tuned gains file, and without `--gains` for the paper's; the 80 s runs "
-        "drop `--horizon` and `--requirements`."
+        f"Commands (V the vehicle, C the controller): `{tune_words}`, then `{yield_words}` "
+        "with each tuned gains file (and with `--switching sign`), and without `--gains` for "
+        "the paper's; the 80 s runs drop `--horizon` and `--requirements`. Time: the tuning's "
+        "wall time as its gains file records it."
     )
     return "\n\n".join(parts)
 
