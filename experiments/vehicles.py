@@ -67,7 +67,7 @@ def simulate_command(vehicle: str, controllers, draws: int, gains, out: Path, fu
     words += [] if full else ["--horizon", "10", "--requirements", files(vehicle)[1]]
     for path in gains:
         words += ["--gains", str(path)]
-    return [*words, "--keep", "0", "--no-figures", "--quiet", "--out", str(out)]
+    return [*words, "--keep", "0", "--no-figures", "--overwrite", "--quiet", "--out", str(out)]
 
 
 def _run(words: list[str]) -> float:
