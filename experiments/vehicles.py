@@ -14,7 +14,7 @@ every step a ``fojax`` command in a process of its own, as a user runs it:
    ``--retune``.
 2. **Yields.** ``fojax simulate --vehicle V --scenario 2 --controller all --requirements
    examples/requirements/V.toml --horizon 10 --seed 1 --switching sat`` with the
-   paper's gains, then with the tuned gains (also with ``--switching sign``, the
+   paper's gains, then with the tuned gains (each also with ``--switching sign``, the
    paper's): each controller's yield (Clopper-Pearson 95 % interval), the requirements
    failing, the diverged draws. Seed 1 draws are none of the tuner's; ``sat`` is the
    switching the tuner validates with.
@@ -140,6 +140,7 @@ def run_vehicle(vehicle: str, controllers, draws: int, out: Path, again: bool) -
         "requirements": files(vehicle)[1],
         "tuning": tuned,
         "paper": study(vehicle, controllers, draws, [], out / "paper", False),
+        "paper_sign": study(vehicle, controllers, draws, [], out / "paper_sign", False, "sign"),
         "tuned": study(vehicle, controllers, draws, gains, out / "tuned", False),
         "tuned_sign": study(vehicle, controllers, draws, gains, out / "tuned_sign", False, "sign"),
         "paper_full": study(vehicle, controllers, draws, [], out / "paper_full", True),
@@ -155,9 +156,14 @@ def _yield(row: dict) -> str:
 
 def _rmse(row: dict) -> str:
     if row["position_rmse"] is None:
-        return "n/a"
+        return f"none: {row['diverged']} diverged"
     diverged = f", {row['diverged']} diverged" if row["diverged"] else ""
     return f"{row['position_rmse']:.3g}{diverged}"
+
+
+def _sign(run: dict, kind: str, name: str) -> str:
+    """The ``sign`` yield of ``name`` (the FL has no switching)."""
+    return _yield(run[f"{kind}_sign"]["controllers"][name]) if name != "fl" else "no switching"
 
 
 def table(results: dict) -> str:
@@ -171,34 +177,39 @@ def table(results: dict) -> str:
             if actuators.get("rotor_limited")
             else "ideal actuators"
         )
+        heldout = run["tuning"][next(iter(run["tuning"]))]["heldout"]
         parts.append(
             f"#### {vehicle} (`{run['vehicle']}`, `{run['requirements']}`; {limit})\n\n"
             f"Yields on {draws} draws x 10 s of scenario 2 (seed {SEED}, none of the tuner's), "
-            f"Clopper-Pearson 95 %, with `sat` switching unless marked `sign`; position RMSE "
-            f"(m) on the same draws over "
-            f"{run['tuned_full']['horizon_s']:g} s; the tuning's own held-out cost "
-            f"({run['tuning'][next(iter(run['tuning']))]['heldout']['draws']} draws x 10 s).\n"
+            f"Clopper-Pearson 95 %, with `sat` switching (the tuner's) and with `sign` (the "
+            f"paper's); position RMSE (m) on the same draws over "
+            f"{run['tuned_full']['horizon_s']:g} s with `sat`; the tuning's own held-out cost "
+            f"({heldout['draws']} draws x {heldout['horizon_s']:g} s, `sat`) against the naive "
+            "start's."
         )
         rows = [
-            "| controller | paper's gains: yield | paper's gains: RMSE, 80 s | tuned from naive: "
-            "steps, time (s) | held-out cost (start) | tuned: yield | tuned: yield, `sign` | "
-            "tuned: RMSE, 80 s |",
-            "|---|---|---|---|---|---|---|---|",
+            "| controller | paper's gains: yield | yield, `sign` | RMSE, 80 s |",
+            "|---|---|---|---|",
+        ]
+        for name in run["tuning"]:
+            rows.append(
+                f"| {name} | {_yield(run['paper']['controllers'][name])} | "
+                f"{_sign(run, 'paper', name)} | {_rmse(run['paper_full']['controllers'][name])} |"
+            )
+        parts.append("\n".join(rows))
+        rows = [
+            "| controller | tuned from naive: steps, time (s) | held-out cost (naive start) | "
+            "yield | yield, `sign` | RMSE, 80 s |",
+            "|---|---|---|---|---|---|",
         ]
         for name, tuning in run["tuning"].items():
-            held = tuning["heldout"]
-            start, end = held["initial"], held["tuned"]
+            start, end = tuning["heldout"]["initial"], tuning["heldout"]["tuned"]
             cost = f"{end['score']:.4g}" + (f", {end['diverged']} diverged" if end["diverged"]
                                              else "")  # fmt: skip
-            paper, tuned, sign = (
-                run[k]["controllers"][name] for k in ("paper", "tuned", "tuned_sign")
-            )
             rows.append(
-                f"| {name} | {_yield(paper)} | "
-                f"{_rmse(run['paper_full']['controllers'][name])} | {tuning['steps']}, "
-                f"{tuning['tuning_s']:.0f} | {cost} ({start['score']:.3g}"
-                f"{f', {d} diverged' if (d := start['diverged']) else ''}) | "
-                f"{_yield(tuned)} | {_yield(sign) if name != 'fl' else 'no switching'} | "
+                f"| {name} | {tuning['steps']}, {tuning['tuning_s']:.0f} | {cost} "
+                f"({start['score']:.3g}{f', {d} diverged' if (d := start['diverged']) else ''}) | "
+                f"{_yield(run['tuned']['controllers'][name])} | {_sign(run, 'tuned', name)} | "
                 f"{_rmse(run['tuned_full']['controllers'][name])} |"
             )
         parts.append("\n".join(rows))
