@@ -35,7 +35,10 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from experiments import _common
+from fojax import requirements
 from fojax.cli import output
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -111,6 +114,7 @@ def study(vehicle: str, controllers, draws: int, gains, out: Path, full: bool,
     print(f"  {' '.join(words)}", flush=True)
     seconds = _run(words)
     summary = json.loads((out / "summary.json").read_text())
+    per_draw = np.load(out / "requirements.npz") if (out / "requirements.npz").is_file() else {}
     rows = {}
     for name, entry in summary["controllers"].items():
         rmse = entry["metrics"]["position_rmse"]
@@ -121,6 +125,9 @@ def study(vehicle: str, controllers, draws: int, gains, out: Path, full: bool,
             "position_rmse_ci95": rmse["ci95"],
             **({"requirements": entry["requirements"]} if "requirements" in entry else {}),
         }
+        if f"{name}.torque_chattering" in per_draw:  # N m/s, NaN for diverged draws
+            chatter = per_draw[f"{name}.torque_chattering"]
+            rows[name]["torque_chattering_median"] = float(np.nanmedian(chatter))
     return {
         "command": " ".join(simulate_command(vehicle, controllers, draws, ["GAINS"] * bool(gains),
                                              Path("DIR"), full, switching)),
@@ -178,6 +185,8 @@ def table(results: dict) -> str:
             else "ideal actuators"
         )
         heldout = run["tuning"][next(iter(run["tuning"]))]["heldout"]
+        reqs = requirements.load(ROOT / run["requirements"]).requirements
+        bound = next(r for r in reqs if r.metric == "torque_chattering")
         parts.append(
             f"#### {vehicle} (`{run['vehicle']}`, `{run['requirements']}`; {limit})\n\n"
             f"Yields on {draws} draws x 10 s of scenario 2 (seed {SEED}, none of the tuner's), "
@@ -199,8 +208,9 @@ def table(results: dict) -> str:
         parts.append("\n".join(rows))
         rows = [
             "| controller | tuned from naive: steps, time (s) | held-out cost (naive start) | "
-            "yield | yield, `sign` | RMSE, 80 s |",
-            "|---|---|---|---|---|---|",
+            f"yield | yield, `sign` | RMSE, 80 s | torque chattering (N m/s), median: bound "
+            f"{bound.value:g} {bound.unit} |",
+            "|---|---|---|---|---|---|---|",
         ]
         for name, tuning in run["tuning"].items():
             start, end = tuning["heldout"]["initial"], tuning["heldout"]["tuned"]
@@ -210,7 +220,8 @@ def table(results: dict) -> str:
                 f"| {name} | {tuning['steps']}, {tuning['tuning_s']:.0f} | {cost} "
                 f"({start['score']:.3g}{f', {d} diverged' if (d := start['diverged']) else ''}) | "
                 f"{_yield(run['tuned']['controllers'][name])} | {_sign(run, 'tuned', name)} | "
-                f"{_rmse(run['tuned_full']['controllers'][name])} |"
+                f"{_rmse(run['tuned_full']['controllers'][name])} | "
+                f"{run['tuned']['controllers'][name]['torque_chattering_median']:.3g} |"
             )
         parts.append("\n".join(rows))
     tune_words = " ".join(tune_command("V", "C", Path("DIR")))
