@@ -4,7 +4,13 @@ blocks themselves, `python -m experiments.regenerate_docs`)."""
 
 import numpy as np
 
-from experiments import blocks, distributed_timing, regenerate_docs, requirements_methods
+from experiments import (
+    blocks,
+    distributed_timing,
+    regenerate_docs,
+    requirements_methods,
+    vehicles,
+)
 
 
 def test_the_distributed_check_counts_arrays_equal_bit_for_bit(tmp_path):
@@ -57,3 +63,38 @@ def test_a_block_reuses_results_only_where_its_folder_holds_files(tmp_path, monk
     (tmp_path / "results" / "b" / "runs" / "r.json").write_text("{}")
     assert regenerate_docs._reused(block)
     assert not regenerate_docs._reused(blocks.Block("c", "d.md", ("python",), ()))
+
+
+def _vehicle_study(diverged: int, passed: int, chatter: float) -> dict:
+    requirements = {"passed": passed, "draws": 64, "yield": passed / 64, "interval": [0.9, 1.0],
+                    "failures": {"torque chattering": 64 - passed, "tilt": 0},
+                    "diverged": diverged}  # fmt: skip
+    row = {"diverged": diverged, "draws": 64, "position_rmse": None if diverged == 64 else 0.0334,
+           "requirements": requirements, "torque_chattering_median": chatter}  # fmt: skip
+    actuators = {"rotor_limited": True, "rotor_speed_limit_rad_s": 2272.7,
+                 "thrust_to_weight": 2.248}  # fmt: skip
+    return {"horizon_s": 80.0, "actuators": actuators, "controllers": {"afonftsmc": row, "fl": row}}
+
+
+def test_the_vehicles_table_reads_each_study_and_marks_what_diverged():
+    heldout = {"draws": 32, "horizon_s": 10.0,
+               "initial": {"score": 1000.0, "diverged": 32},
+               "tuned": {"score": 0.1277, "diverged": 0}}  # fmt: skip
+    tuning = {"steps": 234, "tuning_s": 105.2, "heldout": heldout}
+    run = {
+        "vehicle": "examples/vehicles/crazyflie.toml",
+        "requirements": "examples/requirements/crazyflie.toml",
+        "tuning": {"afonftsmc": tuning, "fl": tuning},
+        "paper": _vehicle_study(0, 0, 0.01), "paper_sign": _vehicle_study(64, 0, 0.01),
+        "paper_full": _vehicle_study(64, 0, 0.01), "tuned": _vehicle_study(0, 64, 0.00488),
+        "tuned_sign": _vehicle_study(0, 0, 0.02), "tuned_full": _vehicle_study(0, 64, 0.00488),
+    }  # fmt: skip
+    text = vehicles.table({"vehicles": {"crazyflie": run}})
+    assert "rotor-limited at 2273 rad/s (thrust-to-weight 2.25)" in text
+    assert "(32 draws x 10 s, `sat`)" in text and "bound 0.004 N m/s" in text
+    paper = "| afonftsmc | 0/64, 0.0 % (90.0-100.0 %), failures: 64 on torque chattering | "
+    assert paper + "0/64, 0.0 % (90.0-100.0 %), failures: 64 on torque chattering; 64 " \
+        "diverged | none: 64 diverged |" in text
+    assert "| afonftsmc | 234, 105 | 0.1277 (1e+03, 32 diverged) | 64/64, 100.0 % " in text
+    assert "| 0.0334 | 0.00488 |" in text and "| no switching |" in text
+    assert "--vehicle examples/vehicles/V.toml" in text and "--controller C" in text
