@@ -122,13 +122,12 @@ BLOCKS: dict[str, Block] = {
             marker=sensitivity_report.MARKER,
             results="results/sensitivity",
         ),
-        _block(  # reuses the tuning of the sensitivity study (its --out)
+        _block(  # every controller tuned by fojax tune's default method, its own budget
             "fair-comparison",
             "docs/tuning.md",
-            "fair_comparison --out results/sensitivity/tuning --steps 20 --draws 8 --horizon 5"
-            " --update-doc docs/tuning.md",
+            "fair_comparison --out results/fair_comparison --update-doc docs/tuning.md",
             _TUNING,
-            results="results/sensitivity/tuning",
+            results="results/fair_comparison",
         ),
         _block(  # every fojax tune run of the study, the reference runs included
             "tuning-reference",

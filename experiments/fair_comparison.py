@@ -1,7 +1,7 @@
 """Section V made fair: every controller tuned the same way, then compared.
 
     python -m experiments.fair_comparison [--out results/fair_comparison]
-                                          [--steps 50] [--draws 16] [--horizon 10]
+                                          [--steps N] [--draws 16] [--horizon 10]
                                           [--controllers afonftsmc,anftsmc,...]
                                           [--eval-draws 64] [--tiny]
 
@@ -12,12 +12,14 @@ its documented default gains (``docs/model.md``) and gets the same tuning on the
 cost of :mod:`fojax.optimize.cost` with the ``fojax tune`` defaults, the same draws:
 common random numbers), the same method (``--method``, default ``fojax tune``'s
 ``auto``: CMA-ES on small fresh samples; ``cma-lbfgs`` hands CMA-ES's mean to L-BFGS
-after ``--switch`` generations), the same budget (``--steps`` steps; a CMA-ES
-generation is one step, its population growing with the controller's parameters; a
-sample is ``--draws`` draws, except under ``auto``, which draws its own 8 fresh ones
-per generation) and the same validation (the driver's: 32 validation draws, scheduled
-by the work done since the last validation and at the last step, the best validated
-gains returned). Then default and tuned gains of
+after ``--switch`` generations), the same budget (the method's own, as ``fojax tune``
+runs it: its step cap and, where it has one, its convergence stop, a method's budget
+declared once in :data:`fojax.optimize.strategies.METHODS`; ``--steps N`` caps every
+run at ``N`` steps instead, without the convergence stop; a CMA-ES generation is one
+step, its population growing with the controller's parameters; a sample is ``--draws``
+draws, except under ``auto``, which samples its own) and the same validation (the
+driver's: 32 validation draws, scheduled by the work done since the last validation and
+at the last step, the best validated gains returned). Then default and tuned gains of
 every controller are evaluated with ``sat`` switching (the gains' boundary layers) on
 the same ``--eval-draws`` held-out draws at each scenario's full horizon, on scenarios
 1, 2 and 3, and every controller's tuned cost is compared with the tuned AFONFTSMC's
@@ -63,7 +65,9 @@ def parse_args(argv) -> argparse.Namespace:
     parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
     number(horizon=(10.0, "tuning horizon (s)"))
     number(draws=(16, "draws per sample (auto: 8 fresh ones per generation)"))
-    number(steps=(50, "steps (CMA-ES: generations)"))
+    parser.add_argument("--steps", type=arguments.positive_int, help="steps (CMA-ES: "
+                        "generations); default the method's own budget, with its convergence "
+                        "stop")  # fmt: skip
     parser.add_argument(
         "--method", choices=METHODS, default="auto", help="fojax tune's methods (auto)"
     )
@@ -107,6 +111,18 @@ def parse_args(argv) -> argparse.Namespace:
     return args
 
 
+def budget_of(args):
+    """The tuning budget: ``--steps`` alone, or the method's own (its step cap and its
+    convergence stop, :data:`fojax.optimize.strategies.METHODS`)."""
+    from fojax import optimize
+
+    if args.steps is not None:
+        return optimize.Budget(steps=args.steps)
+    method = METHODS[args.method]
+    return optimize.Budget(steps=method.steps, patience=method.patience,
+                           tolerance=method.tolerance)  # fmt: skip
+
+
 def tune(args, index: int, name: str):
     """Tune ``name`` from its default gains (resuming its checkpoint): its objective,
     its default and tuned points, and the tuning's record."""
@@ -124,18 +140,20 @@ def tune(args, index: int, name: str):
     given = {"switch": args.switch, "learning_rate": args.learning_rate}
     options = {k: v for k, v in given.items() if v is not None}
     strategy = strategies.make(
-        args.method, strategies.Problem(objective, objective.x0, args.seed), args.steps, **options
-    )
+        args.method, strategies.Problem(objective, objective.x0, args.seed),
+        budget_of(args).steps, **options,
+    )  # fmt: skip
     run_dir = args.out / "tuning" / name
     found = (run_dir / optimize.CHECKPOINT).exists()
     goes_on = " (its checkpoint goes on if of these settings and code)" if found else ""
     output.log(
         args.quiet,
-        f"[{index}/{len(args.controllers)}] tuning {name} ({args.method}): {args.steps} steps "
+        f"[{index}/{len(args.controllers)}] tuning {name} ({args.method}): "
+        f"{budget_of(args).steps} steps at most "
         f"x {spec.draws} draws x {spec.horizon:g} s{goes_on}",
     )
     t0 = time.perf_counter()
-    budget = optimize.Budget(steps=args.steps)
+    budget = budget_of(args)
     result = optimize.run(
         objective, strategy, budget, out=run_dir, resume="if-same", progress=not args.quiet
     )
@@ -225,7 +243,8 @@ def main(argv=None) -> int:
             "cost": dataclasses.asdict(objectives[BASELINE].spec.cost),
             "start": "each controller's default gains",
         },
-        "tuner": {k: getattr(args, k) for k in ("method", "steps", "switch", "learning_rate")},
+        "tuner": {k: getattr(args, k) for k in ("method", "steps", "switch", "learning_rate")}
+        | {"budget": {k: getattr(budget_of(args), k) for k in ("steps", "patience", "tolerance")}},
         "evaluation_switching": "sat",
         "tuning": tuning,
         "evaluation": evaluation,

@@ -8,6 +8,7 @@ from conftest import usage_error
 
 from experiments import fair_comparison
 from fojax.controllers import registry
+from fojax.optimize.strategies import METHODS
 
 
 @pytest.mark.parametrize(
@@ -28,7 +29,9 @@ def test_bad_arguments_fail_before_compiling(capsys, argv, message):
 def test_default_study_tunes_every_controller_from_its_defaults():
     args = fair_comparison.parse_args([])
     assert args.controllers == registry.controller_names()
-    assert (args.steps, args.draws, args.horizon, args.eval_draws) == (50, 16, 10.0, 64)
+    assert (args.steps, args.draws, args.horizon, args.eval_draws) == (None, 16, 10.0, 64)
+    budget = fair_comparison.budget_of(args)  # the method's own, as fojax tune runs it
+    assert (budget.steps, budget.patience) == (METHODS["auto"].steps, METHODS["auto"].patience)
     assert args.eval_scenarios == (1, 2, 3)
     # fojax tune's default method, its options at the method table's defaults
     assert (args.method, args.switch, args.learning_rate) == ("auto", None, None)
