@@ -149,8 +149,9 @@ def tune(args, index: int, name: str):
     output.log(
         args.quiet,
         f"[{index}/{len(args.controllers)}] tuning {name} ({args.method}): "
-        f"{budget_of(args).steps} steps at most "
-        f"x {spec.draws} draws x {spec.horizon:g} s{goes_on}",
+        f"{budget_of(args).steps} steps at most x "
+        f"{f'{spec.draws} draws' if METHODS[args.method].draws else 'its own samples'} x "
+        f"{spec.horizon:g} s{goes_on}",
     )
     t0 = time.perf_counter()
     budget = budget_of(args)
@@ -161,6 +162,7 @@ def tune(args, index: int, name: str):
         "draw_steps": result.draw_steps,
         "tuning_wall_time_s": result.wall_time_s,
         "this_invocation_s": round(time.perf_counter() - t0, 1),
+        "steps": result.steps,
         "first_objective": result.history[0]["loss"],
         "final_objective": result.history[-1]["loss"],
         "returned_step": result.returned_step,
@@ -305,7 +307,7 @@ def table(results: dict) -> str:
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     tuning = results["tuning"]
     lines += [""] + _common.table_head(
-        "controller | tuned parameters | tuning draw-steps | tuning wall time (s) | "
+        "controller | tuned parameters | steps run | tuning draw-steps | tuning wall time (s) | "
         "objective, first -> last step | returned step: validation cost, start -> returned"
     )
     for name in names:
@@ -315,7 +317,7 @@ def table(results: dict) -> str:
             step, first, best = v["returned_step"], v["initial"]["cost"], v["best"]["cost"]
             returned = f"{step}: {first:.4g} -> {best:.4g}"
         lines.append(
-            f"| {name} | {t['parameters']} | {t['draw_steps']:.3g} | "
+            f"| {name} | {t['parameters']} | {t.get('steps', '-')} | {t['draw_steps']:.3g} | "
             f"{t['tuning_wall_time_s']:.0f} | {t['first_objective']:.4g} -> "
             f"{t['final_objective']:.4g} | {returned} |"
         )
