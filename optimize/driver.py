@@ -201,6 +201,7 @@ class _Run:
         self.used = {"steps": 0, "evaluations": 0, "draw_steps": 0, "work": 0, "wall_time_s": 0.0}
         self.history: list[dict] = []
         self.best = {"key": None, "step": 0, "initial": None, "best": None, "final": None}
+        self.converged: dict | None = None  # the patience and tolerance it converged under
         if header is not None:
             self._restore(header)
         self.wall_before, self.first_step = self.used["wall_time_s"], self.used["steps"]
@@ -223,6 +224,13 @@ class _Run:
         self.used, self.history = header["used"], header["history"]
         key = tuple(header["validation"]["key"] or ()) or None
         self.best = {**header["validation"], "key": key}
+        self.converged = header.get("converged")
+
+    def ended_converged(self) -> bool:
+        """Whether the run (resumed) had converged under this budget's patience and
+        tolerance: it takes no further step, as the uninterrupted run took none."""
+        budget = {"patience": self.budget.patience, "tolerance": self.budget.tolerance}
+        return self.converged == budget
 
     @property
     def validating(self) -> bool:
@@ -263,6 +271,7 @@ class _Run:
                   if r["validation"] is not None]  # fmt: skip
         since = getattr(self.strategy, "settling", lambda state: 0)(self.state)
         if since is not None and self.budget.converged(scores, self.used["steps"], since):
+            self.converged = {"patience": self.budget.patience, "tolerance": self.budget.tolerance}
             return False
         return self.fits(self.strategy.ask(self.state))
 
@@ -397,6 +406,7 @@ class _Run:
             "fingerprint": self.fingerprint,
             "used": {**self.used, "wall_time_s": round(self.wall(), 3)},
             "history": self.history,
+            "converged": self.converged,
             "validation": {
                 **self.best,
                 "key": list(self.best["key"]) if self.best["key"] else None,
@@ -526,7 +536,11 @@ def run(
     state = _Run(objective, strategy, budget, x0, out, fingerprint, header, options)
     _compile_ahead(objective, strategy.needs(), validation_draws > 0)
     try:
-        while state.used["steps"] < (math.inf if stop_after is None else stop_after):
+        # a run resumed after it converged takes no further step (its convergence is
+        # judged before its last validation: judged again now it could differ)
+        finished = state.ended_converged()
+        last = math.inf if stop_after is None else stop_after
+        while not finished and state.used["steps"] < last:
             request = strategy.ask(state.state)
             if not state.fits(request) or not state.ready(request) or state.step(request):
                 break

@@ -510,6 +510,23 @@ def test_a_study_goes_on_from_a_checkpoint_of_its_own_settings_and_code(tmp_path
         steps_run(tmp_path / "other", resume="yes")
 
 
+def test_a_run_resumed_after_it_converged_takes_no_step_and_returns_the_same(tmp_path):
+    budget = driver.Budget(steps=40, patience=2, tolerance=0.5)  # converges early
+
+    def run(budget=budget, **kw):
+        return driver.run(small(), st.LBFGS(max_step=0.5), budget, out=tmp_path / "run",
+                          validation_draws=2, validate_every=1, progress=False, **kw)  # fmt: skip
+
+    first = run()
+    assert first.steps < budget.steps  # stopped by its convergence test
+    again = run(resume=True)
+    assert again.steps == first.steps and again.returned_step == first.returned_step
+    np.testing.assert_array_equal(again.x, first.x)
+    assert _rows(again) == _rows(first)
+    # resumed without the convergence stop, it goes on
+    assert run(driver.Budget(steps=first.steps + 2), resume=True).steps == first.steps + 2
+
+
 def test_short_tuning_lowers_the_heldout_cost():
     objective = small()
     result = driver.run(
