@@ -202,9 +202,10 @@ def _number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def _quantity(field: Field, entry: Any, problems: list[str]):
-    """The SI value of ``entry`` (``{value, unit}``), or ``None`` with its problems."""
-    where = f"vehicle.{field.name}"
+def _quantity(field: Field, entry: Any, problems: list[str], table: str = "vehicle"):
+    """The SI value of ``entry`` (``{value, unit}``), or ``None`` with its problems (each
+    naming ``table.field``)."""
+    where = f"{table}.{field.name}"
     units = ", ".join(f'"{u}"' for u in field.units)
     if not isinstance(entry, Mapping):
         problems.append(
@@ -303,19 +304,13 @@ def _uncertainty(table: Any, problems: list[str]) -> tuple[tuple[str, float], ..
                         f"{', '.join(UNCERTAIN)})")  # fmt: skip
     found = []
     for name in (n for n in UNCERTAIN if n in table):
-        entry, where = table[name], f"uncertainty.{name}"
-        if not (isinstance(entry, Mapping) and set(entry) == {"value", "unit"}):
-            problems.append(f'{where}: expected {{ value = ..., unit = "%" }} (or unit "1"), '
-                            f"got {entry!r}")  # fmt: skip
+        relative = Field(name, None, _RELATIVE, "a", "relative half-width")
+        share = _quantity(relative, table[name], problems, "uncertainty")
+        if share is None:
             continue
-        if entry["unit"] not in _RELATIVE:
-            problems.append(f'{where}: unit {entry["unit"]!r} is not one of "1", "%"')
-            continue
-        value = entry["value"]
-        share = float(value) * _RELATIVE[entry["unit"]] if _number(value) else math.nan
-        if not 0 <= share < 1:
-            problems.append(f"{where}: expected a relative half-width in [0, 1) (below 100 %), "
-                            f"got {value!r} {entry['unit']}")  # fmt: skip
+        if share >= 1:
+            problems.append(f"uncertainty.{name}: expected a relative half-width below 100 %, "
+                            f"got {table[name]['value']!r} {table[name]['unit']}")  # fmt: skip
             continue
         found.append((name, share))
     return tuple(found)

@@ -266,11 +266,13 @@ def test_reproduce_with_the_paper_file_equals_the_default(tmp_path):
     "uncertainty, named",
     [
         ({"gravity": {"value": 1, "unit": "%"}}, "uncertainty: unknown field(s) gravity"),
-        ({"mass": 0.1}, 'uncertainty.mass: expected { value = ..., unit = "%" }'),
+        ({"mass": 0.1}, "uncertainty.mass: expected { value = ..., unit = ... } with a unit"),
         ({"mass": {"value": 5, "unit": "kg"}}, "uncertainty.mass: unit 'kg' is not one of"),
-        ({"mass": {"value": 100, "unit": "%"}}, "uncertainty.mass: expected a relative"),
-        ({"mass": {"value": -0.1, "unit": "1"}}, "uncertainty.mass: expected a relative"),
-        ({"mass": {"value": "5", "unit": "%"}}, "uncertainty.mass: expected a relative"),
+        ({"mass": {"value": 100, "unit": "%"}}, "uncertainty.mass: expected a relative "
+         "half-width below 100 %, got 100 %"),
+        ({"mass": {"value": -0.1, "unit": "1"}}, "uncertainty.mass: every value must be finite "
+         "and > 0"),
+        ({"mass": {"value": "5", "unit": "%"}}, "uncertainty.mass: expected a number"),
         ("5 %", "uncertainty: expected a table of fields"),
     ],
 )  # fmt: skip
