@@ -76,6 +76,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--methods", default=",".join(METHODS))
     _common.add_numbers(parser, heldout_draws=64, unseen_draws=64)
     parser.add_argument("--unseen-seed", type=arguments.seed, default=7)
+    parser.add_argument(
+        "--carry", default="",
+        help="comma-separated methods whose stored runs are kept though fojax's code changed, "
+             "once a rerun of the quickest of them returns its stored gains bit for bit (none)",
+    )  # fmt: skip
     parser.add_argument("--reference", action="store_true",
                         help="also run the long reference runs (REFERENCE)")  # fmt: skip
     _common.add_outputs(parser, "tuning_study", smoke=False)
@@ -99,6 +104,9 @@ def parse_args(argv) -> argparse.Namespace:
         setattr(args, name, values)
         if not values or any(v not in valid for v in values):
             parser.error(f"--{name} must be among {', '.join(valid)}, got {','.join(values)}")
+    args.carry = _common.listed(args.carry) if args.carry else ()
+    if any(m not in CHOICES["methods"] for m in args.carry):
+        parser.error(f"--carry must be among {', '.join(CHOICES['methods'])}")
     if args.tiny:
         args.heldout_draws, args.unseen_draws = 4, 2
         args.seeds, args.baseline_seeds = args.seeds[:1], args.baseline_seeds[:1]
@@ -247,7 +255,37 @@ def _scored(scorer: _Scorer, run, case: dict) -> dict:
             "full_horizon": scorer.full_horizon(gains)}  # fmt: skip
 
 
-def report(args, records: list[dict], started: float) -> int:
+def _carried(args, scorer, found) -> tuple[dict, dict | None]:
+    """The stored runs of ``--carry``'s methods made by other code, by name, once a
+    rerun of the quickest of them at this code returned the same gains bit for bit (that
+    rerun in their place), and what was checked; ``SystemExit`` where one is missing or
+    the rerun differs."""
+    stale = {}
+    for name, words, case in found:
+        key = _key(args, name, words)
+        if case["method"] not in args.carry or records.stored(*key) is not None:
+            continue
+        record = records.stored(*key, any_code=True)
+        if record is None:
+            raise SystemExit(f"--carry: {args.out / 'runs'} holds no run {name} to carry over")
+        stale[name] = record
+    if not stale:
+        return {}, None
+    check = min(stale, key=lambda name: stale[name]["wall_s"])
+    words, case = next((w, c) for n, w, c in found if n == check)
+    compute = functools.partial(_scored, scorer, functools.partial(_run, args, check, words))
+    rerun = records.cached(*_key(args, check, words), lambda: compute(case))
+    if rerun["gains"] != stale[check]["gains"]:
+        raise SystemExit(
+            f"--carry: {check} rerun at this code returned other gains than its stored run "
+            f"(commit {stale[check]['git_commit'][:7]}): run it without --carry"
+        )
+    checked = {"methods": list(args.carry), "rerun": check,
+               "from": sorted({r["git_commit"] for n, r in stale.items() if n != check})}
+    return {**stale, check: rerun}, checked
+
+
+def report(args, records: list[dict], started: float, carried=None) -> int:
     results = {
         "settings": _common.settings(args),
         "summary": summarize(records),
@@ -255,6 +293,7 @@ def report(args, records: list[dict], started: float) -> int:
         "git_commit": ", ".join(sorted({r["git_commit"] for r in records})),
         "this_invocation_s": round(time.perf_counter() - started, 1),
         "runs_s": round(sum(r["wall_s"] for r in records), 1),
+        "carried": carried,
     }
     figure = plot(records, args.out / "tuning_methods.png")
     if args.update_doc is not None:
@@ -271,9 +310,12 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     (args.out / "runs").mkdir(parents=True, exist_ok=True)
     started, scorer, found = time.perf_counter(), _Scorer(args), []
+    carried, checked = _carried(args, scorer, runs(args))
     for name, words, case in runs(args):
         key = _key(args, name, words)
-        if args.report_only:
+        if name in carried:
+            record = carried[name]
+        elif args.report_only:
             record = records.stored(*key, records.code_digest())
             if record is None:
                 continue
@@ -285,7 +327,7 @@ def main(argv=None) -> int:
         found.append(record)
     if not found:
         raise SystemExit(f"{args.out / 'runs'} holds no run of these settings")
-    return report(args, found, started)
+    return report(args, found, started, checked)
 
 
 if __name__ == "__main__":

@@ -170,6 +170,19 @@ def _tallies(summary: dict) -> list[str]:
     return lines
 
 
+def _carried_line(carried: dict | None) -> list[str]:
+    """The sentence on runs carried over from other code (``--carry``), if any."""
+    if not carried or not carried["from"]:
+        return []
+    return [
+        "",
+        f"The runs of {', '.join(carried['methods'])} are carried over from commit "
+        f"{', '.join(c[:7] for c in carried['from'])} (their wall times and scores as "
+        f"measured there): a rerun of `{carried['rerun']}` at this code returned its stored "
+        f"gains bit for bit (its row is the rerun's).",
+    ]
+
+
 def table(results: dict) -> str:
     summary, settings = results["summary"], results["settings"]
     loads = [r["load_before"][0] for r in results["runs"] if r.get("load_before")]
@@ -180,6 +193,7 @@ def table(results: dict) -> str:
         f"before the runs (2 cores). Held-out cost: the returned gains on "
         f"{settings['heldout_draws']} held-out draws (seed 0, 10 s, `sat`); full horizon: "
         f"{settings['unseen_draws']} unseen draws (seed {settings['unseen_seed']}, `sat`).",
+        *_carried_line(results.get("carried")),
         "",
         *_setting_rows(summary),
         "",

@@ -247,16 +247,22 @@ def _record_path(folder: str | os.PathLike, stem: str, fingerprint: Any) -> Path
 
 
 def stored(
-    folder: str | os.PathLike, stem: str, fingerprint: Any, code: str | None = None
+    folder: str | os.PathLike,
+    stem: str,
+    fingerprint: Any,
+    code: str | None = None,
+    any_code: bool = False,
 ) -> dict | None:
     """The record :func:`cached` keeps for ``stem`` and ``fingerprint``, or ``None``
-    (also where it was computed by other code: ``code``, default :func:`code_digest`)."""
+    (also where it was computed by other code: ``code``, default :func:`code_digest`,
+    unless ``any_code``: a study that checks for itself that the code it depends on
+    returns the same, :mod:`experiments.tuning_study`'s ``--carry``)."""
     path = _record_path(folder, stem, fingerprint)
     if not path.is_file():
         return None
     record = json.loads(path.read_text())
     kept, kept_code = record.pop("fingerprint", None), record.pop("code", None)
-    same_code = kept_code == (code_digest() if code is None else code)
+    same_code = any_code or kept_code == (code_digest() if code is None else code)
     return record if same_code and (kept is None or not differences(kept, fingerprint)) else None
 
 

@@ -48,6 +48,24 @@ def test_tuning_study_tiny(tmp_path):
     doc.write_text("<!-- tuning-study:begin -->\n<!-- tuning-study:end -->\n")
     assert tuning_study.main(argv + ["--report-only", "--update-doc", str(doc)]) == 0
     assert "above the best-known" in doc.read_text() and (tmp_path / "tuning_methods.png").is_file()
+    # --carry: a stored run made by other code is kept once a rerun returns its gains ...
+    path = next((out / "runs").glob("paper_naive_lbfgs_0-*.json"))
+
+    def made_elsewhere(change=None):
+        document = json.loads(path.read_text())
+        document["code"] = "other"
+        if change is not None:
+            document["gains"]["surface_c1"][0] += change
+        path.write_text(json.dumps(document))
+
+    made_elsewhere()
+    assert tuning_study.main(argv + ["--carry", "lbfgs"]) == 0
+    carried = json.loads((out / "results.json").read_text())["carried"]
+    assert carried["rerun"] == "paper_naive_lbfgs_0" and carried["methods"] == ["lbfgs"]
+    # ... and refused where the rerun returns other gains.
+    made_elsewhere(1.0)
+    with pytest.raises(SystemExit, match="returned other gains than its stored run"):
+        tuning_study.main(argv + ["--carry", "lbfgs"])
 
 
 @pytest.mark.slow

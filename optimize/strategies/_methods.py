@@ -107,7 +107,8 @@ def _auto(problem: Problem, steps: int, sigma: float):
         coarse_dt = None
     return MultiStart(
         starts=tuple(tuple(s) for s in found), tie=tie, sigma0=sigma, seed=problem.seed,
-        stages=AUTO_STAGES, coarse_dt=coarse_dt, draws=AUTO_DRAWS, popsize=popsize, name="auto",
+        stages=AUTO_STAGES, coarse_dt=coarse_dt, draws=AUTO_DRAWS, popsize=popsize,
+        diagonal=True, name="auto",
     )  # fmt: skip
 
 
@@ -147,7 +148,7 @@ METHODS = {
             "auto",
             "CMA-ES from the start, from it at integer fractional orders and from a "
             "knowledge-free start side by side, the best continued until it converges",
-            400, {"sigma": 0.5}, _auto, draws=False, patience=40, tolerance=2e-3,
+            280, {"sigma": 0.5}, _auto, draws=False, patience=60, tolerance=2e-3,
         ),
         Method(
             "cma-lbfgs", "CMA-ES on 8-draw fresh samples, then L-BFGS on the fixed sample",

@@ -12,7 +12,8 @@ Two phases, one request a generation:
    costs over the last ``window`` generations (common draws: a paired comparison).
 2. **Convergence**: the best search goes on alone at the objective's step, lifted to
    the full parameters (its mean ``E z``, its covariance ``E C E^T`` plus ``lift`` times
-   its mean variance on the diagonal, so that the axes of a group can part), with
+   its mean variance on the diagonal, so that the axes of a group can part; with
+   ``diagonal``, that covariance's diagonal and a separable CMA-ES), with
    ``popsize`` candidates on ``draws`` draws, until the budget ends (the driver ends a
    converged run: :class:`fojax.optimize.Budget`'s ``patience``).
 
@@ -46,7 +47,10 @@ class MultiStart:
     objective's). draws, popsize: the second phase's draws per point and candidates per
     generation (``None``: ``4 + floor(3 ln d)``). window: generations whose
     means rank the searches. lift: the variance added on the second phase's diagonal,
-    relative to the search's mean variance."""
+    relative to the search's mean variance. diagonal: the second phase's search is the
+    separable CMA-ES (:class:`CMAES`'s ``diagonal``), whose covariance adapts in about
+    ``d`` generations: a lifted search of many parameters converges within a budget
+    where a full covariance (about ``d^2`` generations) would still be learning."""
 
     starts: tuple = ()
     tie: tuple | None = None
@@ -58,6 +62,7 @@ class MultiStart:
     popsize: int | None = None
     window: int = 20
     lift: float = 0.5
+    diagonal: bool = False
     name: str = "multistart"
 
     def __post_init__(self) -> None:
@@ -105,8 +110,9 @@ class MultiStart:
     def _search(self, k: int) -> CMAES:
         """Search ``k`` of the first phase (``k = -1``: the second phase's): its own
         sampling seed."""
-        popsize = self.popsize if k < 0 else None
-        return CMAES(sigma0=self.sigma0, seed=self.seed * 1009 + k + 1, popsize=popsize)
+        popsize, diagonal = (self.popsize, self.diagonal) if k < 0 else (None, False)
+        return CMAES(sigma0=self.sigma0, seed=self.seed * 1009 + k + 1, popsize=popsize,
+                     diagonal=diagonal)  # fmt: skip
 
     def _embed(self, d: int) -> np.ndarray:
         """``(d, k)`` 0/1 matrix: full parameters ``x = E z`` of search parameters ``z``."""
@@ -201,6 +207,8 @@ class MultiStart:
         """Phase 2's search from phase 1's ``search`` (module docstring)."""
         C = E @ search["C"] @ E.T
         C = C + self.lift * float(np.mean(np.diag(search["C"]))) * np.eye(len(C))
+        if self.diagonal:
+            C = np.diag(np.diag(C))
         return dict(
             mean=E @ search["mean"], sigma=np.asarray(float(search["sigma"])), C=C,
             ps=np.zeros(len(C)), pc=E @ search["pc"], generation=np.asarray(0),
