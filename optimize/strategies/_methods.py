@@ -148,7 +148,7 @@ METHODS = {
             "auto",
             "CMA-ES from the start, from it at integer fractional orders and from a "
             "knowledge-free start side by side, the best continued until it converges",
-            280, {"sigma": 0.5}, _auto, draws=False, patience=60, tolerance=2e-3,
+            240, {"sigma": 0.5}, _auto, draws=False, patience=60, tolerance=2e-3,
         ),
         Method(
             "cma-lbfgs", "CMA-ES on 8-draw fresh samples, then L-BFGS on the fixed sample",
