@@ -260,7 +260,7 @@ def _carried(args, scorer, found) -> tuple[dict, dict | None]:
     rerun of the quickest of them at this code returned the same gains bit for bit (that
     rerun in their place), and what was checked; ``SystemExit`` where one is missing or
     the rerun differs."""
-    stale = {}
+    stale, record_file = {}, args.out / "carried.json"
     for name, words, case in found:
         key = _key(args, name, words)
         if case["method"] not in args.carry or records.stored(*key) is not None:
@@ -271,6 +271,13 @@ def _carried(args, scorer, found) -> tuple[dict, dict | None]:
         stale[name] = record
     if not stale:
         return {}, None
+    done = json.loads(record_file.read_text()) if record_file.is_file() else {}
+    if done.get("code") == records.code_digest() and done.get("carried") == sorted(stale):
+        done.pop("code")  # these checked at this code already: the rerun is stored, not stale
+        return stale, done
+    if args.report_only:
+        raise SystemExit("--carry: the carried runs were not checked at this code: run the "
+                         "study without --report-only")  # fmt: skip
     check = min(stale, key=lambda name: stale[name]["wall_s"])
     words, case = next((w, c) for n, w, c in found if n == check)
     compute = functools.partial(_scored, scorer, functools.partial(_run, args, check, words))
@@ -280,8 +287,10 @@ def _carried(args, scorer, found) -> tuple[dict, dict | None]:
             f"--carry: {check} rerun at this code returned other gains than its stored run "
             f"(commit {stale[check]['git_commit'][:7]}): run it without --carry"
         )
-    checked = {"methods": list(args.carry), "rerun": check,
-               "from": sorted({r["git_commit"] for n, r in stale.items() if n != check})}
+    kept = sorted(name for name in stale if name != check)
+    checked = {"methods": list(args.carry), "rerun": check, "carried": kept,
+               "from": sorted({stale[name]["git_commit"] for name in kept})}
+    records.write_json(record_file, {**checked, "code": records.code_digest()})
     return {**stale, check: rerun}, checked
 
 

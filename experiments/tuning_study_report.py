@@ -77,6 +77,8 @@ def _orders(gains: dict) -> str:
 
 def _span(values, fmt: str) -> str:
     values = sorted(values)
+    if not values:
+        return "-"
     if len(values) == 1:
         return format(values[0], fmt)
     return f"{format(float(np.median(values)), fmt)} [{format(values[0], fmt)}, " \
@@ -84,10 +86,17 @@ def _span(values, fmt: str) -> str:
 
 
 def _full(runs: list[dict], scenario: str, field: str, fmt: str) -> str:
+    """The span of a full-horizon metric over ``runs`` (runs whose every draw diverged
+    have none: ``-`` where no run has one)."""
     values = [r["full_horizon"][scenario][field] for r in runs]
     if field == "torque_chattering":
-        values = [float(np.mean(v)) for v in values]
+        values = [None if None in v else float(np.mean(v)) for v in values]
     return _span([v for v in values if v is not None], fmt)
+
+
+def _diverged(runs: list[dict], scenario: str) -> str:
+    """Each run's diverged full-horizon draws, comma-separated."""
+    return ", ".join(str(r["full_horizon"][scenario]["diverged"]) for r in runs)
 
 
 def _setting_rows(summary: dict) -> list[str]:
@@ -95,7 +104,8 @@ def _setting_rows(summary: dict) -> list[str]:
     rows = _common.table_head(
         "parameters | start | method | runs (seeds) | held-out cost | above the best-known | "
         "wall time (s) | steps (returned step) | scenario 2, 80 s: position RMSE (m) | "
-        "scenario 3, 50 s: position RMSE (m) | scenario 3: roll/pitch torque chattering (N m)"
+        "scenario 3, 50 s: position RMSE (m) | scenario 3: roll/pitch torque chattering (N m) "
+        "| diverged draws, scenario 2 / 3"
     )
     for key, runs in sorted(summary["settings"].items(), key=lambda kv: _order(kv[0])):
         share, start, method = key.split("/")
@@ -108,7 +118,8 @@ def _setting_rows(summary: dict) -> list[str]:
             f"{_span([r['wall_s'] for r in runs], '.0f')} | {steps} | "
             f"{_full(runs, '2', 'position_rmse', '.3g')} | "
             f"{_full(runs, '3', 'position_rmse', '.3g')} | "
-            f"{_full(runs, '3', 'torque_chattering', '.3g')} |"
+            f"{_full(runs, '3', 'torque_chattering', '.3g')} | "
+            f"{_diverged(runs, '2')} / {_diverged(runs, '3')} |"
         )
     return rows
 
