@@ -448,6 +448,26 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path, strategy):
     assert header[0].startswith(",".join(driver.COLUMNS)) and len(header) == 5
 
 
+def test_host_linear_algebra_runs_on_one_thread_during_a_run_only():
+    import threadpoolctl
+
+    def blas_threads():
+        found = threadpoolctl.threadpool_info()
+        return {i["num_threads"] for i in found if i["user_api"] == "blas"}
+
+    assert blas_threads(), "no BLAS library found: nothing to check"
+    seen = []
+    with threadpoolctl.threadpool_limits(2, user_api="blas"):
+        before = blas_threads()
+        if before == {1}:
+            pytest.skip("BLAS runs on one thread on this machine: nothing to limit")
+        driver.run(small(), st.CMAES(popsize=4, seed=1), driver.Budget(steps=2),
+                   validation_draws=0, progress=False,
+                   callback=lambda step, x, row: seen.append(blas_threads()))  # fmt: skip
+        after = blas_threads()
+    assert seen == [{1}, {1}] and after == before
+
+
 @pytest.mark.parametrize("learning_rate", [0.1, 30.0])
 def test_the_best_validated_answer_is_returned(learning_rate):
     # 0.1: tuning helps; 30: every step throws the gains by e^30, the start must come back.
