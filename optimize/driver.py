@@ -21,8 +21,9 @@ and a run that ends does not wait for them.
 
 Host linear algebra (the strategies' NumPy: CMA-ES's eigendecompositions) runs on one
 thread during a run (:func:`threadpoolctl.threadpool_limits`): a BLAS library's idle
-threads spin beside the devices' threads, which on a CPU hold every core (it slowed a
-generation of ``auto`` by a quarter on two cores); the numbers are the same.
+threads spin beside the devices' threads, which on a CPU hold every core, and slow
+every generation of a population search (docs/tuning.md, the driver); the numbers are
+the same.
 
 Checkpoint: every ``checkpoint_every`` steps, at the end and on Ctrl-C, ``DIR/checkpoint.npz``
 holds the strategy's state (a pytree of arrays), the best validated point, the counters,
