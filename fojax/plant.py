@@ -51,8 +51,10 @@ default, float64 when ``jax_enable_x64`` is on); ``jit``, ``vmap`` and ``grad`` 
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import NamedTuple
+import operator
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -74,6 +76,7 @@ __all__ = [
     "hover_inputs",
     "hover_state",
     "make_state",
+    "allocate",
     "mixer",
     "nominal_params",
     "rk4_step",
@@ -83,6 +86,7 @@ __all__ = [
     "rotor_speeds_squared",
     "saturate_inputs",
     "signed_square",
+    "speed_sum",
     "split_state",
     "state_blocks",
 ]
@@ -127,9 +131,13 @@ class PlantParams(NamedTuple):
         ``drag(w) = w |w|``.
     thrust_factor: ``()`` ``rho_b`` in N s^2 (thrust per squared rotor speed).
     drag_factor: ``()`` ``rho_c`` in N m s^2 (yaw torque per squared rotor speed).
-    arm_length: ``()`` ``d`` in m.
+    arm_length: ``()`` ``d`` in m (the ``+`` of eq. (10)).
     rotor_inertia: ``()`` ``J_r`` in kg m^2.
     gravity: ``()`` ``g`` in m/s^2.
+    layout: ``None``, the paper's ``+`` at ``arm_length`` (eq. (10) in closed form), or a
+        :class:`fojax.rotors.Layout` (any four rotors; static, no leaves): the allocation
+        that :func:`mixer`, :func:`rotor_speeds_squared`, :func:`saturate_inputs` and the
+        gyroscopic ``Omega_r`` use.
     """
 
     mass: Array
@@ -141,6 +149,7 @@ class PlantParams(NamedTuple):
     arm_length: Array
     rotor_inertia: Array
     gravity: Array
+    layout: Any = None
 
 
 def nominal_params(dtype=None) -> PlantParams:
@@ -226,9 +235,15 @@ def mixer(params: PlantParams) -> Array:
          [ 0,        -rho_b d,  0,         rho_b d ],
          [-rho_b d,   0,        rho_b d,   0       ],
          [-rho_c,     rho_c,   -rho_c,     rho_c   ]]
+
+    With a ``params.layout``, ``diag(rho_b, rho_b, rho_b, rho_c) G`` of
+    :mod:`fojax.rotors`.
     """
     b = params.thrust_factor
     c = params.drag_factor
+    if params.layout is not None:
+        geometry = jnp.asarray(params.layout.geometry(), b.dtype)
+        return jnp.stack([b, b, b, c])[:, None] * geometry
     bd = b * params.arm_length
     zero = jnp.zeros_like(bd)
     return jnp.stack(
@@ -256,6 +271,8 @@ def _rotor_speeds_squared_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z
     """:func:`rotor_speeds_squared` from the four scalar inputs (four scalars)."""
     b = params.thrust_factor
     c = params.drag_factor
+    if params.layout is not None:
+        return _combine(params.layout.inverse(), (thrust / b, tau_x / b, tau_y / b, tau_z / c))
     bd = b * params.arm_length
     common = thrust / (4.0 * b)
     yaw = tau_z / (4.0 * c)
@@ -276,10 +293,30 @@ def saturate_inputs(params: PlantParams, inputs: tuple, speed_limit: float) -> t
     largest speed) and the thrust and torques are recomputed from the clipped speeds
     through the mixer. Returns four scalars."""
     squared = _rotor_speeds_squared_parts(params, *inputs)
-    w1, w2, w3, w4 = (jnp.clip(w, 0.0, speed_limit * speed_limit) for w in squared)
+    clipped = tuple(jnp.clip(w, 0.0, speed_limit * speed_limit) for w in squared)
+    return allocate(params, clipped)
+
+
+def allocate(params: PlantParams, squared: tuple) -> tuple:
+    """The thrust and torques ``(u_F, tau_x, tau_y, tau_z)`` (four scalars) of the squared
+    rotor speeds ``squared`` (four scalars): the mixer (10), or the ``params.layout``'s."""
     b, c = params.thrust_factor, params.drag_factor
+    if params.layout is not None:
+        scaled = _combine(params.layout.geometry(), squared)
+        return (b * scaled[0], b * scaled[1], b * scaled[2], c * scaled[3])
+    w1, w2, w3, w4 = squared
     bd = b * params.arm_length
     return (b * (w1 + w2 + w3 + w4), bd * (w4 - w2), bd * (w3 - w1), c * (w2 - w1 + w4 - w3))
+
+
+def _combine(matrix, values: tuple) -> tuple:
+    """``matrix @ values`` for a constant ``(4, 4)`` matrix (Python floats, zero entries
+    skipped) and four scalars (any shape): four scalars."""
+    out = []
+    for row in matrix:
+        terms = [float(m) * v for m, v in zip(row, values, strict=True) if float(m) != 0.0]
+        out.append(functools.reduce(operator.add, terms))
+    return tuple(out)
 
 
 def _safe_sqrt_nonnegative(x: Array) -> Array:
@@ -338,7 +375,15 @@ def _unstack(vector: Array, size: int) -> tuple:
 def _rotor_speed_sum_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z) -> Array:
     """:func:`rotor_speed_sum` from the four scalar inputs."""
     squared = _rotor_speeds_squared_parts(params, thrust, tau_x, tau_y, tau_z)
-    speeds = [_safe_sqrt_nonnegative(w2) for w2 in squared]
+    return speed_sum(params, tuple(_safe_sqrt_nonnegative(w2) for w2 in squared))
+
+
+def speed_sum(params: PlantParams, speeds: tuple) -> Array:
+    """``Omega_r`` of the rotor speeds ``speeds`` (four scalars, rad/s): ``w1 - w2 + w3 -
+    w4`` (eq. (11)), or ``sum_i s_i w_i`` with the ``params.layout``'s spins."""
+    if params.layout is not None:
+        terms = [v if s > 0 else -v for s, v in zip(params.layout.spins, speeds, strict=True)]
+        return functools.reduce(operator.add, terms)
     return speeds[0] - speeds[1] + speeds[2] - speeds[3]
 
 
@@ -480,12 +525,14 @@ def rk4_step_parts(
     drag_position: tuple,
     drag_attitude: tuple,
     trig: tuple,
+    omega_r: Array | None = None,
 ) -> tuple:
     """One classical Runge-Kutta step of eq. (11), entry by entry: ``state`` the 12
     entries, ``inputs`` 4, ``disturbance`` 6, the drag coefficients 3 each, held over
     the step, ``trig`` the 6 entries of :func:`attitude_trig` of the attitude (``cos
-    phi, sin phi, cos theta, ...``); each entry ``()`` or a batch's shape. Returns the 12
-    entries of the next state.
+    phi, sin phi, cos theta, ...``); each entry ``()`` or a batch's shape. ``omega_r``:
+    the gyroscopic rotor speed held over the step (default: that of ``inputs``, rotors
+    at their commanded speeds). Returns the 12 entries of the next state.
 
     The closed-loop simulator carries the state and the trig of its attitude entry by
     entry (see :func:`_derivative_parts`), the trig computed once per step; the stages'
@@ -495,7 +542,8 @@ def rk4_step_parts(
     (:func:`fojax._arrays.reverse_pass_boundary`).
     """
     dtype = state[0].dtype
-    omega_r = _rotor_speed_sum_parts(params, *inputs)  # the inputs are held over the step
+    if omega_r is None:  # the inputs are held over the step
+        omega_r = _rotor_speed_sum_parts(params, *inputs)
     dt = jnp.asarray(dt, dtype=dtype)
 
     def f(x, x_trig):

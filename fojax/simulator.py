@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from fojax import observers, plant, scenarios
+from fojax import observers, plant, rotors, scenarios
 from fojax._arrays import KEPT, unstack
 from fojax.controllers.base import ControlInfo, Observation
 from fojax.controllers.cascade import as_controller, broadcast_batch
@@ -178,6 +178,10 @@ class LoopState(NamedTuple):
     info: ControlInfo
     status: Array
     observed: Any
+    rotors: Any = None
+    """With lagging rotors (the scenario's vehicle's ``rotor_time_constant``,
+    :func:`fojax.rotors.lag_weights`): the four squared rotor speeds (rad^2/s^2) at
+    ``t_k``; else ``None``."""
 
 
 def _held_values(scenario: scenarios.Scenario, config: SimulationConfig):
@@ -324,6 +328,9 @@ class _Loop:
         control0 = self.controller.init(params, obs0)
         control1, inputs0, info0 = self.controller.step(params, control0, obs0)
         observer = self.observer
+        # lagging rotors start at the (squared) speeds of the first command
+        speeds = (self.commanded_squares(draw.params, _entries(inputs0))
+                  if self.lag is not None else None)  # fmt: skip
         return LoopState(
             state=_entries(state0),
             trig=plant.attitude_trig(*_entries(state0)[3:6]),
@@ -335,11 +342,45 @@ class _Loop:
             observed=broadcast_batch(observer.init(self.dtype), self.batch)
             if observer is not None
             else None,
+            rotors=speeds,
         )
 
+    @property
+    def lag(self) -> tuple[float, float] | None:
+        """The rotors' :func:`fojax.rotors.lag_weights` over one step (``None``: the
+        rotors turn at their commanded speeds)."""
+        vehicle = self.scenario.vehicle
+        constant = None if vehicle is None else vehicle.lag()
+        return None if constant is None else rotors.lag_weights(constant, self.config.dt)
+
+    def commanded_squares(self, params, inputs: tuple) -> tuple:
+        """The four squared rotor speeds (rad^2/s^2) of the command ``inputs``: the
+        inverted allocation, clipped to ``[0, w_max^2]`` for rotor-limited actuators (as
+        they are for ideal ones)."""
+        squared = plant.rotor_speeds_squared(params, jnp.stack(inputs))
+        limit = self.config.rotor_speed_limit
+        if limit is not None:
+            squared = jnp.clip(squared, 0.0, limit * limit)
+        return unstack(squared)
+
+    def lagged(self, draw, loop: LoopState) -> tuple:
+        """``(applied inputs, Omega_r, next squared rotor speeds)`` of lagging rotors over
+        step ``k`` (:func:`fojax.rotors.lag_weights`): the step's mean squared speeds
+        through the allocation, and their square roots' ``Omega_r``."""
+        decay, mean = self.lag
+        command = self.commanded_squares(draw.params, loop.inputs)
+        gaps = tuple(w - c for w, c in zip(loop.rotors, command, strict=True))
+        squared = tuple(c + mean * g for c, g in zip(command, gaps, strict=True))
+        following = tuple(c + decay * g for c, g in zip(command, gaps, strict=True))
+        applied = plant.allocate(draw.params, squared)
+        speeds = tuple(plant._safe_sqrt_nonnegative(w) for w in squared)
+        return applied, plant.speed_sum(draw.params, speeds), following
+
     def plant_step(self, draw, loop: LoopState, deterministic) -> tuple:
-        """The plant's state entries after step ``k``: one RK4 step with the held noise,
-        drag and command (clipped to the rotor speed limit, if any)."""
+        """The plant's state entries after step ``k`` and the rotor speeds after it
+        (``None`` unless they lag): one RK4 step with the held noise, drag and command
+        (clipped to the rotor speed limit, if any; through lagging rotors, if they
+        lag)."""
         noise, drag = loop.held
         k_p, k_phi = draw.params.drag_position, draw.params.drag_attitude
         if drag is not None:
@@ -347,10 +388,12 @@ class _Loop:
         deterministic = observers.per_component(deterministic, loop.state[0][None])
         if noise is not None:
             deterministic = deterministic + noise.astype(self.dtype)
-        applied = loop.inputs
-        if self.config.rotor_speed_limit is not None:
+        applied, omega_r, following = loop.inputs, None, None
+        if self.lag is not None:
+            applied, omega_r, following = self.lagged(draw, loop)
+        elif self.config.rotor_speed_limit is not None:
             applied = plant.saturate_inputs(draw.params, applied, self.config.rotor_speed_limit)
-        return plant.rk4_step_parts(
+        state = plant.rk4_step_parts(
             draw.params,
             loop.state,
             applied,
@@ -359,7 +402,9 @@ class _Loop:
             unstack(k_p),
             unstack(k_phi),
             loop.trig,
+            omega_r,
         )
+        return state, following
 
     def fold(self, draw, loop: LoopState, k, record: observers.StepRecord):
         """The status flags and the observer's state with step ``k``'s record folded in
@@ -378,7 +423,7 @@ class _Loop:
 
     def step(self, params, draw, loop: LoopState, k):
         t, (reference, _, _), deterministic = self.reference_at(draw, k)
-        next_state = self.plant_step(draw, loop, deterministic)
+        next_state, next_rotors = self.plant_step(draw, loop, deterministic)
         blocks = _blocks(loop.state)
         state = jnp.concatenate(blocks)
         record = observers.StepRecord(
@@ -406,6 +451,7 @@ class _Loop:
             info=next_info,
             status=status,
             observed=observed,
+            rotors=next_rotors,
         )
         return loop, (reference, record.inputs, record.info)
 

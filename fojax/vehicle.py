@@ -18,6 +18,22 @@ optionally the rotors' limit as ``rotor_speed_limit`` (rad/s or rpm) or
     rotor_inertia = { value = 2.8385e-5, unit = "kg m^2" }
     gravity = { value = 9.81, unit = "m/s^2" }
 
+The rotors are the paper's ``+`` at ``arm_length`` unless the table says otherwise:
+``configuration = "x"`` turns them by 45 degrees, or ``[[vehicle.rotors]]`` lists the
+four one by one (instead of ``arm_length`` and ``configuration``), each with its
+position in the body frame (``x`` forward, ``y`` left) and its spin seen from above
+(:mod:`fojax.rotors` derives the allocation)::
+
+    [[vehicle.rotors]]
+    position = { value = [0.13, -0.22], unit = "m" }
+    spin = "ccw"
+
+Two optional quantities describe the rotors further: ``rotor_time_constant`` (s or
+ms), the first-order lag of a rotor's speed behind its command (absent or 0:
+instantaneous rotors), and ``tilt_limit`` (deg or rad, default
+:data:`DEFAULT_TILT_LIMIT`), the largest tilt a reference may ask of the vehicle
+(:func:`fojax.reference.problems_for`).
+
 An optional ``[uncertainty]`` table gives relative half-widths of the fields (not
 gravity) that vary from draw to draw, as a per cent or a plain share::
 
@@ -28,7 +44,8 @@ gravity) that vary from draw to draw, as a per cent or a plain share::
 Every field is required (a vehicle is never half the paper's); units are converted to
 SI by the factors of :data:`FIELDS`. :func:`load` checks the whole file and raises one
 :class:`VehicleError` listing every problem (the field, what is wrong, what to write),
-before anything is simulated.
+before anything is simulated; among them a vehicle whose rotors cannot hold it in
+hover within their speed limit.
 """
 
 from __future__ import annotations
@@ -39,9 +56,12 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
-from fojax import _files, plant
+from fojax import _files, plant, rotors
 
-__all__ = ["FIELDS", "UNCERTAIN", "Field", "Vehicle", "VehicleError", "load", "parse"]
+__all__ = [
+    "DEFAULT_TILT_LIMIT", "FIELDS", "UNCERTAIN", "Field", "Vehicle", "VehicleError", "load",
+    "parse",
+]  # fmt: skip
 
 
 class VehicleError(ValueError):
@@ -96,6 +116,16 @@ _RELATIVE = {"1": 1.0, "%": 1e-2}
 UNCERTAIN = tuple(name for name in FIELDS if name != "gravity")
 """The fields an ``[uncertainty]`` table may name."""
 _LIMITS = ("rotor_speed_limit", "thrust_to_weight")
+_ROTORS = ("configuration", "rotors", "rotor_time_constant", "tilt_limit")
+_CONFIGURATIONS = ("plus", "x")
+_TIME_CONSTANT = Field("rotor_time_constant", None, {"s": 1.0, "ms": 1e-3}, "T_r",
+                       "a rotor speed's first-order lag behind its command")  # fmt: skip
+_TILT = Field("tilt_limit", None, {"deg": math.pi / 180.0, "rad": 1.0}, "theta_max",
+              "the largest tilt a reference may ask for")  # fmt: skip
+DEFAULT_TILT_LIMIT = math.radians(45.0)
+"""The largest tilt (rad) a reference may ask of a vehicle whose file states none: the
+thrust then keeps ``cos 45 deg = 0.71`` of itself for holding altitude, and the
+attitude loop a margin to 90 degrees (where a draw is flagged ``tilt_limit``)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,6 +150,13 @@ class Vehicle:
     thrust_to_weight: float | None = None
     description: str = ""
     uncertainty: tuple[tuple[str, float], ...] = ()
+    layout: rotors.Layout | None = None
+    """``None``: the paper's ``+`` at :attr:`arm_length`; else the rotors'
+    :class:`fojax.rotors.Layout` (``configuration = "x"`` or listed rotors)."""
+    rotor_time_constant: float | None = None
+    """The rotors' first-order lag (s); ``None`` (or 0): instantaneous rotors."""
+    tilt_limit: float | None = None
+    """The largest tilt (rad) a reference may ask for; ``None``: :data:`DEFAULT_TILT_LIMIT`."""
 
     @classmethod
     def paper(cls) -> Vehicle:
@@ -139,7 +176,27 @@ class Vehicle:
 
         dtype = plant._default_float(dtype)
         return plant.PlantParams(**{name: jnp.asarray(getattr(self, name), dtype)
-                                    for name in FIELDS})  # fmt: skip
+                                    for name in FIELDS}, layout=self.layout)  # fmt: skip
+
+    def rotor_layout(self) -> rotors.Layout:
+        """The rotors' :class:`fojax.rotors.Layout` (the ``+`` at :attr:`arm_length` where
+        the file gives none)."""
+        return self.layout if self.layout is not None else rotors.plus(self.arm_length)
+
+    def authority(self, speed_limit: float | None = ...) -> rotors.Authority:
+        """The :class:`fojax.rotors.Authority` of the nominal vehicle at ``speed_limit``
+        (rad/s; default :meth:`speed_limit`, ``None``: unlimited rotors)."""
+        limit = self.speed_limit() if speed_limit is ... else speed_limit
+        return rotors.authority(self.rotor_layout(), self.mass, self.gravity,
+                                self.thrust_factor, self.drag_factor, limit)  # fmt: skip
+
+    def max_tilt(self) -> float:
+        """The largest tilt (rad) a reference may ask of this vehicle."""
+        return DEFAULT_TILT_LIMIT if self.tilt_limit is None else self.tilt_limit
+
+    def lag(self) -> float | None:
+        """The rotors' time constant (s) where they lag, else ``None``."""
+        return self.rotor_time_constant or None
 
     def perturb(self, params: plant.PlantParams, key) -> plant.PlantParams:
         """``params`` with every field of :attr:`uncertainty` multiplied by ``1 + U[-a,
@@ -169,6 +226,11 @@ class Vehicle:
         """The file's content in SI units (what a run's fingerprint records)."""
         out = {name: _listed(getattr(self, name)) for name in FIELDS}
         for name in _LIMITS:
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
+        if self.layout is not None:
+            out.update(self.layout.to_dict())
+        for name in ("rotor_time_constant", "tilt_limit"):
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name)
         uncertainty = {"uncertainty": dict(self.uncertainty)} if self.uncertainty else {}
@@ -202,9 +264,11 @@ def _number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def _quantity(field: Field, entry: Any, problems: list[str], table: str = "vehicle"):
+def _quantity(field: Field, entry: Any, problems: list[str], table: str = "vehicle",
+              signed: bool = False, zero: bool = False):  # fmt: skip
     """The SI value of ``entry`` (``{value, unit}``), or ``None`` with its problems (each
-    naming ``table.field``)."""
+    naming ``table.field``); every value finite and > 0 (``zero``: >= 0; ``signed``: of
+    any sign)."""
     where = f"{table}.{field.name}"
     units = ", ".join(f'"{u}"' for u in field.units)
     if not isinstance(entry, Mapping):
@@ -235,8 +299,9 @@ def _quantity(field: Field, entry: Any, problems: list[str], table: str = "vehic
     ):
         problems.append(f"{where}: expected {shape}, got {value!r}")
         return None
-    if not all(math.isfinite(v) and v > 0 for v in values):
-        problems.append(f"{where}: every value must be finite and > 0, got {value!r}")
+    if not all(math.isfinite(v) and (signed or v > 0 or (zero and v == 0)) for v in values):
+        bound = "" if signed else " and >= 0" if zero else " and > 0"
+        problems.append(f"{where}: every value must be finite{bound}, got {value!r}")
         return None
     converted = [float(v) * scale for v in values]
     return converted[0] if field.size is None else tuple(converted)
@@ -260,14 +325,20 @@ def parse(data: Mapping, source: str = "vehicle") -> Vehicle:
     if not isinstance(table, Mapping):
         problems.append("missing [vehicle] table (the vehicle's quantities, with units)")
         raise VehicleError(_message(source, problems))
-    unknown = sorted(set(table) - set(FIELDS) - set(_LIMITS))
+    unknown = sorted(set(table) - set(FIELDS) - set(_LIMITS) - set(_ROTORS))
     if unknown:
         problems.append(
             f"vehicle: unknown field(s) {', '.join(unknown)} (the fields: "
-            f"{', '.join([*FIELDS, *_LIMITS])})"
+            f"{', '.join([*FIELDS, *_LIMITS, *_ROTORS])})"
         )
     values: dict[str, Any] = {}
+    listed = "rotors" in table
     for name, field in FIELDS.items():
+        if name == "arm_length" and listed:
+            if name in table:
+                problems.append("vehicle: give arm_length (with configuration) or the rotors "
+                                "one by one, not both")  # fmt: skip
+            continue
         if name not in table:
             problems.append(f"vehicle.{name}: missing ({field.summary}, {field.symbol}, "
                             f"in {field.unit})")  # fmt: skip
@@ -287,10 +358,111 @@ def parse(data: Mapping, source: str = "vehicle") -> Vehicle:
             )
         else:
             values["thrust_to_weight"] = float(ratio)
+    layout = _layout(table, values.get("arm_length"), problems)
+    if listed and layout is not None:
+        values["arm_length"] = layout.arm()
+    for field in (_TIME_CONSTANT, _TILT):
+        if field.name in table:
+            values[field.name] = _quantity(field, table[field.name], problems, zero=True)
+    tilt = values.get("tilt_limit")
+    if tilt is not None and not 0 < tilt < 0.5 * math.pi:
+        problems.append(f"vehicle.tilt_limit: expected an angle above 0 and below 90 deg, got "
+                        f"{math.degrees(tilt):g} deg")  # fmt: skip
     uncertainty = _uncertainty(data.get("uncertainty", {}), problems)
     if problems:
         raise VehicleError(_message(source, problems))
-    return Vehicle(**values, description=description, uncertainty=uncertainty)
+    vehicle = Vehicle(**values, description=description, uncertainty=uncertainty,
+                      layout=None if layout is None or layout.name == "plus" else layout)
+    problems = hover_problems(vehicle)
+    if problems:
+        raise VehicleError(_message(source, problems))
+    return vehicle
+
+
+def hover_problems(vehicle: Vehicle, speed_limit: float | None = ...,
+                   where: str = "vehicle.rotor_speed_limit") -> list[str]:  # fmt: skip
+    """Why ``vehicle``'s rotors cannot hold it in level hover at ``speed_limit`` (rad/s;
+    default its own, ``None``: unlimited; ``where`` names the limit's source): a rotor
+    that would have to turn faster than the limit, or backwards (the centre of mass
+    outside the rotors); empty when it can hover."""
+    limit = vehicle.speed_limit() if speed_limit is ... else speed_limit
+    squared = rotors.hover_speeds_squared(vehicle.rotor_layout(), vehicle.mass,
+                                          vehicle.gravity, vehicle.thrust_factor)  # fmt: skip
+    if float(min(squared)) <= 0:
+        return [
+            "vehicle.rotors: in level hover a rotor would have to push down (squared hover "
+            f"speeds {', '.join(f'{w:.4g}' for w in squared)} rad^2/s^2); the centre of mass "
+            "must lie inside the rotors"
+        ]
+    if limit is None:
+        return []
+    needed = math.sqrt(float(max(squared)))
+    if needed < limit:
+        return []
+    ratio = vehicle.authority(limit).thrust_to_weight
+    return [
+        f"{where}: {limit:.4g} rad/s ({limit * 60 / (2 * math.pi):.4g} rpm) cannot lift the "
+        f"vehicle: hover needs {needed:.4g} rad/s ({needed * 60 / (2 * math.pi):.4g} rpm) "
+        f"from its fastest rotor, and full thrust is {ratio:.3g} times the weight "
+        f"({vehicle.mass:g} kg x {vehicle.gravity:g} m/s^2); raise the limit or check "
+        "thrust_factor and mass"
+    ]
+
+
+def _layout(table: Mapping, arm: float | None, problems: list[str]) -> rotors.Layout | None:
+    """The layout of ``configuration`` (with ``arm``) or of the listed ``rotors``."""
+    listed = table.get("rotors")
+    configuration = table.get("configuration", "plus")
+    if listed is not None:
+        if "configuration" in table:
+            problems.append("vehicle: give configuration or the rotors one by one, not both")
+        return _listed_rotors(listed, problems)
+    if configuration not in _CONFIGURATIONS:
+        problems.append(f"vehicle.configuration: expected one of "
+                        f"{', '.join(repr(c) for c in _CONFIGURATIONS)} (or list the rotors "
+                        f"as [[vehicle.rotors]]), got {configuration!r}")  # fmt: skip
+        return None
+    if arm is None:
+        return None
+    return rotors.plus(arm) if configuration == "plus" else rotors.x(arm)
+
+
+_POSITION = Field("position", 2, _LENGTH, "r_i", "a rotor's position (x forward, y left)")
+
+
+def _listed_rotors(listed: Any, problems: list[str]) -> rotors.Layout | None:
+    """The layout of ``[[vehicle.rotors]]`` (four tables of position and spin)."""
+    if not (isinstance(listed, list) and all(isinstance(r, Mapping) for r in listed)):
+        problems.append("vehicle.rotors: expected [[vehicle.rotors]] tables, each with a "
+                        "position and a spin")  # fmt: skip
+        return None
+    if len(listed) != 4:
+        problems.append(f"vehicle.rotors: a quadrotor has four rotors, got {len(listed)}")
+        return None
+    positions, spins, ok = [], [], True
+    for i, rotor in enumerate(listed, 1):
+        where = f"rotors[{i}]"
+        unknown = sorted(set(rotor) - {"position", "spin"})
+        if unknown:
+            problems.append(f"vehicle.{where}: unknown key(s) {', '.join(unknown)} "
+                            "(expected position, spin)")  # fmt: skip
+        position = _quantity(_POSITION, rotor.get("position"), problems, f"vehicle.{where}",
+                             signed=True)  # fmt: skip
+        spin = rotor.get("spin")
+        if spin not in rotors.SPINS:
+            problems.append(f"vehicle.{where}.spin: expected \"ccw\" or \"cw\" (seen from "
+                            f"above), got {spin!r}")  # fmt: skip
+            ok = False
+        ok = ok and position is not None
+        positions.append(position)
+        spins.append(rotors.SPINS.get(spin))
+    if not ok:
+        return None
+    try:
+        return rotors.Layout(tuple(positions), tuple(spins))
+    except rotors.LayoutError as error:
+        problems.append(f"vehicle.rotors: {error}")
+        return None
 
 
 def _uncertainty(table: Any, problems: list[str]) -> tuple[tuple[str, float], ...]:

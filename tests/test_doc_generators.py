@@ -91,7 +91,7 @@ def test_the_vehicles_table_reads_each_study_and_marks_what_diverged():
     }  # fmt: skip
     text = vehicles.table({"vehicles": {"crazyflie": run}})
     assert "rotor-limited at 2273 rad/s (thrust-to-weight 2.25)" in text
-    assert "(32 draws x 10 s, `sat`)" in text and "bound 0.004 N m/s" in text
+    assert "(32 draws x 10 s, `sat`)" in text and "bound 0.0064 N m/s" in text
     paper = "| afonftsmc | 0/64, 0.0 % (90.0-100.0 %), failures: 64 on torque chattering | "
     assert paper + "0/64, 0.0 % (90.0-100.0 %), failures: 64 on torque chattering; 64 " \
         "diverged | none: 64 diverged |" in text

@@ -25,10 +25,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from fojax import fractional
+from fojax import fractional, plant
 from fojax.controllers import as_controller
 
 __all__ = ["NumpyRollout", "disturbances_53", "prepare", "reference_54_55", "rollout", "simulate"]
+
+
+_PLANT_FIELDS = tuple(f for f in plant.PlantParams._fields if f != "layout")
 
 
 class NumpyRollout(NamedTuple):
@@ -160,6 +163,8 @@ def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
             f"{law.fractional_method!r}"
         )
 
+    if model.layout is not None or draws.params.layout is not None:
+        raise ValueError("the NumPy reference flies the paper's '+' rotors (eq. (10)) only")
     as_np = functools.partial(np.asarray, dtype=dtype)
     params = controller.prepare(gains, model)
     weights = params.law.surface_weights
@@ -172,7 +177,7 @@ def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
         "filter_frequency": controller.filter_frequency,
         "filter_damping": controller.filter_damping,
         "gains": {name: as_np(getattr(gains, name)) for name in gains._fields},
-        "nominal": {name: as_np(getattr(model, name)) for name in model._fields},
+        "nominal": {name: as_np(getattr(model, name)) for name in _PLANT_FIELDS},
         "mode_weights": as_np(weights.mode_weights).T,  # (12, modes)
         "taps": as_np(weights.taps),  # (3, modes)
         "readout": as_np(np.stack([np.ones_like(weights.rates), -weights.rates])),  # (2, modes)
@@ -180,7 +185,7 @@ def prepare(controller, gains, model, draws, dtype=np.float64) -> dict:
         "decay_m1": as_np(operator._tables["decay_m1"]),  # (modes,)
         "filter_transition": as_np(params.filter_transition),  # (2, 2)
         "filter_input": as_np(params.filter_input),  # (2,)
-        "plant": {name: as_np(getattr(draws.params, name)) for name in draws.params._fields},
+        "plant": {name: as_np(getattr(draws.params, name)) for name in _PLANT_FIELDS},
         "drag_table": as_np(draws.drag_multipliers),  # (n, rows, 6)
         "noise_table": as_np(draws.noise_accel),  # (n, rows, 6)
     }
