@@ -23,8 +23,9 @@ both ends (zero velocity and acceleration at the first and last waypoint; ``ends
 "not-a-knot"`` lets the ends follow the waypoints instead), and holds the last waypoint
 after it. The laws use the reference and its first two derivatives (exact,
 by forward-mode autodiff: :func:`fojax.scenarios.reference_with_derivatives`).
-:meth:`Waypoints.peaks` (:meth:`Builtin.peaks`) reports its peak speed, acceleration and
-the tilt its acceleration asks of the thrust. :func:`load` checks the file and raises one
+:meth:`Waypoints.peaks` (:meth:`Builtin.peaks`) reports its peak speed, acceleration, and
+the tilt and thrust its acceleration asks for; :func:`problems_for` compares them with
+what a vehicle can fly. :func:`load` checks the file and raises one
 :class:`ReferenceError` listing every problem.
 """
 
@@ -44,7 +45,7 @@ from fojax import _files
 
 __all__ = [
     "AXES", "BUILTINS", "Builtin", "ReferenceError", "SplineReference", "Waypoints", "load",
-    "parse",
+    "parse", "problems_for",
 ]  # fmt: skip
 
 
@@ -86,7 +87,35 @@ def _peaks(derivatives, start: float, end: float, samples_per_second: int) -> di
         "speed": float(np.max(np.linalg.norm(velocity, axis=1))),
         "acceleration": float(np.max(np.linalg.norm(acceleration, axis=1))),
         "tilt": float(np.max(np.arctan2(horizontal, vertical))),
+        "thrust": float(np.max(np.hypot(horizontal, vertical)) / 9.81),
     }
+
+
+def problems_for(peaks: dict, vehicle, speed_limit: float | None = ...) -> list[str]:
+    """Why a reference of ``peaks`` (:meth:`Waypoints.peaks`) is beyond what ``vehicle``
+    (a :class:`fojax.vehicle.Vehicle`; ``None``: the paper's) can fly, with its rotors
+    limited to ``speed_limit`` rad/s (default the vehicle's own; ``None``: unlimited):
+    a peak thrust (``|a + g e_z|`` over ``g``, the weights it asks for) at or above the
+    vehicle's thrust-to-weight, or a tilt past its ``tilt_limit``. Empty when it can."""
+    from fojax.vehicle import Vehicle
+
+    vehicle = Vehicle.paper() if vehicle is None else vehicle
+    out = []
+    ratio = vehicle.authority(speed_limit).thrust_to_weight
+    if ratio is not None and peaks["thrust"] >= ratio:
+        out.append(
+            f"its peak acceleration ({peaks['acceleration']:.3g} m/s^2) asks for "
+            f"{peaks['thrust']:.3g} times the weight in thrust, and the vehicle's rotors give "
+            f"{ratio:.3g} times it"
+        )
+    limit = vehicle.max_tilt()
+    if peaks["tilt"] > limit:
+        where = "its tilt_limit" if vehicle.tilt_limit is not None else "the default limit"
+        out.append(
+            f"its acceleration asks for a tilt of {math.degrees(peaks['tilt']):.1f} deg, past "
+            f"the vehicle's {math.degrees(limit):.0f} deg ({where})"
+        )
+    return out
 
 
 @dataclasses.dataclass(frozen=True)

@@ -46,12 +46,16 @@ __all__ = [
     "seed",
     "vehicle_file",
     "reference_file",
+    "check_flight",
     "check_reference",
     "describe_reference",
+    "describe_vehicle",
+    "vehicle_record",
     "add_device_batch",
     "add_options",
     "add_runtime_options",
     "add_study_options",
+    "add_infeasible",
     "add_vehicle",
     "check_runtime",
     "CACHE_VARIABLE",
@@ -150,13 +154,72 @@ def check_reference(parser, reference, horizon: float, option: str = "--horizon"
     return peaks
 
 
+def check_flight(parser, args, speed_limit: float | None, source: str) -> None:
+    """A usage error (exit 2), before anything compiles, when the run's vehicle
+    (``args.vehicle``; ``None``: the paper's) cannot hover with its rotors limited to
+    ``speed_limit`` rad/s (``source`` names where that limit comes from), or its
+    reference file (peaks in ``args.reference_peaks``) asks for more thrust or tilt than
+    the vehicle has (:func:`fojax.reference.problems_for`) unless
+    ``--allow-infeasible-reference``."""
+    from fojax import reference as references
+    from fojax import vehicle as vehicles
+
+    flown = getattr(args, "vehicle", None) or vehicles.Vehicle.paper()
+    problems = vehicles.hover_problems(flown, speed_limit, source)
+    if problems:
+        parser.error("the vehicle cannot fly: " + "; ".join(problems))
+    peaks = getattr(args, "reference_peaks", None)
+    if not peaks or getattr(args, "allow_infeasible_reference", False):
+        return
+    problems = references.problems_for(peaks, flown, speed_limit)
+    if problems:
+        parser.error(
+            "--reference: " + "; ".join(problems) + ". Slow the waypoints down, or give "
+            "--allow-infeasible-reference to fly it anyway"
+        )
+
+
+def add_infeasible(parser) -> None:
+    """``--allow-infeasible-reference``."""
+    parser.add_argument(
+        "--allow-infeasible-reference", action="store_true",
+        help="fly a --reference that asks for more thrust or tilt than the vehicle has "
+        "(refused by default, naming its peak and the vehicle's limit)",
+    )  # fmt: skip
+
+
+def describe_vehicle(vehicle, speed_limit: float | None) -> str:
+    """Two lines: the vehicle (``None``: the paper's) and its authority at ``speed_limit``."""
+    from fojax import vehicle as vehicles
+
+    flown = vehicles.Vehicle.paper() if vehicle is None else vehicle
+    layout = flown.rotor_layout()
+    rotors = {"plus": "'+'", "x": "X"}.get(layout.name, "rotors as listed")
+    lag = f", rotors lag {flown.lag() * 1e3:g} ms" if flown.lag() else ""
+    return (
+        f"vehicle: {flown.description or 'the vehicle file'} (m = {flown.mass:.4g} kg, "
+        f"{rotors} at {layout.arm():.4g} m{lag})\n"
+        + flown.authority(speed_limit).describe()
+    )
+
+
+def vehicle_record(vehicle, speed_limit: float | None) -> dict:
+    """``summary.json``'s ``vehicle``: the file's content (the paper's for ``None``) and its
+    authority at ``speed_limit`` (:class:`fojax.rotors.Authority`)."""
+    from fojax import vehicle as vehicles
+
+    flown = vehicles.Vehicle.paper() if vehicle is None else vehicle
+    return {**flown.to_dict(), **flown.authority(speed_limit).to_dict()}
+
+
 def describe_reference(reference, peaks: dict) -> str:
     """One line: what the reference is and its peaks."""
     what = (f"{len(reference.times)} waypoints over {reference.end:g} s"
             if reference.end is not None else f"built-in {reference.name}")  # fmt: skip
     return (
         f"reference: {what}; peak speed {peaks['speed']:.3g} m/s, acceleration "
-        f"{peaks['acceleration']:.3g} m/s^2, tilt {math.degrees(peaks['tilt']):.1f} deg"
+        f"{peaks['acceleration']:.3g} m/s^2 (thrust {peaks['thrust']:.3g} x the weight), tilt "
+        f"{math.degrees(peaks['tilt']):.1f} deg"
     )
 
 

@@ -28,7 +28,8 @@ from pathlib import Path
 from fojax.cli import arguments
 
 __all__ = [
-    "actuators_record", "add_simulate_options", "configure_study", "report_simulate",
+    "actuators_record", "add_simulate_options", "configure_study", "limit_source",
+    "report_simulate",
     "requirements_file", "resolve_requirements", "thrust_to_weight",
 ]  # fmt: skip
 
@@ -96,6 +97,16 @@ def resolve_requirements(args):
     return reqs, rq.rotor_speed_limit(ratio, vehicle)
 
 
+def limit_source(args) -> str:
+    """Where the run's rotor speed limit comes from (:func:`resolve_requirements`)."""
+    reqs = args.requirements
+    if args.rotor_limit is not None:
+        return f"--rotor-limit {args.rotor_limit:g}"
+    if reqs is not None and reqs.settings.speed_limit() is not None:
+        return "the requirement file's rotor limit"
+    return "vehicle.rotor_speed_limit"
+
+
 def actuators_record(limit: float | None, args) -> dict:
     """The actuators of ``limit`` (``w_max``, ``None``: ideal) and where it comes from."""
     from fojax import requirements as rq
@@ -122,6 +133,7 @@ def configure_study(parser, args, study):
     requirement file); keeps the resolved set in ``args.requirement_set``."""
     reqs, limit = resolve_requirements(args)
     args.requirement_set, args.rotor_speed_limit = reqs, limit
+    arguments.check_flight(parser, args, limit, limit_source(args))
     if limit is None:
         return study
     return dataclasses.replace(study, rotor_speed_limit=limit)

@@ -99,6 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="reference file of timed waypoints (TOML, docs/model.md), flown in place of the "
         "scenario's reference; its last waypoint within the run",
     )  # fmt: skip
+    arguments.add_infeasible(parser)
     arguments.add_runtime_options(parser)
     return parser
 
@@ -150,6 +151,8 @@ def parse_args(argv) -> tuple[Study, argparse.Namespace]:
     horizon = args.horizon if args.horizon is not None else scenario.horizon
     steps = arguments.horizon_steps(parser, horizon, args.dt)
     args.reference_peaks = arguments.check_reference(parser, args.reference, horizon)
+    if args.allow_infeasible_reference and args.reference is None:
+        parser.error("--allow-infeasible-reference applies with --reference only; leave it out")
     gains, sources = {}, {}
     dtype = args.dtype
     arguments.enable_dtype(dtype)
@@ -253,10 +256,8 @@ def main(argv=None) -> int:
     )
     if study.reference is not None:
         print(arguments.describe_reference(study.reference, args.reference_peaks))
-    if study.vehicle is not None:
-        v = study.vehicle
-        print(f"vehicle: {v.description or 'the vehicle file'!s} (m = {v.mass:.4g} kg, "
-              f"d = {v.arm_length:.4g} m)")  # fmt: skip
+    if study.vehicle is not None or study.rotor_speed_limit is not None:
+        print(arguments.describe_vehicle(study.vehicle, study.rotor_speed_limit))
     _print_summary(summary)
     summary = requirements_cli.report_simulate(study, args, out, summary, not args.no_figures)
     for flag, users in args.applied.items():

@@ -13,6 +13,7 @@ import numpy as np
 
 from fojax import metrics, sharding, statistics
 from fojax import study as monte_carlo
+from fojax.cli import arguments
 from fojax.cli.output import provenance, write_json, write_npz
 from fojax.cli.study import Study, gains_record, options_applied_to
 from fojax.controllers import registry
@@ -107,7 +108,7 @@ def _header(study: Study, results: dict) -> dict:
             for name in results
         },
         "excluded_from_metrics": "draws flagged nonfinite or tilt_limit (counted in 'diverged')",
-        **({} if study.vehicle is None else {"vehicle": study.vehicle.to_dict()}),
+        "vehicle": arguments.vehicle_record(study.vehicle, study.rotor_speed_limit),
         **({} if study.reference is None else {"reference": reference_record(study)}),
         "controllers": {},
     }

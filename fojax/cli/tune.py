@@ -159,6 +159,10 @@ OPTIONS = (
     Option("--reference", dict(type=arguments.reference_file, metavar="FILE", help="reference "
            "file (TOML, docs/model.md: timed waypoints or a built-in) flown in place of the "
            "scenario's; its last waypoint within --horizon")),
+    Option("--allow-infeasible-reference", dict(action="store_const", const=True, help="fly a "
+           "--reference that asks for more thrust or tilt than the vehicle has (refused by "
+           "default)"), False,
+           lambda a: None if a.reference is not None else "applies with --reference only"),
     # the objective
     Option("--objective", dict(choices=WEIGHTED + CONSTRAINED, help="mean or cvar of the "
            "weighted-sum cost (mean); with --requirements what is minimised under them: "
@@ -326,6 +330,7 @@ def _build(parser, args) -> Run:
     gains, label = _initial_gains(parser, args)
     reqs, limit = requirements_cli.resolve_requirements(args)
     args.requirement_set, args.rotor_speed_limit = reqs, limit
+    arguments.check_flight(parser, args, limit, requirements_cli.limit_source(args))
     # With requirements the method's steps are one outer step's: the augmented Lagrangian
     # restarts its inner strategy (optimiser and schedule) after every multiplier update.
     steps = args.inner_steps if reqs is not None else args.steps
@@ -472,11 +477,8 @@ def _announce(run: Run) -> str:
         f"tuning {spec.controller} on scenario {spec.scenario}: {what}, {args.method}, "
         f"{spec.draws} draws x {spec.horizon:g} s, {run.objective.size} parameters"
     ]
-    if spec.vehicle is not None:
-        lines.append(
-            f"vehicle: {spec.vehicle.description or 'the vehicle file'} "
-            f"(m = {spec.vehicle.mass:.4g} kg, d = {spec.vehicle.arm_length:.4g} m)"
-        )
+    if spec.vehicle is not None or args.rotor_speed_limit is not None:
+        lines.append(arguments.describe_vehicle(spec.vehicle, args.rotor_speed_limit))
     if spec.reference is not None:
         lines.append(arguments.describe_reference(spec.reference, args.reference_peaks))
     return "\n".join(lines)
@@ -522,6 +524,7 @@ def _save_gains(run: Run, result, record: dict, earlier: str | None) -> None:
         "draw_steps": result.draw_steps,
         "wall_time_s": result.wall_time_s,
         "settings": run.fingerprint,
+        "vehicle": arguments.vehicle_record(run.objective.spec.vehicle, args.rotor_speed_limit),
         "init_gains": record["init_gains"],
         "provenance": record["sessions"][-1],
     }

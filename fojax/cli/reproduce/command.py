@@ -214,6 +214,8 @@ def main(argv=None) -> int:
     if lead:
         out.mkdir(parents=True, exist_ok=True)
     progress = not args.quiet and lead
+    if args.vehicle is not None and lead:
+        print(arguments.describe_vehicle(args.vehicle, args.vehicle.speed_limit()))
     start = time.perf_counter()
     results_by_scenario, summaries = {}, {}
 
@@ -257,7 +259,8 @@ def main(argv=None) -> int:
         "horizons_s": {str(s.scenario_id): s.horizon for s in studies},
         "controllers": list(studies[0].controllers),
         "reaching_band": list(studies[0].reaching_band),
-        **({} if args.vehicle is None else {"vehicle": args.vehicle.to_dict()}),
+        **({} if args.vehicle is None
+           else {"vehicle": arguments.vehicle_record(args.vehicle, args.vehicle.speed_limit())}),
     }
     wall = time.perf_counter() - start
     report_md, _ = write_report(out, summaries, claims, settings, figures, wall, tables)
