@@ -134,6 +134,7 @@ def study(vehicle: str, controllers, draws: int, gains, out: Path, full: bool,
         "seconds": round(seconds, 1),
         "horizon_s": summary["horizon_s"],
         "actuators": summary.get("actuators"),
+        "vehicle": summary.get("vehicle"),
         "controllers": rows,
     }  # fmt: skip
 
@@ -184,6 +185,15 @@ def table(results: dict) -> str:
             if actuators.get("rotor_limited")
             else "ideal actuators"
         )
+        record = run["tuned"].get("vehicle") or {}
+        if record.get("max_torque"):
+            table = record["vehicle"]
+            layout = (f"rotors {table['configuration']}" if "configuration" in table
+                      else "rotors as listed" if "rotors" in table else "rotors '+'")  # fmt: skip
+            lag = table.get("rotor_time_constant")
+            roll, pitch, yaw = record["max_torque"]
+            limit += (f"; {layout}{f', lagging {lag * 1e3:g} ms' if lag else ''}; largest "
+                      f"torques {roll:.3g}, {pitch:.3g}, {yaw:.3g} N m")  # fmt: skip
         heldout = run["tuning"][next(iter(run["tuning"]))]["heldout"]
         reqs = requirements.load(ROOT / run["requirements"]).requirements
         bound = next(r for r in reqs if r.metric == "torque_chattering")
