@@ -42,22 +42,34 @@ def _folder() -> Path | None:
     return Path(root) / "exported" if root and jax.config.jax_enable_compilation_cache else None
 
 
-def _namedtuples(treedef) -> set[type]:
+def _node_types(treedef) -> set[type]:
+    """The NamedTuple types of ``treedef``'s nodes, and the static nodes' types that say
+    how to serialise themselves (``to_bytes`` and ``from_bytes``, e.g.
+    :class:`fojax.rotors.Layout`)."""
     found, stack = set(), [treedef]
     while stack:
         node = stack.pop()
         data = node.node_data()
-        if data is not None and isinstance(data[0], type) and hasattr(data[0], "_fields"):
+        if data is not None and isinstance(data[0], type) and (
+            hasattr(data[0], "_fields") or hasattr(data[0], "from_bytes")
+        ):
             found.add(data[0])
         stack.extend(node.children())
     return found
 
 
 def _register(types) -> list[str]:
-    """Registers NamedTuple types with ``jax.export`` (by ``module:qualname``)."""
+    """Registers NamedTuple types, and static types by their ``to_bytes`` and
+    ``from_bytes``, with ``jax.export`` (by ``module:qualname``)."""
     for cls in set(types) - _REGISTERED.keys():
         name = f"{cls.__module__}:{cls.__qualname__}"
-        jax.export.register_namedtuple_serialization(cls, serialized_name=name)
+        if hasattr(cls, "_fields"):
+            jax.export.register_namedtuple_serialization(cls, serialized_name=name)
+        else:
+            jax.export.register_pytree_node_serialization(
+                cls, serialized_name=name, serialize_auxdata=lambda aux: aux.to_bytes(),
+                deserialize_auxdata=cls.from_bytes,
+            )  # fmt: skip
         _REGISTERED[cls] = name
     return [_REGISTERED[c] for c in sorted(types, key=lambda c: (c.__module__, c.__qualname__))]
 
@@ -101,10 +113,10 @@ def _load(path: Path):
 
 
 def _export(path: Path, jitted: Callable, args):
-    """``jitted`` exported for ``args``, saved to ``path`` (its NamedTuple types named in
-    a JSON header line) for :func:`_load`."""
+    """``jitted`` exported for ``args``, saved to ``path`` (its node types named in a JSON
+    header line) for :func:`_load`."""
     exported = jax.export.export(jitted)(*args)
-    types = _namedtuples(exported.in_tree) | _namedtuples(exported.out_tree)
+    types = _node_types(exported.in_tree) | _node_types(exported.out_tree)
     header = json.dumps({"types": _register(types)}).encode()
     records.atomic_write(path, header + b"\n" + exported.serialize())
     return exported

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import math
 
 import jax
@@ -128,6 +129,15 @@ class Layout:
         """The mixer ``M`` ``(4, 4)`` float64: ``(u_F, tau) = M w^2``."""
         scale = np.array([thrust_factor] * 3 + [drag_factor], np.float64)
         return scale[:, None] * self.geometry()
+
+    def to_bytes(self) -> bytes:
+        """The layout serialised (an exported program's tree, :mod:`fojax.export_cache`)."""
+        return json.dumps([self.positions, self.spins, self.name]).encode()
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> Layout:
+        positions, spins, name = json.loads(bytes(data))
+        return cls(tuple(tuple(p) for p in positions), tuple(spins), name)
 
     def to_dict(self) -> dict:
         """The layout as a file or a record states it."""

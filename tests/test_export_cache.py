@@ -99,3 +99,29 @@ def test_nothing_is_kept_without_the_persistent_cache(cache_dir):
     assert _equal(call(*ARGS), _make([])(*ARGS))
     assert traces == [1]
     assert not (cache_dir / "exported").exists()
+
+
+def test_a_rotor_layout_in_the_arguments_is_kept_and_named_by_its_geometry(cache_dir):
+    """A plant with a :class:`fojax.rotors.Layout` (a static node): exported, reloaded
+    without tracing, the same numbers; another layout is another program."""
+    from fojax import plant, rotors
+
+    def make(traces):
+        def fn(params, inputs):
+            traces.append(1)
+            return plant.rotor_speeds_squared(params, inputs)
+
+        return jax.jit(fn)
+
+    inputs = jnp.array([7.5, 0.01, -0.02, 0.003])
+    x = plant.nominal_params(jnp.float64)._replace(layout=rotors.x(0.21))
+    first = export_cache.reusable(make([]), "mix", {"k": 1})(x, inputs)
+    later = []
+    again = export_cache.reusable(make(later), "mix", {"k": 1})(x, inputs)
+    assert later == [] and np.array_equal(first, again)
+    np.testing.assert_array_equal(again, make([])(x, inputs))
+    other = []
+    tilted = x._replace(layout=rotors.Layout(x.layout.positions, (-1, 1, -1, 1)))
+    flipped = export_cache.reusable(make(other), "mix", {"k": 1})(tilted, inputs)
+    assert other == [1] and not np.array_equal(flipped, first)
+    assert rotors.Layout.from_bytes(x.layout.to_bytes()) == x.layout
