@@ -13,7 +13,8 @@ Read top to bottom, each layer uses only those below it:
   it runs (the paper's AFONFTSMC; FL, BSMC, FOBSMC, ANFTSMC), their declared gains,
   the registry and gains files;
 * :mod:`fojax.scenarios` (Section V as data), :mod:`fojax.plant` (eqs. (8)-(11)),
-  :mod:`fojax.vehicle` (other quadrotors, from files), :mod:`fojax.reference`
+  :mod:`fojax.vehicle` (other quadrotors, from files), :mod:`fojax.rotors` (rotor
+  layouts, their allocation and authority, rotor lag), :mod:`fojax.reference`
   (references from waypoint files),
   :mod:`fojax.fractional` (fractional operators).
 """
@@ -26,6 +27,7 @@ from fojax import (
     plant,
     reference,
     requirements,
+    rotors,
     scenarios,
     sharding,
     simulator,
@@ -78,6 +80,7 @@ __all__ = [
     "plant",
     "reference",
     "register",
+    "rotors",
     "requirements",
     "rollout",
     "run_monte_carlo",

@@ -364,6 +364,10 @@ def parse(data: Mapping, source: str = "vehicle") -> Vehicle:
     for field in (_TIME_CONSTANT, _TILT):
         if field.name in table:
             values[field.name] = _quantity(field, table[field.name], problems, zero=True)
+    lag = values.get("rotor_time_constant")
+    if lag is not None and lag >= 1.0:
+        problems.append(f"vehicle.rotor_time_constant: expected a lag below 1 s (a rotor "
+                        f"follows its command in tens of milliseconds), got {lag:g} s")  # fmt: skip
     tilt = values.get("tilt_limit")
     if tilt is not None and not 0 < tilt < 0.5 * math.pi:
         problems.append(f"vehicle.tilt_limit: expected an angle above 0 and below 90 deg, got "
