@@ -83,6 +83,7 @@ __all__ = [
     "rk4_step_parts",
     "rotor_speed_limit",
     "rotor_speed_sum",
+    "rotor_speeds",
     "rotor_speeds_squared",
     "saturate_inputs",
     "signed_square",
@@ -375,7 +376,13 @@ def _unstack(vector: Array, size: int) -> tuple:
 def _rotor_speed_sum_parts(params: PlantParams, thrust, tau_x, tau_y, tau_z) -> Array:
     """:func:`rotor_speed_sum` from the four scalar inputs."""
     squared = _rotor_speeds_squared_parts(params, thrust, tau_x, tau_y, tau_z)
-    return speed_sum(params, tuple(_safe_sqrt_nonnegative(w2) for w2 in squared))
+    return speed_sum(params, rotor_speeds(squared))
+
+
+def rotor_speeds(squared: tuple) -> tuple:
+    """``w_i = sqrt(max(w_i^2, 0))`` of four squared rotor speeds, gradient-safe (zero
+    gradient where a rotor is clipped or at rest)."""
+    return tuple(_safe_sqrt_nonnegative(w2) for w2 in squared)
 
 
 def speed_sum(params: PlantParams, speeds: tuple) -> Array:

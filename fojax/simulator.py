@@ -373,8 +373,7 @@ class _Loop:
         squared = tuple(c + mean * g for c, g in zip(command, gaps, strict=True))
         following = tuple(c + decay * g for c, g in zip(command, gaps, strict=True))
         applied = plant.allocate(draw.params, squared)
-        speeds = tuple(plant._safe_sqrt_nonnegative(w) for w in squared)
-        return applied, plant.speed_sum(draw.params, speeds), following
+        return applied, plant.speed_sum(draw.params, plant.rotor_speeds(squared)), following
 
     def plant_step(self, draw, loop: LoopState, deterministic) -> tuple:
         """The plant's state entries after step ``k`` and the rotor speeds after it

@@ -185,3 +185,22 @@ def run_python(*args: str, env=None, timeout: float = 600) -> str:
     )
     assert done.returncode == 0, done.stderr[-4000:]
     return done.stdout
+
+
+def vehicle_table(**changes) -> dict:
+    """The paper's vehicle as a vehicle file's content, with ``changes`` to its [vehicle]
+    table (a value of None removes the field)."""
+    from fojax import vehicle
+
+    paper = vehicle.Vehicle.paper()
+    table = {
+        name: {"value": list(v) if isinstance(v, tuple) else v, "unit": field.unit}
+        for name, field in vehicle.FIELDS.items()
+        for v in [getattr(paper, name)]
+    }
+    for name, value in changes.items():
+        if value is None:
+            table.pop(name)
+        else:
+            table[name] = value
+    return {"description": "test", "vehicle": table}

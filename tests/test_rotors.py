@@ -8,6 +8,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import vehicle_table
 
 from fojax import observers, plant, rotors, scenarios, simulator, vehicle
 from fojax.controllers.afonftsmc import AFONFTSMC, paper_gains
@@ -16,22 +17,11 @@ PAPER = vehicle.Vehicle.paper()
 
 
 def _table(rotor_table=None, **changes):
-    """The paper's vehicle as a file's content with ``changes`` to its [vehicle] table
-    (None removes a field) and, if given, ``rotor_table`` as its [[vehicle.rotors]]."""
-    table = {
-        name: {"value": list(v) if isinstance(v, tuple) else v, "unit": field.unit}
-        for name, field in vehicle.FIELDS.items()
-        for v in [getattr(PAPER, name)]
-    }
-    for name, value in changes.items():
-        if value is None:
-            table.pop(name)
-        else:
-            table[name] = value
+    """The paper's vehicle file (:func:`conftest.vehicle_table`) with ``changes``; with
+    ``rotor_table`` its [[vehicle.rotors]] in place of ``arm_length``."""
     if rotor_table is not None:
-        table.pop("arm_length")
-        table["rotors"] = rotor_table
-    return {"description": "test", "vehicle": table}
+        changes = {"arm_length": None, "rotors": rotor_table, **changes}
+    return vehicle_table(**changes)
 
 
 IRIS_ROTORS = [  # RotorS iris.xacro: front rotors at (0.13, -+0.22), rear at (-0.13, +-0.20)

@@ -8,27 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import vehicle_table
 
 from fojax import plant, vehicle
 
 PAPER_FILE = "examples/vehicles/paper.toml"
 
 
-def _table(**changes):
-    """The paper's vehicle as a file's content, with ``changes`` to its [vehicle] table
-    (a value of None removes the field)."""
-    paper = vehicle.Vehicle.paper()
-    table = {
-        name: {"value": list(v) if isinstance(v, tuple) else v, "unit": field.unit}
-        for name, field in vehicle.FIELDS.items()
-        for v in [getattr(paper, name)]
-    }
-    for name, value in changes.items():
-        if value is None:
-            table.pop(name)
-        else:
-            table[name] = value
-    return {"description": "test", "vehicle": table}
+_table = vehicle_table
 
 
 def test_the_paper_file_is_the_paper_plant():
