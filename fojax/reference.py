@@ -75,10 +75,15 @@ BUILTINS = {
 what it is."""
 
 
-def _peaks(derivatives, start: float, end: float, samples_per_second: int) -> dict:
-    """Peak speed, acceleration and implied tilt over ``[start, end]`` of
-    ``derivatives(t, order) -> (len(t), 4)``."""
+def _peaks(derivatives, start: float, end: float, samples_per_second: int,
+           breaks=None) -> dict:  # fmt: skip
+    """Peak speed, acceleration, implied tilt and thrust over ``[start, end]`` of
+    ``derivatives(t, order) -> (len(t), 4)``, sampled ``samples_per_second`` and, with
+    ``breaks`` (a piecewise polynomial's), 64 times in every piece however short."""
     t = np.linspace(start, end, max(2, int(samples_per_second * (end - start)) + 1))
+    if breaks is not None:
+        b = np.asarray(breaks, np.float64)
+        t = np.union1d(t, (b[:-1, None] + np.diff(b)[:, None] * np.linspace(0, 1, 65)).ravel())
     velocity = derivatives(t, 1)[:, :3]
     acceleration = derivatives(t, 2)[:, :3]
     vertical = acceleration[:, 2] + 9.81
@@ -203,7 +208,8 @@ class Waypoints:
         changes nothing): the tilt is that of the thrust direction ``(a_x, a_y, a_z + g)``
         the acceleration asks for, ``g = 9.81``."""
         reference = self.reference()
-        return _peaks(reference.derivative, self.times[0], self.times[-1], samples_per_second)
+        return _peaks(reference.derivative, self.times[0], self.times[-1], samples_per_second,
+                      reference.breaks)  # fmt: skip
 
     def to_dict(self) -> dict:
         return {"description": self.description, "times": list(self.times),

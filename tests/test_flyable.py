@@ -131,3 +131,15 @@ def test_a_vehicle_that_cannot_fly_stops_every_command(tmp_path, capsys, text, n
         err = usage_error(capsys, module.main, [*argv, "--vehicle", str(bad), "--out", str(out)])
         assert "argument --vehicle" in err and named in err and "Traceback" not in err
         assert err.count(named) == 1 and not out.exists()
+
+
+def test_a_short_waypoint_piece_has_its_analytic_peaks(tmp_path):
+    """Two waypoints at rest, 1 m apart in 10 ms: the quintic between them is the
+    minimum-jerk move, peak speed 1.875 D/T and acceleration (10 / sqrt 3) D/T^2, however
+    short the piece (sampled in every piece, not only per 10 ms)."""
+    file = _waypoints(tmp_path / "jump.toml", [0.0, 0.01], x=[0.0, 1.0])
+    peaks = reference.load(file).peaks()
+    assert peaks["speed"] == pytest.approx(1.875 / 0.01, rel=1e-6)
+    assert peaks["acceleration"] == pytest.approx(10 / math.sqrt(3) / 0.01**2, rel=1e-3)
+    assert peaks["thrust"] == pytest.approx(math.hypot(peaks["acceleration"], 9.81) / 9.81,
+                                            rel=1e-3)  # fmt: skip
