@@ -41,6 +41,9 @@ class Draw(NamedTuple):
     member: ``()`` int32, the member of a union scenario the draw belongs to (0 for a
         scenario). steps: ``()`` int32, that scenario's own number of steps (its
         horizon / dt): a rollout records the draw up to there.
+    manoeuvre: ``None``, or the :class:`fojax.manoeuvres.Manoeuvre` the draw flies
+        where its scenario (or a union's member) flies manoeuvres, drawn from a key of
+        its own (the other processes draw as without it).
     """
 
     params: plant.PlantParams
@@ -51,6 +54,7 @@ class Draw(NamedTuple):
     noise_hold_steps: Array
     member: Array
     steps: Array
+    manoeuvre: Any = None
 
 
 def draw_keys(seed: int, indices: Iterable[int] | Array) -> Array:
@@ -77,6 +81,25 @@ def draw_keys(seed: int, indices: Iterable[int] | Array) -> Array:
 
 _VEHICLE_TAG = 0x5E41
 """Folded into a draw's key for its vehicle file's uncertainty (:meth:`Vehicle.perturb`)."""
+_MANOEUVRE_TAG = 0x3A4E
+"""Folded into a draw's key for its manoeuvre (:func:`fojax.manoeuvres.sample`)."""
+
+
+def _manoeuvre(scenario: Scenario, key: Array, member: Any, dtype):
+    """The draw's manoeuvre (``None`` where no member flies one): each member that flies
+    manoeuvres draws one from the same key, the draw's member's is kept."""
+    from fojax import manoeuvres
+
+    flying = [m for m in (scenario.members or (scenario,)) if m.manoeuvres is not None]
+    if not flying:
+        return None
+    key = jax.random.fold_in(key, _MANOEUVRE_TAG)
+    drawn = [manoeuvres.sample(key, m.manoeuvres, m.horizon, dtype) for m in flying]
+    if len(drawn) == 1:
+        return drawn[0]
+    index = [i for i, m in enumerate(scenario.members) if m.manoeuvres is not None]
+    which = jnp.clip(jnp.searchsorted(jnp.asarray(index), member), 0, len(index) - 1)
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves)[which], *drawn)
 
 
 def hold_layout(horizon: float, hold: float, dt: float) -> tuple[int, int]:
@@ -197,6 +220,7 @@ def sample_draw(scenario: Scenario, key: Array, dt: float, dtype=None, member: A
         noise_hold_steps=jnp.asarray(noise_hold_steps, jnp.int32),
         member=jnp.asarray(member, jnp.int32),
         steps=jnp.asarray(member_steps, jnp.int32),
+        manoeuvre=_manoeuvre(scenario, key, member, float_dtype),
     )
 
 

@@ -69,6 +69,8 @@ __all__ = [
     "held_row",
     "hold_layout",
     "initial_state",
+    "initial_states",
+    "manoeuvre_scenario",
     "reference_54_55",
     "reference_57",
     "reference_57_smoothed",
@@ -293,6 +295,11 @@ class Scenario:
     initial_attitude: tuple[float, float, float] = _INITIAL_ATTITUDE
     members: tuple = ()
     vehicle: Any = None
+    manoeuvres: Any = None
+    """``None``, or :class:`fojax.manoeuvres.Limits`: every draw flies a random manoeuvre
+    of its own (``Draw.manoeuvre``, drawn from its key) in place of :attr:`reference`, and
+    starts at rest, level, at the manoeuvre's start plus its offset with its yaw
+    (:func:`manoeuvre_scenario`)."""
 
     def __post_init__(self) -> None:
         """``ValueError`` for a setting that would be ignored or misread: a negative
@@ -337,8 +344,14 @@ class Scenario:
                 raise ValueError(
                     f"Scenario {name} must be a function of time, got {getattr(self, name)!r}"
                 )
+        from fojax.manoeuvres import Limits
         from fojax.vehicle import Vehicle
 
+        if self.manoeuvres is not None and not isinstance(self.manoeuvres, Limits):
+            raise ValueError(
+                f"Scenario manoeuvres must be fojax.manoeuvres.Limits or None, got "
+                f"{self.manoeuvres!r}"
+            )
         if self.vehicle is not None and not isinstance(self.vehicle, Vehicle):
             raise ValueError(
                 f"Scenario vehicle must be a fojax.vehicle.Vehicle or None, got {self.vehicle!r}"
@@ -390,23 +403,37 @@ def union(*members: Scenario) -> Scenario:
     ``i`` of that scenario run alone: the same numbers in float64; in float32 within
     about 1e-5 of each signal's scale (up to 3e-4 relative on a value near zero), the
     two programs being fused and rounded apart (``tests/test_scenarios.py``).
-    The members must share the hold times, the initial state and the vehicle.
+    The members must share the hold times and the vehicle, and those that fly no
+    manoeuvres the initial state; members that fly manoeuvres
+    (:func:`manoeuvre_scenario`) must have as many segments.
     """
     if len(members) < 1 or not all(isinstance(m, Scenario) and not m.members for m in members):
         raise ValueError("union takes one or more scenarios (not unions)")
     first = members[0]
     for m in members[1:]:
-        for name in ("drag_hold", "noise_hold", "initial_position", "initial_attitude",
-                     "vehicle"):  # fmt: skip
+        for name in ("drag_hold", "noise_hold", "vehicle"):
             if getattr(m, name) != getattr(first, name):
                 raise ValueError(
                     f"the scenarios of a union must share {name}: {first.name!r} has "
                     f"{getattr(first, name)!r}, {m.name!r} has {getattr(m, name)!r}"
                 )
+    fixed = [m for m in members if m.manoeuvres is None]  # a manoeuvre sets its own start
+    for m in fixed[1:]:
+        for name in ("initial_position", "initial_attitude"):
+            if getattr(m, name) != getattr(fixed[0], name):
+                raise ValueError(
+                    f"the scenarios of a union must share {name}: {fixed[0].name!r} has "
+                    f"{getattr(fixed[0], name)!r}, {m.name!r} has {getattr(m, name)!r}"
+                )
+    shapes = {m.manoeuvres.segments for m in members if m.manoeuvres is not None}
+    if len(shapes) > 1:
+        raise ValueError(f"the manoeuvres of a union's scenarios must have as many segments; "
+                         f"got {sorted(shapes)}")  # fmt: skip
     return dataclasses.replace(
-        first,
+        fixed[0] if fixed else first,
         scenario_id=0,
         name=" | ".join(m.name for m in members),
+        manoeuvres=next((m.manoeuvres for m in members if m.manoeuvres is not None), None),
         horizon=max(m.horizon for m in members),
         drag_variation=max(m.drag_variation for m in members),
         noise_std_position=max(m.noise_std_position for m in members),
@@ -417,17 +444,32 @@ def union(*members: Scenario) -> Scenario:
     )
 
 
-def reference_and_disturbance(scenario: Scenario, member: Array, t: Array):
+def _reference(scenario: Scenario, manoeuvre, t):
+    """The reference with its two derivatives at ``t``: the scenario's function, or the
+    draw's ``manoeuvre`` (:mod:`fojax.manoeuvres`; its batch's axes last) for a scenario
+    that flies manoeuvres."""
+    if scenario.manoeuvres is None:
+        return reference_with_derivatives(scenario.reference, t)
+    from fojax import manoeuvres
+
+    return reference_with_derivatives(lambda s: manoeuvres.position(manoeuvre, s), t)
+
+
+def reference_and_disturbance(scenario: Scenario, member: Array, t: Array, manoeuvre=None):
     """The reference with its two derivatives, and the deterministic disturbance, of
     ``member`` (a union's member index; ignored for a scenario) at time ``t``.
 
     Returns ``((position (4,), velocity (4,), acceleration (4,)), disturbance (6,))``.
     For a union every member's functions are evaluated (time only: shared by every
     draw) and each draw's member is selected: ``member`` of shape ``batch`` gives
-    ``(4,) + batch`` and ``(6,) + batch`` (the batch's axes last).
+    ``(4,) + batch`` and ``(6,) + batch`` (the batch's axes last). ``manoeuvre``: the
+    draw's (``Draw.manoeuvre``) where the scenario, or a member, flies manoeuvres; its
+    reference is then per draw (``(4,) + batch``).
     """
     if not scenario.members:
-        return reference_with_derivatives(scenario.reference, t), scenario.disturbance(t)
+        return _reference(scenario, manoeuvre, t), scenario.disturbance(t)
+    if any(m.manoeuvres is not None for m in scenario.members):
+        return _select_per_draw(scenario, member, t, manoeuvre)
     values = [
         (reference_with_derivatives(m.reference, t), m.disturbance(t).astype(t.dtype))
         for m in scenario.members
@@ -440,6 +482,63 @@ def reference_and_disturbance(scenario: Scenario, member: Array, t: Array):
         lambda leaf: jnp.moveaxis(leaf[member], batch, tuple(a - len(batch) for a in batch)),
         stacked,
     )
+
+
+def _select_per_draw(scenario: Scenario, member: Array, t: Array, manoeuvre):
+    """:func:`reference_and_disturbance` of a union with a member that flies manoeuvres:
+    each member's values broadcast to the batch, each draw's member's taken."""
+    member = jnp.asarray(member)
+    values = [
+        (_reference(m, manoeuvre, t), m.disturbance(t).astype(t.dtype))
+        for m in scenario.members
+    ]
+
+    def per_draw(leaf):  # (k,) shared by the draws, or (k,) + batch: (k,) + batch
+        leaf = jnp.asarray(leaf)
+        if leaf.ndim == 1:
+            leaf = leaf.reshape(leaf.shape + (1,) * member.ndim)
+        return jnp.broadcast_to(leaf, leaf.shape[:1] + member.shape)
+
+    stacked = jax.tree.map(lambda *leaves: jnp.stack([per_draw(x) for x in leaves]), *values)
+    return jax.tree.map(
+        lambda leaf: jnp.take_along_axis(leaf, member[None, None], axis=0)[0], stacked
+    )
+
+
+def manoeuvre_scenario(limits, base: Scenario | None = None, horizon: float = 30.0,
+                       name: str | None = None) -> Scenario:  # fmt: skip
+    """A scenario whose every draw flies a random manoeuvre within ``limits``
+    (:class:`fojax.manoeuvres.Limits`) under ``base``'s random processes and
+    deterministic disturbances (default scenario 2's), over ``horizon`` s."""
+    base = _SCENARIOS[2] if base is None else base
+    return dataclasses.replace(
+        base,
+        scenario_id=0,
+        name=name or f"random manoeuvres under scenario {base.scenario_id}'s disturbances",
+        horizon=float(horizon),
+        manoeuvres=limits,
+    )
+
+
+def initial_states(scenario: Scenario, draw, dtype, batch: tuple[int, ...]) -> Array:
+    """The ``(12,) + batch`` initial states of a draw or a batch (batch last): the
+    scenario's (:func:`initial_state`), or, where the draw flies a manoeuvre, at rest and
+    level at its start plus its offset, with its starting yaw."""
+    fixed = initial_state(scenario, dtype)
+    fixed = jnp.broadcast_to(fixed.reshape((12,) + (1,) * len(batch)), (12,) + batch)
+    if scenario.manoeuvres is None:
+        return fixed
+    from fojax import manoeuvres
+
+    m = draw.manoeuvre
+    position = manoeuvres.initial_position(m).astype(dtype)
+    zero = jnp.zeros_like(position[0])
+    flown = jnp.concatenate([position, jnp.stack([zero, zero, m.waypoints[0, 3].astype(dtype)]),
+                             jnp.zeros((6,) + position.shape[1:], dtype)])  # fmt: skip
+    if not scenario.members:
+        return flown
+    own = jnp.asarray([m.manoeuvres is not None for m in scenario.members])[draw.member]
+    return jnp.where(own, flown, fixed)
 
 
 _SCENARIO_1 = Scenario(
@@ -490,5 +589,6 @@ def get_scenario(scenario_id: int) -> Scenario:
 
 
 def initial_state(scenario: Scenario, dtype=None) -> Array:
-    """The ``(12,)`` initial plant state: position, attitude, zero rates (Section V)."""
+    """The ``(12,)`` initial plant state: position, attitude, zero rates (Section V); a
+    scenario that flies manoeuvres starts each draw elsewhere (:func:`initial_states`)."""
     return plant.make_state(scenario.initial_position, scenario.initial_attitude, dtype=dtype)

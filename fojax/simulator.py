@@ -312,7 +312,7 @@ class _Loop:
         scenario, each draw's member's, the batch last)."""
         t = k.astype(self.dtype) * self.config.dt
         derivatives, disturbance = scenarios.reference_and_disturbance(
-            self.scenario, draw.member, t
+            self.scenario, draw.member, t, draw.manoeuvre
         )
         return t, tuple(d.astype(self.dtype) for d in derivatives), disturbance.astype(self.dtype)
 
@@ -323,7 +323,7 @@ class _Loop:
     def first(self, params, draw) -> LoopState:
         """The carry at step 0, with the first control update (later ones run at the end
         of the iteration before)."""
-        state0 = _per_draw(scenarios.initial_state(self.scenario, self.dtype), 1, self.batch)
+        state0 = scenarios.initial_states(self.scenario, draw, self.dtype, self.batch)
         obs0 = self.observe(draw, jnp.zeros((), jnp.int32), plant.state_blocks(state0))
         control0 = self.controller.init(params, obs0)
         control1, inputs0, info0 = self.controller.step(params, control0, obs0)

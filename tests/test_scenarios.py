@@ -15,6 +15,7 @@ from conftest import close_normwise  # noqa: E402
 
 from fojax import plant  # noqa: E402
 from fojax import scenarios as sc  # noqa: E402
+from fojax import vehicle as vehicle_module  # noqa: E402
 
 TIMES = (0.0, 3.3, 7.0, 7.5, 12.0, 29.9, 44.4, 79.0)
 
@@ -280,3 +281,88 @@ def test_smoothed_reference_57_is_continuous_in_velocity_and_equals_57_after_the
     # The printed y_r' jumps by 20 pi / 23 at t = 7; the smoothed one does not.
     assert float(printed[1][2, 1]) == pytest.approx(20 * np.pi / 23, rel=1e-2)
     assert abs(float(smooth[1][2, 1])) < 1e-3
+
+
+# --------------------------------------------------------------- manoeuvre scenarios
+
+
+def _manoeuvre_scenario(horizon=0.3):
+    from fojax import manoeuvres
+
+    limits = manoeuvres.Limits.from_vehicle(vehicle_module.Vehicle.paper())
+    return sc.manoeuvre_scenario(limits, horizon=horizon)
+
+
+def test_each_draw_flies_its_own_manoeuvre_from_its_start(tmp_path):
+    """Every draw's reference is its manoeuvre's (drawn from its key, the other
+    processes drawn as without it); it starts at rest, level, at the manoeuvre's start
+    plus its offset; a batch rollout equals the rollout of each draw alone."""
+    from fojax import manoeuvres, metrics, simulator
+    from fojax.controllers import make_controller
+
+    dt, horizon = 1e-3, 0.3
+    flying = _manoeuvre_scenario(horizon)
+    base = dataclasses.replace(sc.get_scenario(2), horizon=horizon)
+    keys = sc.draw_keys(7, range(3))
+    draws = sc.sample_draws(flying, keys, dt, jnp.float64)
+    plain = sc.sample_draws(base, keys, dt, jnp.float64)
+    assert plain.manoeuvre is None
+    for got, want in zip(jax.tree.leaves(draws._replace(manoeuvre=None)), jax.tree.leaves(plain),
+                         strict=True):  # fmt: skip
+        np.testing.assert_array_equal(got, want)
+    one = sc.sample_draw(flying, keys[1], dt, jnp.float64)
+    np.testing.assert_array_equal(one.manoeuvre.waypoints, draws.manoeuvre.waypoints[..., 1])
+    assert not np.allclose(draws.manoeuvre.waypoints[..., 0], draws.manoeuvre.waypoints[..., 1])
+
+    state0 = sc.initial_states(flying, draws, jnp.float64, (3,))
+    start = manoeuvres.initial_position(draws.manoeuvre)
+    np.testing.assert_array_equal(state0[:3], start)
+    np.testing.assert_array_equal(state0[5], draws.manoeuvre.waypoints[0, 3])
+    np.testing.assert_array_equal(state0[np.r_[3, 4, 6:12]], 0.0)
+
+    controller = make_controller("afonftsmc", dt=dt, horizon=horizon, switching="sat")
+    gains, model = controller.default_gains(jnp.float64), plant.nominal_params(jnp.float64)
+    config = simulator.SimulationConfig(dt=dt, horizon=horizon, save_every=50)
+    observer = metrics.Metrics(metrics.MetricsConfig(dt=dt, steps=config.steps))
+    batch = simulator.rollout(controller, gains, model, flying, draws, config, observer)
+    t = np.asarray(batch.trajectory.time[:, 0]) - dt  # a snapshot's reference: its last step's
+    want = np.stack([np.stack([np.asarray(manoeuvres.position(
+        jax.tree.map(lambda x, i=i: x[..., i], draws.manoeuvre), s)) for s in t])
+        for i in range(3)], axis=-1)  # fmt: skip
+    np.testing.assert_allclose(batch.trajectory.reference, want, rtol=1e-12, atol=1e-14)
+    for i in range(3):
+        alone = simulator.rollout(controller, gains, model, flying,
+                                  jax.tree.map(lambda x, i=i: x[..., i], draws), config,
+                                  observer)  # fmt: skip
+        np.testing.assert_allclose(batch.final_state[:, i], alone.final_state, rtol=1e-10,
+                                   atol=1e-12)  # fmt: skip
+
+
+def test_a_union_with_manoeuvres_runs_each_member_as_alone():
+    """Scenario 2 and random manoeuvres in one compiled rollout: each member's draws are
+    those of the member alone (float64, bit for bit)."""
+    from fojax import metrics, simulator
+    from fojax.controllers import make_controller
+
+    dt, horizon = 1e-3, 0.2
+    members = (dataclasses.replace(sc.get_scenario(2), horizon=horizon),
+               _manoeuvre_scenario(horizon))  # fmt: skip
+    bank = sc.union(*members)
+    controller = make_controller("afonftsmc", dt=dt, horizon=horizon, switching="sat")
+    gains, model = controller.default_gains(jnp.float64), plant.nominal_params(jnp.float64)
+    keys = sc.draw_keys(2, range(2))
+    config = simulator.SimulationConfig(dt=dt, horizon=horizon, save_every=50)
+    observer = metrics.Metrics(metrics.MetricsConfig(dt=dt, steps=config.steps))
+    for index, member in enumerate(members):
+        together = simulator.rollout(controller, gains, model, bank,
+                                     sc.sample_draws(bank, keys, dt, jnp.float64, index),
+                                     config, observer)  # fmt: skip
+        alone = simulator.rollout(controller, gains, model, member,
+                                  sc.sample_draws(member, keys, dt, jnp.float64), config,
+                                  observer)  # fmt: skip
+        np.testing.assert_array_equal(together.trajectory.reference, alone.trajectory.reference)
+        np.testing.assert_allclose(together.final_state, alone.final_state, rtol=1e-12,
+                                   atol=1e-14)  # fmt: skip
+    with pytest.raises(ValueError, match="must have as many segments"):
+        other = dataclasses.replace(members[1].manoeuvres, segments=3)
+        sc.union(members[1], dataclasses.replace(members[1], manoeuvres=other, name="b"))
