@@ -1,28 +1,58 @@
-"""Every generated block of README.md and docs/: the command that regenerates it, the
-source paths its numbers depend on, and the checks of its label.
+"""Every generated block of README.md and docs/: the command that regenerates it, what
+its numbers depend on, and the checks of its label.
 
 A generator writes its block with :func:`fojax.cli.output.splice`, which starts it with
 a label (:func:`fojax.cli.output.block_label`: command, commit, machine, load,
 versions). :data:`BLOCKS` lists the blocks in the order ``python -m
 experiments.regenerate_docs`` runs their commands (a later one may reuse an earlier
 one's results). :func:`problems` says what is wrong with one block's label (none, made
-with uncommitted changes, a commit not in the history, sources changed since);
-:func:`check_docs` checks every block and that the docs hold no block this registry
-does not list.
+with uncommitted changes, a commit not in the history, its numbers' code changed
+since); :func:`check_docs` checks every block and that the docs hold no block this
+registry does not list.
+
+What a block's numbers depend on (:func:`dependencies`): the files of the first-party
+modules that its generators import (:func:`generators`: the module its command runs and
+those it runs in processes of its own, :attr:`Block.modules`), found in their source at
+HEAD (:func:`imports`: the transitive closure of ``import`` and ``from ... import``
+statements, at module level or in a function, of ``fojax``, ``fojax.optimize`` (the
+folder optimize/) and ``experiments``), and the files or folders it declares
+(:attr:`Block.sources`: the pinned versions, the example files it reads; the setup
+block's fresh clone installs and tests all of the code). A file counts as changed since
+a label's commit only where its code changed (:func:`same_code`: a Python file's syntax
+tree without its docstrings and comments, any other file's bytes), so a docstring, a
+comment or a reformatted line stales no block.
 """
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import functools
+import hashlib
 import json
 import re
 import subprocess
+import tomllib
+from collections.abc import Iterable
 from pathlib import Path
+from typing import NamedTuple
 
 from experiments import regenerate_reproduction, sensitivity_report
 from fojax.cli import output
 
-__all__ = ["BLOCKS", "ROOT", "Block", "block_text", "check_docs", "problems", "read_label"]
+__all__ = [
+    "BLOCKS",
+    "ROOT",
+    "Block",
+    "block_text",
+    "check_docs",
+    "dependencies",
+    "generators",
+    "imports",
+    "problems",
+    "read_label",
+    "same_code",
+]
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -31,12 +61,16 @@ ROOT = Path(__file__).resolve().parent.parent
 class Block:
     """One generated block: ``name``, the ``document`` holding it (relative to the
     repository root), the ``command`` that regenerates it (run from the root), the
-    ``sources`` (files or folders) its numbers depend on, ``marker``: for a block that
-    is everything below a marker line, that line (otherwise the block is between
-    ``<!-- name:begin -->`` and ``<!-- name:end -->``), and ``results``: the folder
-    where its command keeps results that a later run reuses (``None``: none). timed:
-    whether a full regeneration runs it and keeps its time (``False``: a block made of
-    the others' times, rewritten after each of them)."""
+    ``sources``: files or folders its numbers depend on beyond the code its generators
+    import (:func:`dependencies`), ``marker``: for a block that is everything below a
+    marker line, that line (otherwise the block is between ``<!-- name:begin -->`` and
+    ``<!-- name:end -->``), ``results``: the folder where its command keeps results that
+    a later run reuses (``None``: none), ``timed``: whether a full regeneration runs it
+    and keeps its time (``False``: a block made of the others' times, rewritten after
+    each of them), ``modules``: modules its command runs beside the one it names, in
+    processes of their own (``fojax.cli.tune`` for a study that runs ``python -m
+    fojax.cli tune``), and ``imports``: whether the code its generators import counts
+    (``False``: its ``sources`` alone)."""
 
     name: str
     document: str
@@ -45,6 +79,8 @@ class Block:
     marker: str | None = None
     results: str | None = None
     timed: bool = True
+    modules: tuple[str, ...] = ()
+    imports: bool = True
 
 
 def _words(text: str) -> tuple[str, ...]:
@@ -52,39 +88,31 @@ def _words(text: str) -> tuple[str, ...]:
     return tuple(text.split())
 
 
-# What the numbers depend on: the pinned versions and the closed loop; Monte Carlo
-# studies add the study layer, tuning studies the tuner.
-_CLOSED_LOOP = _words(
-    "constraints.txt fojax/_arrays.py fojax/controllers fojax/draws.py fojax/fractional"
-    " fojax/metrics.py fojax/observers.py fojax/plant.py fojax/scenarios.py fojax/simulator.py"
-    " fojax/statistics.py"
+# Beyond the code its generator imports, every block that computes its numbers depends on
+# the pinned versions; a few read example files, or run `fojax COMMAND` in processes of
+# their own (fojax.cli imports the command's module by name, which no import statement
+# states).
+_PINNED = ("constraints.txt",)
+_SMALL_QUADROTOR = ("examples/requirements/small_quadrotor.toml",)
+_VEHICLES = _words(
+    "examples/vehicles examples/requirements/crazyflie.toml examples/requirements/iris.toml"
 )
-_MONTE_CARLO = _CLOSED_LOOP + _words(
-    "fojax/sharding.py fojax/study fojax/cli/simulate.py fojax/cli/study.py"
-    " fojax/cli/study_files.py"
-)
-# The reproduction's report and figures (the paper's figures draw with fojax.cli.figures).
-_REPORT = _words("fojax/cli/reproduce fojax/cli/figures.py fojax/cli/style.py")
-_TUNING = _CLOSED_LOOP + _words("fojax/blocks.py fojax/sharding.py optimize experiments/_common.py")
-_REQUIREMENTS = (*_TUNING, "fojax/requirements", "fojax/cli/requirements.py")
-_FRACTIONAL = _words("constraints.txt fojax/fractional fojax/cli/accuracy.py")
-_DISTRIBUTED = (*_MONTE_CARLO, "fojax/cli/arguments.py")
-_SETUP = _words("constraints.txt pyproject.toml fojax tests")
-_BENCH = _CLOSED_LOOP + _words(
-    "fojax/settings.py fojax/sharding.py fojax/cli/bench.py fojax/cli/bench_measure.py"
-    " fojax/cli/numpy_reference.py"
-)
+# README's two commands from a fresh clone: the installation, `fojax reproduce` and every test.
+_SETUP = _words("pyproject.toml fojax optimize tests")
 
 
-def _block(name, document, command: str, sources, experiments: str = "", **fields) -> Block:
+def _block(name, document, command: str, sources=(), modules: str = "", **fields) -> Block:
     """The block ``name`` of ``document``, regenerated by ``python -m experiments.`` and
-    the words of ``command``, its numbers depending on ``sources`` and the files
-    ``experiments/MODULE.py`` of the modules named in ``experiments`` (default: the
-    command's own); ``fields``: :class:`Block`'s others."""
+    the words of ``command``; its numbers depending on the code its generator imports, the
+    pinned versions, ``sources`` and the code of ``modules`` (space-separated: modules it
+    runs in processes of its own); ``fields``: :class:`Block`'s others (with
+    ``imports=False``: ``sources`` alone)."""
     module, *options = command.split()
-    files = (f"experiments/{m}.py" for m in experiments.split() or [module])
     command_words = ("python", "-m", f"experiments.{module}", *options)
-    return Block(name, document, command_words, (*sources, *files), **fields)
+    pinned = _PINNED if fields.get("imports", True) else ()
+    return Block(
+        name, document, command_words, (*pinned, *sources), modules=_words(modules), **fields
+    )
 
 
 BLOCKS: dict[str, Block] = {
@@ -94,31 +122,32 @@ BLOCKS: dict[str, Block] = {
             "bench",
             "docs/performance.md",
             "bench_report --json results/bench/bench.json --update-doc docs/performance.md",
-            _BENCH,
+            modules="fojax.cli.bench",
         ),
         *(  # the example reports, one per switching function
             _block(
                 document.replace("_", "-"),
                 f"docs/{document}.md",
                 f"regenerate_reproduction --only {switching}",
-                _MONTE_CARLO + _REPORT,
                 marker=regenerate_reproduction.MARKER,
                 results=f"results/{folder}",
             )
             for switching, (folder, _, document) in regenerate_reproduction.RUNS.items()
         ),
         # fojax accuracy: every fractional method against exact results
-        _block("accuracy", "docs/fractional.md", "accuracy_report --update-doc", _FRACTIONAL),
+        _block("accuracy", "docs/fractional.md", "accuracy_report --update-doc"),
         # one process against two jax.distributed processes on this machine
         _block(
-            "distributed", "docs/distributed.md", "distributed_timing --update-doc", _DISTRIBUTED
+            "distributed",
+            "docs/distributed.md",
+            "distributed_timing --update-doc",
+            modules="fojax.cli.simulate",
         ),
-        _block(
+        _block(  # its tuning runs experiments.fair_comparison in a process of its own
             "sensitivity",
             "docs/sensitivity.md",
             "sensitivity",
-            _MONTE_CARLO + _words("optimize fojax/requirements fojax/cli/reproduce/claims.py"),
-            "fair_comparison sensitivity sensitivity_plan sensitivity_report",
+            modules="experiments.fair_comparison",
             marker=sensitivity_report.MARKER,
             results="results/sensitivity",
         ),
@@ -126,49 +155,43 @@ BLOCKS: dict[str, Block] = {
             "fair-comparison",
             "docs/tuning.md",
             "fair_comparison --out results/fair_comparison --update-doc docs/tuning.md",
-            _TUNING,
             results="results/fair_comparison",
         ),
         _block(  # every fojax tune run of the study, the reference runs included
             "tuning-reference",
             "docs/tuning.md",
             "tuning_study --out results/tuning_study --reference --update-doc docs/tuning.md",
-            (*_TUNING, "fojax/cli/tune.py", "fojax/settings.py"),
-            "tuning_study tuning_study_report",
+            modules="fojax.cli.tune",
             results="results/tuning_study",
         ),
         _block(  # the same command: its runs are kept, the second only reports
             "tuning-study",
             "docs/tuning.md",
             "tuning_study --out results/tuning_study --reference --update-doc docs/tuning.md",
-            (*_TUNING, "fojax/cli/tune.py", "fojax/settings.py"),
-            "tuning_study tuning_study_report",
+            modules="fojax.cli.tune",
             results="results/tuning_study",
         ),
         _block(
             "tune-paper-gains",
             "docs/tuning.md",
             "tune_paper_gains --out results/tune_paper_gains --update-doc docs/tuning.md",
-            _TUNING,
             results="results/tune_paper_gains",
         ),
         _block(
             "tune-memory",
             "docs/tuning.md",
             "tune_memory --horizons 5 10 20 40 80 --execute-up-to 10 --update-doc docs/tuning.md",
-            _TUNING,
         ),
         _block(
             "remark3",
             "docs/tuning.md",
             "remark3 --out results/remark3 --update-doc docs/tuning.md",
-            _TUNING,
         ),
         _block(
             "requirements-study",
             "docs/requirements.md",
             "requirements_study --update-doc",
-            _REQUIREMENTS,
+            _SMALL_QUADROTOR,
             results="results/requirements_study",
         ),
         _block(
@@ -176,35 +199,29 @@ BLOCKS: dict[str, Block] = {
             "docs/requirements.md",
             "requirements_study --tune-scenario 2,3 --controllers afonftsmc,fobsmc,bsmc,fl"
             " --out results/requirements_union --update-doc",
-            _REQUIREMENTS,
+            _SMALL_QUADROTOR,
             results="results/requirements_union",
         ),
         _block(  # fojax tune --requirements per method, each cold in a fresh process
             "requirements-methods",
             "docs/requirements.md",
             "requirements_methods --update-doc",
-            (*_REQUIREMENTS, "fojax/cli/tune.py", "examples/requirements/small_quadrotor.toml"),
+            _SMALL_QUADROTOR,
+            modules="fojax.cli.tune",
         ),
         _block(  # the default tuner from the naive start on the published vehicles
             "vehicles",
             "docs/vehicles.md",
             "vehicles --out results/vehicles --update-doc",
-            (
-                *_REQUIREMENTS,
-                *_MONTE_CARLO[len(_CLOSED_LOOP) :],
-                *_words(
-                    "fojax/cli/tune.py fojax/settings.py fojax/vehicle.py examples/vehicles"
-                    " examples/requirements/crazyflie.toml examples/requirements/iris.toml"
-                ),
-            ),
+            _VEHICLES,
+            modules="fojax.cli.tune fojax.cli.simulate",
             results="results/vehicles",
         ),
         _block(
             "remark3-inverted",
             "docs/requirements.md",
             "remark3_inverted --update-doc",
-            _REQUIREMENTS,
-            "remark3 remark3_inverted remark3_inverted_report",
+            _SMALL_QUADROTOR,
             results="results/remark3_inverted",
         ),
         *(  # rendered from the JSON of a run on a GPU machine (last: it runs nothing)
@@ -213,22 +230,413 @@ BLOCKS: dict[str, Block] = {
                 "docs/performance.md",
                 f"bench_report --from docs/data/{name.replace('-', '_')}.json --name {name}"
                 " --update-doc docs/performance.md",
-                _BENCH,
+                modules="fojax.cli.bench",
             )
             for name in ("bench-gpu", "bench-gpu-large")
         ),
         # README's two commands from a fresh clone (its own processes, ~10 min)
         _block("setup", "README.md", "setup_timing --update-doc", _SETUP),
-        _block(  # each block's last regeneration time (rewritten after every block)
+        _block(  # each block's last regeneration time (rewritten after every block): the
+            # registry imports the studies for their markers, whose code its times do not
+            # depend on
             "regeneration",
             "README.md",
             "regenerate_docs --render",
-            (),
-            "blocks regenerate_docs",
+            _words("experiments/blocks.py experiments/regenerate_docs.py experiments/_common.py"),
             timed=False,
+            imports=False,
         ),
     )
 }
+
+
+# ----------------------------------------------------------- what the numbers depend on
+
+_ROOTS = ("fojax", "experiments")
+"""The first-party packages: ``fojax`` (with ``fojax.optimize``, from the folder
+pyproject.toml maps it to) and the studies, ``experiments``."""
+
+
+def _packages(pyproject: bytes | None) -> dict[str, str]:
+    """Each first-party package's folder, relative to the checkout's root: the package's
+    own path unless ``pyproject`` (pyproject.toml's content; ``None``: none) maps it
+    elsewhere (``[tool.setuptools.package-dir]``)."""
+    folders = {name: name for name in _ROOTS}
+    try:
+        table = tomllib.loads(pyproject.decode()) if pyproject is not None else {}
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+        table = {}
+    mapped = table.get("tool", {}).get("setuptools", {}).get("package-dir", {})
+    folders.update({k: v for k, v in mapped.items() if k.split(".")[0] in _ROOTS})
+    return folders
+
+
+class _Import(NamedTuple):
+    """One import statement: ``from module import names`` (``level`` dots before
+    ``module``), or ``import names`` where ``module`` is ``None`` and ``level`` 0;
+    ``names``: each ``(name, the name it is bound to)``; ``top``: outside any function
+    or class; ``attributes``: for ``import name`` (no dot, one name), the attributes the
+    module's code reads from the name it binds (``fojax.rollout``, ``getattr(fojax,
+    "rollout")``)."""
+
+    module: str | None
+    level: int
+    names: tuple[tuple[str, str], ...]
+    top: bool
+    attributes: tuple[str, ...] = ()
+
+
+_STATEMENTS: dict[bytes, tuple[_Import, ...]] = {}
+"""The import statements of each Python file read, by a digest of its content."""
+
+
+def _statements(content: bytes) -> tuple[_Import, ...]:
+    """The import statements of a Python file's ``content`` (none where it does not
+    parse)."""
+    key = hashlib.blake2b(content).digest()
+    if key not in _STATEMENTS:
+        try:
+            tree = ast.parse(content)
+        except (SyntaxError, ValueError):
+            tree = ast.Module(body=[], type_ignores=[])
+        found = list(_import_statements(tree, top=True))
+        plain = [s.module is None and "." not in s.names[0][0] for s in found]
+        uses = _attributes(tree) if any(plain) else {}
+        _STATEMENTS[key] = tuple(
+            s._replace(attributes=tuple(sorted(uses.get(s.names[0][1], ())))) if named else s
+            for s, named in zip(found, plain, strict=True)
+        )
+    return _STATEMENTS[key]
+
+
+def _attributes(tree: ast.AST) -> dict[str, set[str]]:
+    """Each name's attributes that the code of ``tree`` reads: ``name.attribute`` and
+    ``getattr(name, "attribute")``."""
+    found: dict[str, set[str]] = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
+            found.setdefault(node.value.id, set()).add(node.attr)
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Name)
+            and node.func.id == "getattr"
+            and len(node.args) >= 2
+            and isinstance(node.args[0], ast.Name)
+            and isinstance(node.args[1], ast.Constant)
+            and isinstance(node.args[1].value, str)
+        ):
+            found.setdefault(node.args[0].id, set()).add(node.args[1].value)
+    return found
+
+
+def _import_statements(node: ast.AST, top: bool) -> Iterable[_Import]:
+    """Every import statement under ``node``, at any depth, but those under ``if
+    TYPE_CHECKING:`` (never run)."""
+    for child in ast.iter_child_nodes(node):
+        if isinstance(child, ast.Import):
+            yield _Import(None, 0, tuple((a.name, a.asname or a.name) for a in child.names), top)
+        elif isinstance(child, ast.ImportFrom):
+            names = tuple((a.name, a.asname or a.name) for a in child.names)
+            yield _Import(child.module, child.level, names, top)
+        elif isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
+            for statement in child.orelse:
+                yield from _import_statements(ast.Module(body=[statement], type_ignores=[]), top)
+        else:
+            inner = isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))
+            yield from _import_statements(child, top and not inner)
+
+
+def _absolute(name: str, is_package: bool, level: int, module: str | None) -> str | None:
+    """The module that a ``from`` import in the module ``name`` names: ``module`` itself,
+    or relative to ``name``'s package, ``level`` dots up (``None``: above the top)."""
+    if level == 0:
+        return module
+    parts = name.split(".") if is_package else name.split(".")[:-1]
+    if level > len(parts):
+        return None
+    return ".".join([*parts[: len(parts) - level + 1], *([module] if module else [])])
+
+
+@functools.lru_cache(maxsize=4)
+def _committed(root: Path, commit: str) -> dict[str, bytes]:
+    """The Python files and pyproject.toml of ``commit`` (a full hash) of the checkout
+    ``root``, by path."""
+    listing = _git(root, "ls-tree", "-r", "--name-only", "-z", commit).stdout.split("\0")
+    paths = [p for p in listing if p.endswith(".py") or p == "pyproject.toml"]
+    read = _read_files(root, [f"{commit}:{path}" for path in paths])
+    return {path: read[f"{commit}:{path}"] for path in paths}
+
+
+class _Modules:
+    """The first-party modules of the checkout ``root`` at ``commit`` (a full hash;
+    ``None``: its working tree), read from their files: where each is and which modules
+    its code imports. ``packages``: as :func:`imports`."""
+
+    def __init__(
+        self, root: Path, packages: dict[str, str] | None = None, commit: str | None = None
+    ):
+        self.root = root
+        self._tree = None if commit is None else _committed(root, commit)
+        self.packages = dict(packages or _packages(self._content("pyproject.toml")))
+        self._files: dict[str, tuple[str, bool] | None] = {}
+
+    def _content(self, path: str) -> bytes | None:
+        if self._tree is not None:
+            return self._tree.get(path)
+        file = self.root / path
+        return file.read_bytes() if file.is_file() else None
+
+    def file(self, name: str) -> tuple[str, bool] | None:
+        """``(path relative to the root, whether a package)`` of the module ``name``, or
+        ``None`` where it is no first-party module of this checkout."""
+        if name not in self._files:
+            self._files[name] = self._find(name)
+        return self._files[name]
+
+    def _find(self, name: str) -> tuple[str, bool] | None:
+        owners = [p for p in self.packages if name == p or name.startswith(p + ".")]
+        if not owners:
+            return None
+        package = max(owners, key=len)
+        folder = Path(self.packages[package], *name[len(package) :].split(".")[1:])
+        candidates = [(folder.with_suffix(".py"), False)] if name != package else []
+        for path, is_package in (*candidates, (folder / "__init__.py", True)):
+            if self._content(path.as_posix()) is not None:
+                return path.as_posix(), is_package
+        return None
+
+    def _statements(self, name: str) -> tuple[_Import, ...]:
+        found = self.file(name)
+        return _statements(self._content(found[0])) if found else ()
+
+    def _base(self, name: str, statement: _Import) -> str | None:
+        """The module that the ``from`` import ``statement`` of the module ``name`` names."""
+        return _absolute(name, self.file(name)[1], statement.level, statement.module)
+
+    def loaded(self, name: str) -> list[str]:
+        """The modules that importing ``name`` runs: it and the packages holding it, but
+        the first-party roots (:meth:`imported`)."""
+        parts = name.split(".")
+        found = [".".join(parts[:n]) for n in range(len(parts), 0, -1)]
+        return [m for m in found if m == name or m not in _ROOTS]
+
+    def imported(self, name: str) -> list[str]:
+        """The first-party modules that the code of the module ``name`` imports, each as
+        named (:meth:`loaded` adds the packages holding it). A first-party root's
+        ``__init__.py`` (fojax's) only gathers its modules' names for users (what
+        tests/test_staleness.py checks): its imports count only through the names a
+        module takes from it (``from fojax import rollout``, ``fojax.rollout``:
+        fojax.simulator), not wherever it runs."""
+        if name in _ROOTS:
+            return []
+        found: list[str] = []
+        for statement in self._statements(name):
+            if statement.module is None and statement.level == 0:
+                for n, _ in statement.names:
+                    taken = statement.attributes if n in _ROOTS else ()
+                    found += [n] + [m for attribute in taken for m in self._from(n, attribute)]
+                continue
+            base = self._base(name, statement)
+            if base is not None and self.file(base) is not None:
+                found += [m for n, _ in statement.names for m in self._from(base, n)]
+        return found
+
+    def _from(self, base: str, name: str, seen: frozenset = frozenset()) -> list[str]:
+        """What ``from base import name`` imports: the submodule ``base.name``, else the
+        module ``base``; from a first-party root, the module whose name it binds there
+        (``from fojax import Vehicle``: fojax.vehicle, through ``from fojax.vehicle
+        import Vehicle`` in fojax/__init__.py)."""
+        if name != "*" and self.file(f"{base}.{name}") is not None:
+            return [f"{base}.{name}"]
+        found = [base]
+        if base in _ROOTS and (base, name) not in seen:
+            for statement in self._statements(base):
+                bound = [n for n, alias in statement.names if name in ("*", alias)]
+                origin = self._base(base, statement) if statement.module else None
+                if statement.top and origin is not None:
+                    for n in bound:
+                        found += self._from(origin, n, seen | {(base, name)})
+        return found
+
+
+def imports(
+    modules: Iterable[str],
+    root: Path | None = None,
+    packages: dict[str, str] | None = None,
+    commit: str | None = None,
+) -> dict[str, str]:
+    """Every first-party module that running ``modules`` imports: they, the transitive
+    closure of their ``import`` and ``from ... import`` statements (at module level or in
+    a function; relative ones resolved; ``from package import name`` taken as the
+    submodule where one has that name) and the packages holding each
+    (:meth:`_Modules.loaded`), read from the files of the checkout ``root`` (default
+    :data:`ROOT`) at ``commit`` (default: its working tree), not run. ``packages``: each
+    first-party package's folder relative to ``root`` (default: its name, or where
+    pyproject.toml maps it). A module with no file there is left out. Module name to
+    file (relative to ``root``), sorted by name."""
+    root = ROOT if root is None else Path(root)
+    full = None
+    if commit is not None:
+        full = _git(root, "rev-parse", "--verify", "-q", f"{commit}^{{commit}}").stdout.strip()
+        if not full:
+            raise ValueError(f"no commit {commit!r} in {root}")
+    found = _Modules(root, packages, full)
+    todo = [m for name in modules for m in found.loaded(name)]
+    files: dict[str, str] = {}
+    while todo:
+        name = todo.pop()
+        where = found.file(name)
+        if name in files or where is None:
+            continue
+        files[name] = where[0]
+        todo += [m for imported in found.imported(name) for m in found.loaded(imported)]
+    return dict(sorted(files.items()))
+
+
+def generators(block: Block) -> tuple[str, ...]:
+    """The modules that ``block``'s command runs: the module of ``python -m MODULE``; for
+    ``fojax COMMAND`` (or ``python -m fojax.cli COMMAND``) fojax.cli and
+    ``fojax.cli.COMMAND`` (which fojax.cli imports by name); then its
+    :attr:`Block.modules`."""
+    words, found = list(block.command), []
+    if words[:2] == ["python", "-m"] and len(words) > 2:
+        if words[2] == "fojax.cli":
+            words = ["fojax", *words[3:]]
+        else:
+            found = [words[2]]
+    if words[:1] == ["fojax"]:
+        found = ["fojax.cli", *(f"fojax.cli.{w}" for w in words[1:2] if not w.startswith("-"))]
+    return tuple(dict.fromkeys([*found, *block.modules]))
+
+
+def dependencies(block: Block, root: Path | None = None) -> tuple[str, ...]:
+    """The files and folders (relative to ``root``, default :data:`ROOT`) that ``block``'s
+    numbers depend on: its :attr:`Block.sources` and, unless it says otherwise
+    (:attr:`Block.imports`), the files of the modules its :func:`generators` import
+    (:func:`imports`) at ``root``'s HEAD (its working tree where it has no commit). A
+    change since a label of what they import is a change of code in a file that one of
+    them imports at HEAD, so the imports at HEAD find it."""
+    root = ROOT if root is None else Path(root)
+    if not block.imports:
+        return block.sources
+    head = _git(root, "rev-parse", "--verify", "-q", "HEAD^{commit}").stdout.strip()
+    code = imports(generators(block), root, commit=head or None).values()
+    return tuple(dict.fromkeys([*block.sources, *code]))
+
+
+# ------------------------------------------------------ code, docstrings left out
+
+
+def _without_docstrings(statements: list[ast.stmt]) -> list[ast.stmt]:
+    """``statements`` less every one that is a string alone, at any depth: the docstrings
+    of modules, classes and functions and those that document a name below its
+    assignment. They run nothing (no generator writes a ``__doc__`` into a block)."""
+    kept = [s for s in statements if not _is_text(s)]
+    for statement in kept:
+        for field in ("body", "orelse", "finalbody"):
+            inner = getattr(statement, field, None)
+            if isinstance(inner, list) and inner and isinstance(inner[0], ast.stmt):
+                setattr(statement, field, _without_docstrings(inner))
+        for part in (*getattr(statement, "handlers", ()), *getattr(statement, "cases", ())):
+            part.body = _without_docstrings(part.body)
+    return kept
+
+
+def _is_text(statement: ast.stmt) -> bool:
+    value = statement.value if isinstance(statement, ast.Expr) else None
+    return isinstance(value, ast.Constant) and isinstance(value.value, str)
+
+
+def _code(content: bytes | None, path: str) -> bytes | None:
+    """What of a file's ``content`` its behaviour depends on: for a Python file (by its
+    ``path``) its syntax tree without docstrings (comments, blank lines and line breaks
+    never reach it) as text; for any other file, or Python that does not parse, its
+    bytes; ``None`` for no file."""
+    if content is None or not path.endswith(".py"):
+        return content
+    try:
+        tree = ast.parse(content)
+    except (SyntaxError, ValueError):
+        return content
+    tree.body = _without_docstrings(tree.body)
+    return ast.dump(tree).encode()
+
+
+def same_code(before: bytes | str | None, after: bytes | str | None, path: str) -> bool:
+    """Whether two versions of the file ``path`` (its contents; ``None``: no such file)
+    run the same: equal Python code once docstrings and comments are left out, equal
+    bytes for any other file. A file added or removed is a change."""
+    before, after = (t.encode() if isinstance(t, str) else t for t in (before, after))
+    return before == after or _code(before, path) == _code(after, path)
+
+
+_CODE: dict[str, bytes | None] = {}
+"""A digest of the code (:func:`_code`) of each ``COMMIT:PATH`` read (a full commit hash
+names the file's content in any repository)."""
+
+
+def _code_at(root: Path, commit: str, paths: Iterable[str]) -> dict[str, bytes | None]:
+    """A digest of the code of each of ``paths`` at ``commit`` (a full hash) of the
+    checkout ``root``, ``None`` for a path that is no file there."""
+    specs = {path: f"{commit}:{path}" for path in paths}
+    missing = [spec for spec in specs.values() if spec not in _CODE]
+    for spec, content in _read_files(root, missing).items():
+        code = _code(content, spec.split(":", 1)[1])
+        _CODE[spec] = None if code is None else hashlib.blake2b(code).digest()
+    return {path: _CODE[spec] for path, spec in specs.items()}
+
+
+def _read_files(root: Path, specs: list[str]) -> dict[str, bytes | None]:
+    """The contents of the files ``specs`` (``COMMIT:PATH``) of the checkout ``root``
+    (one ``git cat-file --batch``), ``None`` for one that is no file."""
+    if not specs:
+        return {}
+    done = subprocess.run(["git", "-C", str(root), "cat-file", "--batch"],
+                          input="".join(f"{s}\n" for s in specs).encode(),
+                          capture_output=True, check=True)  # fmt: skip
+    out, at, found = done.stdout, 0, {}
+    for spec in specs:
+        end = out.index(b"\n", at)
+        header, at = out[at:end].split(b" "), end + 1
+        kind = header[1] if len(header) == 3 and header[2].isdigit() else None
+        if kind in (b"blob", b"tree", b"commit", b"tag"):  # else "SPEC missing"
+            found[spec] = out[at : at + int(header[2])] if kind == b"blob" else None
+            at += int(header[2]) + 1
+        else:
+            found[spec] = None
+    return found
+
+
+def _changed_code(root: Path, commit: str, paths: tuple[str, ...]) -> list[str]:
+    """The files under ``paths`` (files or folders) whose code differs between ``commit``
+    and ``HEAD`` of the checkout ``root``: those git finds changed, less those whose code
+    is the same (:func:`same_code`)."""
+    if not paths:
+        return []
+    head = _git(root, "rev-parse", "HEAD").stdout.strip()
+    diff = _git(root, "--literal-pathspecs", "diff", "--name-only", "--no-renames", commit,
+                head, "--", *paths)  # fmt: skip
+    files = diff.stdout.splitlines()
+    before, after = _code_at(root, commit, files), _code_at(root, head, files)
+    return [path for path in files if before[path] != after[path]]
+
+
+def _last_change(root: Path, commit: str, files: list[str]) -> str | None:
+    """``"HASH SUBJECT"`` of the latest commit after ``commit`` whose change to one of
+    ``files`` changes its code (for a merge, code unlike each parent's), by ``git log
+    COMMIT..HEAD -- files``, each commit's files against its parents'; ``None``: none."""
+    log = _git(root, "--literal-pathspecs", "log", "--no-renames", "--name-only",
+               "--format=%x00%H %P%x01%s", f"{commit}..HEAD", "--", *files)  # fmt: skip
+    for entry in log.stdout.split("\0")[1:]:
+        hashes, _, rest = entry.partition("\x01")
+        subject, *touched = rest.split("\n")
+        sha, *parents = hashes.split()
+        touched = [f for f in touched if f] if len(parents) == 1 else files
+        after = _code_at(root, sha, touched)
+        befores = [_code_at(root, parent, touched) for parent in parents] or [{}]
+        if any(all(before.get(f) != after[f] for before in befores) for f in touched):
+            return f"{sha[:7]} {subject}"
+    return None
 
 
 # ------------------------------------------------------------------------ reading
@@ -270,9 +678,10 @@ def problems(
 ) -> list[str]:
     """What is wrong with ``block`` in the checkout ``root``: missing from its document,
     then (with ``labels``) no label, generated with uncommitted changes, a commit that is
-    not in the history of ``HEAD``, or (with ``stale``) a commit older than the last
-    commit that changed its sources (git log). ``root``: default :data:`ROOT`. ``[]``
-    when it is current."""
+    not in the history of ``HEAD``, or (with ``stale``) the code of a file its numbers
+    depend on (:func:`dependencies`) changed between that commit and ``HEAD``
+    (:func:`same_code`), with the latest commit that changed it. ``root``: default
+    :data:`ROOT`. ``[]`` when it is current."""
     root = ROOT if root is None else Path(root)
     path = root / block.document
     text = block_text(path.read_text(), block) if path.is_file() else None
@@ -294,12 +703,14 @@ def problems(
         return [*found, f"{block.name}: its commit {commit[:7]} is not in the history of HEAD"]
     if not stale:
         return found
-    changed = _git(root, "log", "--format=%h %s", f"{commit}..HEAD", "--", *block.sources)
-    later = changed.stdout.splitlines()
-    if later:
+    commit = _git(root, "rev-parse", f"{commit}^{{commit}}").stdout.strip()
+    changed = _changed_code(root, commit, dependencies(block, root))
+    if changed:
+        named = ", ".join(changed[:3]) + (f" and {len(changed) - 3} more" if changed[3:] else "")
+        last = _last_change(root, commit, changed)
         found.append(
-            f"{block.name}: stale: {len(later)} commit(s) since {commit[:7]} changed its "
-            f"sources, the last {later[0]}; {again}"
+            f"{block.name}: stale: the code of {len(changed)} file(s) it depends on changed "
+            f"since {commit[:7]} ({named}){f', the last at {last}' if last else ''}; {again}"
         )
     return found
 

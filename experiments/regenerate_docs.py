@@ -10,9 +10,12 @@ its exit status. Each block's time is kept in ``docs/data/regeneration.json`` (w
 commit, the machine, the load at its start and whether its results folder already held
 results a run reuses), and README.md's ``regeneration`` block lists them with their sum
 (:func:`render`; ``--render`` rewrites that block alone). ``--list`` prints each
-block's document, command and sources; ``--stale`` lists the blocks to regenerate (no
-label, generated with uncommitted changes, a commit not in the history, or sources
-changed since their commit) and exits with status 1 when there are any;
+block's document, command, the sources it declares and the modules its generators
+import (:func:`experiments.blocks.dependencies`); ``--stale`` lists the blocks to
+regenerate (no label, generated with uncommitted changes, a commit not in the history,
+or the code of a file their numbers depend on changed since their commit, docstrings and
+comments left out, with the latest commit that changed it) and exits with status 1 when
+there are any;
 ``--only-stale`` regenerates those alone (a full run that was interrupted goes on with it:
 the studies keep their finished runs under their settings and code). Commit before
 regenerating: a block records the commit it was generated at.
@@ -111,7 +114,9 @@ def main(argv=None) -> int:
     which.add_argument(
         "--only-stale", action="store_true", help="the blocks --stale lists, regenerated"
     )
-    parser.add_argument("--list", action="store_true", help="each block, command and sources")
+    parser.add_argument(
+        "--list", action="store_true", help="each block, its command and what it depends on"
+    )
     parser.add_argument("--stale", action="store_true", help="the blocks to regenerate")
     parser.add_argument("--render", action="store_true", help="README's regeneration block")
     args = parser.parse_args(argv)
@@ -124,7 +129,10 @@ def main(argv=None) -> int:
     if args.list:
         for block in chosen:
             print(f"{block.name} ({block.document}): {shlex.join(block.command)}")
-            print(f"    sources: {' '.join(block.sources)}")
+            print(f"    sources: {' '.join(block.sources) or '(none)'}")
+            if block.imports:
+                modules = blocks.imports(blocks.generators(block), blocks.ROOT, commit="HEAD")
+                print(f"    imports ({len(modules)} modules): {' '.join(modules)}")
         return 0
     if args.stale:
         found = [line for block in chosen for line in blocks.problems(block, blocks.ROOT)]

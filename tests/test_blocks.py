@@ -122,21 +122,35 @@ def test_a_label_is_clean_with_documents_changed_and_dirty_with_code_changed(rep
     assert blocks.read_label(output.block_label(COMMAND, root=repo))["dirty"] is True
 
 
-def test_a_current_block_has_no_problem_until_its_sources_change(repo):
+def test_a_current_block_has_no_problem_until_the_code_of_its_sources_changes(repo):
     label = blocks.read_label(blocks.block_text((repo / "docs/study.md").read_text(), STUDY))
     assert label["commit"] == _first(repo) and label["dirty"] is False
     assert blocks.check_docs(repo, {"study": STUDY}) == []
     (repo / "notes.txt").write_text("b\n")  # a commit that does not touch the sources
     _commit(repo, "notes")
     assert blocks.check_docs(repo, {"study": STUDY}) == []
-    (repo / "src" / "model.py").write_text("x = 2\n")
+    model = repo / "src" / "model.py"
+    model.write_text('"""The model."""\n\nx = 1  # one\n')  # its docstring and a comment
+    _commit(repo, "document the model")
+    assert blocks.check_docs(repo, {"study": STUDY}) == []
+    model.write_text('"""The model."""\n\nx = 2  # one\n')
     change = _commit(repo, "change the model")
+    model.write_text('"""The model, changed."""\n\nx = 2\n')
+    _commit(repo, "document the change")  # later, but no change of code
     found = blocks.check_docs(repo, {"study": STUDY})
     assert found == [
-        f"study: stale: 1 commit(s) since {_first(repo)[:7]} changed its sources, the last "
-        f"{change[:7]} change the model; regenerate it: {COMMAND}"
+        f"study: stale: the code of 1 file(s) it depends on changed since {_first(repo)[:7]} "
+        f"(src/model.py), the last at {change[:7]} change the model; regenerate it: {COMMAND}"
     ]
     assert blocks.check_docs(repo, {"study": STUDY}, stale=False) == []
+    (repo / "src" / "extra.py").write_text("")  # a file added under a source folder
+    added = _commit(repo, "an empty module")
+    model.write_text("x = 1\n")  # the code back as it was
+    _commit(repo, "the model as it was")
+    assert blocks.check_docs(repo, {"study": STUDY}) == [
+        f"study: stale: the code of 1 file(s) it depends on changed since {_first(repo)[:7]} "
+        f"(src/extra.py), the last at {added[:7]} an empty module; regenerate it: {COMMAND}"
+    ]
 
 
 def _relabel(repo, label: str) -> None:
@@ -190,6 +204,8 @@ def test_the_registry_lists_every_block_of_the_docs_with_a_command_and_sources()
         assert block.command[:2] == ("python", "-m"), block.name
         module = block.command[2].removeprefix("experiments.")
         assert (blocks.ROOT / "experiments" / f"{module}.py").is_file(), block.name
+        for generator in blocks.generators(block):  # each a module of this checkout
+            assert generator in blocks.imports([generator]), (block.name, generator)
         if "--update-doc" in block.command[:-1]:
             target = block.command[block.command.index("--update-doc") + 1]
             assert target.startswith("--") or target == block.document, block.name
@@ -209,6 +225,7 @@ def test_regenerate_runs_the_commands_in_order_and_times_them(
     monkeypatch, capsys, repo, tmp_path
 ):
     times, readme = tmp_path / "regeneration.json", tmp_path / "README.md"
+    vehicles = blocks.BLOCKS["vehicles"]
     readme.write_text("# r\n<!-- regeneration:begin -->\n<!-- regeneration:end -->\n")
     monkeypatch.setattr(regenerate_docs, "TIMES", times)
     monkeypatch.setattr(regenerate_docs, "README", readme)
@@ -233,6 +250,11 @@ def test_regenerate_runs_the_commands_in_order_and_times_them(
     assert "one: python -c" in out and ", exit status 3" in out and "three" not in out
     assert regenerate_docs.main(["--list"]) == 0
     assert "three (d.md): python -c " in capsys.readouterr().out
+    monkeypatch.setattr(blocks, "BLOCKS", {"vehicles": vehicles})
+    assert regenerate_docs.main(["--list"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert listed[1].startswith("    sources: constraints.txt examples/vehicles ")
+    assert listed[2].startswith("    imports (") and " fojax.plant " in listed[2]
     study = dataclasses.replace(STUDY, command=(*python, "print('regenerated')"))
     monkeypatch.setattr(blocks, "BLOCKS", {"study": study})
     monkeypatch.setattr(blocks, "ROOT", repo)
