@@ -57,6 +57,9 @@ from collections.abc import Mapping
 from typing import Any
 
 from fojax import _files, plant, rotors
+from fojax._files import Field
+from fojax._files import number as _number
+from fojax._files import quantity as _quantity
 
 __all__ = [
     "DEFAULT_TILT_LIMIT", "FIELDS", "UNCERTAIN", "Field", "Vehicle", "VehicleError", "load",
@@ -66,24 +69,6 @@ __all__ = [
 
 class VehicleError(ValueError):
     """A vehicle file or table that cannot be used; the message lists every problem."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Field:
-    """One quantity of a vehicle. size: ``None`` a scalar, else a vector's length.
-    units: accepted units and their factors to the first (SI) one. symbol: the model's
-    (docs/model.md)."""
-
-    name: str
-    size: int | None
-    units: Mapping[str, float]
-    symbol: str
-    summary: str
-
-    @property
-    def unit(self) -> str:
-        """The SI unit (the first of :attr:`units`)."""
-        return next(iter(self.units))
 
 
 _MASS = {"kg": 1.0, "g": 1e-3}
@@ -258,53 +243,6 @@ def _python(value: Any):
 
 def _listed(value: Any):
     return list(value) if isinstance(value, tuple) else value
-
-
-def _number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
-
-
-def _quantity(field: Field, entry: Any, problems: list[str], table: str = "vehicle",
-              signed: bool = False, zero: bool = False):  # fmt: skip
-    """The SI value of ``entry`` (``{value, unit}``), or ``None`` with its problems (each
-    naming ``table.field``); every value finite and > 0 (``zero``: >= 0; ``signed``: of
-    any sign)."""
-    where = f"{table}.{field.name}"
-    units = ", ".join(f'"{u}"' for u in field.units)
-    if not isinstance(entry, Mapping):
-        problems.append(
-            f"{where}: expected {{ value = ..., unit = ... }} with a unit among {units}, "
-            f"got {entry!r}"
-        )
-        return None
-    unknown = sorted(set(entry) - {"value", "unit"})
-    if unknown:
-        problems.append(f"{where}: unknown key(s) {', '.join(unknown)} (expected value, unit)")
-    if "unit" not in entry:
-        problems.append(f"{where}: missing unit (one of {units})")
-        return None
-    unit = entry["unit"]
-    if unit not in field.units:
-        problems.append(f"{where}: unit {unit!r} is not one of {units}")
-        return None
-    if "value" not in entry:
-        problems.append(f"{where}: missing value")
-        return None
-    value, scale = entry["value"], field.units[unit]
-    shape = "a number" if field.size is None else f"a list of {field.size} numbers"
-    values = [value] if field.size is None else value
-    if (
-        (field.size is not None and not (isinstance(value, list) and len(value) == field.size))
-        or not all(_number(v) for v in values)
-    ):
-        problems.append(f"{where}: expected {shape}, got {value!r}")
-        return None
-    if not all(math.isfinite(v) and (signed or v > 0 or (zero and v == 0)) for v in values):
-        bound = "" if signed else " and >= 0" if zero else " and > 0"
-        problems.append(f"{where}: every value must be finite{bound}, got {value!r}")
-        return None
-    converted = [float(v) * scale for v in values]
-    return converted[0] if field.size is None else tuple(converted)
 
 
 def parse(data: Mapping, source: str = "vehicle") -> Vehicle:
