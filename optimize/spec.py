@@ -71,7 +71,8 @@ class ProblemSpec:
     (:data:`COMPILE_MODES`, the gradient program). vehicle: the
     :class:`fojax.vehicle.Vehicle` flown (``None``: the paper's). reference: the
     :mod:`fojax.reference` waypoints or built-in flown in place of every scenario's
-    reference (``None``: the scenarios' own).
+    reference (``None``: the scenarios' own). envelope: a :class:`fojax.envelope.Envelope`
+    whose cases are flown in place of ``scenario`` (which must then be ``None``).
     """
 
     controller: str = "afonftsmc"
@@ -89,6 +90,7 @@ class ProblemSpec:
     compile: str = "optimized"
     vehicle: Any = None
     reference: Any = None
+    envelope: Any = None
 
     def __post_init__(self) -> None:
         registry.get_controller_class(self.controller)
@@ -104,8 +106,21 @@ class ProblemSpec:
             raise ValueError(
                 f"vehicle must be a fojax.vehicle.Vehicle or None, got {self.vehicle!r}"
             )
+        from fojax.envelope import Envelope
+
+        if self.envelope is not None:
+            if not isinstance(self.envelope, Envelope):
+                raise ValueError(f"envelope must be a fojax.envelope.Envelope or None, got "
+                                 f"{self.envelope!r}")  # fmt: skip
+            if self.scenario is not None or self.reference is not None:
+                raise ValueError(
+                    "an envelope holds the cases flown: give no scenario and no reference "
+                    "with it (add reference files to the envelope)"
+                )
         ids = self.scenario if isinstance(self.scenario, tuple | list) else (self.scenario,)
-        if not ids:
+        if self.envelope is not None:
+            ids = ()
+        elif not ids:
             raise ValueError("scenario must name at least one scenario")
         for i in ids:
             scenarios.get_scenario(i)
@@ -168,7 +183,10 @@ class ProblemSpec:
         return self.save_every or checkpoint_interval(self.steps)
 
     def scenario_object(self) -> scenarios.Scenario:
-        """The scenario (a union for several) on the spec's vehicle and reference."""
+        """The scenario (a union for several) on the spec's vehicle and reference, or the
+        union of the envelope's cases."""
+        if self.envelope is not None:
+            return self.envelope.scenario(self.vehicle)
         ids = self.scenario if isinstance(self.scenario, tuple) else (self.scenario,)
         found = [scenarios.get_scenario(i).on(self.vehicle) for i in ids]
         if self.reference is not None:
@@ -188,7 +206,19 @@ class ProblemSpec:
 
     def as_dict(self) -> dict:
         """JSON-ready description (part of every run's fingerprint)."""
-        out = dataclasses.asdict(self)
+        out = {  # the envelope in the description only where one is flown
+            f.name: dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
+            for f in dataclasses.fields(self) if f.name != "envelope"
+            for value in [getattr(self, f.name)]
+        }
         pmap = params_lib.make_parameter_map(self.controller, self.fields, self.share)
         out["fields"], out["save_every"] = list(pmap.names), self.block
+        if self.envelope is not None:
+            out["envelope"] = self.envelope.to_dict()
         return out
+
+    def describe_cases(self) -> str:
+        """What is flown: ``scenario 2``, ``scenarios (1, 2)`` or the envelope's cases."""
+        if self.envelope is not None:
+            return "the envelope's " + ", ".join(n for n, _ in self.envelope.cases(self.vehicle))
+        return f"scenario {self.scenario}"

@@ -46,6 +46,7 @@ __all__ = [
     "seed",
     "vehicle_file",
     "reference_file",
+    "envelope_file",
     "check_flight",
     "check_reference",
     "describe_reference",
@@ -130,6 +131,17 @@ def reference_file(text: str):
     try:
         return reference.load(check_input_file(text, "reference file"))
     except ValueError as error:  # ReferenceError is a ValueError
+        raise ArgumentTypeError(str(error)) from None
+
+
+def envelope_file(text: str):
+    """argparse type: an envelope file (TOML, :mod:`fojax.envelope`), loaded and checked;
+    every problem in one message."""
+    from fojax import envelope
+
+    try:
+        return envelope.load(check_input_file(text, "envelope file"))
+    except ValueError as error:  # EnvelopeError is a ValueError
         raise ArgumentTypeError(str(error)) from None
 
 

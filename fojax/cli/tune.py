@@ -140,7 +140,14 @@ def _smoothing(a):
 count, real, whole = arguments.positive_int, arguments.positive_float, arguments.nonnegative_int
 OPTIONS = (
     # what is tuned, on which draws
-    Option("--scenario", dict(type=int, required=True, choices=(1, 2, 3))),
+    Option("--scenario", dict(type=int, choices=(1, 2, 3), help="the paper's scenario (or "
+           "--envelope)")),
+    Option("--envelope", dict(type=arguments.envelope_file, metavar="FILE", help="envelope file "
+           "(TOML, docs/tuning.md; e.g. examples/envelopes/paper_and_manoeuvres.toml): tune over "
+           "its cases (the paper's scenarios, random manoeuvres, reference files) in place of "
+           "--scenario"), None,
+           lambda a: None if a.scenario is None and a.reference is None
+           else "holds the cases flown: give it without --scenario and --reference"),
     Option("--controller", dict(required=True, help="a registered controller")),
     Option("--init", dict(metavar="paper|naive|FILE", help="initial gains: the controller's "
            "defaults, a knowledge-free guess (positive gains 1, p/q 1.5, orders 0.5), or a "
@@ -300,6 +307,8 @@ def parse_args(argv) -> Run:
         reason = option.applies(args) if option.applies and option.dest in given else None
         if reason:
             parser.error(f"{option.flag} {reason}; leave it out")
+    if args.scenario is None and args.envelope is None:
+        parser.error("give --scenario N (the paper's) or --envelope FILE (several cases)")
     args.reference_peaks = arguments.check_reference(parser, args.reference, args.horizon)
     try:
         return _build(parser, args)
@@ -323,7 +332,7 @@ def _build(parser, args) -> Run:
     cost = optimize.CostConfig(args.error, objective=reduction,
                                cvar_fraction=args.cvar_fraction, **weights)  # fmt: skip
     take = ("controller", "scenario", "horizon", "dt", "draws", "seed", "share", "fractional",
-            "dtype", "compile", "vehicle", "reference")  # fmt: skip
+            "dtype", "compile", "vehicle", "reference", "envelope")  # fmt: skip
     spec = optimize.ProblemSpec(cost=cost, fields=fields, **{k: getattr(args, k) for k in take})
     if args.eval_horizon is not None:  # a ValueError unless a whole number of steps
         dataclasses.replace(spec, horizon=args.eval_horizon)
@@ -474,7 +483,7 @@ def _announce(run: Run) -> str:
     if reqs is not None:
         what = f"{args.objective} under {len(reqs)} requirements ({', '.join(reqs.names)})"
     lines = [
-        f"tuning {spec.controller} on scenario {spec.scenario}: {what}, {args.method}, "
+        f"tuning {spec.controller} on {spec.describe_cases()}: {what}, {args.method}, "
         f"{spec.draws} draws x {spec.horizon:g} s, {run.objective.size} parameters"
     ]
     if spec.vehicle is not None or args.rotor_speed_limit is not None:
@@ -490,7 +499,8 @@ def _summary(run: Run, result, wall: float) -> str:
 
     args, v = run.args, result.validation
     text = (
-        f"tuned {args.controller} on scenario {args.scenario} ({args.method}): {result.steps} "
+        f"tuned {args.controller} on {run.objective.spec.describe_cases()} ({args.method}): "
+        f"{result.steps} "
         f"steps, {result.draw_steps:.3g} draw-steps ({wall:.0f} s)"
     )
     if v is not None and v["best"] is not None:
@@ -575,7 +585,7 @@ def _figure(run: Run, result, evaluation):
         Path(args.out) / "history.csv",
         Path(args.out) / "convergence.png",
         evaluation,
-        f"fojax tune: {spec.controller}, scenario {spec.scenario}, {args.method}, "
+        f"fojax tune: {spec.controller}, {spec.describe_cases()}, {args.method}, "
         f"{sample} x {spec.horizon:g} s, {args.objective}",
         None if start is None else start["score"],
         start is not None and start["kind"] == "yield",

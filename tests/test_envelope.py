@@ -1,0 +1,117 @@
+"""Envelope files: their cases, their checks (one error listing every problem), the
+tuning problem over them and `fojax tune --envelope`."""
+
+import json
+import math
+
+import pytest
+from conftest import usage_error
+
+from fojax import envelope, manoeuvres, optimize, scenarios, vehicle
+
+EXAMPLE = "examples/envelopes/paper_and_manoeuvres.toml"
+
+
+def test_the_example_envelope_is_the_papers_scenarios_and_random_manoeuvres():
+    loaded = envelope.load(EXAMPLE)
+    cases = loaded.cases()
+    assert [name for name, _ in cases] == ["scenario 1", "scenario 2", "scenario 3",
+                                           "random manoeuvres"]  # fmt: skip
+    for i in (1, 2, 3):
+        assert cases[i - 1][1] == scenarios.get_scenario(i)
+    flying = cases[3][1]
+    assert flying.manoeuvres == manoeuvres.Limits.from_vehicle(vehicle.Vehicle.paper())
+    assert flying.horizon == 30.0 and flying.noise_std_position == 0.1  # scenario 2's processes
+    union = loaded.scenario()
+    assert len(union.members) == 4 and union.horizon == 80.0
+    # on another vehicle the manoeuvres' limits are that vehicle's
+    iris = vehicle.load("examples/vehicles/iris.toml")
+    assert loaded.cases(iris)[3][1].manoeuvres == manoeuvres.Limits.from_vehicle(iris)
+    assert all(case.vehicle == iris for _, case in loaded.cases(iris))
+
+
+def test_limits_and_references_in_the_file(tmp_path):
+    (tmp_path / "refs").mkdir()
+    (tmp_path / "refs" / "r.toml").write_text('[reference]\nbuiltin = "paper-54-55"\n')
+    file = tmp_path / "e.toml"
+    file.write_text('[envelope]\nscenarios = [2]\nmanoeuvres = 2\nunder = 3\n'
+                    'references = ["refs/r.toml"]\n[envelope.limits]\n'
+                    'speed = { value = 150, unit = "cm" }\n')  # fmt: skip
+    with pytest.raises(envelope.EnvelopeError, match="envelope.limits.speed: unit 'cm'"):
+        envelope.load(file)
+    file.write_text('[envelope]\nscenarios = [2]\nmanoeuvres = 2\nunder = 3\n'
+                    'references = ["refs/r.toml"]\n[envelope.limits]\n'
+                    'speed = { value = 1.5, unit = "m/s" }\nsegments = 4\n'
+                    'yaw_range = { value = [-30, 30], unit = "deg" }\n')  # fmt: skip
+    loaded = envelope.load(file)
+    names = [name for name, _ in loaded.cases()]
+    assert names == ["scenario 2", "random manoeuvres (1)", "random manoeuvres (2)",
+                     "reference 1: the paper's (54)-(55): scenarios 1 and 2"]  # fmt: skip
+    limits = loaded.cases()[1][1].manoeuvres
+    assert limits.speed == 1.5 and limits.segments == 4
+    assert limits.yaw_range == pytest.approx((-math.pi / 6, math.pi / 6))
+    # the manoeuvres and the reference fly under scenario 3's processes
+    assert loaded.cases()[1][1].mass_uncertainty == 0.3
+    assert loaded.cases()[3][1].reference.__name__ == "reference_54_55"
+    assert loaded.to_dict()["limits"]["speed"] == 1.5
+
+
+@pytest.mark.parametrize(
+    "text, named",
+    [
+        ("[envelope]\nscenarios = [4]\n", "envelope.scenarios: 4 is not one of the paper's"),
+        ("[envelope]\nmanoeuvres = -1\n", "envelope.manoeuvres: expected a whole number"),
+        ("[envelope]\nfraction = 2\n", "envelope.fraction: expected a share in (0, 1]"),
+        ("[envelope]\nunder = 5\n", "envelope.under: expected one of"),
+        ("[envelope]\nscenarios = []\nmanoeuvres = 0\n", "envelope: no case"),
+        ("[envelope]\nwings = 2\n", "envelope: unknown key(s) wings"),
+        ("[envelope.limits]\ntop_speed = 1\n", "envelope.limits: unknown limit 'top_speed'"),
+        ("[envelope.limits]\nsegments = \"six\"\n", "envelope.limits.segments: expected a plain"),
+        ("[envelope]\nreferences = [\"none.toml\"]\n", "envelope.references: "),
+        ("[envelope.limits]\nspeed = { value = -1, unit = \"m/s\" }\n",
+         "envelope.limits.speed: every value must be finite and > 0"),
+        ("[envelope.limits]\nsegments = 0\n", "segments"),
+        ("description = 3\n[envelope]\n", "description: expected a string"),
+        ("[nothing]\n", "unknown top-level key(s) nothing"),
+    ],
+)  # fmt: skip
+def test_a_bad_envelope_file_is_one_error_naming_its_entry(tmp_path, text, named):
+    file = tmp_path / "bad.toml"
+    file.write_text(text)
+    with pytest.raises(envelope.EnvelopeError) as caught:
+        envelope.load(file)
+    assert named in str(caught.value), str(caught.value)
+
+
+def test_the_problem_over_an_envelope_is_its_union_and_names_it():
+    loaded = envelope.load(EXAMPLE)
+    spec = optimize.ProblemSpec(scenario=None, envelope=loaded)
+    assert spec.scenario_object() == loaded.scenario()
+    assert spec.as_dict()["envelope"] == loaded.to_dict()
+    assert "envelope" not in optimize.ProblemSpec().as_dict()  # other runs' fingerprints kept
+    with pytest.raises(ValueError, match="give no scenario and no reference"):
+        optimize.ProblemSpec(scenario=2, envelope=loaded)
+
+
+def test_tune_over_an_envelope(tmp_path, capsys):
+    from fojax.cli import tune
+
+    out = tmp_path / "out"
+    base = ["--controller", "afonftsmc", "--out", str(out)]
+    err = usage_error(capsys, tune.main, [*base, "--envelope", EXAMPLE, "--scenario", "2"])
+    assert "--envelope holds the cases flown: give it without --scenario" in err
+    err = usage_error(capsys, tune.main, base)
+    assert "give --scenario N (the paper's) or --envelope FILE" in err
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[envelope]\nscenarios = [7]\n")
+    err = usage_error(capsys, tune.main, [*base, "--envelope", str(bad)])
+    assert "argument --envelope" in err and "7 is not one of the paper's" in err
+    assert not out.exists()
+    argv = [*base, "--envelope", EXAMPLE, "--steps", "2", "--horizon", "0.5",
+            "--validation-draws", "4", "--eval-draws", "4", "--quiet"]  # fmt: skip
+    assert tune.main(argv) == 0
+    record = json.loads((out / "gains.json").read_text())["metadata"]
+    problem = record["settings"]["objective"]["problem"]
+    assert problem["envelope"]["scenarios"] == [1, 2, 3] and problem["scenario"] is None
+    assert "on the envelope's scenario 1, scenario 2, scenario 3, random manoeuvres" in (
+        capsys.readouterr().out)
