@@ -108,10 +108,77 @@ def test_tune_over_an_envelope(tmp_path, capsys):
     assert "argument --envelope" in err and "7 is not one of the paper's" in err
     assert not out.exists()
     argv = [*base, "--envelope", EXAMPLE, "--steps", "2", "--horizon", "0.5",
-            "--validation-draws", "4", "--eval-draws", "4", "--quiet"]  # fmt: skip
+            "--validation-draws", "4", "--eval-draws", "0", "--quiet"]  # fmt: skip
     assert tune.main(argv) == 0
     record = json.loads((out / "gains.json").read_text())["metadata"]
     problem = record["settings"]["objective"]["problem"]
     assert problem["envelope"]["scenarios"] == [1, 2, 3] and problem["scenario"] is None
     assert "on the envelope's scenario 1, scenario 2, scenario 3, random manoeuvres" in (
         capsys.readouterr().out)
+
+
+def test_gains_judged_case_by_case_equal_each_case_measured_alone():
+    """The union's evaluation of every case equals each case measured on its own by
+    fojax.requirements.measure (another program: one scenario, no union), on the same
+    held-out draws, in float64; a controller without switching is judged once."""
+    import dataclasses
+
+    import jax.numpy as jnp
+    import numpy as np
+
+    from fojax import requirements, simulator
+    from fojax.optimize import cases
+
+    loaded = dataclasses.replace(envelope.load(EXAMPLE), scenarios=(2,), horizon=0.4,
+                                 limits=(("segments", 2),))  # fmt: skip
+    spec = optimize.ProblemSpec(scenario=None, envelope=loaded, dtype="float64", horizon=0.4)
+    short = [(n, dataclasses.replace(c, horizon=0.3 if c.manoeuvres is None else 0.4))
+             for n, c in loaded.cases()]  # fmt: skip
+    spec_cases = cases._cases
+    cases._cases = lambda _: tuple(short)
+    try:
+        controller = spec.make_controller("sat", 0.4)
+        gains = controller.default_gains(jnp.float64)
+        found = cases.evaluate_cases(spec, {"paper": gains}, 3, laws=("sat",))
+    finally:
+        cases._cases = spec_cases
+    keys = optimize.draw_keys(spec.seed, "heldout", 6)
+    nothing = requirements.load("examples/requirements/small_quadrotor.toml")
+    for c, (name, case) in enumerate(short):
+        config = simulator.SimulationConfig(dt=1e-3, horizon=case.horizon, save_every=100)
+        alone = spec.make_controller("sat", 0.4)
+        metrics, status = requirements.measure(
+            alone, gains, case, nothing, keys[3 * c: 3 * c + 3],
+            config, dtype=jnp.float64)  # fmt: skip
+        row = found["laws"]["sat"][name]["paper"]
+        assert row["diverged"] == 0
+        assert row["position_rmse"] == pytest.approx(np.mean(metrics["position_rmse"]), rel=1e-9)
+        assert row["max_tilt_deg"] == pytest.approx(np.degrees(np.max(metrics["max_tilt"])),
+                                                    rel=1e-9)  # fmt: skip
+        assert row["torque_chattering"] == pytest.approx(
+            np.median(metrics["torque_chattering"]), rel=1e-9)
+    fl = optimize.ProblemSpec(controller="fl", scenario=None, envelope=loaded, horizon=0.4)
+    assert list(cases.evaluate_cases(fl, {"x": fl.make_controller("sat", 0.4).default_gains(
+        jnp.float32)}, 1)["laws"]) == ["none"]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_tune_over_an_envelope_judges_every_case_with_both_laws(tmp_path, capsys):
+    from fojax.cli import tune
+
+    out = tmp_path / "out"
+    argv = ["--controller", "afonftsmc", "--out", str(out), "--envelope", EXAMPLE, "--steps",
+            "2", "--horizon", "0.5", "--validation-draws", "4", "--eval-draws", "2",
+            "--quiet"]  # fmt: skip
+    assert tune.main(argv) == 0
+    found = json.loads((out / "evaluation.json").read_text())["cases"]
+    assert found["draws"] == 2 and list(found["laws"]) == ["sat", "sign"]
+    assert found["cases"] == ["scenario 1", "scenario 2", "scenario 3", "random manoeuvres"]
+    for law in found["laws"].values():
+        for row in law.values():
+            assert set(row) == {"start", "tuned"}
+            assert row["start"]["diverged"] + (row["start"]["position_rmse"] is not None) > 0
+    assert isinstance(found["tuned_worse"], list)
+    printed = capsys.readouterr().out
+    assert "held-out, case by case (2 draws each, its own horizon):" in printed
+    assert (out / "cases.png").is_file() and (out / "cases.pdf").is_file()

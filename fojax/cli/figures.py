@@ -507,3 +507,45 @@ def plot_yield(results: dict, path: Path, title: str) -> Path:
         right.legend(fontsize=8, loc="best")
     style.suptitle(fig, title, "a diverged draw fails every requirement")
     return style.save(fig, path)
+
+
+def plot_cases(evaluation: dict, path: Path, title: str) -> Path:
+    """Held-out gains case by case (:func:`fojax.optimize.cases.evaluate_cases`): per law
+    (a column), position RMSE (top) and torque chattering (bottom, log scale) of each
+    case, a bar per set of gains, a diverged case marked; the diverged draws written
+    beside a bar."""
+    plt = style.pyplot()
+    laws = list(evaluation["laws"])
+    cases = evaluation["cases"]
+    labels = list(next(iter(evaluation["laws"][laws[0]].values())))
+    fig, axes = plt.subplots(2, len(laws), figsize=(4.8 * len(laws) + 1.5, 6.5),
+                             layout="constrained", squeeze=False)  # fmt: skip
+    height = 0.8 / len(labels)
+    rows = np.arange(len(cases))
+    for col, law in enumerate(laws):
+        table = evaluation["laws"][law]
+        for row, (key, unit, log) in enumerate((("position_rmse", "m", False),
+                                                ("torque_chattering", "N m/s", True))):  # fmt: skip
+            ax = axes[row, col]
+            for i, label in enumerate(labels):
+                values = [table[c][label][key] for c in cases]
+                bars = [np.nan if v is None else v for v in values]
+                y = rows + (i - (len(labels) - 1) / 2) * height
+                ax.barh(y, bars, height=height, color=style.color(label, i), label=label)
+                for yy, c in zip(y, cases, strict=True):
+                    lost = table[c][label]["diverged"]
+                    if lost:
+                        ax.annotate(f"{lost} diverged", (0, yy), xytext=(2, 0), va="center",
+                                    textcoords="offset points", fontsize=7)  # fmt: skip
+            ax.set_yticks(rows, cases)
+            ax.invert_yaxis()
+            if log:
+                ax.set_xscale("log")
+                ax.xaxis.set_minor_formatter(plt.NullFormatter())
+            ax.set_xlabel(f"{key.replace('_', ' ')} ({unit})")
+            ax.set_title(f"{law} switching" if law != "none" else "no switching", fontsize=9)
+            ax.grid(axis="x", alpha=0.3, which="both")
+    axes[0, 0].legend(fontsize=8, loc="best")
+    style.suptitle(fig, title, f"{evaluation['draws']} held-out draws per case, each over its "
+                   "own horizon; RMSE mean and chattering median over the draws kept")  # fmt: skip
+    return style.save(fig, path)

@@ -444,6 +444,8 @@ def main(argv=None) -> int:
         files.append("evaluation.json")
     if _figure(run, result, evaluation) is not None:
         files.append("convergence.png (+ .pdf)")
+    if evaluation is not None and "cases" in evaluation and _cases_figure(run, evaluation):
+        files.append("cases.png (+ .pdf)")
     print(f"wrote {out}/: {', '.join(files)}")
     return 0
 
@@ -570,7 +572,37 @@ def _heldout(run: Run, result, session: dict) -> dict:
         f"held-out ({args.eval_draws} draws, {horizon:g} s, {args.eval_switching}): initial "
         f"{headline(document['initial'])}, tuned {headline(document['tuned'])}"
     )
+    if objective.spec.envelope is not None:
+        document["cases"] = _cases(run, result)
     return document
+
+
+def _cases(run: Run, result) -> dict:
+    """The start's and the tuned gains on held-out draws of every case of the envelope,
+    each over its own horizon, with each switching law (:mod:`fojax.optimize.cases`);
+    printed with where the tuned gains do worse."""
+    from fojax.optimize import cases
+
+    args, objective = run.args, run.objective
+    gains = {"start": objective.gains(run.x0), "tuned": objective.gains(result.x)}
+    found = cases.evaluate_cases(objective.spec, gains, args.eval_draws,
+                                 objective.rotor_speed_limit)  # fmt: skip
+    found["tuned_worse"] = cases.losses(found, "tuned", "start")
+    print(f"held-out, case by case ({args.eval_draws} draws each, its own horizon):")
+    print(cases.table(found, ("start", "tuned")))
+    worse = found["tuned_worse"]
+    print("the tuned gains do worse than the start: " + "; ".join(worse) if worse
+          else "the tuned gains do no worse than the start in any case")  # fmt: skip
+    return found
+
+
+def _cases_figure(run: Run, evaluation: dict):
+    """``cases.png`` (and ``.pdf``): the held-out evaluation case by case."""
+    spec = run.objective.spec
+    return style.attempt(
+        "cases.png", figures.plot_cases, evaluation["cases"], Path(run.args.out) / "cases.png",
+        f"fojax tune: {spec.controller}, the start's and the tuned gains case by case",
+    )
 
 
 def _figure(run: Run, result, evaluation):
