@@ -30,6 +30,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from fojax import observers, plant, scenarios, simulator
 from fojax._arrays import unstack
@@ -39,7 +40,7 @@ Array = jax.Array
 
 __all__ = [
     "DIVERGED", "ERRORS", "OBJECTIVES", "CostConfig", "CostObserver", "CostTerms",
-    "make_batch_cost", "per_draw_gradients",
+    "case_scales", "make_batch_cost", "per_draw_gradients",
 ]  # fmt: skip
 
 ERRORS = ("ise", "itae")
@@ -193,3 +194,22 @@ def per_draw_gradients(batch_cost, gains: Any, keys: Array):
 
     gradients, (j, terms, status) = jax.grad(total, has_aux=True)(copies)
     return j, terms, status, jax.tree.map(lambda g: jnp.moveaxis(g, -1, 0), gradients)
+
+
+def case_scales(costs: np.ndarray, status: np.ndarray, members: np.ndarray,
+                cases: int) -> tuple[float, ...]:  # fmt: skip
+    """Per case, the divisor of :attr:`ProblemSpec.case_scales` from a reference's costs
+    ``J`` ``(n,)`` on draws of the cases ``members`` ``(n,)``: the median of the case's
+    draws that did not diverge. A case where every draw diverged takes the median of the
+    other cases' scales."""
+    costs = np.asarray(costs, np.float64)
+    kept = ((np.asarray(status) & DIVERGED) == 0) & np.isfinite(costs)
+    rows = []
+    for c in range(cases):
+        mine = (np.asarray(members) == c) & kept
+        rows.append(float(np.median(costs[mine])) if np.any(mine) else None)
+    known = [r for r in rows if r is not None and r > 0]
+    if not known:
+        raise ValueError("every reference draw diverged: no scale for any case")
+    fallback = float(np.median(known))
+    return tuple(fallback if r is None or r <= 0 else r for r in rows)

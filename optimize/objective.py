@@ -201,13 +201,17 @@ class Objective:
         scenario = _covering(scenario, horizon)
         weights = jnp.asarray(spec.cost.weights, dtype)
         model = scenario.plant_params(dtype)
+        scales = None if spec.case_scales is None else jnp.asarray(spec.case_scales, dtype)
 
         def run(xs, width, draws):
             gains = jax.vmap(self._gains_of, in_axes=(-1, None), out_axes=-1)(xs, width)
             draws = scenarios.batch_last(draws)
             out = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
             terms = out.outputs["cost"]
-            f = {"cost": jnp.sum(weights[:, None] * terms, 0), "effort": terms[2]}
+            cost = jnp.sum(weights[:, None] * terms, 0)
+            if scales is not None:  # each draw's cost in units of its case's scale
+                cost = cost / scales[draws.member]
+            f = {"cost": cost, "effort": terms[2]}
             f["tracking"] = terms[0] + terms[1]
             metrics = out.outputs.get("requirements")
             rows = [f[self.target][None]]

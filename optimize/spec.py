@@ -73,6 +73,9 @@ class ProblemSpec:
     :mod:`fojax.reference` waypoints or built-in flown in place of every scenario's
     reference (``None``: the scenarios' own). envelope: a :class:`fojax.envelope.Envelope`
     whose cases are flown in place of ``scenario`` (which must then be ``None``).
+    case_scales: ``None``, or per case of the union flown a divisor (> 0) of its draws'
+    cost (:func:`fojax.optimize.cost.case_scales`): every case's cost in units of a
+    reference's on that case.
     """
 
     controller: str = "afonftsmc"
@@ -91,6 +94,7 @@ class ProblemSpec:
     vehicle: Any = None
     reference: Any = None
     envelope: Any = None
+    case_scales: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         registry.get_controller_class(self.controller)
@@ -126,6 +130,13 @@ class ProblemSpec:
             scenarios.get_scenario(i)
         if isinstance(self.scenario, list):
             object.__setattr__(self, "scenario", tuple(self.scenario))
+        if self.case_scales is not None:
+            scales = tuple(float(v) for v in self.case_scales)
+            cases = len(self.scenario_object().members) or 1
+            if len(scales) != cases or not all(math.isfinite(v) and v > 0 for v in scales):
+                raise ValueError(f"case_scales must be {cases} numbers > 0 (one per case "
+                                 f"flown), got {self.case_scales!r}")  # fmt: skip
+            object.__setattr__(self, "case_scales", scales)
         checks.choice("compile", self.compile, COMPILE_MODES)
         for label in ("horizon", "dt"):
             checks.number(label, getattr(self, label))
@@ -208,13 +219,15 @@ class ProblemSpec:
         """JSON-ready description (part of every run's fingerprint)."""
         out = {  # the envelope in the description only where one is flown
             f.name: dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
-            for f in dataclasses.fields(self) if f.name != "envelope"
+            for f in dataclasses.fields(self) if f.name not in ("envelope", "case_scales")
             for value in [getattr(self, f.name)]
         }
         pmap = params_lib.make_parameter_map(self.controller, self.fields, self.share)
         out["fields"], out["save_every"] = list(pmap.names), self.block
         if self.envelope is not None:
             out["envelope"] = self.envelope.to_dict()
+        if self.case_scales is not None:
+            out["case_scales"] = list(self.case_scales)
         return out
 
     def describe_cases(self) -> str:

@@ -182,3 +182,38 @@ def test_tune_over_an_envelope_judges_every_case_with_both_laws(tmp_path, capsys
     printed = capsys.readouterr().out
     assert "held-out, case by case (2 draws each, its own horizon):" in printed
     assert (out / "cases.png").is_file() and (out / "cases.pdf").is_file()
+
+
+def test_case_scales_are_the_references_median_cost_per_case():
+    import numpy as np
+
+    from fojax.optimize import cost
+
+    costs = np.array([1.0, 3.0, 10.0, np.nan, 5.0, 1e6])
+    status = np.array([0, 0, 0, 0, 0, cost.DIVERGED])
+    members = np.array([0, 0, 1, 1, 2, 2])
+    # the median of each case's kept draws; a case without one takes the others' median
+    assert cost.case_scales(costs, status, members, 4) == (2.0, 10.0, 5.0, 5.0)
+    with pytest.raises(ValueError, match="every reference draw diverged"):
+        cost.case_scales(costs[:1], status[-1:], members[:1], 1)
+
+
+def test_a_scaled_cost_is_each_cases_cost_over_its_scale():
+    """The objective's per-draw cost with case scales equals the weighted sum of its raw
+    terms divided by its case's scale, recomputed on the host."""
+    import numpy as np
+
+    loaded = envelope.load(EXAMPLE)
+    scales = (1.0, 0.5, 2.0, 0.1)
+    spec = optimize.ProblemSpec(scenario=None, envelope=loaded, horizon=0.3, case_scales=scales)
+    assert spec.as_dict()["case_scales"] == list(scales)
+    with pytest.raises(ValueError, match="case_scales must be 4 numbers > 0"):
+        optimize.ProblemSpec(scenario=None, envelope=loaded, case_scales=scales[:3])
+    gains = spec.make_controller("sat", 0.3).default_gains("float32")
+    objective = optimize.Objective(spec, gains)
+    keys = objective.keys("validation", 8)
+    out = objective.forward(objective.x0[None], keys)
+    weights = np.asarray(spec.cost.weights)
+    members = np.arange(8) % 4
+    want = np.sum(weights * out.terms[0], -1) / np.asarray(scales)[members]
+    np.testing.assert_allclose(out.values[0, :, 0], want, rtol=1e-5)

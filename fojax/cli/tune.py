@@ -178,6 +178,11 @@ OPTIONS = (
            lambda a: None if a.objective == "cvar" else "applies to --objective cvar only"),
     Option("--error", dict(choices=("ise", "itae"), help="tracking error measure (ise)"), "ise",
            _weighted),
+    Option("--case-scale", dict(choices=("default", "none"), help="with --envelope: each case's "
+           "cost in units of the controller's default gains' on that case (default), or as it "
+           "is (none)"), "default",
+           lambda a: None if a.envelope is not None and not a.requirements
+           else "applies with --envelope (without --requirements) only"),
     *(Option(f"--{t}-weight", dict(type=arguments.nonnegative_float, help=f"({w:g})"), w, _weighted)
       for t, w in zip(TERMS, (1.0, 1.0, 1e-5, 1e-5), strict=True)),
     Option("--requirements", dict(type=requirements_cli.requirements_file, metavar="FILE",
@@ -353,6 +358,9 @@ def _build(parser, args) -> Run:
 
     method = st.METHODS[args.method]
     probe = objective_with(optimize.objective.LANES)
+    if args.case_scale == "default" and spec.envelope is not None and reqs is None:
+        spec = dataclasses.replace(spec, case_scales=_case_scales(spec, args, limit, mesh))
+        probe = objective_with(optimize.objective.LANES)
     x0 = probe.vector(gains)
     options = {name: getattr(args, name) for name in method.options if hasattr(args, name)}
     outer = args.outer_steps if reqs is not None else 1
@@ -376,6 +384,30 @@ def _build(parser, args) -> Run:
     fingerprint["init"] = label
     optimize.check_resume(args.out, records.canonical(fingerprint), args.resume)
     return Run(args, objective, strategy, budget, x0, label, gains, fingerprint)
+
+
+CASE_SCALE_DRAWS = 32
+"""Draws per case on which the reference gains set each case's scales (validation draws)."""
+
+
+def _case_scales(spec, args, limit, mesh) -> tuple:
+    """Each case's scale: the median cost of the controller's default gains on
+    :data:`CASE_SCALE_DRAWS` validation draws of the case, at the tuning horizon and the
+    evaluation law (:func:`fojax.optimize.cost.case_scales`)."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from fojax import optimize
+    from fojax.controllers import registry
+
+    defaults = registry.get_controller_class(spec.controller).default_gains(jnp.dtype(spec.dtype))
+    reference = optimize.Objective(spec, defaults, rotor_speed_limit=limit,
+                                   switching=args.eval_switching, mesh=mesh)  # fmt: skip
+    cases = max(1, reference.members)
+    keys = reference.keys("validation", CASE_SCALE_DRAWS * cases)
+    out = reference.forward(reference.x0[None], keys)
+    members = np.arange(len(keys)) % cases
+    return optimize.cost.case_scales(out.values[0, :, 0], out.status[0], members, cases)
 
 
 def _initial_gains(parser, args):
