@@ -37,6 +37,39 @@ def read_table(path: str | os.PathLike, error: type[Exception], kind: str,
         raise error(f"{path} is not valid {suffix[1:].upper()}: {failure}") from None
 
 
+def header(
+    data: Any, source: str, name: str, error: type[Exception], kind: str, missing: str,
+    others: tuple[str, ...] = (),
+) -> tuple[str, Mapping, list[str]]:
+    """A file's ``description`` and its ``[name]`` table, with the problems found so far
+    (top-level keys other than ``description``, ``name`` and ``others``, a description
+    that is not text); ``error`` (its message
+    ``"{source} is not a usable {kind}:"`` and every problem) when the content is no
+    table or has no ``[name]`` table (``missing``: what that table holds)."""
+    problems: list[str] = []
+    if not isinstance(data, Mapping):
+        raise error(f"{source}: expected a table, got {type(data).__name__}")
+    expected = ("description", name, *others)
+    unknown = sorted(set(data) - set(expected))
+    if unknown:
+        problems.append(f"unknown top-level key(s) {', '.join(unknown)} (expected "
+                        f"{', '.join(expected)})")  # fmt: skip
+    description = data.get("description", "")
+    if not isinstance(description, str):
+        problems.append(f"description: expected a string, got {description!r}")
+        description = ""
+    table = data.get(name)
+    if not isinstance(table, Mapping):
+        problems.append(f"missing [{name}] table ({missing})")
+        raise error(message(source, kind, problems))
+    return description, table, problems
+
+
+def message(source: str, kind: str, problems: list[str]) -> str:
+    """``"{source} is not a usable {kind}:"`` and every problem, one a line."""
+    return f"{source} is not a usable {kind}:\n" + "\n".join(f"  {p}" for p in problems)
+
+
 @dataclasses.dataclass(frozen=True)
 class Field:
     """One quantity of a vehicle. size: ``None`` a scalar, else a vector's length.

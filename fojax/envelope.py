@@ -182,7 +182,6 @@ class Envelope:
         }
 
 
-_TOP = ("description", "envelope")
 _KEYS = ("scenarios", "manoeuvres", "under", "horizon", "fraction", "limits", "references")
 
 
@@ -192,21 +191,8 @@ def parse(data: Mapping, source: str = "envelope", root: Path | None = None) -> 
     listing every problem."""
     from fojax import reference
 
-    problems: list[str] = []
-    if not isinstance(data, Mapping):
-        raise EnvelopeError(f"{source}: expected a table, got {type(data).__name__}")
-    unknown = sorted(set(data) - set(_TOP))
-    if unknown:
-        problems.append(f"unknown top-level key(s) {', '.join(unknown)} (expected "
-                        f"{', '.join(_TOP)})")  # fmt: skip
-    description = data.get("description", "")
-    if not isinstance(description, str):
-        problems.append(f"description: expected a string, got {description!r}")
-        description = ""
-    table = data.get("envelope")
-    if not isinstance(table, Mapping):
-        problems.append("missing [envelope] table (its cases)")
-        raise EnvelopeError(_message(source, problems))
+    description, table, problems = _files.header(data, source, "envelope", EnvelopeError,
+                                                 "envelope file", "its cases")  # fmt: skip
     unknown = sorted(set(table) - set(_KEYS))
     if unknown:
         problems.append(f"envelope: unknown key(s) {', '.join(unknown)} (the keys: "
@@ -272,7 +258,7 @@ def parse(data: Mapping, source: str = "envelope", root: Path | None = None) -> 
 
 
 def _message(source: str, problems: list[str]) -> str:
-    return f"{source} is not a usable envelope file:\n" + "\n".join(f"  {p}" for p in problems)
+    return _files.message(source, "envelope file", problems)
 
 
 def load(path: str | os.PathLike) -> Envelope:

@@ -96,7 +96,6 @@ FIELDS: dict[str, Field] = {
 """The quantities of a vehicle file (each a field of :class:`fojax.plant.PlantParams`)."""
 
 _SPEED = {"rad/s": 1.0, "rpm": 2.0 * math.pi / 60.0}
-_TOP = ("description", "vehicle", "uncertainty")
 _RELATIVE = {"1": 1.0, "%": 1e-2}
 UNCERTAIN = tuple(name for name in FIELDS if name != "gravity")
 """The fields an ``[uncertainty]`` table may name."""
@@ -248,21 +247,10 @@ def _listed(value: Any):
 def parse(data: Mapping, source: str = "vehicle") -> Vehicle:
     """The :class:`Vehicle` of a vehicle file's content (module docstring);
     :class:`VehicleError` listing every problem, each naming its field."""
-    problems: list[str] = []
-    if not isinstance(data, Mapping):
-        raise VehicleError(f"{source}: expected a table, got {type(data).__name__}")
-    unknown = sorted(set(data) - set(_TOP))
-    if unknown:
-        problems.append(f"unknown top-level key(s) {', '.join(unknown)} (expected "
-                        f"{', '.join(_TOP)})")  # fmt: skip
-    description = data.get("description", "")
-    if not isinstance(description, str):
-        problems.append(f"description: expected a string, got {description!r}")
-        description = ""
-    table = data.get("vehicle")
-    if not isinstance(table, Mapping):
-        problems.append("missing [vehicle] table (the vehicle's quantities, with units)")
-        raise VehicleError(_message(source, problems))
+    description, table, problems = _files.header(
+        data, source, "vehicle", VehicleError, "vehicle file",
+        "the vehicle's quantities, with units", ("uncertainty",),
+    )  # fmt: skip
     unknown = sorted(set(table) - set(FIELDS) - set(_LIMITS) - set(_ROTORS))
     if unknown:
         problems.append(
@@ -431,7 +419,7 @@ def _uncertainty(table: Any, problems: list[str]) -> tuple[tuple[str, float], ..
 
 
 def _message(source: str, problems: list[str]) -> str:
-    return f"{source} is not a usable vehicle file:\n" + "\n".join(f"  {p}" for p in problems)
+    return _files.message(source, "vehicle file", problems)
 
 
 def load(path: str | os.PathLike) -> Vehicle:
