@@ -117,6 +117,7 @@ def test_tune_over_an_envelope(tmp_path, capsys):
         capsys.readouterr().out)
 
 
+@pytest.mark.slow
 def test_gains_judged_case_by_case_equal_each_case_measured_alone():
     """The union's evaluation of every case equals each case measured on its own by
     fojax.requirements.measure (another program: one scenario, no union), on the same

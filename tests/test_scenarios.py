@@ -338,6 +338,7 @@ def test_each_draw_flies_its_own_manoeuvre_from_its_start(tmp_path):
                                    atol=1e-12)  # fmt: skip
 
 
+@pytest.mark.slow
 def test_a_union_with_manoeuvres_runs_each_member_as_alone():
     """Scenario 2 and random manoeuvres in one compiled rollout: each member's draws are
     those of the member alone (float64, bit for bit)."""
