@@ -93,7 +93,7 @@ def test_the_problem_over_an_envelope_is_its_union_and_names_it():
         optimize.ProblemSpec(scenario=2, envelope=loaded)
 
 
-def test_tune_over_an_envelope(tmp_path, capsys):
+def test_tune_refuses_an_envelope_with_a_scenario_or_neither(tmp_path, capsys):
     from fojax.cli import tune
 
     out = tmp_path / "out"
@@ -107,14 +107,6 @@ def test_tune_over_an_envelope(tmp_path, capsys):
     err = usage_error(capsys, tune.main, [*base, "--envelope", str(bad)])
     assert "argument --envelope" in err and "7 is not one of the paper's" in err
     assert not out.exists()
-    argv = [*base, "--envelope", EXAMPLE, "--steps", "2", "--horizon", "0.5",
-            "--validation-draws", "4", "--eval-draws", "0", "--quiet"]  # fmt: skip
-    assert tune.main(argv) == 0
-    record = json.loads((out / "gains.json").read_text())["metadata"]
-    problem = record["settings"]["objective"]["problem"]
-    assert problem["envelope"]["scenarios"] == [1, 2, 3] and problem["scenario"] is None
-    assert "on the envelope's scenario 1, scenario 2, scenario 3, random manoeuvres" in (
-        capsys.readouterr().out)
 
 
 @pytest.mark.slow
@@ -172,6 +164,10 @@ def test_tune_over_an_envelope_judges_every_case_with_both_laws(tmp_path, capsys
             "2", "--horizon", "0.5", "--validation-draws", "4", "--eval-draws", "2",
             "--quiet"]  # fmt: skip
     assert tune.main(argv) == 0
+    record = json.loads((out / "gains.json").read_text())["metadata"]
+    problem = record["settings"]["objective"]["problem"]
+    assert problem["envelope"]["scenarios"] == [1, 2, 3] and problem["scenario"] is None
+    assert len(problem["case_scales"]) == 4 and min(problem["case_scales"]) > 0
     found = json.loads((out / "evaluation.json").read_text())["cases"]
     assert found["draws"] == 2 and list(found["laws"]) == ["sat", "sign"]
     assert found["cases"] == ["scenario 1", "scenario 2", "scenario 3", "random manoeuvres"]
@@ -182,6 +178,7 @@ def test_tune_over_an_envelope_judges_every_case_with_both_laws(tmp_path, capsys
     assert isinstance(found["tuned_worse"], list)
     printed = capsys.readouterr().out
     assert "held-out, case by case (2 draws each, its own horizon):" in printed
+    assert "on the envelope's scenario 1, scenario 2, scenario 3, random manoeuvres" in printed
     assert (out / "cases.png").is_file() and (out / "cases.pdf").is_file()
 
 

@@ -306,6 +306,7 @@ def test_gradients_are_finite_everywhere_boundaries_and_ends_included():
     assert np.all(np.isfinite(jerk))
 
 
+@pytest.mark.slow
 def test_batch_last_leaves_give_the_vmapped_result():
     batch = _many(_keys(7, seed=13), LIMITS, None)
     last = jax.tree.map(lambda leaf: jnp.moveaxis(leaf, 0, -1), batch)
