@@ -11,6 +11,9 @@ cases``):
   authority; any limit may be given in ``[envelope.limits]``), under the random
   processes and deterministic disturbances of scenario ``under``, ``horizon`` s long
   (the manoeuvre's own length, whatever the run's);
+* windows of the paper's scenarios (``windows``, :func:`fojax.scenarios.window`): a
+  scenario from a later time on, starting on its reference: its later disturbances and
+  manoeuvres in steady flight, within a tuning horizon shorter than the scenario;
 * reference files (``references``, :mod:`fojax.reference`), each flown under scenario
   ``under``'s processes and disturbances.
 
@@ -24,6 +27,7 @@ An envelope file is TOML::
     under = 2
     horizon = { value = 30, unit = "s" }
     fraction = 0.5
+    windows = [{ scenario = 3, start = { value = 20, unit = "s" } }]
     references = ["examples/references/paper_54_55.toml"]   # relative to the file
 
     [envelope.limits]
@@ -86,7 +90,9 @@ class Envelope:
     disturbances the manoeuvres and references fly under. horizon: a manoeuvre's length
     (s). fraction: of the vehicle's acceleration and yaw authority the manoeuvres may
     ask for. limits: ``((field, value), ...)`` overriding the limits from the vehicle.
-    references: :mod:`fojax.reference` waypoints or built-ins. description: text.
+    references: :mod:`fojax.reference` waypoints or built-ins. windows: ``((scenario,
+    start), ...)``: the paper's scenario from ``start`` (s) on
+    (:func:`fojax.scenarios.window`). description: text.
     """
 
     scenarios: tuple[int, ...] = (1, 2, 3)
@@ -96,6 +102,7 @@ class Envelope:
     fraction: float = 0.5
     limits: tuple[tuple[str, Any], ...] = ()
     references: tuple[Any, ...] = ()
+    windows: tuple[tuple[int, float], ...] = ()
     description: str = ""
 
     def __post_init__(self) -> None:
@@ -121,12 +128,22 @@ class Envelope:
             out.append(f"envelope.horizon: expected a duration > 0, got {self.horizon!r}")
         if not (_files.number(self.fraction) and 0 < self.fraction <= 1):
             out.append(f"envelope.fraction: expected a share in (0, 1], got {self.fraction!r}")
+        for entry in self.windows:
+            i, start = entry if isinstance(entry, tuple) and len(entry) == 2 else (None, None)
+            if i not in scenarios.SCENARIO_IDS:
+                out.append(f"envelope.windows: {entry!r} is not (one of the paper's scenarios "
+                           f"{list(scenarios.SCENARIO_IDS)}, a start)")  # fmt: skip
+                continue
+            horizon = scenarios.get_scenario(i).horizon
+            if not (_files.number(start) and 0 < start < horizon):
+                out.append(f"envelope.windows: scenario {i}'s window must start within (0, "
+                           f"{horizon:g}) s, got {start!r}")  # fmt: skip
         if not out and not self.cases_count():
             out.append("envelope: no case (give scenarios, manoeuvres or references)")
         return out
 
     def cases_count(self) -> int:
-        return len(self.scenarios) + self.manoeuvres + len(self.references)
+        return len(self.scenarios) + len(self.windows) + self.manoeuvres + len(self.references)
 
     def manoeuvre_limits(self, vehicle=None, speed_limit: float | None = ...):
         """The :class:`fojax.manoeuvres.Limits` of the manoeuvres on ``vehicle`` (``None``:
@@ -146,6 +163,8 @@ class Envelope:
 
         under = scenarios.get_scenario(self.under)
         out = [(f"scenario {i}", scenarios.get_scenario(i)) for i in self.scenarios]
+        out += [(f"scenario {i} from {start:g} s", scenarios.window(scenarios.get_scenario(i),
+                 start)) for i, start in self.windows]  # fmt: skip
         if self.manoeuvres:
             limits = self.manoeuvre_limits(vehicle, speed_limit)
             for j in range(self.manoeuvres):
@@ -179,10 +198,13 @@ class Envelope:
             "fraction": self.fraction,
             "limits": {k: list(v) if isinstance(v, tuple) else v for k, v in self.limits},
             "references": [r.to_dict() for r in self.references],
+            **({"windows": [{"scenario": i, "start_s": t} for i, t in self.windows]}
+               if self.windows else {}),
         }
 
 
-_KEYS = ("scenarios", "manoeuvres", "under", "horizon", "fraction", "limits", "references")
+_KEYS = ("scenarios", "windows", "manoeuvres", "under", "horizon", "fraction", "limits",
+         "references")
 
 
 def parse(data: Mapping, source: str = "envelope", root: Path | None = None) -> Envelope:
@@ -203,6 +225,23 @@ def parse(data: Mapping, source: str = "envelope", root: Path | None = None) -> 
         problems.append(f"envelope.scenarios: expected a list of scenario numbers, got {ids!r}")
     else:
         values["scenarios"] = tuple(ids)
+    windows = table.get("windows", [])
+    if not (isinstance(windows, list) and all(isinstance(w, Mapping) for w in windows)):
+        problems.append(f"envelope.windows: expected a list of tables {{ scenario = N, start = "
+                        f"{{ value = T, unit = \"s\" }} }}, got {windows!r}")  # fmt: skip
+        windows = []
+    found_windows = []
+    for j, entry in enumerate(windows):
+        extra = sorted(set(entry) - {"scenario", "start"})
+        if extra or "scenario" not in entry or "start" not in entry:
+            problems.append(f"envelope.windows[{j}]: expected the keys scenario and start, got "
+                            f"{sorted(entry)}")  # fmt: skip
+            continue
+        start = _files.quantity(_files.Field("start", None, _S, "", "the window's start"),
+                                entry["start"], problems, f"envelope.windows[{j}]")  # fmt: skip
+        if start is not None:
+            found_windows.append((entry["scenario"], start))
+    values["windows"] = tuple(found_windows)
     for name in ("manoeuvres", "under", "fraction"):
         if name in table:
             values[name] = table[name]

@@ -38,6 +38,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from fojax import plant
 from fojax._arrays import as_time as _as_time
@@ -59,6 +60,7 @@ Array = jax.Array
 __all__ = [
     "Draw",
     "Scenario",
+    "Shifted",
     "SCENARIO_IDS",
     "disturbance_at",
     "disturbances_53",
@@ -81,6 +83,7 @@ __all__ = [
     "batch_first",
     "batch_last",
     "union",
+    "window",
 ]
 
 SCENARIO_IDS = (1, 2, 3)
@@ -268,7 +271,8 @@ class Scenario:
     mass_uncertainty: ``m = m_nominal (1 + U[0, mass_uncertainty])`` per draw.
     inertia_uncertainty: ``I_ii = I_ii_nominal (1 + U[0, inertia_uncertainty])``,
         independently per axis, per draw.
-    initial_position, initial_attitude: ``(3,)`` tuples (m, rad); rates start at 0.
+    initial_position, initial_attitude: ``(3,)`` tuples (m, rad).
+    initial_velocity: ``(3,)`` tuple (m/s); the attitude rates start at 0.
     members: empty for a scenario; for the union of several (:func:`union`), the
         scenarios it holds. A union is one static structure (one compiled rollout):
         each draw says which member it belongs to (``Draw.member``), and its random
@@ -293,6 +297,7 @@ class Scenario:
     inertia_uncertainty: float = 0.0
     initial_position: tuple[float, float, float] = _INITIAL_POSITION
     initial_attitude: tuple[float, float, float] = _INITIAL_ATTITUDE
+    initial_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     members: tuple = ()
     vehicle: Any = None
     manoeuvres: Any = None
@@ -333,7 +338,7 @@ class Scenario:
                 "Scenario drag_variation must lie in [0, 1) (multipliers U[1 - a, 1 + a] stay "
                 f"positive; 0 keeps the nominal drag), got {self.drag_variation!r}"
             )
-        for name in ("initial_position", "initial_attitude"):
+        for name in ("initial_position", "initial_attitude", "initial_velocity"):
             value = getattr(self, name)
             if not isinstance(value, tuple | list) or len(value) != 3:
                 raise ValueError(f"Scenario {name} must be three numbers, got {value!r}")
@@ -418,13 +423,6 @@ def union(*members: Scenario) -> Scenario:
                     f"{getattr(first, name)!r}, {m.name!r} has {getattr(m, name)!r}"
                 )
     fixed = [m for m in members if m.manoeuvres is None]  # a manoeuvre sets its own start
-    for m in fixed[1:]:
-        for name in ("initial_position", "initial_attitude"):
-            if getattr(m, name) != getattr(fixed[0], name):
-                raise ValueError(
-                    f"the scenarios of a union must share {name}: {fixed[0].name!r} has "
-                    f"{getattr(fixed[0], name)!r}, {m.name!r} has {getattr(m, name)!r}"
-                )
     shapes = {m.manoeuvres.segments for m in members if m.manoeuvres is not None}
     if len(shapes) > 1:
         raise ValueError(f"the manoeuvres of a union's scenarios must have as many segments; "
@@ -522,10 +520,10 @@ def manoeuvre_scenario(limits, base: Scenario | None = None, horizon: float = 30
 
 def initial_states(scenario: Scenario, draw, dtype, batch: tuple[int, ...]) -> Array:
     """The ``(12,) + batch`` initial states of a draw or a batch (batch last): the
-    scenario's (:func:`initial_state`), or, where the draw flies a manoeuvre, at rest and
-    level at its start plus its offset, with its starting yaw."""
-    fixed = initial_state(scenario, dtype)
-    fixed = jnp.broadcast_to(fixed.reshape((12,) + (1,) * len(batch)), (12,) + batch)
+    scenario's (:func:`initial_state`; for a union, each draw's member's), or, where the
+    draw flies a manoeuvre, at rest and level at its start plus its offset, with its
+    starting yaw."""
+    fixed = _fixed_states(scenario, draw, dtype, batch)
     if scenario.manoeuvres is None:
         return fixed
     from fojax import manoeuvres
@@ -539,6 +537,65 @@ def initial_states(scenario: Scenario, draw, dtype, batch: tuple[int, ...]) -> A
         return flown
     own = jnp.asarray([m.manoeuvres is not None for m in scenario.members])[draw.member]
     return jnp.where(own, flown, fixed)
+
+
+def _fixed_states(scenario: Scenario, draw, dtype, batch: tuple[int, ...]) -> Array:
+    """``(12,) + batch``: the scenario's initial state, or each draw's member's where a
+    union's members start apart (e.g. a :func:`window`)."""
+    starts = [m for m in scenario.members if m.manoeuvres is None]
+    if len({_start(m) for m in starts}) <= 1:
+        fixed = initial_state(scenario, dtype)
+        return jnp.broadcast_to(fixed.reshape((12,) + (1,) * len(batch)), (12,) + batch)
+    rows = jnp.stack([initial_state(m, dtype) for m in scenario.members])  # (members, 12)
+    picked = rows[jnp.asarray(draw.member)]  # batch + (12,)
+    return jnp.broadcast_to(jnp.moveaxis(picked, -1, 0), (12,) + batch)
+
+
+def _start(scenario: Scenario) -> tuple:
+    return (scenario.initial_position, scenario.initial_attitude, scenario.initial_velocity)
+
+
+@dataclasses.dataclass(frozen=True)
+class Shifted:
+    """``function(t + start)``: a scenario's reference or disturbance from ``start`` (s)
+    on (:func:`window`); equal when its function and start are."""
+
+    function: Callable[[Array], Array]
+    start: float
+
+    def __call__(self, t):
+        return self.function(t + self.start)
+
+
+def window(scenario: Scenario, start: float, name: str | None = None) -> Scenario:
+    """``scenario`` from ``start`` (s) to its end: its reference and deterministic
+    disturbance shifted by ``start``, its horizon ``horizon - start``, starting on the
+    reference (position, velocity and yaw at ``start``), level, with zero attitude
+    rates; its random processes and uncertainties as they are (stationary). A case of
+    steady flight under the scenario's later disturbances, without its initial
+    transient."""
+    if scenario.members or scenario.manoeuvres is not None:
+        raise ValueError("window takes one of the paper's scenarios (not a union, not "
+                         "manoeuvres)")  # fmt: skip
+    if isinstance(start, bool) or not isinstance(start, int | float) or not (
+        0 < start < scenario.horizon
+    ):
+        raise ValueError(f"a window's start must lie in (0, {scenario.horizon:g}) s (the "
+                         f"scenario's horizon), got {start!r}")  # fmt: skip
+    position, velocity, _ = (
+        np.asarray(v, np.float64)
+        for v in reference_with_derivatives(scenario.reference, jnp.asarray(float(start)))
+    )
+    return dataclasses.replace(
+        scenario,
+        name=name or f"{scenario.name}, from {start:g} s",
+        horizon=scenario.horizon - start,
+        reference=Shifted(scenario.reference, float(start)),
+        disturbance=Shifted(scenario.disturbance, float(start)),
+        initial_position=tuple(float(v) for v in position[:3]),
+        initial_attitude=(0.0, 0.0, float(position[3])),
+        initial_velocity=tuple(float(v) for v in velocity[:3]),
+    )
 
 
 _SCENARIO_1 = Scenario(
@@ -591,4 +648,5 @@ def get_scenario(scenario_id: int) -> Scenario:
 def initial_state(scenario: Scenario, dtype=None) -> Array:
     """The ``(12,)`` initial plant state: position, attitude, zero rates (Section V); a
     scenario that flies manoeuvres starts each draw elsewhere (:func:`initial_states`)."""
-    return plant.make_state(scenario.initial_position, scenario.initial_attitude, dtype=dtype)
+    return plant.make_state(scenario.initial_position, scenario.initial_attitude,
+                            scenario.initial_velocity, dtype=dtype)  # fmt: skip

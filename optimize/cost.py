@@ -40,7 +40,7 @@ Array = jax.Array
 
 __all__ = [
     "DIVERGED", "ERRORS", "OBJECTIVES", "CostConfig", "CostObserver", "CostTerms",
-    "case_scales", "make_batch_cost", "per_draw_gradients",
+    "TorqueVariation", "case_scales", "make_batch_cost", "per_draw_gradients",
 ]  # fmt: skip
 
 ERRORS = ("ise", "itae")
@@ -152,6 +152,26 @@ class CostObserver:
     def finalize(self, acc: CostTerms) -> Array:
         """``(4,)`` the terms ``(P, A, E, C)``."""
         return jnp.stack([acc.position, acc.attitude, acc.effort, acc.chattering])
+
+
+@dataclasses.dataclass(frozen=True)
+class TorqueVariation:
+    """The total variation of the three torque commands over a run (N m), ``sum_k
+    |tau_k - tau_(k-1)|_1``, as an observer (:mod:`fojax.observers`): what the
+    requirement metric ``torque_chattering`` measures per second, which a flight
+    envelope's chattering bound holds each case to (:attr:`ProblemSpec.case_chattering`)."""
+
+    def init(self, dtype):
+        return (jnp.zeros((), dtype), jnp.zeros(3, dtype), jnp.zeros((), bool))
+
+    def update(self, acc, record):
+        total, previous, started = acc
+        torques = record.inputs[1:]
+        jump = jnp.where(started, jnp.sum(jnp.abs(torques - previous), 0), 0.0)
+        return total + jump, torques, jnp.ones_like(started)
+
+    def finalize(self, acc):
+        return acc[0]
 
 
 def make_batch_cost(

@@ -180,6 +180,8 @@ class Objective:
 
     def _observer(self, config):
         chain = {"cost": cost_lib.CostObserver(self.spec.cost, config.dt)}
+        if self.spec.envelope is not None and self.requirements is None:
+            chain["torques"] = cost_lib.TorqueVariation()
         if self.requirements is not None:
             chain["requirements"] = rq.RequirementMetrics.for_requirements(
                 self.requirements, config, self.scenario.vehicle
@@ -202,6 +204,8 @@ class Objective:
         weights = jnp.asarray(spec.cost.weights, dtype)
         model = scenario.plant_params(dtype)
         scales = None if spec.case_scales is None else jnp.asarray(spec.case_scales, dtype)
+        bounds = (None if spec.case_chattering is None
+                  else jnp.asarray(spec.case_chattering, dtype))  # fmt: skip
 
         def run(xs, width, draws):
             gains = jax.vmap(self._gains_of, in_axes=(-1, None), out_axes=-1)(xs, width)
@@ -211,12 +215,18 @@ class Objective:
             cost = jnp.sum(weights[:, None] * terms, 0)
             if scales is not None:  # each draw's cost in units of its case's scale
                 cost = cost / scales[draws.member]
+            if bounds is not None:  # chattering beyond its case's bound
+                variation = out.outputs["torques"]
+                excess = jnp.maximum(variation / bounds[draws.member] - 1.0, 0.0)
+                cost = cost + spec.chattering_excess * excess
             f = {"cost": cost, "effort": terms[2]}
             f["tracking"] = terms[0] + terms[1]
             metrics = out.outputs.get("requirements")
             rows = [f[self.target][None]]
             if metrics is not None:
                 rows.append(rq.violations(self.requirements, metrics))
+            elif "torques" in out.outputs:  # an envelope's: the torques' total variation
+                metrics = {"torque_variation": out.outputs["torques"]}
             return jnp.concatenate(rows), terms, metrics, out.status
 
         return run

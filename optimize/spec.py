@@ -95,6 +95,8 @@ class ProblemSpec:
     reference: Any = None
     envelope: Any = None
     case_scales: tuple[float, ...] | None = None
+    case_chattering: tuple[float, ...] | None = None
+    chattering_excess: float = 1.0
 
     def __post_init__(self) -> None:
         registry.get_controller_class(self.controller)
@@ -130,13 +132,17 @@ class ProblemSpec:
             scenarios.get_scenario(i)
         if isinstance(self.scenario, list):
             object.__setattr__(self, "scenario", tuple(self.scenario))
-        if self.case_scales is not None:
-            scales = tuple(float(v) for v in self.case_scales)
+        for name in ("case_scales", "case_chattering"):
+            given = getattr(self, name)
+            if given is None:
+                continue
+            values = tuple(float(v) for v in given)
             cases = len(self.scenario_object().members) or 1
-            if len(scales) != cases or not all(math.isfinite(v) and v > 0 for v in scales):
-                raise ValueError(f"case_scales must be {cases} numbers > 0 (one per case "
-                                 f"flown), got {self.case_scales!r}")  # fmt: skip
-            object.__setattr__(self, "case_scales", scales)
+            if len(values) != cases or not all(math.isfinite(v) and v > 0 for v in values):
+                raise ValueError(f"{name} must be {cases} numbers > 0 (one per case "
+                                 f"flown), got {given!r}")  # fmt: skip
+            object.__setattr__(self, name, values)
+        checks.number("chattering_excess", self.chattering_excess, allow_low=True)
         checks.choice("compile", self.compile, COMPILE_MODES)
         for label in ("horizon", "dt"):
             checks.number(label, getattr(self, label))
@@ -219,7 +225,8 @@ class ProblemSpec:
         """JSON-ready description (part of every run's fingerprint)."""
         out = {  # the envelope in the description only where one is flown
             f.name: dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
-            for f in dataclasses.fields(self) if f.name not in ("envelope", "case_scales")
+            for f in dataclasses.fields(self)
+            if f.name not in ("envelope", "case_scales", "case_chattering", "chattering_excess")
             for value in [getattr(self, f.name)]
         }
         pmap = params_lib.make_parameter_map(self.controller, self.fields, self.share)
@@ -228,6 +235,9 @@ class ProblemSpec:
             out["envelope"] = self.envelope.to_dict()
         if self.case_scales is not None:
             out["case_scales"] = list(self.case_scales)
+        if self.case_chattering is not None:
+            out["case_chattering"] = list(self.case_chattering)
+            out["chattering_excess"] = self.chattering_excess
         return out
 
     def describe_cases(self) -> str:

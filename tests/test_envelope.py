@@ -1,6 +1,7 @@
 """Envelope files: their cases, their checks (one error listing every problem), the
 tuning problem over them and `fojax tune --envelope`."""
 
+import dataclasses
 import json
 import math
 
@@ -215,3 +216,80 @@ def test_a_scaled_cost_is_each_cases_cost_over_its_scale():
     members = np.arange(8) % 4
     want = np.sum(weights * out.terms[0], -1) / np.asarray(scales)[members]
     np.testing.assert_allclose(out.values[0, :, 0], want, rtol=1e-5)
+    # a chattering bound per case on the torques' total variation (recomputed from the
+    # rollout's torques below): the draws beyond it pay the excess, the others nothing
+    chattering = out.metrics["torque_variation"][0]
+    from fojax import simulator
+    from fojax.requirements import RequirementMetrics
+
+    config = simulator.SimulationConfig(dt=1e-3, horizon=0.3, save_every=100)
+    union = spec.scenario_object()
+    metrics = simulator.rollout_from_keys(
+        spec.make_controller("sat", 0.3), gains, union.plant_params("float32"), union, keys,
+        config, RequirementMetrics(1e-3, 300), "float32", members.astype(np.int32),
+    ).outputs
+    np.testing.assert_allclose(chattering, metrics["torque_chattering"] * 0.3, rtol=1e-4)
+    bounds = tuple(float(np.min(chattering[members == c])) * 1.01 for c in range(4))
+    bounded = dataclasses.replace(spec, case_chattering=bounds, chattering_excess=3.0)
+    assert bounded.as_dict()["case_chattering"] == list(bounds)
+    with pytest.raises(ValueError, match="case_chattering must be 4 numbers > 0"):
+        dataclasses.replace(spec, case_chattering=(1.0, 0.0, 1.0, 1.0))
+    got = optimize.Objective(bounded, gains).forward(objective.x0[None], keys).values[0, :, 0]
+    excess = np.maximum(chattering / np.asarray(bounds)[members] - 1.0, 0.0)
+    assert np.sum(excess > 0) >= 2 and np.sum(excess == 0) >= 4
+    np.testing.assert_allclose(got, want + 3.0 * excess, rtol=1e-5)
+
+
+def test_a_window_is_its_scenario_from_its_start_on_the_reference():
+    import jax.numpy as jnp
+    import numpy as np
+
+    s2 = scenarios.get_scenario(2)  # float64 (conftest)
+    w = scenarios.window(s2, 10.0)
+    assert w.horizon == 70.0 and w == scenarios.window(s2, 10.0)
+    for t in (0.0, 0.5, 13.0):
+        t = jnp.asarray(t, jnp.float64)
+        np.testing.assert_array_equal(w.reference(t), s2.reference(t + 10.0))
+        np.testing.assert_array_equal(w.disturbance(t), s2.disturbance(t + 10.0))
+    # starts on the reference: x_r = 0.5 cos(pi t/20) etc. at t = 10 s
+    want_position = (0.5 * math.cos(math.pi / 2), 0.5 * math.sin(math.pi / 2),
+                     2 - 2 * math.cos(math.pi / 2))  # fmt: skip
+    want_velocity = (-0.5 * math.pi / 20, 0.0, 2 * math.pi / 20)
+    np.testing.assert_allclose(w.initial_position, want_position, atol=1e-12)
+    np.testing.assert_allclose(w.initial_velocity, want_velocity, atol=1e-12)
+    assert w.initial_attitude == (0.0, 0.0, 0.5)
+    for bad in (0.0, 80.0, True):
+        with pytest.raises(ValueError, match="must lie in"):
+            scenarios.window(s2, bad)
+
+
+def test_a_union_with_a_window_starts_each_draw_at_its_members_state():
+    import jax.numpy as jnp
+    import numpy as np
+
+    s2 = scenarios.get_scenario(2)
+    w = scenarios.window(scenarios.get_scenario(3), 20.0)
+    union = scenarios.union(s2, w)
+    keys = scenarios.draw_keys(0, np.arange(4))
+    members = np.arange(4) % 2
+    draws = scenarios.sample_draws(union, keys, 1e-3, jnp.float32, members)
+    states = scenarios.initial_states(union, draws, jnp.float32, (4,))
+    for j in range(4):
+        want = scenarios.initial_state(union.members[members[j]], jnp.float32)
+        np.testing.assert_array_equal(states[:, j], want)
+
+
+def test_windows_in_an_envelope_file(tmp_path):
+    file = tmp_path / "e.toml"
+    file.write_text('[envelope]\nscenarios = [2]\nmanoeuvres = 0\n'
+                    'windows = [{ scenario = 3, start = { value = 20, unit = "s" } }]\n')
+    loaded = envelope.load(file)
+    assert [n for n, _ in loaded.cases()] == ["scenario 2", "scenario 3 from 20 s"]
+    assert loaded.cases()[1][1] == scenarios.window(scenarios.get_scenario(3), 20.0)
+    assert loaded.to_dict()["windows"] == [{"scenario": 3, "start_s": 20.0}]
+    file.write_text('[envelope]\nwindows = [{ scenario = 3, start = { value = 50, unit = "s" } },'
+                    ' { scenario = 4, start = { value = 1, unit = "s" } }]\n')
+    with pytest.raises(envelope.EnvelopeError) as error:
+        envelope.load(file)
+    assert "start within (0, 50) s" in str(error.value) and "(3, 50.0)" not in str(error.value)
+    assert "(4, 1.0) is not" in str(error.value)

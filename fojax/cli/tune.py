@@ -183,6 +183,15 @@ OPTIONS = (
            "is (none)"), "default",
            lambda a: None if a.envelope is not None and not a.requirements
            else "applies with --envelope (without --requirements) only"),
+    Option("--chattering-bound", dict(choices=("default", "none"), help="with --envelope: "
+           "a draw whose chattering term passes the median of the controller's default gains "
+           "on its case pays the excess (default), or not (none)"), "default",
+           lambda a: None if a.envelope is not None and not a.requirements
+           else "applies with --envelope (without --requirements) only"),
+    Option("--chattering-excess", dict(type=arguments.nonnegative_float, help="the weight of "
+           "the chattering excess (1)"), 1.0,
+           lambda a: None if a.envelope is not None and not a.requirements
+           else "applies with --envelope (without --requirements) only"),
     *(Option(f"--{t}-weight", dict(type=arguments.nonnegative_float, help=f"({w:g})"), w, _weighted)
       for t, w in zip(TERMS, (1.0, 1.0, 1e-5, 1e-5), strict=True)),
     Option("--requirements", dict(type=requirements_cli.requirements_file, metavar="FILE",
@@ -358,8 +367,16 @@ def _build(parser, args) -> Run:
 
     method = st.METHODS[args.method]
     probe = objective_with(optimize.objective.LANES)
-    if args.case_scale == "default" and spec.envelope is not None and reqs is None:
-        spec = dataclasses.replace(spec, case_scales=_case_scales(spec, args, limit, mesh))
+    if spec.envelope is not None and reqs is None and (
+        args.case_scale == "default" or args.chattering_bound == "default"
+    ):
+        scales, chattering = _case_scales(spec, args, limit, mesh)
+        spec = dataclasses.replace(
+            spec,
+            case_scales=scales if args.case_scale == "default" else None,
+            case_chattering=chattering if args.chattering_bound == "default" else None,
+            chattering_excess=args.chattering_excess,
+        )
         probe = objective_with(optimize.objective.LANES)
     x0 = probe.vector(gains)
     options = {name: getattr(args, name) for name in method.options if hasattr(args, name)}
@@ -407,7 +424,8 @@ def _case_scales(spec, args, limit, mesh) -> tuple:
     keys = reference.keys("validation", CASE_SCALE_DRAWS * cases)
     out = reference.forward(reference.x0[None], keys)
     members = np.arange(len(keys)) % cases
-    return optimize.cost.case_scales(out.values[0, :, 0], out.status[0], members, cases)
+    return tuple(optimize.cost.case_scales(values, out.status[0], members, cases)
+                 for values in (out.values[0, :, 0], out.metrics["torque_variation"][0]))
 
 
 def _initial_gains(parser, args):
