@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import drive
 
-from fojax import optimize, scenarios, simulator
+from fojax import optimize, records, scenarios, simulator
 from fojax.controllers import registry
 from fojax.controllers.afonftsmc import AFONFTSMC, GAINS, paper_gains
 from fojax.optimize import Evaluation, Objective, Outputs, Request, driver
@@ -446,6 +446,31 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path, strategy):
     assert resumed.validation == full.validation  # the true start's validation kept
     header = (tmp_path / "part" / "history.csv").read_text().splitlines()
     assert header[0].startswith(",".join(driver.COLUMNS)) and len(header) == 5
+
+
+def test_ctrl_c_during_a_validation_resumes_to_the_uninterrupted_run(tmp_path, monkeypatch):
+    """Ctrl-C while a step's validation runs (the step's evaluation already counted, its
+    row not yet written): the checkpoint holds the run before that step, which the
+    resumed run takes again, to the uninterrupted run's rows and gains."""
+    strategy = st.CMAES(popsize=4, seed=1)
+    full = _run(tmp_path / "full", strategy, 4)
+    score = driver._Run.score
+
+    def interrupted(self, x):
+        if self.used["steps"] == 2:  # the second step's validation (every 2 steps)
+            raise KeyboardInterrupt
+        return score(self, x)
+
+    monkeypatch.setattr(driver._Run, "score", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _run(tmp_path / "part", strategy, 4)
+    monkeypatch.setattr(driver._Run, "score", score)
+    header = records.read_arrays(tmp_path / "part" / driver.CHECKPOINT)[1]
+    assert header["used"]["steps"] == 1 and len(header["history"]) == 1
+    resumed = _run(tmp_path / "part", strategy, 4, resume=True)
+    assert resumed.steps == 4 and _rows(resumed) == _rows(full)
+    np.testing.assert_array_equal(resumed.x, full.x)
+    assert resumed.validation == full.validation
 
 
 def test_host_linear_algebra_runs_on_one_thread_during_a_run_only():
