@@ -2,6 +2,7 @@
 against independent evaluations and finite differences), the strategies against
 reference implementations, the driver (validation, budgets, resume), bad input."""
 
+import dataclasses
 import functools
 
 import jax
@@ -671,6 +672,19 @@ def test_auto_searches_from_the_start_its_integer_orders_and_the_knowledge_free_
     assert strategy.tie is None and strategy.coarse_dt == 2 * objective.spec.dt
     constrained = st.make("auto", st.Problem(objective, x0, constrained=True))
     assert isinstance(constrained, st.CMAES) and constrained.draws == st.AUTO_DRAWS
+
+
+def test_auto_moves_only_the_tuned_orders_to_integer_order():
+    """With an order field left untuned (``--fields``), auto's integer-order starts keep
+    it at the base gains' value (the objective takes no other: :meth:`Objective.vector`)."""
+    objective = Objective(dataclasses.replace(SPEC, fields=("surface_c1", "gamma1")), NAIVE)
+    found = st.starts(objective, objective.x0)
+    assert len(found) == 1  # the naive gains are the base: one start, at integer gamma1
+    gains = objective.gains(found[0])
+    np.testing.assert_allclose(gains.gamma1, 0.99)
+    np.testing.assert_array_equal(gains.gamma2, NAIVE.gamma2)  # untuned: as it was
+    strategy = st.make("auto", st.Problem(objective, objective.x0))
+    assert len(strategy.starts) == 3
 
 
 class _Bowls:

@@ -85,6 +85,14 @@ def test_every_method_on_every_objective_is_one_declared_option_set():
         assert run.args.method == method and run.budget.steps == run.args.steps
 
 
+def test_auto_tunes_fields_that_leave_an_order_out(tmp_path):
+    """``--fields`` without ``gamma2``: auto's integer-order starts leave it as it is."""
+    run = tune.parse_args(SMALL + ["--fields", "surface_c1,gamma1", "--out", str(tmp_path)])
+    assert set(run.objective.param_map.names) == {"surface_c1", "gamma1"}
+    for start in run.strategy.starts:
+        np.testing.assert_array_equal(run.objective.gains(start).gamma2, run.init_gains.gamma2)
+
+
 def test_initial_gains_files_are_validated(capsys, tmp_path):
     good = gains_io.gains_to_dict(paper_gains())
     out = tmp_path / "run"

@@ -187,19 +187,23 @@ def make(method: str, problem: Problem, steps: int | None = None, **options):
 
 
 def starts(objective, x0) -> list[np.ndarray]:
-    """Other starts than ``x0`` for ``auto``: ``x0`` with its fractional orders at their
-    integer-order bounds (:func:`fojax.optimize.params.integer_order_gains`), and the
+    """Other starts than ``x0`` for ``auto``: ``x0`` with its tuned fractional orders at
+    their integer-order bounds (:func:`fojax.optimize.params.integer_order_gains`; an
+    order field the objective does not tune keeps the base gains' value), and the
     knowledge-free start (:func:`fojax.optimize.params.naive_gains`: positive gains 1)
     at integer orders; those equal to ``x0`` or to each other left out."""
     from fojax.optimize import params
 
     x0 = np.asarray(x0, np.float64)
     base, tuned = objective.base_gains, objective.param_map.names
-    naive = params.naive_gains(objective.spec.controller, objective.dtype)
-    naive = base._replace(**{name: getattr(naive, name) for name in tuned})
+
+    def tuned_of(gains):  # base gains with the tuned fields of ``gains``
+        return base._replace(**{name: getattr(gains, name) for name in tuned})
+
+    naive = tuned_of(params.naive_gains(objective.spec.controller, objective.dtype))
     found: list[np.ndarray] = []
     for gains in (objective.gains(x0), naive):
-        x = objective.vector(params.integer_order_gains(gains))
+        x = objective.vector(tuned_of(params.integer_order_gains(gains)))
         if not any(np.allclose(x, y, rtol=0, atol=1e-6) for y in [x0, *found]):
             found.append(x)
     return found
