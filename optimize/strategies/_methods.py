@@ -24,7 +24,8 @@ from fojax.optimize.strategies._population import CMAES, NelderMead
 __all__ = ["AUTO_DRAWS", "METHODS", "Method", "Problem", "lanes", "make", "starts"]
 
 AUTO_DRAWS = 8
-"""Draws per point and generation of ``auto`` (and of its CMA-ES with requirements)."""
+"""Draws per point of ``auto``'s second phase and of ``cma-lbfgs``'s CMA-ES (with a
+requirement set, every method samples ``--draws``)."""
 
 
 class Problem(NamedTuple):
@@ -85,8 +86,8 @@ class Method:
 
 def _auto(problem: Problem, steps: int, sigma: float):
     objective = problem.objective
-    if problem.constrained:  # inside the augmented Lagrangian: one CMA-ES on small samples
-        return CMAES(sigma0=sigma, seed=problem.seed, draws=AUTO_DRAWS, name="auto")
+    if problem.constrained:  # inside the augmented Lagrangian: one CMA-ES on --draws draws
+        return CMAES(sigma0=sigma, seed=problem.seed, name="auto")
     from fojax.optimize import params
 
     tie, d = None, objective.size
@@ -129,7 +130,8 @@ def _cma_lbfgs(problem: Problem, steps: int, sigma: float, popsize, switch: int,
             f"{switch} CMA-ES generations (--switch): give more steps than --switch, or use "
             f"--method cma-es"
         )
-    first = CMAES(sigma0=sigma, popsize=popsize, seed=problem.seed, draws=AUTO_DRAWS,
+    draws = None if problem.constrained else AUTO_DRAWS  # with requirements: --draws
+    first = CMAES(sigma0=sigma, popsize=popsize, seed=problem.seed, draws=draws,
                   name="cma-lbfgs")  # fmt: skip
     return Chain(first, LBFGS(max_step=max_step, width=None), switch)
 
