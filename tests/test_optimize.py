@@ -432,7 +432,7 @@ def _rows(result):
         st.adam(4, learning_rate=0.1),
         st.Chain(st.CMAES(popsize=4, seed=1), st.LBFGS(max_step=0.5), 2),
         st.MultiStart(starts=((0.1,) * 33,), stages=((2, 2, 2),), draws=2, popsize=4,
-                      coarse_dt=2e-3),
+                      coarse_dt=2e-3, window=20, lift=0.5, diagonal=False),  # fmt: skip
     ],
     ids=["lbfgs", "adam", "chain", "multistart"],
 )
@@ -687,6 +687,26 @@ def test_auto_moves_only_the_tuned_orders_to_integer_order():
     assert len(strategy.starts) == 3
 
 
+def test_the_auto_plan_is_its_table_entry():
+    """``auto``'s strategy is built from its table entry's settings alone (a setting given
+    to ``make`` replaces it)."""
+    objective, method = small(), st.METHODS["auto"]
+    plan, d = method.plan(), small().size
+    strategy = method.make(st.Problem(objective, objective.x0))
+    (generations, searches, draws), = plan["stages"]
+    assert strategy.stages == plan["stages"] and len(strategy.starts) == searches - 1
+    assert strategy.coarse_dt == plan["coarse"] * objective.spec.dt
+    assert (strategy.draws, strategy.diagonal) == (plan["draws"], plan["diagonal"])
+    assert (strategy.window, strategy.lift) == (plan["window"], plan["lift"])
+    lam = st.CMAES().constants(d)["lam"]  # "fill": the first phase's lanes on 8 draws
+    assert strategy.popsize == searches * (lam + 1) * draws // plan["draws"] - 1
+    assert strategy.lanes(d) == searches * (lam + 1) * draws
+    small_plan = method.make(st.Problem(objective, objective.x0), stages=((3, 2, 2),))
+    assert small_plan.search == 3 and len(small_plan.starts) == 1
+    with pytest.raises(ValueError, match="its settings: stages, coarse"):
+        method.make(st.Problem(objective, objective.x0), searches=3)
+
+
 class _Bowls:
     """A two-basin function of ``d`` parameters for strategies: a shallow bowl at
     ``+1`` (the start's side) and a deeper one at ``-2`` (``min`` of two quadratics)."""
@@ -716,7 +736,8 @@ def test_multistart_keeps_the_best_search_and_continues_it_lifted():
     coordinates), at the coarse step first and the full step after."""
     d, objective = 4, _Bowls(4)
     strategy = st.MultiStart(starts=((-1.5,) * d,), tie=(0, 0, 1, 1), sigma0=0.3,
-                             stages=((30, 2, 1),), draws=1, coarse_dt=2e-3)  # fmt: skip
+                             stages=((30, 2, 1),), draws=1, coarse_dt=2e-3, window=20,
+                             lift=0.5, diagonal=False)  # fmt: skip
     state = strategy.init(np.full(d, 1.2))
     for _ in range(80):
         request = strategy.ask(state)
@@ -738,7 +759,8 @@ def test_multistart_continues_separable_when_diagonal():
     diagonal and keeps its covariance diagonal, and still ends in the deep bowl."""
     d, objective = 4, _Bowls(4)
     strategy = st.MultiStart(starts=((-1.5,) * d,), tie=(0, 0, 1, 1), sigma0=0.3,
-                             stages=((30, 2, 1),), draws=1, diagonal=True)  # fmt: skip
+                             stages=((30, 2, 1),), draws=1, window=20, lift=0.5,
+                             diagonal=True)  # fmt: skip
     state = strategy.init(np.full(d, 1.2))
     for generation in range(80):
         request = strategy.ask(state)
@@ -769,7 +791,8 @@ def test_auto_is_not_judged_converged_while_its_searches_are_ranked():
     """A plateau in the first phase (the leading search's mean validated alike for many
     generations) does not end the run; the second phase is judged from its first step,
     on its own validations."""
-    strategy = st.MultiStart(starts=((0.0,) * 4,), stages=((30, 2, 1),), draws=1)
+    strategy = st.MultiStart(starts=((0.0,) * 4,), stages=((30, 2, 1),), draws=1, window=20,
+                             lift=0.5, diagonal=False)  # fmt: skip
     objective, state = _Bowls(4), strategy.init(np.ones(4))
     seen = []
     for _ in range(40):

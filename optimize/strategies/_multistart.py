@@ -36,7 +36,7 @@ from fojax.optimize.strategies._population import CMAES
 __all__ = ["MultiStart"]
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class MultiStart:
     """starts: other starting points than ``x0`` (each ``d`` floats; a start given twice
     is searched twice, with other samples). tie: ``d`` indices into the search space
@@ -50,19 +50,24 @@ class MultiStart:
     relative to the search's mean variance. diagonal: the second phase's search is the
     separable CMA-ES (:class:`CMAES`'s ``diagonal``), whose covariance adapts in about
     ``d`` generations: a lifted search of many parameters converges within a budget
-    where a full covariance (about ``d^2`` generations) would still be learning."""
+    where a full covariance (about ``d^2`` generations) would still be learning.
+
+    The design (``stages``, ``draws``, ``window``, ``lift``, ``diagonal``) has no
+    default: the default method's is declared in its entry of the method table
+    (:data:`fojax.optimize.strategies.METHODS`, ``auto``), and a strategy built here
+    states its own."""
 
     starts: tuple = ()
     tie: tuple | None = None
     sigma0: float = 0.5
     seed: int = 0
-    stages: tuple = ((100, 4, 4), (100, 2, 8))
+    stages: tuple
     coarse_dt: float | None = None
-    draws: int = 16
+    draws: int
     popsize: int | None = None
-    window: int = 20
-    lift: float = 0.5
-    diagonal: bool = False
+    window: int
+    lift: float
+    diagonal: bool
     name: str = "multistart"
 
     def __post_init__(self) -> None:
