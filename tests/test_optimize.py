@@ -687,9 +687,10 @@ def test_auto_moves_only_the_tuned_orders_to_integer_order():
     assert len(strategy.starts) == 3
 
 
-def test_the_auto_plan_is_its_table_entry():
+def test_the_auto_plan_is_its_table_entry_and_says_when_steps_cut_it():
     """``auto``'s strategy is built from its table entry's settings alone (a setting given
-    to ``make`` replaces it)."""
+    to ``make`` replaces it), and its plan in words says when ``steps`` end within the
+    first phase."""
     objective, method = small(), st.METHODS["auto"]
     plan, d = method.plan(), small().size
     strategy = method.make(st.Problem(objective, objective.x0))
@@ -701,6 +702,15 @@ def test_the_auto_plan_is_its_table_entry():
     lam = st.CMAES().constants(d)["lam"]  # "fill": the first phase's lanes on 8 draws
     assert strategy.popsize == searches * (lam + 1) * draws // plan["draws"] - 1
     assert strategy.lanes(d) == searches * (lam + 1) * draws
+    full = strategy.plan(method.steps, d)
+    assert full.startswith(f"{searches} CMA-ES searches ({lam} candidates and the mean each) "
+                           f"for {generations} generations on {draws} draws at a 2 ms step")
+    assert full.endswith(f"then the best continued alone (separable CMA-ES, {strategy.popsize} "
+                         f"candidates on {plan['draws']} draws) for up to "
+                         f"{method.steps - generations} generations")  # fmt: skip
+    cut = strategy.plan(30, d)
+    assert cut.startswith("the first phase alone: ") and f"for 30 of its {generations} " in cut
+    assert cut.endswith(f"continued only with more than {generations} steps")
     small_plan = method.make(st.Problem(objective, objective.x0), stages=((3, 2, 2),))
     assert small_plan.search == 3 and len(small_plan.starts) == 1
     with pytest.raises(ValueError, match="its settings: stages, coarse"):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import usage_error
 
-from fojax import cli
+from fojax import cli, optimize
 from fojax.cli import simulate, tune
 from fojax.controllers import gains_io
 from fojax.controllers.afonftsmc import paper_gains
@@ -136,11 +136,29 @@ def test_the_help_and_the_docs_say_what_the_method_table_declares(monkeypatch):
         f"({popsize} candidates on {auto['draws']} draws)",
         f"improved by less than {method.tolerance * 100:g} % over {method.patience} generations",
         f"`--steps` ({method.steps},",
+        f"at or below the first phase's {generations} generations",
         f"sample of {auto['draws']} draws per candidate",
         "one CMA-ES on fresh samples of `--draws` draws" if method.plan(True)["draws"] is None
         else "",
     ):
         assert phrase in text, phrase
+
+
+def test_a_budget_within_auto_s_first_phase_runs_that_phase_and_says_so(tmp_path):
+    """``--steps`` at or below auto's first phase run that phase alone: the announcement's
+    plan and the summary (printed with ``--quiet`` too) say so; a longer run's plan has
+    the convergence phase, and its summary no plan."""
+    ((generations, searches, _),) = METHODS["auto"].plan()["stages"]
+    run = tune.parse_args(SMALL + ["--steps", "30", "--out", str(tmp_path / "a")])
+    lam = st.CMAES().constants(run.objective.size)["lam"]
+    plan = (f"plan: the first phase alone: {searches} CMA-ES searches ({lam} candidates and "
+            f"the mean each) for 30 of its {generations} generations")  # fmt: skip
+    assert plan in tune._announce(run)
+    result = optimize.Result(run.x0, run.x0, [], 30, 0, None, 0, 0.0, None)
+    assert plan in tune._summary(run, result, 1.0)
+    run = tune.parse_args(SMALL + ["--out", str(tmp_path / "b")])
+    assert "then the best continued alone (separable CMA-ES, " in tune._announce(run)
+    assert "plan:" not in tune._summary(run, result._replace(steps=run.budget.steps), 1.0)
 
 
 def test_auto_tunes_fields_that_leave_an_order_out(tmp_path):

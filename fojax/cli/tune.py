@@ -536,7 +536,23 @@ def _announce(run: Run) -> str:
         lines.append(arguments.describe_vehicle(spec.vehicle, args.rotor_speed_limit))
     if spec.reference is not None:
         lines.append(arguments.describe_reference(spec.reference, args.reference_peaks))
+    plan = _plan(run)
+    if plan is not None:
+        lines.append(f"plan: {plan}")
     return "\n".join(lines)
+
+
+def _plan(run: Run) -> str | None:
+    """The method's plan for ``--steps`` in words, where its strategy states one
+    (``auto``'s phases: :meth:`fojax.optimize.strategies.MultiStart.plan`)."""
+    plan = getattr(run.strategy, "plan", None)
+    return None if plan is None else plan(run.budget.steps, run.objective.size)
+
+
+def _cut(run: Run) -> bool:
+    """Whether ``--steps`` end within the method's first phase (its plan says so)."""
+    search = getattr(run.strategy, "search", None)
+    return search is not None and run.budget.steps <= search
 
 
 def _summary(run: Run, result, wall: float) -> str:
@@ -549,6 +565,8 @@ def _summary(run: Run, result, wall: float) -> str:
         f"{result.steps} "
         f"steps, {result.draw_steps:.3g} draw-steps ({wall:.0f} s)"
     )
+    if _cut(run):  # stated whatever --quiet: the run was not the method's whole plan
+        text += f"\nplan: {_plan(run)}"
     if v is not None and v["best"] is not None:
         step = result.returned_step
         chosen = "the start's (no answer validated better)" if step == 0 else f"step {step}'s"

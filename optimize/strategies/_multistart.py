@@ -236,6 +236,30 @@ class MultiStart:
             return None
         return sum(generations for generations, _, _ in self.stages)
 
+    def plan(self, steps: int, d: int) -> str:
+        """What a run of ``steps`` requests on ``d`` parameters does, in words: each
+        stage's searches, generations and draws, then the continued search's phase, or,
+        where ``steps`` end within the first phase, that phase alone."""
+        lam = CMAES().constants(int(self._embed(d).shape[1]))["lam"]
+        at = "" if self.coarse_dt is None else f" at a {self.coarse_dt * 1e3:g} ms step"
+        parts, first = [], 0
+        for generations, searches, draws in self.stages:
+            taken = min(generations, steps - first)
+            if taken <= 0:
+                break
+            of = "" if taken == generations else f" of its {generations}"
+            parts.append(f"{searches} CMA-ES searches ({lam} candidates and the mean each) for "
+                         f"{taken}{of} generations on {draws} draws{at}")  # fmt: skip
+            first += generations
+        stages = ", then ".join(parts)
+        if steps <= self.search:
+            return (f"the first phase alone: {stages}; the best search is continued only with "
+                    f"more than {self.search} steps")  # fmt: skip
+        final = self._search(-1).constants(d)["lam"]
+        kind = "separable CMA-ES" if self.diagonal else "CMA-ES"
+        return (f"{stages}, then the best continued alone ({kind}, {final} candidates on "
+                f"{self.draws} draws) for up to {steps - self.search} generations")  # fmt: skip
+
     def settings(self) -> dict:
         out = dataclasses.asdict(self)
         out["starts"] = [list(s) for s in self.starts]
