@@ -18,6 +18,7 @@ from fojax import study
 from fojax.cli import output, style
 from fojax.cli.reproduce import claims as claims_module
 from fojax.cli.reproduce.report import format_number as _fmt
+from fojax.optimize.strategies import METHODS
 from fojax.records import atomic_write
 
 __all__ = ["MARKER", "PRECISION_METRICS", "TRUST_FRACTION", "precision_table", "write"]
@@ -422,6 +423,11 @@ def _invocation_lines(meta: dict) -> list[str]:
     return lines
 
 
+def _own_draws() -> str:
+    """``auto``'s draws per point, phase by phase, from the method table: ``4 then 8``."""
+    return " then ".join(map(str, METHODS["auto"].own_draws()))
+
+
 def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
     tuning = meta["tuning"]
     if tuning["source"] == "fair_comparison here":
@@ -429,7 +435,8 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
             f"`experiments/fair_comparison.py` run here at a reduced budget: {tuning['steps']} "
             f"steps of `fojax tune`'s method `{tuning.get('method', 'auto')}` at "
             f"{tuning['horizon_s']:g} s of scenario 2 per controller, {tuning['draws']} draws per "
-            "sample (`auto`: its own 8 fresh draws per generation; the same problem, method, "
+            f"sample (`auto`: fresh samples of its own, {_own_draws()} draws per point; the "
+            "same problem, method, "
             "steps and draws for all five; its defaults are 50 steps of 10 s; its process's wall "
             "time is in the invocation line above)"
         )

@@ -27,15 +27,18 @@ the same.
 
 Checkpoint: every ``checkpoint_every`` steps, at the end and on Ctrl-C, ``DIR/checkpoint.npz``
 holds the strategy's state (a pytree of arrays), the best validated point, the counters,
-the history and the run's fingerprint, written atomically. A resumed run reloads them and
-asks the same requests, so it ends where the uninterrupted run ends, bit for bit; its
-record keeps the true start's validation. A checkpoint of another fingerprint (other
-settings, or other code: it holds the digest of fojax's source) is refused with the list
-of what differs; nothing is written before every check has passed.
+the history and the run's fingerprint, written atomically. A step is saved whole or not
+at all: Ctrl-C during a step (its evaluation, the strategy's update, its validation)
+undoes what the step changed, and the checkpoint holds the run before it. A resumed run
+reloads them and asks the same requests, so it ends where the uninterrupted run ends,
+bit for bit; its record keeps the true start's validation. A checkpoint of another
+fingerprint (other settings, or other code: it holds the digest of fojax's source) is
+refused with the list of what differs; nothing is written before every check has passed.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import sys
@@ -345,21 +348,38 @@ class _Run:
             self.best["final"] = summary
         return summary
 
+    @contextlib.contextmanager
+    def whole(self):
+        """Undo what the block changed of the run's record (the strategy's state, the
+        best point, the counters, the history, the validation's record, convergence)
+        when an exception (Ctrl-C) cuts it: a checkpoint then holds the run before it,
+        and a resumed run takes it again, as the uninterrupted run took it once."""
+        before = (self.state, self.best_x, dict(self.used), len(self.history), dict(self.best),
+                  self.converged)  # fmt: skip
+        try:
+            yield
+        except BaseException:
+            self.state, self.best_x, self.used, count, self.best, self.converged = before
+            del self.history[count:]
+            raise
+
     def step(self, request) -> bool:
         """Evaluate ``request``, tell the strategy, record, validate and checkpoint;
-        whether the budget is spent."""
+        whether the budget is spent. The step counts once its row is recorded
+        (:meth:`whole`)."""
         began = time.perf_counter()
-        evaluation = self.objective(request)
-        self.state = self.strategy.tell(self.state, request, evaluation)
-        self.durations[self._kind(request)] = time.perf_counter() - began
-        self.used["steps"] += 1
-        self.used["evaluations"] += np.atleast_2d(request.points).shape[0]
-        self.used["draw_steps"] += evaluation.draw_steps
-        self.used["work"] += evaluation.work or evaluation.draw_steps
-        self.start_validation()
-        done = not self.more()
-        row = self.row(request, evaluation, self.validate(done))
-        self.history.append(row)
+        with self.whole():
+            evaluation = self.objective(request)
+            self.state = self.strategy.tell(self.state, request, evaluation)
+            self.durations[self._kind(request)] = time.perf_counter() - began
+            self.used["steps"] += 1
+            self.used["evaluations"] += np.atleast_2d(request.points).shape[0]
+            self.used["draw_steps"] += evaluation.draw_steps
+            self.used["work"] += evaluation.work or evaluation.draw_steps
+            self.start_validation()
+            done = not self.more()
+            row = self.row(request, evaluation, self.validate(done))
+            self.history.append(row)
         if self.progress:
             self.print(row)
         if self.callback is not None:  # its time left out of the run's
@@ -431,7 +451,8 @@ class _Run:
         self.join_start()
         finished = not self.more()
         if finished and self.history and self.validating and self.best["final"] is None:
-            self.validate(True)
+            with self.whole():
+                self.validate(True)
             self.save()
         final_x, validation = self.strategy.answer(self.state), None
         if self.validating:

@@ -2,6 +2,7 @@
 against independent evaluations and finite differences), the strategies against
 reference implementations, the driver (validation, budgets, resume), bad input."""
 
+import dataclasses
 import functools
 
 import jax
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import drive
 
-from fojax import optimize, scenarios, simulator
+from fojax import optimize, records, scenarios, simulator
 from fojax.controllers import registry
 from fojax.controllers.afonftsmc import AFONFTSMC, GAINS, paper_gains
 from fojax.optimize import Evaluation, Objective, Outputs, Request, driver
@@ -431,7 +432,7 @@ def _rows(result):
         st.adam(4, learning_rate=0.1),
         st.Chain(st.CMAES(popsize=4, seed=1), st.LBFGS(max_step=0.5), 2),
         st.MultiStart(starts=((0.1,) * 33,), stages=((2, 2, 2),), draws=2, popsize=4,
-                      coarse_dt=2e-3),
+                      coarse_dt=2e-3, window=20, lift=0.5, diagonal=False),  # fmt: skip
     ],
     ids=["lbfgs", "adam", "chain", "multistart"],
 )
@@ -446,6 +447,31 @@ def test_resumed_run_equals_uninterrupted_run(tmp_path, strategy):
     assert resumed.validation == full.validation  # the true start's validation kept
     header = (tmp_path / "part" / "history.csv").read_text().splitlines()
     assert header[0].startswith(",".join(driver.COLUMNS)) and len(header) == 5
+
+
+def test_ctrl_c_during_a_validation_resumes_to_the_uninterrupted_run(tmp_path, monkeypatch):
+    """Ctrl-C while a step's validation runs (the step's evaluation already counted, its
+    row not yet written): the checkpoint holds the run before that step, which the
+    resumed run takes again, to the uninterrupted run's rows and gains."""
+    strategy = st.CMAES(popsize=4, seed=1)
+    full = _run(tmp_path / "full", strategy, 4)
+    score = driver._Run.score
+
+    def interrupted(self, x):
+        if self.used["steps"] == 2:  # the second step's validation (every 2 steps)
+            raise KeyboardInterrupt
+        return score(self, x)
+
+    monkeypatch.setattr(driver._Run, "score", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _run(tmp_path / "part", strategy, 4)
+    monkeypatch.setattr(driver._Run, "score", score)
+    header = records.read_arrays(tmp_path / "part" / driver.CHECKPOINT)[1]
+    assert header["used"]["steps"] == 1 and len(header["history"]) == 1
+    resumed = _run(tmp_path / "part", strategy, 4, resume=True)
+    assert resumed.steps == 4 and _rows(resumed) == _rows(full)
+    np.testing.assert_array_equal(resumed.x, full.x)
+    assert resumed.validation == full.validation
 
 
 def test_host_linear_algebra_runs_on_one_thread_during_a_run_only():
@@ -645,7 +671,50 @@ def test_auto_searches_from_the_start_its_integer_orders_and_the_knowledge_free_
     assert isinstance(strategy, st.MultiStart) and len(strategy.starts) == 3
     assert strategy.tie is None and strategy.coarse_dt == 2 * objective.spec.dt
     constrained = st.make("auto", st.Problem(objective, x0, constrained=True))
-    assert isinstance(constrained, st.CMAES) and constrained.draws == st.AUTO_DRAWS
+    assert isinstance(constrained, st.CMAES) and constrained.draws is None  # --draws
+
+
+def test_auto_moves_only_the_tuned_orders_to_integer_order():
+    """With an order field left untuned (``--fields``), auto's integer-order starts keep
+    it at the base gains' value (the objective takes no other: :meth:`Objective.vector`)."""
+    objective = Objective(dataclasses.replace(SPEC, fields=("surface_c1", "gamma1")), NAIVE)
+    found = st.starts(objective, objective.x0)
+    assert len(found) == 1  # the naive gains are the base: one start, at integer gamma1
+    gains = objective.gains(found[0])
+    np.testing.assert_allclose(gains.gamma1, 0.99)
+    np.testing.assert_array_equal(gains.gamma2, NAIVE.gamma2)  # untuned: as it was
+    strategy = st.make("auto", st.Problem(objective, objective.x0))
+    assert len(strategy.starts) == 3
+
+
+def test_the_auto_plan_is_its_table_entry_and_says_when_steps_cut_it():
+    """``auto``'s strategy is built from its table entry's settings alone (a setting given
+    to ``make`` replaces it), and its plan in words says when ``steps`` end within the
+    first phase."""
+    objective, method = small(), st.METHODS["auto"]
+    plan, d = method.plan(), small().size
+    strategy = method.make(st.Problem(objective, objective.x0))
+    (generations, searches, draws), = plan["stages"]
+    assert strategy.stages == plan["stages"] and len(strategy.starts) == searches - 1
+    assert strategy.coarse_dt == plan["coarse"] * objective.spec.dt
+    assert (strategy.draws, strategy.diagonal) == (plan["draws"], plan["diagonal"])
+    assert (strategy.window, strategy.lift) == (plan["window"], plan["lift"])
+    lam = st.CMAES().constants(d)["lam"]  # "fill": the first phase's lanes on 8 draws
+    assert strategy.popsize == searches * (lam + 1) * draws // plan["draws"] - 1
+    assert strategy.lanes(d) == searches * (lam + 1) * draws
+    full = strategy.plan(method.steps, d)
+    assert full.startswith(f"{searches} CMA-ES searches ({lam} candidates and the mean each) "
+                           f"for {generations} generations on {draws} draws at a 2 ms step")
+    assert full.endswith(f"then the best continued alone (separable CMA-ES, {strategy.popsize} "
+                         f"candidates on {plan['draws']} draws) for up to "
+                         f"{method.steps - generations} generations")  # fmt: skip
+    cut = strategy.plan(30, d)
+    assert cut.startswith("the first phase alone: ") and f"for 30 of its {generations} " in cut
+    assert cut.endswith(f"continued only with more than {generations} steps")
+    small_plan = method.make(st.Problem(objective, objective.x0), stages=((3, 2, 2),))
+    assert small_plan.search == 3 and len(small_plan.starts) == 1
+    with pytest.raises(ValueError, match="its settings: stages, coarse"):
+        method.make(st.Problem(objective, objective.x0), searches=3)
 
 
 class _Bowls:
@@ -677,7 +746,8 @@ def test_multistart_keeps_the_best_search_and_continues_it_lifted():
     coordinates), at the coarse step first and the full step after."""
     d, objective = 4, _Bowls(4)
     strategy = st.MultiStart(starts=((-1.5,) * d,), tie=(0, 0, 1, 1), sigma0=0.3,
-                             stages=((30, 2, 1),), draws=1, coarse_dt=2e-3)  # fmt: skip
+                             stages=((30, 2, 1),), draws=1, coarse_dt=2e-3, window=20,
+                             lift=0.5, diagonal=False)  # fmt: skip
     state = strategy.init(np.full(d, 1.2))
     for _ in range(80):
         request = strategy.ask(state)
@@ -699,7 +769,8 @@ def test_multistart_continues_separable_when_diagonal():
     diagonal and keeps its covariance diagonal, and still ends in the deep bowl."""
     d, objective = 4, _Bowls(4)
     strategy = st.MultiStart(starts=((-1.5,) * d,), tie=(0, 0, 1, 1), sigma0=0.3,
-                             stages=((30, 2, 1),), draws=1, diagonal=True)  # fmt: skip
+                             stages=((30, 2, 1),), draws=1, window=20, lift=0.5,
+                             diagonal=True)  # fmt: skip
     state = strategy.init(np.full(d, 1.2))
     for generation in range(80):
         request = strategy.ask(state)
@@ -730,7 +801,8 @@ def test_auto_is_not_judged_converged_while_its_searches_are_ranked():
     """A plateau in the first phase (the leading search's mean validated alike for many
     generations) does not end the run; the second phase is judged from its first step,
     on its own validations."""
-    strategy = st.MultiStart(starts=((0.0,) * 4,), stages=((30, 2, 1),), draws=1)
+    strategy = st.MultiStart(starts=((0.0,) * 4,), stages=((30, 2, 1),), draws=1, window=20,
+                             lift=0.5, diagonal=False)  # fmt: skip
     objective, state = _Bowls(4), strategy.init(np.ones(4))
     seen = []
     for _ in range(40):

@@ -149,6 +149,18 @@ def test_tune_defaults_with_requirements(tmp_path, tiny):
     assert (args.objective, args.method, args.draws) == ("mean", "auto", 16)
 
 
+def test_with_requirements_every_method_samples_draws(tmp_path, tiny):
+    """``--draws`` applies to every method with requirements, ``auto`` and the CMA-ES of
+    ``cma-lbfgs`` included (without requirements they take samples of their own)."""
+    for method in tune.METHODS:
+        argv = [*BASE_TUNE, "--requirements", str(tiny), "--method", method, "--draws", "3",
+                "--out", str(tmp_path)]  # fmt: skip
+        run = tune.parse_args(argv)
+        inner = run.strategy.inner
+        request = inner.ask(inner.init(run.x0))
+        assert len(run.objective.sample(request.sample, request.draws)) == 3, method
+
+
 @pytest.fixture(scope="module")
 def tuned(tmp_path_factory, tiny):
     """A tiny requirement tuning run of the FL (the cheapest controller to compile)."""

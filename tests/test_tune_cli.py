@@ -2,15 +2,19 @@
 resume and its refusals."""
 
 import json
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import usage_error
 
-from fojax import cli
+from fojax import cli, optimize
 from fojax.cli import simulate, tune
 from fojax.controllers import gains_io
 from fojax.controllers.afonftsmc import paper_gains
+from fojax.optimize import strategies as st
+from fojax.optimize.strategies import METHODS
 
 # The same small problem as tests/test_optimize.py (shares its compiled code through
 # the persistent compilation cache).
@@ -83,6 +87,86 @@ def test_every_method_on_every_objective_is_one_declared_option_set():
     for method in tune.METHODS:
         run = tune.parse_args(SMALL + ["--method", method, "--out", "/nonexistent/run"])
         assert run.args.method == method and run.budget.steps == run.args.steps
+
+
+def _help_of(parser) -> dict:
+    """Each option's help as printed, on one line, by its first flag."""
+    text = parser.format_help()
+    chunks = re.split(r"\n  (?=-)", text.split("\noptions:\n", 1)[1])
+    return {chunk.split()[0].rstrip(","): " ".join(chunk.split()) for chunk in chunks}
+
+
+def test_the_help_and_the_docs_say_what_the_method_table_declares(monkeypatch):
+    """``fojax tune --help``, docs/tuning.md's method table and its account of the default
+    method hold the method table's numbers (:data:`METHODS`), each derived from it."""
+    monkeypatch.setenv("COLUMNS", "10000")  # no line wrapped, no word broken
+    help_of = _help_of(tune.build_parser())
+    default = next(iter(METHODS))
+    assert help_of["--method"].endswith(f"({default})")
+    for name, method in METHODS.items():
+        assert f"{name}: {method.summary}" in help_of["--method"]
+        assert f"{name} {method.steps}" in help_of["--steps"]
+        if method.patience:
+            assert f"{name} {method.patience}, tolerance {method.tolerance * 100:g} %" in (
+                help_of["--patience"])  # fmt: skip
+        for option in method.options:  # each a fojax tune option, its defaults in its help
+            flag = "--" + option.replace("_", "-")
+            for constrained in (False, True):
+                value = method.defaults(constrained)[option]
+                assert st.words(option, value) in help_of[flag], (name, flag)
+    auto = METHODS["auto"].plan()
+    own = [draws for _, _, draws in auto["stages"]] + [auto["draws"]]
+    assert f"auto takes its own ({' then '.join(map(str, own))})" in help_of["--draws"]
+    # docs/tuning.md: the method table verbatim, and the default method's numbers
+    docs = (Path(__file__).resolve().parent.parent / "docs" / "tuning.md").read_text()
+    assert st.table() in docs, "docs/tuning.md: paste fojax.optimize.strategies.table()"
+    words = {2: "twice", 4: "four"}
+    ((generations, searches, draws),) = auto["stages"]
+    method = METHODS["auto"]
+    lam = st.CMAES().constants(33)["lam"]  # the AFONFTSMC's 33 parameters
+    popsize = searches * (lam + 1) * draws // auto["draws"] - 1  # "fill": the same lanes
+    text = " ".join(docs.split("## The default method", 1)[1].split("## ", 1)[0].split())
+    for phrase in (
+        f"in copies up to {words[searches]} searches",
+        f"{generations} generations of the {words[searches]} CMA-ES searches",
+        f"one fresh sample of {draws} draws a generation",
+        f"at {words[auto['coarse']]} the step ({auto['coarse']} ms)",
+        f"over its last {auto['window']} generations",
+        "as a separable CMA-ES" if auto["diagonal"] else "as a CMA-ES",
+        f"({popsize} candidates on {auto['draws']} draws)",
+        f"improved by less than {method.tolerance * 100:g} % over {method.patience} generations",
+        f"`--steps` ({method.steps},",
+        f"at or below the first phase's {generations} generations",
+        f"sample of {auto['draws']} draws per candidate",
+        "one CMA-ES on fresh samples of `--draws` draws" if method.plan(True)["draws"] is None
+        else "",
+    ):
+        assert phrase in text, phrase
+
+
+def test_a_budget_within_auto_s_first_phase_runs_that_phase_and_says_so(tmp_path):
+    """``--steps`` at or below auto's first phase run that phase alone: the announcement's
+    plan and the summary (printed with ``--quiet`` too) say so; a longer run's plan has
+    the convergence phase, and its summary no plan."""
+    ((generations, searches, _),) = METHODS["auto"].plan()["stages"]
+    run = tune.parse_args(SMALL + ["--steps", "30", "--out", str(tmp_path / "a")])
+    lam = st.CMAES().constants(run.objective.size)["lam"]
+    plan = (f"plan: the first phase alone: {searches} CMA-ES searches ({lam} candidates and "
+            f"the mean each) for 30 of its {generations} generations")  # fmt: skip
+    assert plan in tune._announce(run)
+    result = optimize.Result(run.x0, run.x0, [], 30, 0, None, 0, 0.0, None)
+    assert plan in tune._summary(run, result, 1.0)
+    run = tune.parse_args(SMALL + ["--out", str(tmp_path / "b")])
+    assert "then the best continued alone (separable CMA-ES, " in tune._announce(run)
+    assert "plan:" not in tune._summary(run, result._replace(steps=run.budget.steps), 1.0)
+
+
+def test_auto_tunes_fields_that_leave_an_order_out(tmp_path):
+    """``--fields`` without ``gamma2``: auto's integer-order starts leave it as it is."""
+    run = tune.parse_args(SMALL + ["--fields", "surface_c1,gamma1", "--out", str(tmp_path)])
+    assert set(run.objective.param_map.names) == {"surface_c1", "gamma1"}
+    for start in run.strategy.starts:
+        np.testing.assert_array_equal(run.objective.gains(start).gamma2, run.init_gains.gamma2)
 
 
 def test_initial_gains_files_are_validated(capsys, tmp_path):

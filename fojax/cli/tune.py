@@ -16,10 +16,11 @@ versions, backend and devices).
 
 Each option is declared once in :data:`OPTIONS`, with its default and what it applies
 to; a method's options, their defaults and the methods they apply to come from the
-method table (:data:`fojax.optimize.strategies.METHODS`). argv is parsed once and every
-option is checked before anything is compiled or written. An option that would change
-nothing (another method's, the other objective's, a law's option for a controller
-without it, ...) is an error naming what it applies to.
+method table (:data:`fojax.optimize.strategies.METHODS`), and so does every number of the
+help about a method (summary, steps, convergence test, option defaults, own draws).
+argv is parsed once and every option is checked before anything is compiled or written.
+An option that would change nothing (another method's, the other objective's, a law's
+option for a controller without it, ...) is an error naming what it applies to.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from typing import Any, NamedTuple
 from fojax import records
 from fojax.cli import arguments, figures, output, style
 from fojax.cli import requirements as requirements_cli
-from fojax.optimize.strategies import AUTO_DRAWS, METHODS
+from fojax.optimize.strategies import METHODS, words
 
 __all__ = ["METHODS", "OPTIONS", "Run", "build_parser", "main", "parse_args"]
 
@@ -46,6 +47,8 @@ WEIGHTED, CONSTRAINED = ("mean", "cvar"), ("effort", "tracking")
 TERMS = ("position", "attitude", "effort", "chattering")
 GRADIENT = tuple(name for name, method in METHODS.items() if method.gradient)
 BUILT_IN = {"paper": "defaults", "naive": "naive"}
+DEFAULT = next(iter(METHODS))
+"""The default method: the method table's first."""
 
 
 class Option(NamedTuple):
@@ -89,20 +92,27 @@ def _defaults_of(name: str) -> str:
     for method_name, method in METHODS.items():
         if name in method.options:
             for constrained, label in ((False, ""), (True, " with --requirements")):
-                value = method.defaults(constrained)[name]
-                found.setdefault("4 + 3 ln d" if value is None else f"{value:g}", []).append(
-                    f"{method_name}{label}"
-                )
+                value = words(name, method.defaults(constrained)[name])
+                found.setdefault(value, []).append(f"{method_name}{label}")
     if len(found) == 1:
         return f"({next(iter(found))})"
     return "(" + "; ".join(f"{value}: {', '.join(where)}" for value, where in found.items()) + ")"
 
 
+def _own_draws(name: str) -> str:
+    """The draws per point of method ``name``'s own samples, phase by phase: ``4 then 8``."""
+    return " then ".join(map(str, METHODS[name].own_draws()))
+
+
+OWN = tuple(name for name, method in METHODS.items() if not method.draws)
+"""The methods that sample draws of their own without a requirement set, not ``--draws``."""
+
+
 def _draws(a):
     if a.requirements is None and not METHODS[a.method].draws:
         return (
-            f"does not apply to --method {a.method}, which scores every point on "
-            f"{AUTO_DRAWS} fresh draws per generation"
+            f"does not apply to --method {a.method}, which scores every point on fresh "
+            f"samples of its own ({_own_draws(a.method)} draws per point)"
         )
 
 
@@ -152,8 +162,9 @@ OPTIONS = (
     Option("--init", dict(metavar="paper|naive|FILE", help="initial gains: the controller's "
            "defaults, a knowledge-free guess (positive gains 1, p/q 1.5, orders 0.5), or a "
            "gains file (paper)"), "paper"),
-    Option("--draws", dict(type=count, help="draws per sample (16; 8 with --requirements)"),
-           lambda a: 8 if a.requirements else 16, _draws),
+    Option("--draws", dict(type=count, help="draws per sample (16; 8 with --requirements); "
+           "without --requirements " + "; ".join(f"{m} takes its own ({_own_draws(m)})"
+           for m in OWN)), lambda a: 8 if a.requirements else 16, _draws),
     Option("--horizon", dict(type=real, help="tuning horizon, s (10)"), 10.0),
     Option("--dt", dict(type=real, help="step, s (1e-3)"), 1e-3),
     Option("--seed", dict(type=arguments.seed, help="the draws' seed (0)"), 0),
@@ -209,7 +220,7 @@ OPTIONS = (
            "draw must beat it by (0.05)"), 0.05, _requirements),
     # the method
     Option("--method", dict(choices=tuple(METHODS), help="; ".join(
-           f"{name}: {m.summary}" for name, m in METHODS.items()) + " (auto)"), "auto"),
+           f"{name}: {m.summary}" for name, m in METHODS.items()) + f" ({DEFAULT})"), DEFAULT),
     Option("--steps", dict(type=count, help="steps (generations for CMA-ES), a cap where the "
            "method stops once converged: " + ", ".join(
            f"{m} {n.steps}" for m, n in METHODS.items())), lambda a: METHODS[a.method].steps,
@@ -218,7 +229,8 @@ OPTIONS = (
     Option("--seconds", dict(type=real, help="stop after this wall time (none)")),
     Option("--patience", dict(type=whole, help="stop once the best validated cost improved by "
            "less than the method's tolerance over this many steps (" + ", ".join(
-           f"{m} {n.patience}" for m, n in METHODS.items() if n.patience) + "; 0: never)"),
+           f"{m} {n.patience}, tolerance {n.tolerance * 100:g} %%" for m, n in METHODS.items()
+           if n.patience) + "; 0: never)"),
            lambda a: METHODS[a.method].patience or 0,
            lambda a: "does not apply with --requirements" if a.requirements else (
                "applies with validation draws only" if a.validation_draws == 0 else None)),
@@ -379,7 +391,7 @@ def _build(parser, args) -> Run:
         )
         probe = objective_with(optimize.objective.LANES)
     x0 = probe.vector(gains)
-    options = {name: getattr(args, name) for name in method.options if hasattr(args, name)}
+    options = {name: getattr(args, name) for name in method.options}  # each an option
     outer = args.outer_steps if reqs is not None else 1
     problem = st.Problem(probe, x0, args.seed, reqs is not None, outer)
     strategy = method.make(problem, steps, **options)
@@ -542,7 +554,23 @@ def _announce(run: Run) -> str:
         lines.append(arguments.describe_vehicle(spec.vehicle, args.rotor_speed_limit))
     if spec.reference is not None:
         lines.append(arguments.describe_reference(spec.reference, args.reference_peaks))
+    plan = _plan(run)
+    if plan is not None:
+        lines.append(f"plan: {plan}")
     return "\n".join(lines)
+
+
+def _plan(run: Run) -> str | None:
+    """The method's plan for ``--steps`` in words, where its strategy states one
+    (``auto``'s phases: :meth:`fojax.optimize.strategies.MultiStart.plan`)."""
+    plan = getattr(run.strategy, "plan", None)
+    return None if plan is None else plan(run.budget.steps, run.objective.size)
+
+
+def _cut(run: Run) -> bool:
+    """Whether ``--steps`` end within the method's first phase (its plan says so)."""
+    search = getattr(run.strategy, "search", None)
+    return search is not None and run.budget.steps <= search
 
 
 def _summary(run: Run, result, wall: float) -> str:
@@ -555,6 +583,8 @@ def _summary(run: Run, result, wall: float) -> str:
         f"{result.steps} "
         f"steps, {result.draw_steps:.3g} draw-steps ({wall:.0f} s)"
     )
+    if _cut(run):  # stated whatever --quiet: the run was not the method's whole plan
+        text += f"\nplan: {_plan(run)}"
     if v is not None and v["best"] is not None:
         step = result.returned_step
         chosen = "the start's (no answer validated better)" if step == 0 else f"step {step}'s"
@@ -660,7 +690,7 @@ def _figure(run: Run, result, evaluation):
     args, spec = run.args, run.objective.spec
     start = result.validation["initial"] if result.validation else None
     own = args.requirement_set is None and not METHODS[args.method].draws
-    sample = f"{AUTO_DRAWS}-draw samples" if own else f"{spec.draws} draws"
+    sample = f"{_own_draws(args.method)}-draw samples" if own else f"{spec.draws} draws"
     return style.attempt(
         "convergence.png",
         figures.plot_convergence,

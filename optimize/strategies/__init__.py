@@ -33,18 +33,20 @@ named methods of ``fojax tune --method`` and the studies (:mod:`._methods`).
 from fojax.optimize.strategies._compose import AugmentedLagrangian, Chain
 from fojax.optimize.strategies._gradient import LBFGS, Optax, adam
 from fojax.optimize.strategies._methods import (
-    AUTO_DRAWS,
     METHODS,
     Method,
     Problem,
     lanes,
     make,
     starts,
+    table,
+    words,
 )
 from fojax.optimize.strategies._multistart import MultiStart
 from fojax.optimize.strategies._population import CMAES, NelderMead
 
 __all__ = [
-    "AUTO_DRAWS", "CMAES", "LBFGS", "METHODS", "AugmentedLagrangian", "Chain", "Method",
-    "MultiStart", "NelderMead", "Optax", "Problem", "adam", "lanes", "make", "starts",
+    "CMAES", "LBFGS", "METHODS", "AugmentedLagrangian", "Chain", "Method",
+    "MultiStart", "NelderMead", "Optax", "Problem", "adam", "lanes", "make", "starts", "table",
+    "words",
 ]  # fmt: skip

@@ -1,10 +1,13 @@
 """The named methods of ``fojax tune --method`` and of every study, each declared once
-(:data:`METHODS`): the strategy it builds, its default budget, the options that apply
-to it and their defaults (with the weighted-sum cost and, where they differ, with a
-requirement set: the inner strategy of the augmented Lagrangian), whether it takes
-gradients and whether the objective's sample size (``--draws``) is what it samples.
-``fojax tune`` derives its method options, their defaults and its "does not apply"
-errors from this table; the studies build their tuners from it, so none can drift.
+(:data:`METHODS`) with its whole plan: the strategy it builds, its default budget, the
+options that apply to it and their defaults, the settings of its plan that no option
+changes (``auto``'s stages, coarse step, draws per phase, population rule, ...), the
+values of either that differ with a requirement set (the inner strategy of the
+augmented Lagrangian), whether it takes gradients and whether the objective's sample
+size (``--draws``) is what it samples. ``fojax tune`` derives its method options, their
+defaults, its help and its "does not apply" errors from this table, the studies build
+their tuners from it, and a test holds docs/tuning.md's method table and its account of
+the default method to it, so none can drift.
 """
 
 from __future__ import annotations
@@ -21,10 +24,7 @@ from fojax.optimize.strategies._gradient import LBFGS, adam
 from fojax.optimize.strategies._multistart import MultiStart
 from fojax.optimize.strategies._population import CMAES, NelderMead
 
-__all__ = ["AUTO_DRAWS", "METHODS", "Method", "Problem", "lanes", "make", "starts"]
-
-AUTO_DRAWS = 8
-"""Draws per point and generation of ``auto`` (and of its CMA-ES with requirements)."""
+__all__ = ["METHODS", "NONE", "Method", "Problem", "lanes", "make", "starts", "table", "words"]
 
 
 class Problem(NamedTuple):
@@ -44,98 +44,131 @@ class Problem(NamedTuple):
 
 @dataclasses.dataclass(frozen=True)
 class Method:
-    """One named method. steps: its default budget (requests: generations, gradient
-    steps, simplex steps). options: its options and their defaults. constrained: the
-    defaults that differ with a requirement set. build: ``build(problem, steps,
-    **options) -> strategy``. gradient: it takes gradients (the gradient program's
-    options apply). draws: it samples the objective's sample size (``--draws``).
-    patience, tolerance: it stops once its validated score improved by less than
-    ``tolerance`` over ``patience`` steps (:class:`fojax.optimize.Budget`)."""
+    """One named method and its whole plan. summary: what it does, in words (a template
+    filled from its options' and settings' defaults: ``{draws}``). steps: its default
+    budget (requests: generations, gradient steps, simplex steps). options: its options
+    (each a ``fojax tune`` option of that name) and their defaults. settings: the rest of
+    its plan, which no option of the command changes (:meth:`make` takes them, for tests
+    and studies). constrained: the options' and settings' values that differ with a
+    requirement set. build: ``build(problem, steps, **options, **settings) ->
+    strategy``. gradient: it takes gradients (the gradient program's options apply).
+    draws: it samples the objective's sample size (``--draws``) without a requirement
+    set; with one every method does (a setting ``draws`` is ``None`` there). own: where
+    it does not, ``own(settings)``: the draws per point of the fresh samples it takes
+    instead, phase by phase. patience, tolerance: it stops once its validated score
+    improved by less than ``tolerance`` over ``patience`` steps
+    (:class:`fojax.optimize.Budget`)."""
 
     name: str
     summary: str
     steps: int
     options: Mapping[str, Any]
     build: Callable
+    settings: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     constrained: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     gradient: bool = False
     draws: bool = True
+    own: Callable | None = None
     patience: int | None = None
     tolerance: float = 1e-3
 
+    def __post_init__(self) -> None:
+        both = sorted(set(self.options) & set(self.settings))
+        if both:
+            raise ValueError(f"method {self.name}: {', '.join(both)} both option and setting")
+        unknown = sorted(set(self.constrained) - set(self.options) - set(self.settings))
+        if unknown:
+            raise ValueError(f"method {self.name}: no option or setting {', '.join(unknown)}")
+        if self.draws == (self.own is not None):
+            raise ValueError(f"method {self.name}: own draws exactly where it has no --draws")
+        if self.plan(constrained=True).get("draws") is not None:
+            raise ValueError(f"method {self.name}: with a requirement set it samples --draws")
+        summary = self.summary.format(**self.options, **self.settings)
+        object.__setattr__(self, "summary", summary)
+
     def defaults(self, constrained: bool = False) -> dict:
         """The options' defaults (with a requirement set where ``constrained``)."""
-        return {**self.options, **(self.constrained if constrained else {})}
+        return self._with(self.options, constrained)
+
+    def plan(self, constrained: bool = False) -> dict:
+        """The settings (with a requirement set where ``constrained``)."""
+        return self._with(self.settings, constrained)
+
+    def _with(self, values: Mapping, constrained: bool) -> dict:
+        changed = self.constrained if constrained else {}
+        return {name: changed.get(name, value) for name, value in values.items()}
+
+    def own_draws(self) -> tuple[int, ...]:
+        """The draws per point of the fresh samples it takes without a requirement set
+        where it does not sample ``--draws`` (``()`` where it does), phase by phase."""
+        return () if self.own is None else tuple(self.own(self.settings))
 
     def make(self, problem: Problem, steps: int | None = None, **options):
         """The strategy for ``problem`` over ``steps`` (default :attr:`steps`) with
-        ``options`` (the others at their defaults); ``ValueError`` for an option that
-        does not apply or a budget the method cannot use."""
-        unknown = sorted(set(options) - set(self.options))
+        ``options`` (options or settings; the others at their defaults); ``ValueError``
+        for one the method does not have or a budget the method cannot use."""
+        unknown = sorted(set(options) - set(self.options) - set(self.settings))
         if unknown:
             raise ValueError(
                 f"method {self.name} takes no option {', '.join(unknown)} (its options: "
-                f"{', '.join(self.options) or 'none'})"
+                f"{', '.join(self.options) or 'none'}; its settings: "
+                f"{', '.join(self.settings) or 'none'})"
             )
         steps = self.steps if steps is None else steps
         checks.integer("steps", steps)
-        settings = {**self.defaults(problem.constrained), **options}
-        return self.build(problem, steps, **settings)
+        constrained = problem.constrained
+        values = {**self.defaults(constrained), **self.plan(constrained), **options}
+        return self.build(problem, steps, **values)
 
 
-def _auto(problem: Problem, steps: int, sigma: float):
+def _auto(problem: Problem, steps: int, sigma: float, stages, coarse, draws, popsize,
+          diagonal, window, lift):  # fmt: skip
     objective = problem.objective
-    if problem.constrained:  # inside the augmented Lagrangian: one CMA-ES on small samples
-        return CMAES(sigma0=sigma, seed=problem.seed, draws=AUTO_DRAWS, name="auto")
+    if problem.constrained:  # inside the augmented Lagrangian: one CMA-ES
+        return CMAES(sigma0=sigma, seed=problem.seed, draws=draws, name="auto")
     from fojax.optimize import params
 
     tie, d = None, objective.size
     if objective.param_map.share != "paper":
-        coarse = params.make_parameter_map(objective.spec.controller, objective.spec.fields,
-                                           "paper")  # fmt: skip
-        tie = tuple(objective.param_map.tie(coarse).tolist())
+        coarse_map = params.make_parameter_map(objective.spec.controller, objective.spec.fields,
+                                               "paper")  # fmt: skip
+        tie = tuple(objective.param_map.tie(coarse_map).tolist())
+    searches = stages[0][1] if stages else 1  # the first stage's: every start's search
     found = starts(objective, problem.x0)
     free = found[-1] if found else np.asarray(problem.x0)  # the knowledge-free start
-    found += [free] * (AUTO_SEARCHES - 1 - len(found))
-    k = d if tie is None else max(tie) + 1
-    first = max(s * (CMAES().constants(k)["lam"] + 1) * n for _, s, n in AUTO_STAGES)
-    popsize = max(first // AUTO_DRAWS - 1, CMAES().constants(d)["lam"])
-    coarse_dt = AUTO_COARSE * objective.spec.dt
+    found += [free] * (searches - 1 - len(found))
+    if popsize == "fill":  # as many candidates as fill the first phase's largest request
+        k = d if tie is None else max(tie) + 1
+        first = max(s * (CMAES().constants(k)["lam"] + 1) * n for _, s, n in stages)
+        popsize = max(first // draws - 1, CMAES().constants(d)["lam"])
+    coarse_dt = None if coarse is None else coarse * objective.spec.dt
     try:
-        objective.spec.check_step(coarse_dt)
+        if coarse_dt is not None:
+            objective.spec.check_step(coarse_dt)
     except ValueError:  # a horizon of an odd number of steps: no coarse phase
         coarse_dt = None
     return MultiStart(
         starts=tuple(tuple(s) for s in found), tie=tie, sigma0=sigma, seed=problem.seed,
-        stages=AUTO_STAGES, coarse_dt=coarse_dt, draws=AUTO_DRAWS, popsize=popsize,
-        diagonal=True, name="auto",
+        stages=stages, coarse_dt=coarse_dt, draws=draws, popsize=popsize,
+        window=window, lift=lift, diagonal=diagonal, name="auto",
     )  # fmt: skip
 
 
-AUTO_SEARCHES = 4
-"""Searches of ``auto``'s first phase: the start, the start at integer orders and the
-knowledge-free start at integer orders, and copies of the latter up to this count."""
-AUTO_STAGES = ((100, 4, 4),)
-"""``auto``'s first phase: 100 generations of its four searches on 4 draws each
-(:class:`MultiStart`'s ``stages``)."""
-AUTO_COARSE = 2
-"""``auto``'s first phase runs at this many times the objective's step."""
-
-
-def _cma_lbfgs(problem: Problem, steps: int, sigma: float, popsize, switch: int, max_step: float):
+def _cma_lbfgs(problem: Problem, steps: int, sigma: float, popsize, switch: int, max_step: float,
+               draws: int, width):  # fmt: skip
     if switch >= steps * problem.outer_steps:
         raise ValueError(
             f"cma-lbfgs: {steps * problem.outer_steps} steps leave no L-BFGS step after "
             f"{switch} CMA-ES generations (--switch): give more steps than --switch, or use "
             f"--method cma-es"
         )
-    first = CMAES(sigma0=sigma, popsize=popsize, seed=problem.seed, draws=AUTO_DRAWS,
+    first = CMAES(sigma0=sigma, popsize=popsize, seed=problem.seed, draws=draws,
                   name="cma-lbfgs")  # fmt: skip
-    return Chain(first, LBFGS(max_step=max_step, width=None), switch)
+    return Chain(first, LBFGS(max_step=max_step, width=width), switch)
 
 
-def _adam(problem, steps, learning_rate, final_learning_rate, clip_norm, anneal_start, anneal_end):
-    sample = "fixed" if problem.constrained else "fresh"
+def _adam(problem, steps, learning_rate, final_learning_rate, clip_norm, anneal_start, anneal_end,
+          sample):  # fmt: skip
     anneal = (anneal_start, anneal_end)
     return adam(steps, learning_rate, final_learning_rate, clip_norm, anneal, sample)
 
@@ -148,36 +181,97 @@ METHODS = {
             "auto",
             "CMA-ES from the start, from it at integer fractional orders and from a "
             "knowledge-free start side by side, the best continued until it converges",
-            240, {"sigma": 0.5}, _auto, draws=False, patience=60, tolerance=2e-3,
-        ),
+            240, {"sigma": 0.5}, _auto,
+            # stages: the first phase, (generations, searches, draws per point) each, its
+            # first stage's searches every start's (MultiStart); coarse: its step, times
+            # the objective's (None: the objective's); draws, popsize: the second phase's
+            # draws per point and candidates ("fill": as many as fill the first phase's
+            # largest request's lanes); diagonal: the second phase separable; window: the
+            # generations whose means rank the searches; lift: the variance the second
+            # phase adds on its diagonal. With requirements: one CMA-ES on --draws draws
+            # (every method samples --draws there).
+            settings={"stages": ((100, 4, 4),), "coarse": 2, "draws": 8, "popsize": "fill",
+                      "diagonal": True, "window": 20, "lift": 0.5},
+            constrained={"draws": None}, draws=False,
+            own=lambda s: tuple(dict.fromkeys([n for _, _, n in s["stages"]] + [s["draws"]])),
+            patience=60, tolerance=2e-3,
+        ),  # fmt: skip
         Method(
-            "cma-lbfgs", "CMA-ES on 8-draw fresh samples, then L-BFGS on the fixed sample",
-            60, {**_CMA, "switch": 30, "max_step": 1.0}, _cma_lbfgs, gradient=True,
-        ),
+            "cma-lbfgs", "CMA-ES on {draws}-draw fresh samples, then L-BFGS on the fixed sample",
+            60, {**_CMA, "switch": 30, "max_step": 1.0}, _cma_lbfgs,
+            # draws: the CMA-ES's draws per point (with requirements --draws, as every
+            # method's); width: L-BFGS's law (None: the evaluation law)
+            settings={"draws": 8, "width": None}, constrained={"draws": None}, gradient=True,
+        ),  # fmt: skip
         Method(
-            "adam", "Adam on fresh samples, the tuning law's width annealed",
+            "adam", "Adam on {sample} samples, the tuning law's width annealed",
             100,
-            {"learning_rate": 0.05, "final_learning_rate": 0.1, "clip_norm": 1.0,
-             "anneal_start": 4.0, "anneal_end": 1.0},
-            _adam, {"learning_rate": 0.1, "final_learning_rate": 1.0, "anneal_start": 1.0},
+            {"learning_rate": 0.05, "clip_norm": 1.0, "anneal_start": 4.0, "anneal_end": 1.0},
+            _adam, {"final_learning_rate": 0.1, "sample": "fresh"},
+            {"learning_rate": 0.1, "final_learning_rate": 1.0, "anneal_start": 1.0,
+             "sample": "fixed"},
             gradient=True,
         ),  # fmt: skip
         Method(
             "lbfgs", "L-BFGS on the fixed sample", 60, {"max_step": 1.0, "anneal_end": 1.0},
             lambda p, steps, max_step, anneal_end: LBFGS(max_step=max_step, width=anneal_end),
             gradient=True,
-        ),
+        ),  # fmt: skip
         Method(
             "cma-es", "CMA-ES, every generation on a fresh sample of --draws draws", 500, _CMA,
             lambda p, steps, sigma, popsize: CMAES(sigma0=sigma, popsize=popsize, seed=p.seed),
-        ),
+        ),  # fmt: skip
         Method(
             "nelder-mead", "Nelder-Mead on the fixed sample", 2000, {},
             lambda p, steps: NelderMead(),
-        ),
+        ),  # fmt: skip
     )
 }
 """The methods by name, ``auto`` (the default) first."""
+
+
+NONE = {"popsize": "4 + 3 ln d", "draws": "--draws", "width": "evaluation law",
+        "coarse": "the objective's step"}  # fmt: skip
+"""What ``None`` means for an option or setting of that name (:func:`words`)."""
+
+
+def words(name: str, value) -> str:
+    """An option's or setting's value as the help and the docs write it: ``None`` as
+    :data:`NONE` says, a number as ``%g``, stages as ``(generations, searches, draws)``
+    each, a flag as yes or no."""
+    if value is None:
+        return NONE.get(name, "none")
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, tuple):
+        return ", ".join(words(name, v) for v in value) if isinstance(value[0], tuple) else (
+            "(" + ", ".join(words(name, v) for v in value) + ")")  # fmt: skip
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _values(values: Mapping) -> str:
+    return ", ".join(f"`{name}` {words(name, value)}" for name, value in values.items()) or "-"
+
+
+def table() -> str:
+    """The method table in Markdown (docs/tuning.md holds it verbatim; a test compares):
+    each method's summary, default steps, convergence test, options and settings with
+    their defaults, and what differs with a requirement set."""
+    lines = [
+        "| `--method` | what it does | `--steps` | stops once converged | options "
+        "(defaults) | settings (its fixed plan) | with `--requirements` |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, m in METHODS.items():
+        stop = "no"
+        if m.patience:
+            stop = f"below {m.tolerance:.1%} over {m.patience} steps".replace("%", " %")
+        label = f"`{name}` (the default)" if name == next(iter(METHODS)) else f"`{name}`"
+        lines.append(
+            f"| {label} | {m.summary} | {m.steps} | {stop} | {_values(m.options)} | "
+            f"{_values(m.settings)} | {_values(m.constrained)} |"
+        )
+    return "\n".join(lines)
 
 
 def make(method: str, problem: Problem, steps: int | None = None, **options):
@@ -187,19 +281,23 @@ def make(method: str, problem: Problem, steps: int | None = None, **options):
 
 
 def starts(objective, x0) -> list[np.ndarray]:
-    """Other starts than ``x0`` for ``auto``: ``x0`` with its fractional orders at their
-    integer-order bounds (:func:`fojax.optimize.params.integer_order_gains`), and the
+    """Other starts than ``x0`` for ``auto``: ``x0`` with its tuned fractional orders at
+    their integer-order bounds (:func:`fojax.optimize.params.integer_order_gains`; an
+    order field the objective does not tune keeps the base gains' value), and the
     knowledge-free start (:func:`fojax.optimize.params.naive_gains`: positive gains 1)
     at integer orders; those equal to ``x0`` or to each other left out."""
     from fojax.optimize import params
 
     x0 = np.asarray(x0, np.float64)
     base, tuned = objective.base_gains, objective.param_map.names
-    naive = params.naive_gains(objective.spec.controller, objective.dtype)
-    naive = base._replace(**{name: getattr(naive, name) for name in tuned})
+
+    def tuned_of(gains):  # base gains with the tuned fields of ``gains``
+        return base._replace(**{name: getattr(gains, name) for name in tuned})
+
+    naive = tuned_of(params.naive_gains(objective.spec.controller, objective.dtype))
     found: list[np.ndarray] = []
     for gains in (objective.gains(x0), naive):
-        x = objective.vector(params.integer_order_gains(gains))
+        x = objective.vector(tuned_of(params.integer_order_gains(gains)))
         if not any(np.allclose(x, y, rtol=0, atol=1e-6) for y in [x0, *found]):
             found.append(x)
     return found

@@ -36,7 +36,7 @@ from fojax.optimize.strategies._population import CMAES
 __all__ = ["MultiStart"]
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class MultiStart:
     """starts: other starting points than ``x0`` (each ``d`` floats; a start given twice
     is searched twice, with other samples). tie: ``d`` indices into the search space
@@ -50,19 +50,24 @@ class MultiStart:
     relative to the search's mean variance. diagonal: the second phase's search is the
     separable CMA-ES (:class:`CMAES`'s ``diagonal``), whose covariance adapts in about
     ``d`` generations: a lifted search of many parameters converges within a budget
-    where a full covariance (about ``d^2`` generations) would still be learning."""
+    where a full covariance (about ``d^2`` generations) would still be learning.
+
+    The design (``stages``, ``draws``, ``window``, ``lift``, ``diagonal``) has no
+    default: the default method's is declared in its entry of the method table
+    (:data:`fojax.optimize.strategies.METHODS`, ``auto``), and a strategy built here
+    states its own."""
 
     starts: tuple = ()
     tie: tuple | None = None
     sigma0: float = 0.5
     seed: int = 0
-    stages: tuple = ((100, 4, 4), (100, 2, 8))
+    stages: tuple
     coarse_dt: float | None = None
-    draws: int = 16
+    draws: int
     popsize: int | None = None
-    window: int = 20
-    lift: float = 0.5
-    diagonal: bool = False
+    window: int
+    lift: float
+    diagonal: bool
     name: str = "multistart"
 
     def __post_init__(self) -> None:
@@ -230,6 +235,30 @@ class MultiStart:
         if self._stage(int(state["generation"])) is not None:
             return None
         return sum(generations for generations, _, _ in self.stages)
+
+    def plan(self, steps: int, d: int) -> str:
+        """What a run of ``steps`` requests on ``d`` parameters does, in words: each
+        stage's searches, generations and draws, then the continued search's phase, or,
+        where ``steps`` end within the first phase, that phase alone."""
+        lam = CMAES().constants(int(self._embed(d).shape[1]))["lam"]
+        at = "" if self.coarse_dt is None else f" at a {self.coarse_dt * 1e3:g} ms step"
+        parts, first = [], 0
+        for generations, searches, draws in self.stages:
+            taken = min(generations, steps - first)
+            if taken <= 0:
+                break
+            of = "" if taken == generations else f" of its {generations}"
+            parts.append(f"{searches} CMA-ES searches ({lam} candidates and the mean each) for "
+                         f"{taken}{of} generations on {draws} draws{at}")  # fmt: skip
+            first += generations
+        stages = ", then ".join(parts)
+        if steps <= self.search:
+            return (f"the first phase alone: {stages}; the best search is continued only with "
+                    f"more than {self.search} steps")  # fmt: skip
+        final = self._search(-1).constants(d)["lam"]
+        kind = "separable CMA-ES" if self.diagonal else "CMA-ES"
+        return (f"{stages}, then the best continued alone ({kind}, {final} candidates on "
+                f"{self.draws} draws) for up to {steps - self.search} generations")  # fmt: skip
 
     def settings(self) -> dict:
         out = dataclasses.asdict(self)
