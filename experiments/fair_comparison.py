@@ -47,7 +47,8 @@ import numpy as np
 
 from experiments import _common
 from fojax.cli import arguments, output
-from fojax.optimize.strategies import METHODS
+from fojax.optimize.strategies import AUTO_DRAWS, METHODS
+from fojax.optimize.strategies._methods import AUTO_STAGES
 
 __all__ = ["main", "table"]
 
@@ -64,7 +65,9 @@ def parse_args(argv) -> argparse.Namespace:
     number = functools.partial(_common.add_numbers, parser)
     parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
     number(horizon=(10.0, "tuning horizon (s)"))
-    number(draws=(16, "draws per sample (auto: 8 fresh ones per generation)"))
+    own = ", ".join(f"{d} for {g} generations" for g, _, d in AUTO_STAGES)
+    number(draws=(16, f"draws per sample (not auto's, which samples its own: {own}, then "
+                      f"{AUTO_DRAWS})"))  # fmt: skip
     parser.add_argument("--steps", type=arguments.positive_int, help="steps (CMA-ES: "
                         "generations); default the method's own budget, with its convergence "
                         "stop")  # fmt: skip

@@ -429,9 +429,10 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
             f"`experiments/fair_comparison.py` run here at a reduced budget: {tuning['steps']} "
             f"steps of `fojax tune`'s method `{tuning.get('method', 'auto')}` at "
             f"{tuning['horizon_s']:g} s of scenario 2 per controller, {tuning['draws']} draws per "
-            "sample (`auto`: its own 8 fresh draws per generation; the same problem, method, "
-            "steps and draws for all five; its defaults are 50 steps of 10 s; its process's wall "
-            "time is in the invocation line above)"
+            "sample (`auto` samples its own: 4 fresh draws per generation in its first 100 "
+            "generations, 8 after; the same problem, method, steps and draws for all five; "
+            "its defaults are the method's own budget, up to 240 steps and its convergence "
+            "stop, at 10 s; its process's wall time is in the invocation line above)"
         )
     else:
         tuning_text = f"the tuned gains of `{tuning['source']}` (experiments/fair_comparison.py)"

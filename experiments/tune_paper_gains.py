@@ -16,8 +16,10 @@ Protocol (every number in ``docs/tuning.md`` comes from this script):
    :func:`fojax.optimize.params.naive_gains`.
 2. Tuners (:func:`fojax.optimize.strategies.make`), same problem, same start, each run
    by :func:`fojax.optimize.run`:
-   * default (``auto``, ``fojax tune``'s: CMA-ES on 8 fresh draws per generation, at the
-     evaluation law), ``--default-steps`` generations;
+   * default (``auto``, ``fojax tune``'s: CMA-ES searches from several starts on fresh
+     draws of their own each generation, 4 per point in the first phase and 8 after, at
+     the evaluation law), ``--default-steps`` generations at most, with its convergence
+     stop;
    * gradient (``--gradient-method``: ``lbfgs``, quasi-Newton on the fixed sample;
      ``adam``, a fresh sample every step), ``--steps`` steps;
    * CMA-ES (each generation in one batched call, on fresh draws, at the evaluation

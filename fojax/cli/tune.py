@@ -39,6 +39,7 @@ from fojax import records
 from fojax.cli import arguments, figures, output, style
 from fojax.cli import requirements as requirements_cli
 from fojax.optimize.strategies import AUTO_DRAWS, METHODS
+from fojax.optimize.strategies._methods import AUTO_STAGES
 
 __all__ = ["METHODS", "OPTIONS", "Run", "build_parser", "main", "parse_args"]
 
@@ -98,11 +99,17 @@ def _defaults_of(name: str) -> str:
     return "(" + "; ".join(f"{value}: {', '.join(where)}" for value, where in found.items()) + ")"
 
 
+def _auto_draws() -> str:
+    """The draws per point of ``auto``'s generations (without requirements): each phase's."""
+    first = ", ".join(f"{d} in its first {g} generations" for g, _, d in AUTO_STAGES)
+    return f"{first}, {AUTO_DRAWS} after"
+
+
 def _draws(a):
     if a.requirements is None and not METHODS[a.method].draws:
         return (
-            f"does not apply to --method {a.method}, which scores every point on "
-            f"{AUTO_DRAWS} fresh draws per generation"
+            f"does not apply to --method {a.method}, which scores every point on fresh "
+            f"draws of its own each generation ({_auto_draws()})"
         )
 
 
@@ -642,7 +649,8 @@ def _figure(run: Run, result, evaluation):
     args, spec = run.args, run.objective.spec
     start = result.validation["initial"] if result.validation else None
     own = args.requirement_set is None and not METHODS[args.method].draws
-    sample = f"{AUTO_DRAWS}-draw samples" if own else f"{spec.draws} draws"
+    phases = [str(d) for *_, d in AUTO_STAGES] + [str(AUTO_DRAWS)]
+    sample = f"{'-then-'.join(phases)}-draw samples" if own else f"{spec.draws} draws"
     return style.attempt(
         "convergence.png",
         figures.plot_convergence,
