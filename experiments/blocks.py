@@ -232,12 +232,12 @@ BLOCKS: dict[str, Block] = {
             _SMALL_QUADROTOR,
             results="results/remark3_inverted",
         ),
-        *(  # rendered from the JSON of a run on a GPU machine (last: it runs nothing)
+        *(  # rendered from the JSON of a run on a GPU machine (last: it runs nothing);
+            # the JSON is committed after the run's commit, so it is no declared source
             _block(
                 name,
                 "docs/performance.md",
                 f"bench_report --from {recorded} --name {name} --update-doc docs/performance.md",
-                (recorded,),
                 modules="fojax.cli.bench",
                 recorded=recorded,
             )
