@@ -7,8 +7,11 @@ versions). :data:`BLOCKS` lists the blocks in the order ``python -m
 experiments.regenerate_docs`` runs their commands (a later one may reuse an earlier
 one's results). :func:`problems` says what is wrong with one block's label (none, made
 with uncommitted changes, a commit not in the history, its numbers' code changed
-since); :func:`check_docs` checks every block and that the docs hold no block this
-registry does not list.
+since, a command other than the registry's); :func:`check_docs` checks every block and
+that the docs hold no block this registry does not list. A block's label names the
+command its registry entry runs (:func:`label_command`), options included, so that
+``regenerate_docs`` reproduces what the label states; a block rendered from a run made
+on another machine (:attr:`Block.recorded`) names that run's command.
 
 What a block's numbers depend on (:func:`dependencies`): the files of the first-party
 modules that its generators import (:func:`generators`: the module its command runs and
@@ -31,6 +34,7 @@ import functools
 import hashlib
 import json
 import re
+import shlex
 import subprocess
 import tomllib
 from collections.abc import Iterable
@@ -49,6 +53,7 @@ __all__ = [
     "dependencies",
     "generators",
     "imports",
+    "label_command",
     "problems",
     "read_label",
     "same_code",
@@ -81,6 +86,7 @@ class Block:
     timed: bool = True
     modules: tuple[str, ...] = ()
     imports: bool = True
+    recorded: str | None = None
 
 
 def _words(text: str) -> tuple[str, ...]:
@@ -99,6 +105,8 @@ _VEHICLES = _words(
 )
 # README's two commands from a fresh clone: the installation, `fojax reproduce` and every test.
 _SETUP = _words("pyproject.toml fojax optimize tests")
+# The tuning study's baselines (every method but the default), carried over (--carry).
+_CARRIED = "cma-lbfgs,adam,lbfgs,cma-es,nelder-mead"
 
 
 def _block(name, document, command: str, sources=(), modules: str = "", **fields) -> Block:
@@ -157,19 +165,19 @@ BLOCKS: dict[str, Block] = {
             "fair_comparison --out results/fair_comparison --update-doc docs/tuning.md",
             results="results/fair_comparison",
         ),
-        _block(  # every fojax tune run of the study, the reference runs included
-            "tuning-reference",
-            "docs/tuning.md",
-            "tuning_study --out results/tuning_study --reference --update-doc docs/tuning.md",
-            modules="fojax.cli.tune",
-            results="results/tuning_study",
-        ),
-        _block(  # the same command: its runs are kept, the second only reports
-            "tuning-study",
-            "docs/tuning.md",
-            "tuning_study --out results/tuning_study --reference --update-doc docs/tuning.md",
-            modules="fojax.cli.tune",
-            results="results/tuning_study",
+        *(  # every fojax tune run of the study, the reference runs included; the same
+            # command twice: its runs are kept, the second only reports. The baselines'
+            # stored runs are carried over from earlier code once a rerun of the quickest
+            # returns its stored gains bit for bit (a fresh clone runs them)
+            _block(
+                name,
+                "docs/tuning.md",
+                "tuning_study --out results/tuning_study --reference"
+                f" --carry {_CARRIED} --update-doc docs/tuning.md",
+                modules="fojax.cli.tune",
+                results="results/tuning_study",
+            )
+            for name in ("tuning-reference", "tuning-study")
         ),
         _block(
             "tune-paper-gains",
@@ -224,23 +232,25 @@ BLOCKS: dict[str, Block] = {
             _SMALL_QUADROTOR,
             results="results/remark3_inverted",
         ),
-        *(  # rendered from the JSON of a run on a GPU machine (last: it runs nothing)
+        *(  # rendered from the JSON of a run on a GPU machine (last: it runs nothing);
+            # the JSON is committed after the run's commit, so it is no declared source
             _block(
                 name,
                 "docs/performance.md",
-                f"bench_report --from docs/data/{name.replace('-', '_')}.json --name {name}"
-                " --update-doc docs/performance.md",
+                f"bench_report --from {recorded} --name {name} --update-doc docs/performance.md",
                 modules="fojax.cli.bench",
+                recorded=recorded,
             )
             for name in ("bench-gpu", "bench-gpu-large")
+            for recorded in [f"docs/data/{name.replace('-', '_')}.json"]
         ),
         # README's two commands from a fresh clone (its own processes, ~10 min)
         _block("setup", "README.md", "setup_timing --update-doc", _SETUP),
-        _block(  # each block's last regeneration time (rewritten after every block): the
-            # registry imports the studies for their markers, whose code its times do not
-            # depend on
+        _block(  # every block's label and regeneration time (rewritten after every block):
+            # the registry imports the studies for their markers, whose code its table
+            # does not depend on
             "regeneration",
-            "README.md",
+            "docs/regeneration.md",
             "regenerate_docs --render",
             _words("experiments/blocks.py experiments/regenerate_docs.py experiments/_common.py"),
             timed=False,
@@ -653,6 +663,24 @@ def block_text(content: str, block: Block) -> str | None:
     return inner if found and closed else None
 
 
+def label_command(block: Block, root: Path | None = None) -> str:
+    """The command ``block``'s label states when its registry entry made it: its
+    :attr:`Block.command` (as :func:`fojax.cli.output.invocation` writes it), or for a
+    block rendered from a recorded run (:attr:`Block.recorded`, read in the checkout
+    ``root``, default :data:`ROOT`) the command that run's JSON records (``""``: no
+    such file, or none recorded)."""
+    if block.recorded is None:
+        return shlex.join(block.command)
+    path = (ROOT if root is None else Path(root)) / block.recorded
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return ""
+    provenance = record.get("provenance") if isinstance(record, dict) else None
+    command = provenance.get("command") if isinstance(provenance, dict) else None
+    return command if isinstance(command, str) else ""
+
+
 def read_label(text: str) -> dict | None:
     """The label record at the top of a block's ``text`` (its first non-blank line,
     written by :func:`fojax.cli.output.block_label`), or ``None`` where there is none."""
@@ -677,8 +705,10 @@ def problems(
     block: Block, root: Path | None = None, stale: bool = True, labels: bool = True
 ) -> list[str]:
     """What is wrong with ``block`` in the checkout ``root``: missing from its document,
-    then (with ``labels``) no label, generated with uncommitted changes, a commit that is
-    not in the history of ``HEAD``, or (with ``stale``) the code of a file its numbers
+    then (with ``labels``) no label, a command other than the one its registry entry
+    states (:func:`label_command`: made outside ``regenerate_docs``, or the registry
+    lacks an option it was made with), generated with uncommitted changes, a commit that
+    is not in the history of ``HEAD``, or (with ``stale``) the code of a file its numbers
     depend on (:func:`dependencies`) changed between that commit and ``HEAD``
     (:func:`same_code`), with the latest commit that changed it. ``root``: default
     :data:`ROOT`. ``[]`` when it is current."""
@@ -695,6 +725,12 @@ def problems(
         return [f"{block.name} ({block.document}): no label; {again}"]
     commit = str(label.get("commit") or "")
     found = []
+    expected = label_command(block, root)
+    if label.get("command") != expected:
+        found.append(
+            f"{block.name}: its label's command `{label.get('command')}` is not the registry's"
+            f" (`{expected or 'none: ' + str(block.recorded) + ' records no command'}`); {again}"
+        )
     if label.get("dirty") is not False:
         found.append(f"{block.name}: generated with uncommitted changes ({again})")
     if not commit or _git(root, "cat-file", "-e", f"{commit}^{{commit}}").returncode != 0:

@@ -64,7 +64,9 @@ def parse_args(argv) -> argparse.Namespace:
     number = functools.partial(_common.add_numbers, parser)
     parser.add_argument("--scenario", type=int, choices=(1, 2, 3), default=2)
     number(horizon=(10.0, "tuning horizon (s)"))
-    number(draws=(16, "draws per sample (auto: 8 fresh ones per generation)"))
+    own = " then ".join(map(str, METHODS["auto"].own_draws()))
+    number(draws=(16, f"draws per sample (not auto's, which samples its own: {own} draws "
+                      "per point)"))  # fmt: skip
     parser.add_argument("--steps", type=arguments.positive_int, help="steps (CMA-ES: "
                         "generations); default the method's own budget, with its convergence "
                         "stop")  # fmt: skip

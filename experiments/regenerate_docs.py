@@ -7,15 +7,17 @@ Runs the command of every block (or of ``--only NAME``) from the repository root
 the order of :data:`experiments.blocks.BLOCKS`, each in a process of its own, and
 prints how long each took and the total; stops at the first command that fails, with
 its exit status. Each block's time is kept in ``docs/data/regeneration.json`` (with the
-commit, the machine, the load at its start and whether its results folder already held
-results a run reuses), and README.md's ``regeneration`` block lists them with their sum
-(:func:`render`; ``--render`` rewrites that block alone). ``--list`` prints each
+label the run wrote, the commit, the machine, the load at its start and whether its
+results folder already held results a run reuses), and docs/regeneration.md's
+``regeneration`` block lists every block from its label, with that time where this
+command made the label (:func:`render`; ``--render`` rewrites that block alone).
+``--list`` prints each
 block's document, command, the sources it declares and the modules its generators
 import (:func:`experiments.blocks.dependencies`); ``--stale`` lists the blocks to
-regenerate (no label, generated with uncommitted changes, a commit not in the history,
-or the code of a file their numbers depend on changed since their commit, docstrings and
-comments left out, with the latest commit that changed it) and exits with status 1 when
-there are any;
+regenerate (no label, a label whose command is not the registry's, generated with
+uncommitted changes, a commit not in the history, or the code of a file their numbers
+depend on changed since their commit, docstrings and comments left out, with the latest
+commit that changed it) and exits with status 1 when there are any;
 ``--only-stale`` regenerates those alone (a full run that was interrupted goes on with it:
 the studies keep their finished runs under their settings and code). Commit before
 regenerating: a block records the commit it was generated at.
@@ -37,8 +39,10 @@ from fojax import records
 from fojax.cli import output
 
 TIMES = blocks.ROOT / "docs" / "data" / "regeneration.json"
-README = blocks.ROOT / "README.md"
+PAGE = blocks.ROOT / "docs" / "regeneration.md"
 COMMAND = "python -m experiments.regenerate_docs"
+RENDER = f"{COMMAND} --render"
+"""The command of the ``regeneration`` block (its registry entry's)."""
 
 
 def _reused(block: blocks.Block) -> bool:
@@ -51,8 +55,17 @@ def _times() -> dict:
     return json.loads(TIMES.read_text()) if TIMES.is_file() else {}
 
 
+def label(block: blocks.Block) -> dict | None:
+    """``block``'s label record as its document holds it now (``None``: no document,
+    block or label)."""
+    path = blocks.ROOT / block.document
+    text = blocks.block_text(path.read_text(), block) if path.is_file() else None
+    return None if text is None else blocks.read_label(text)
+
+
 def record(block: blocks.Block, seconds: float, reused: bool, load: list[float]) -> None:
-    """Keep ``block``'s regeneration time (``seconds``) in :data:`TIMES`."""
+    """Keep ``block``'s regeneration time (``seconds``) in :data:`TIMES`, with the label
+    its command wrote."""
     git = output.git_commit(blocks.ROOT)
     times = _times()
     times[block.name] = {
@@ -63,48 +76,78 @@ def record(block: blocks.Block, seconds: float, reused: bool, load: list[float])
         "cores": len(os.sched_getaffinity(0)),
         "load_at_start": load,
         "results_present": reused,
+        "label": label(block),
     }
     records.write_json(TIMES, times)
 
 
+def made(entry: dict | None, found: dict | None) -> bool:
+    """Whether the regeneration recorded in ``entry`` (:data:`TIMES`) wrote the label
+    ``found``: the label it kept, or for an entry that kept none, the same commit, CPU
+    and cores."""
+    if entry is None or found is None:
+        return False
+    if "label" in entry:
+        return entry["label"] == found
+    return all(entry.get(k) == found.get(k) for k in ("commit", "cpu", "cores"))
+
+
+def _machine(found: dict) -> str:
+    machine = f"{found.get('cpu', 'unknown')}, {found.get('cores', '?')} cores"
+    if found.get("backend") and found["backend"] != "cpu":
+        machine += f", {found.get('device_count', '?')} {found['backend']}"
+        machine += f" ({found['device_kind']})" if found.get("device_kind") else ""
+    return machine
+
+
 def render(times: dict) -> str:
-    """README's ``regeneration`` block: each block's last regeneration from ``times``
-    (:data:`TIMES`) and the sum of those timed."""
+    """docs/regeneration.md's ``regeneration`` block: every timed block of the registry
+    from its label (commit, machine, load), with its time from ``times``
+    (:data:`TIMES`) where ``regenerate_docs`` wrote that label (:func:`made`), and the
+    sum of those times."""
     rows = _common.table_head(
-        "block | document | time | at commit | load at its start | results already present"
+        "block | document | commit | machine | load average | regeneration time"
+        " | results already present"
     )
-    total = 0.0
-    for block in (b for b in blocks.BLOCKS.values() if b.timed):
-        entry = times.get(block.name)
-        if entry is None:
-            rows.append(f"| {block.name} | {block.document} | not timed | | | |")
+    total, timed, chosen = 0.0, 0, [b for b in blocks.BLOCKS.values() if b.timed]
+    for block in chosen:
+        found, entry = label(block), times.get(block.name)
+        if found is None:
+            rows.append(f"| {block.name} | {block.document} | no label | | | | |")
             continue
-        total += entry["seconds"]
-        load = ", ".join(f"{x:g}" for x in entry["load_at_start"]) or "unknown"
-        commit = (entry["commit"] or "unknown")[:7] + (" (dirty)" if entry["dirty"] else "")
+        commit = str(found.get("commit") or "unknown")[:7]
+        commit += "" if found.get("dirty") is False else " (uncommitted changes)"
+        load = ", ".join(f"{x:g}" for x in found.get("load") or []) or "unknown"
+        load += f" {found['load_when']}" if found.get("load_when") else ""
+        if made(entry, found):
+            total, timed = total + entry["seconds"], timed + 1
+            time, present = f"{entry['seconds']:.0f} s", "yes" if entry["results_present"] else "no"
+        elif block.recorded is not None:
+            time, present = f"run elsewhere, rendered from `{block.recorded}`", ""
+        else:
+            time, present = "not timed", ""
         rows.append(
-            f"| {block.name} | {block.document} | {entry['seconds']:.0f} s | {commit} | "
-            f"{load} | {'yes' if entry['results_present'] else 'no'} |"
+            f"| {block.name} | {block.document} | {commit} | {_machine(found)} | {load} | "
+            f"{time} | {present} |"
         )
-    timed = [name for name in blocks.BLOCKS if name in times]
-    count = sum(block.timed for block in blocks.BLOCKS.values())
     head = (
-        f"Each block's last regeneration by `{COMMAND}` (`--only NAME` or a full run), "
-        f"from `docs/data/regeneration.json`: {len(timed)} of {count} blocks timed, "
-        f'{total:.0f} s ({total / 3600:.1f} h) in all. "Results already present": the '
-        "block's results folder held results of an earlier run, which a run reuses where "
-        "their settings and code match (a fresh clone has none). Machine of each: "
-        + "; ".join(sorted({f"{times[n]['cpu']}, {times[n]['cores']} cores" for n in timed}))
-        + "."
+        "Every block's label (`experiments/blocks.py` lists them): the commit it was "
+        "generated at, the machine and the load average it records (at the end of the run "
+        f"unless stated); and, where `{COMMAND}` (`--only NAME` or a full run) wrote that "
+        "label, how long the block's command took, from `docs/data/regeneration.json`: "
+        f"{timed} of {len(chosen)} blocks, {total:.0f} s ({total / 3600:.1f} h) in all. "
+        "*Not timed*: the label was written by the block's command run on its own. "
+        "*Results already present*: the block's results folder held results of an earlier "
+        "run, which a run reuses where their settings and code match (a fresh clone has none)."
     )
     return head + "\n\n" + "\n".join(rows)
 
 
 def _rerender() -> None:
-    output.splice(README, render(_times()), name="regeneration", command=COMMAND)
+    output.splice(PAGE, render(_times()), name="regeneration", command=RENDER)
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=COMMAND,
         description="Regenerate the docs' generated blocks, list them, or list the stale ones.",
@@ -118,8 +161,14 @@ def main(argv=None) -> int:
         "--list", action="store_true", help="each block, its command and what it depends on"
     )
     parser.add_argument("--stale", action="store_true", help="the blocks to regenerate")
-    parser.add_argument("--render", action="store_true", help="README's regeneration block")
-    args = parser.parse_args(argv)
+    parser.add_argument(
+        "--render", action="store_true", help="docs/regeneration.md's table of the labels"
+    )
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     if args.render:
         _rerender()
         return 0

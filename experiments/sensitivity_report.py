@@ -436,9 +436,9 @@ def markdown(plan, evaluated, meta, precision, figure_name: str) -> str:
             f"steps of `fojax tune`'s method `{tuning.get('method', 'auto')}` at "
             f"{tuning['horizon_s']:g} s of scenario 2 per controller, {tuning['draws']} draws per "
             f"sample (`auto`: fresh samples of its own, {_own_draws()} draws per point; the "
-            "same problem, method, "
-            "steps and draws for all five; its defaults are 50 steps of 10 s; its process's wall "
-            "time is in the invocation line above)"
+            "same problem, method, steps and draws for all five; its defaults are the "
+            "method's own budget, up to its step cap and convergence stop, at 10 s; its "
+            "process's wall time is in the invocation line above)"
         )
     else:
         tuning_text = f"the tuned gains of `{tuning['source']}` (experiments/fair_comparison.py)"

@@ -16,9 +16,10 @@ Protocol (every number in ``docs/tuning.md`` comes from this script):
    :func:`fojax.optimize.params.naive_gains`.
 2. Tuners (:func:`fojax.optimize.strategies.make`), same problem, same start, each run
    by :func:`fojax.optimize.run`:
-   * default (``auto``, ``fojax tune``'s: CMA-ES on fresh samples of its own, at the
-     evaluation law; its plan in :data:`fojax.optimize.strategies.METHODS`),
-     ``--default-steps`` generations;
+    * default (``auto``, ``fojax tune``'s: CMA-ES searches from several starts on fresh
+      samples of their own, at the evaluation law; its plan in
+      :data:`fojax.optimize.strategies.METHODS`), ``--default-steps`` generations at most,
+      with its convergence stop;
    * gradient (``--gradient-method``: ``lbfgs``, quasi-Newton on the fixed sample;
      ``adam``, a fresh sample every step), ``--steps`` steps;
    * CMA-ES (each generation in one batched call, on fresh draws, at the evaluation

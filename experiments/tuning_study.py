@@ -1,8 +1,9 @@
 """The tuning methods as a user runs them: ``fojax tune`` in a fresh process with an
 empty cache, every method of :data:`fojax.optimize.strategies.METHODS` at its defaults.
 
-    python -m experiments.tuning_study [--out results/tuning_study]
-                                       [--update-doc docs/tuning.md] [--tiny]
+    python -m experiments.tuning_study [--out results/tuning_study] [--reference]
+                                       [--carry METHODS] [--update-doc docs/tuning.md]
+                                       [--tiny]
 
 Protocol (the defaults; every number of the study's section of ``docs/tuning.md``):
 
@@ -79,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--carry", default="",
         help="comma-separated methods whose stored runs are kept though fojax's code changed, "
-             "once a rerun of the quickest of them returns its stored gains bit for bit (none)",
+             "once a rerun of the quickest of them returns its stored gains bit for bit; a run "
+             "with none stored runs (none)",
     )  # fmt: skip
     parser.add_argument("--reference", action="store_true",
                         help="also run the long reference runs (REFERENCE)")  # fmt: skip
@@ -258,17 +260,16 @@ def _scored(scorer: _Scorer, run, case: dict) -> dict:
 def _carried(args, scorer, found) -> tuple[dict, dict | None]:
     """The stored runs of ``--carry``'s methods made by other code, by name, once a
     rerun of the quickest of them at this code returned the same gains bit for bit (that
-    rerun in their place), and what was checked; ``SystemExit`` where one is missing or
-    the rerun differs."""
+    rerun in their place), and what was checked; ``SystemExit`` where the rerun differs.
+    A run of those methods with no stored run is not carried: it runs."""
     stale, record_file = {}, args.out / "carried.json"
     for name, words, case in found:
         key = _key(args, name, words)
         if case["method"] not in args.carry or records.stored(*key) is not None:
             continue
         record = records.stored(*key, any_code=True)
-        if record is None:
-            raise SystemExit(f"--carry: {args.out / 'runs'} holds no run {name} to carry over")
-        stale[name] = record
+        if record is not None:  # none stored (a fresh clone): it runs at this code
+            stale[name] = record
     if not stale:
         return {}, None
     done = json.loads(record_file.read_text()) if record_file.is_file() else {}

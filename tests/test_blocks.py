@@ -221,18 +221,73 @@ def test_every_block_of_the_docs_is_labelled_with_a_clean_commit_of_the_history(
     assert [line for line in found if not line.startswith("setup")] == []
 
 
+def test_every_block_is_labelled_with_the_command_its_registry_entry_runs():
+    # What regenerate_docs runs for a block is what its label states, options included;
+    # a block rendered from a run on another machine states that run's command.
+    for block in blocks.BLOCKS.values():
+        content = (blocks.ROOT / block.document).read_text()
+        label = blocks.read_label(blocks.block_text(content, block))
+        assert label["command"] == blocks.label_command(block), block.name
+        if block.recorded is not None:
+            assert ("--from", block.recorded) == block.command[3:5], block.name
+            run = json.loads((blocks.ROOT / block.recorded).read_text())["provenance"]
+            assert label["command"] == run["command"], block.name
+            assert label["commit"] == run["fojax_git"]["commit"], block.name
+        else:
+            assert label["command"] == shlex.join(block.command), block.name
+
+
+def test_a_label_of_another_command_than_the_registry_s_is_a_problem(repo, tmp_path):
+    carried = dataclasses.replace(STUDY, command=(*STUDY.command, "--carry", "x"))
+    again = f"regenerate it: {COMMAND} --carry x"
+    assert blocks.problems(carried, repo, stale=False) == [
+        f"study: its label's command `{COMMAND}` is not the registry's "
+        f"(`{COMMAND} --carry x`); {again}"
+    ]
+    # A block rendered from a recorded run: that run's command, from its JSON.
+    recorded = dataclasses.replace(STUDY, command=("python", "-m", "x"), recorded="run.json")
+    assert blocks.label_command(recorded, repo) == ""
+    (repo / "run.json").write_text(json.dumps({"provenance": {"command": COMMAND}}))
+    assert blocks.label_command(recorded, repo) == COMMAND
+    assert blocks.problems(recorded, repo, stale=False) == []
+    (repo / "run.json").write_text(json.dumps({"provenance": {"command": "fojax bench"}}))
+    assert blocks.problems(recorded, repo, stale=False)[0].startswith(
+        f"study: its label's command `{COMMAND}` is not the registry's (`fojax bench`)"
+    )
+
+
+def test_the_regeneration_table_is_the_labels_of_the_docs():
+    # docs/regeneration.md's table, rendered again from the labels the docs hold now
+    # and the recorded times: a block regenerated without re-rendering it fails here.
+    block = blocks.BLOCKS["regeneration"]
+    text = blocks.block_text((blocks.ROOT / block.document).read_text(), block)
+    body = text.strip().split("\n", 2)[2].strip()  # below the label's two lines
+    assert body == regenerate_docs.render(regenerate_docs._times())
+    rows = [line for line in body.splitlines() if line.startswith("| ")][1:]
+    named = {row.split(" | ")[0].removeprefix("| ") for row in rows}
+    assert named == {name for name, b in blocks.BLOCKS.items() if b.timed}
+    for name in named:  # each row's commit is its block's label's
+        found = regenerate_docs.label(blocks.BLOCKS[name])
+        row = next(r for r in rows if r.startswith(f"| {name} | "))
+        assert row.split(" | ")[2].startswith(found["commit"][:7]), name
+
+
 def test_regenerate_runs_the_commands_in_order_and_times_them(
     monkeypatch, capsys, repo, tmp_path
 ):
-    times, readme = tmp_path / "regeneration.json", tmp_path / "README.md"
+    times, page = tmp_path / "regeneration.json", tmp_path / "regeneration.md"
     vehicles = blocks.BLOCKS["vehicles"]
-    readme.write_text("# r\n<!-- regeneration:begin -->\n<!-- regeneration:end -->\n")
+    page.write_text("# r\n<!-- regeneration:begin -->\n<!-- regeneration:end -->\n")
+    doc = tmp_path / "d.md"
+    doc.write_text("".join(f"<!-- {n}:begin -->\n<!-- {n}:end -->\n" for n in ("one", "two")))
     monkeypatch.setattr(regenerate_docs, "TIMES", times)
-    monkeypatch.setattr(regenerate_docs, "README", readme)
+    monkeypatch.setattr(regenerate_docs, "PAGE", page)
     python = ("python", "-c")
+    # "one" writes its block, labelled with its command, as a generator does.
+    write = f"from fojax.cli import output; output.splice({str(doc)!r}, 'x', name='one')"
     registry = {
-        "one": blocks.Block("one", "d.md", (*python, "print('first')"), ()),
-        "two": blocks.Block("two", "d.md", (*python, "import sys; sys.exit(3)"), ()),
+        "one": blocks.Block("one", str(doc), (*python, write), ()),
+        "two": blocks.Block("two", str(doc), (*python, "import sys; sys.exit(3)"), ()),
         "three": blocks.Block("three", "d.md", (*python, "print('never')"), ()),
     }
     monkeypatch.setattr(blocks, "BLOCKS", registry)
@@ -242,9 +297,17 @@ def test_regenerate_runs_the_commands_in_order_and_times_them(
     recorded = json.loads(times.read_text())
     assert list(recorded) == ["one"] and recorded["one"]["seconds"] >= 0
     assert recorded["one"]["results_present"] is False
-    table = readme.read_text()
-    assert table.count("generated-block") == 1 and "1 of 3 blocks timed" in table
-    assert "| one | d.md | " in table and "| two | d.md | not timed |" in table
+    label = blocks.read_label(blocks.block_text(doc.read_text(), registry["one"]))
+    assert recorded["one"]["label"] == label is not None
+    table = page.read_text()
+    assert table.count("generated-block") == 1 and ": 1 of 3 blocks, " in table
+    assert f"| one | {doc} | {label['commit'][:7]}" in table
+    assert f"| two | {doc} | no label |" in table and "| three | d.md | no label |" in table
+    # A label the run did not write (its command run on its own, say): not timed.
+    doc.write_text(doc.read_text().replace('"load":', '"load_when":"later","load":'))
+    assert regenerate_docs.main(["--render"]) == 0
+    table = page.read_text()
+    assert ": 0 of 3 blocks, 0 s " in table and " later | not timed |  |" in table
     assert regenerate_docs.main([]) == 3
     out = capsys.readouterr().out
     assert "one: python -c" in out and ", exit status 3" in out and "three" not in out
@@ -256,6 +319,8 @@ def test_regenerate_runs_the_commands_in_order_and_times_them(
     assert listed[1].startswith("    sources: constraints.txt examples/vehicles ")
     assert listed[2].startswith("    imports (") and " fojax.plant " in listed[2]
     study = dataclasses.replace(STUDY, command=(*python, "print('regenerated')"))
+    _relabel(repo, output.block_label(shlex.join(study.command), root=repo).split("\n")[0])
+    _commit(repo, "the study's block, labelled with its command")
     monkeypatch.setattr(blocks, "BLOCKS", {"study": study})
     monkeypatch.setattr(blocks, "ROOT", repo)
     assert regenerate_docs.main(["--stale"]) == 0

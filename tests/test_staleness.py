@@ -5,6 +5,7 @@ differs once docstrings and comments are left out."""
 
 import ast
 import json
+import shlex
 import subprocess
 
 import pytest
@@ -244,7 +245,8 @@ def clone(tmp_path):
     repo = tmp_path / "clone"
     subprocess.run(["git", "clone", "-q", str(blocks.ROOT), str(repo)], check=True)
     (repo / "experiments" / "notes.py").write_text("from fojax import records\n")
-    label = f"{output.LABEL_PREFIX}{json.dumps({'command': 'notes'})} -->"
+    command = shlex.join(NOTES.command)
+    label = f"{output.LABEL_PREFIX}{json.dumps({'command': command})} -->"
     (repo / "docs" / "notes.md").write_text(
         f"# Notes\n\n<!-- notes:begin -->\n{label}\n\n| 1 |\n<!-- notes:end -->\n"
     )

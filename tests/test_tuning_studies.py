@@ -25,8 +25,10 @@ def test_tuning_study_tiny(tmp_path):
     out, doc = tmp_path / "study", tmp_path / "doc.md"
     argv = ["--tiny", "--quiet", "--shares", "paper", "--starts", "naive",
             "--methods", "auto,lbfgs", "--out", str(out)]  # fmt: skip
-    assert tuning_study.main(argv) == 0
+    # --carry with no stored run to carry (a fresh clone): every run is run.
+    assert tuning_study.main(argv + ["--carry", "lbfgs"]) == 0
     results = json.loads((out / "results.json").read_text())
+    assert results["carried"] is None
     runs = {r["method"]: r for r in results["runs"]}
     assert set(runs) == {"auto", "lbfgs"}
     for method, run in runs.items():

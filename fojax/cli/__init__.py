@@ -3,7 +3,7 @@
 fojax accuracy --out DIR     accuracy and cost of the fractional operators
 fojax simulate ...           Monte Carlo study of a scenario (see fojax simulate --help)
 fojax reproduce --out DIR    the paper's Section V with Monte Carlo (report, JSON, figures)
-fojax tune ...               gradient-based gain tuning (see fojax tune --help)
+fojax tune ...               gain tuning over Monte Carlo draws (see fojax tune --help)
 fojax bench [--json FILE]    throughput, compile time and gradient cost
 fojax --version              the versions of fojax, Python, jax, jaxlib, optax, numpy
 
@@ -30,7 +30,7 @@ COMMANDS = {
     "reproduce": "the paper's Section V with Monte Carlo: all scenarios and controllers, report",
     "simulate": "Monte Carlo study of a scenario under one or all controllers",
     "bench": "throughput, compile time and gradient cost of the closed loop",
-    "tune": "gradient-based gain tuning over Monte Carlo draws",
+    "tune": "gain tuning over Monte Carlo draws (CMA-ES searches by default; gradient methods)",
 }
 """Each command, run by the module ``fojax.cli.<command>``, and what it does."""
 
