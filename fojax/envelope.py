@@ -15,7 +15,11 @@ cases``):
   scenario from a later time on, starting on its reference: its later disturbances and
   manoeuvres in steady flight, within a tuning horizon shorter than the scenario;
 * reference files (``references``, :mod:`fojax.reference`), each flown under scenario
-  ``under``'s processes and disturbances.
+  ``under``'s processes and disturbances;
+* the paper's scenarios flown with the paper's ``sign`` switching (``sign = [2]``): the
+  tuner judges its gains with the boundary-layer law (``sat``), so a case flown with
+  ``sign`` keeps the tuned gains stable under the law the paper flies
+  (:data:`SIGN_WIDTH`).
 
 An envelope file is TOML::
 
@@ -28,6 +32,7 @@ An envelope file is TOML::
     horizon = { value = 30, unit = "s" }
     fraction = 0.5
     windows = [{ scenario = 3, start = { value = 20, unit = "s" } }]
+    sign = [2]
     references = ["examples/references/paper_54_55.toml"]   # relative to the file
 
     [envelope.limits]
@@ -48,7 +53,11 @@ from typing import Any
 
 from fojax import _files
 
-__all__ = ["LIMIT_FIELDS", "Envelope", "EnvelopeError", "load", "parse"]
+__all__ = ["LIMIT_FIELDS", "SIGN_WIDTH", "Envelope", "EnvelopeError", "load", "parse"]
+
+SIGN_WIDTH = 1e-9
+"""A ``sign`` case's boundary layer, as a share of the gains': ``sat(S / (1e-9 b))``
+equals ``sign(S)`` wherever ``|S| >= 1e-9 b`` (one compiled rollout serves both laws)."""
 
 
 class EnvelopeError(ValueError):
@@ -92,7 +101,8 @@ class Envelope:
     ask for. limits: ``((field, value), ...)`` overriding the limits from the vehicle.
     references: :mod:`fojax.reference` waypoints or built-ins. windows: ``((scenario,
     start), ...)``: the paper's scenario from ``start`` (s) on
-    (:func:`fojax.scenarios.window`). description: text.
+    (:func:`fojax.scenarios.window`). sign: the paper's scenarios flown again with the
+    paper's ``sign`` switching (:data:`SIGN_WIDTH`). description: text.
     """
 
     scenarios: tuple[int, ...] = (1, 2, 3)
@@ -103,6 +113,7 @@ class Envelope:
     limits: tuple[tuple[str, Any], ...] = ()
     references: tuple[Any, ...] = ()
     windows: tuple[tuple[int, float], ...] = ()
+    sign: tuple[int, ...] = ()
     description: str = ""
 
     def __post_init__(self) -> None:
@@ -128,6 +139,10 @@ class Envelope:
             out.append(f"envelope.horizon: expected a duration > 0, got {self.horizon!r}")
         if not (_files.number(self.fraction) and 0 < self.fraction <= 1):
             out.append(f"envelope.fraction: expected a share in (0, 1], got {self.fraction!r}")
+        for i in self.sign:
+            if i not in scenarios.SCENARIO_IDS:
+                out.append(f"envelope.sign: {i!r} is not one of the paper's scenarios "
+                           f"{list(scenarios.SCENARIO_IDS)}")  # fmt: skip
         for entry in self.windows:
             i, start = entry if isinstance(entry, tuple) and len(entry) == 2 else (None, None)
             if i not in scenarios.SCENARIO_IDS:
@@ -143,7 +158,15 @@ class Envelope:
         return out
 
     def cases_count(self) -> int:
-        return len(self.scenarios) + len(self.windows) + self.manoeuvres + len(self.references)
+        return (len(self.scenarios) + len(self.windows) + len(self.sign) + self.manoeuvres
+                + len(self.references))  # fmt: skip
+
+    def laws(self) -> tuple[str, ...]:
+        """Per case of :meth:`cases`, ``"sign"`` where it is flown with the paper's sign
+        switching, else ``"tuned"`` (the tuner's law)."""
+        before = len(self.scenarios) + len(self.windows)
+        tuned = self.cases_count() - before - len(self.sign)
+        return ("tuned",) * before + ("sign",) * len(self.sign) + ("tuned",) * tuned
 
     def manoeuvre_limits(self, vehicle=None, speed_limit: float | None = ...):
         """The :class:`fojax.manoeuvres.Limits` of the manoeuvres on ``vehicle`` (``None``:
@@ -165,6 +188,7 @@ class Envelope:
         out = [(f"scenario {i}", scenarios.get_scenario(i)) for i in self.scenarios]
         out += [(f"scenario {i} from {start:g} s", scenarios.window(scenarios.get_scenario(i),
                  start)) for i, start in self.windows]  # fmt: skip
+        out += [(f"scenario {i} (sign)", scenarios.get_scenario(i)) for i in self.sign]
         if self.manoeuvres:
             limits = self.manoeuvre_limits(vehicle, speed_limit)
             for j in range(self.manoeuvres):
@@ -200,11 +224,12 @@ class Envelope:
             "references": [r.to_dict() for r in self.references],
             **({"windows": [{"scenario": i, "start_s": t} for i, t in self.windows]}
                if self.windows else {}),
+            **({"sign": list(self.sign)} if self.sign else {}),
         }
 
 
-_KEYS = ("scenarios", "windows", "manoeuvres", "under", "horizon", "fraction", "limits",
-         "references")
+_KEYS = ("scenarios", "windows", "sign", "manoeuvres", "under", "horizon", "fraction",
+         "limits", "references")
 
 
 def parse(data: Mapping, source: str = "envelope", root: Path | None = None) -> Envelope:
@@ -225,6 +250,11 @@ def parse(data: Mapping, source: str = "envelope", root: Path | None = None) -> 
         problems.append(f"envelope.scenarios: expected a list of scenario numbers, got {ids!r}")
     else:
         values["scenarios"] = tuple(ids)
+    sign = table.get("sign", [])
+    if not (isinstance(sign, list) and all(isinstance(i, int) for i in sign)):
+        problems.append(f"envelope.sign: expected a list of scenario numbers, got {sign!r}")
+    else:
+        values["sign"] = tuple(sign)
     windows = table.get("windows", [])
     if not (isinstance(windows, list) and all(isinstance(w, Mapping) for w in windows)):
         problems.append(f"envelope.windows: expected a list of tables {{ scenario = N, start = "

@@ -35,8 +35,10 @@ _PROGRAMS = EvaluatorCache(4)
 
 def _cases(spec: ProblemSpec) -> tuple:
     """``((name, scenario), ...)`` of ``spec``: its envelope's cases, or its scenarios."""
-    if spec.envelope is not None:
-        return spec.envelope.cases(spec.vehicle)
+    if spec.envelope is not None:  # a sign case is its twin judged with sign below
+        laws = spec.envelope.laws()
+        cases = spec.envelope.cases(spec.vehicle)
+        return tuple(c for c, law in zip(cases, laws, strict=True) if law != "sign")
     ids = spec.scenario if isinstance(spec.scenario, tuple) else (spec.scenario,)
     union = spec.scenario_object()
     members = union.members or (union,)

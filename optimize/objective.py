@@ -42,8 +42,8 @@ import numpy as np
 from fojax import blocks, export_cache, observers, scenarios, sharding, simulator
 from fojax import requirements as rq
 from fojax.controllers import registry
+from fojax.envelope import SIGN_WIDTH
 from fojax.optimize import cost as cost_lib
-from fojax.optimize import params as params_lib
 from fojax.optimize.losses import MeanLoss
 from fojax.optimize.requests import Evaluation, Outputs, Request
 from fojax.optimize.spec import COMPILE_MODES, TARGETS, ProblemSpec, checkpoint_interval, draw_keys
@@ -110,7 +110,7 @@ class Objective:
         base_gains = type(base_gains)(*(jnp.asarray(g, self.dtype) for g in base_gains))
         cls.check_gains(base_gains)
         self.base_gains, self._widths = base_gains, cls.GAINS.with_role("smoothing")
-        self.param_map = params_lib.make_parameter_map(spec.controller, spec.fields, spec.share)
+        self.param_map = spec.parameter_map()
         template = self.param_map.to_params(base_gains, self.dtype)
         x0, self._unravel = self.param_map.ravel(template)
         self.size, self.x0 = int(x0.size), np.asarray(x0, np.float64)
@@ -206,10 +206,16 @@ class Objective:
         scales = None if spec.case_scales is None else jnp.asarray(spec.case_scales, dtype)
         bounds = (None if spec.case_chattering is None
                   else jnp.asarray(spec.case_chattering, dtype))  # fmt: skip
+        laws = spec.envelope.laws() if spec.envelope is not None else ()
+        narrow = (jnp.asarray([SIGN_WIDTH if law == "sign" else 1.0 for law in laws], dtype)
+                  if "sign" in laws and self._widths else None)  # fmt: skip
 
         def run(xs, width, draws):
             gains = jax.vmap(self._gains_of, in_axes=(-1, None), out_axes=-1)(xs, width)
             draws = scenarios.batch_last(draws)
+            if narrow is not None:  # the envelope's sign cases: the boundary layer closed
+                share = narrow[draws.member]
+                gains = gains._replace(**{w: getattr(gains, w) * share for w in self._widths})
             out = simulator.rollout(controller, gains, model, scenario, draws, config, observer)
             terms = out.outputs["cost"]
             cost = jnp.sum(weights[:, None] * terms, 0)

@@ -263,11 +263,13 @@ def default_fields(controller: str) -> tuple[str, ...]:
 
 
 def make_parameter_map(
-    controller: str, fields: tuple[str, ...] | None = None, share: str = "paper"
+    controller: str, fields: tuple[str, ...] | None = None, share: str = "paper",
+    capped: bool = False,
 ) -> ParameterMap:
     """The :class:`ParameterMap` of ``controller`` for ``fields`` (default
-    :func:`default_fields`), with axis sharing ``share``; ``ValueError`` on unknown
-    names."""
+    :func:`default_fields`), with axis sharing ``share``, each field within its bounds
+    (``capped``: its search bounds over a flight envelope,
+    :meth:`fojax.controllers.GainSpec.search_bounds`); ``ValueError`` on unknown names."""
     cls = registry.get_controller_class(controller)
     if share not in SHARING:
         raise ValueError(f"unknown sharing mode {share!r}; choose one of {', '.join(SHARING)}")
@@ -287,7 +289,8 @@ def make_parameter_map(
     for name in sorted(fields):
         shape = spec.shapes[name]
         per_axis = len(shape) >= 1 and shape[0] == len(AXIS_NAMES)
-        maps.append(FieldMap(name, shape, spec.bounds[name], SHARING[share] if per_axis else None))
+        bounds = spec.search_bounds(capped)[name]
+        maps.append(FieldMap(name, shape, bounds, SHARING[share] if per_axis else None))
     return ParameterMap(controller, tuple(maps), share)
 
 
@@ -306,7 +309,7 @@ def integer_order_gains(gains: Any, margin: float = 0.01) -> Any:
     return gains._replace(**values)
 
 
-def naive_gains(controller: str, dtype: Any = None) -> Any:
+def naive_gains(controller: str, dtype: Any = None, capped: bool = False) -> Any:
     """A knowledge-free starting point: every bounded field at ``low + 1`` (positive
     gains at 1), ``(low + high) / 2`` for two-sided bounds (``p/q = 1.5``, ``gamma =
     0.5``) for the fields tuned by default (:data:`TUNED_ROLES`); the others keep the
@@ -314,7 +317,7 @@ def naive_gains(controller: str, dtype: Any = None) -> Any:
     spec = registry.get_controller_class(controller).GAINS
     template = spec.default(dtype)
     values = {}
-    for name, bounds in spec.bounds.items():
+    for name, bounds in spec.search_bounds(capped).items():
         if name not in spec.with_role(*TUNED_ROLES):
             continue
         reference = jnp.asarray(getattr(template, name))

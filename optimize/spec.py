@@ -163,7 +163,7 @@ class ProblemSpec:
             )
         if self.fields is not None:
             object.__setattr__(self, "fields", tuple(self.fields))
-        params_lib.make_parameter_map(self.controller, self.fields, self.share)  # validates
+        self.parameter_map()  # validates the fields
         options = registry.controller_options(self.controller)
         if "fractional_method" not in options and self.fractional != "soe":
             raise ValueError(
@@ -171,6 +171,12 @@ class ProblemSpec:
                 "which has no fractional operator; leave fractional at its default 'soe'"
             )
         self.make_controller("tanh", self.horizon)  # validates the fractional method
+
+    def parameter_map(self, share: str | None = None) -> params_lib.ParameterMap:
+        """The tuned fields' :class:`fojax.optimize.params.ParameterMap` (with ``share``,
+        default the spec's), within the search bounds over a flight envelope."""
+        return params_lib.make_parameter_map(self.controller, self.fields, share or self.share,
+                                             capped=self.envelope is not None)  # fmt: skip
 
     @property
     def steps(self) -> int:
@@ -229,7 +235,7 @@ class ProblemSpec:
             if f.name not in ("envelope", "case_scales", "case_chattering", "chattering_excess")
             for value in [getattr(self, f.name)]
         }
-        pmap = params_lib.make_parameter_map(self.controller, self.fields, self.share)
+        pmap = self.parameter_map()
         out["fields"], out["save_every"] = list(pmap.names), self.block
         if self.envelope is not None:
             out["envelope"] = self.envelope.to_dict()

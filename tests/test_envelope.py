@@ -13,22 +13,66 @@ from fojax import envelope, manoeuvres, optimize, scenarios, vehicle
 EXAMPLE = "examples/envelopes/paper_and_manoeuvres.toml"
 
 
-def test_the_example_envelope_is_the_papers_scenarios_and_random_manoeuvres():
+def test_the_example_envelope_is_the_default_mix():
     loaded = envelope.load(EXAMPLE)
     cases = loaded.cases()
-    assert [name for name, _ in cases] == ["scenario 1", "scenario 2", "scenario 3",
-                                           "random manoeuvres"]  # fmt: skip
+    assert [name for name, _ in cases] == [
+        "scenario 1", "scenario 2", "scenario 3", "scenario 3 from 20 s", "scenario 2 (sign)",
+        "random manoeuvres",
+    ]  # fmt: skip
+    assert loaded.laws() == ("tuned",) * 4 + ("sign", "tuned")
     for i in (1, 2, 3):
         assert cases[i - 1][1] == scenarios.get_scenario(i)
-    flying = cases[3][1]
+    assert cases[3][1] == scenarios.window(scenarios.get_scenario(3), 20.0)
+    assert cases[4][1] == scenarios.get_scenario(2)
+    flying = cases[5][1]
     assert flying.manoeuvres == manoeuvres.Limits.from_vehicle(vehicle.Vehicle.paper())
     assert flying.horizon == 30.0 and flying.noise_std_position == 0.1  # scenario 2's processes
     union = loaded.scenario()
-    assert len(union.members) == 4 and union.horizon == 80.0
+    assert len(union.members) == 6 and union.horizon == 80.0
     # on another vehicle the manoeuvres' limits are that vehicle's
     iris = vehicle.load("examples/vehicles/iris.toml")
-    assert loaded.cases(iris)[3][1].manoeuvres == manoeuvres.Limits.from_vehicle(iris)
+    assert loaded.cases(iris)[5][1].manoeuvres == manoeuvres.Limits.from_vehicle(iris)
     assert all(case.vehicle == iris for _, case in loaded.cases(iris))
+
+
+def test_a_sign_case_flies_the_papers_sign():
+    """An envelope's sign case (the boundary layer closed to SIGN_WIDTH of the gains')
+    gives the terms of the same draws flown with the sign law itself."""
+    import numpy as np
+
+    flown = envelope.Envelope(scenarios=(2,), sign=(2,), manoeuvres=0)
+    spec = optimize.ProblemSpec(scenario=None, envelope=flown, horizon=0.3, dtype="float64")
+    gains = spec.make_controller("sat", 0.3).default_gains("float64")
+    keys = optimize.Objective(spec, gains).keys("validation", 4)
+    closed, sign = (optimize.Objective(spec, gains, switching=law) for law in ("sat", "sign"))
+    a = closed.forward(closed.x0[None], keys)
+    b = sign.forward(sign.x0[None], keys)
+    members = np.arange(4) % 2
+    np.testing.assert_allclose(a.terms[0, members == 1], b.terms[0, members == 1], rtol=1e-9)
+    # the tuned case is flown with sat, which differs
+    assert not np.allclose(a.terms[0, members == 0], b.terms[0, members == 0], rtol=1e-3)
+
+
+def test_an_envelope_searches_adaptation_rates_up_to_their_cap():
+    import jax.numpy as jnp
+
+    from fojax.controllers import Bounds, GainField
+    from fojax.optimize import params
+
+    free = params.make_parameter_map("afonftsmc")
+    capped = params.make_parameter_map("afonftsmc", capped=True)
+    bounds = {f.name: f.bounds for f in capped.fields}
+    assert bounds["adaptation"].high == 0.1
+    assert {f.name: f.bounds for f in free.fields}["adaptation"].high == math.inf
+    assert all(bounds[f.name] == f.bounds for f in free.fields if f.name != "adaptation")
+    naive = params.naive_gains("afonftsmc", jnp.float32, capped=True)
+    assert float(jnp.max(naive.adaptation)) == pytest.approx(0.05)
+    spec = optimize.ProblemSpec(scenario=None, envelope=envelope.load(EXAMPLE))
+    assert spec.parameter_map() == capped
+    assert optimize.ProblemSpec().parameter_map() == free
+    with pytest.raises(ValueError, match="search_high must lie inside its bounds"):
+        GainField("a", [0.2], Bounds(0.0), search_high=0.1)
 
 
 def test_limits_and_references_in_the_file(tmp_path):
@@ -123,8 +167,8 @@ def test_gains_judged_case_by_case_equal_each_case_measured_alone():
     from fojax import requirements, simulator
     from fojax.optimize import cases
 
-    loaded = dataclasses.replace(envelope.load(EXAMPLE), scenarios=(2,), horizon=0.4,
-                                 limits=(("segments", 2),))  # fmt: skip
+    loaded = dataclasses.replace(envelope.load(EXAMPLE), scenarios=(2,), horizon=0.4, windows=(),
+                                 sign=(), limits=(("segments", 2),))  # fmt: skip
     spec = optimize.ProblemSpec(scenario=None, envelope=loaded, dtype="float64", horizon=0.4)
     short = [(n, dataclasses.replace(c, horizon=0.3 if c.manoeuvres is None else 0.4))
              for n, c in loaded.cases()]  # fmt: skip
@@ -168,18 +212,22 @@ def test_tune_over_an_envelope_judges_every_case_with_both_laws(tmp_path, capsys
     record = json.loads((out / "gains.json").read_text())["metadata"]
     problem = record["settings"]["objective"]["problem"]
     assert problem["envelope"]["scenarios"] == [1, 2, 3] and problem["scenario"] is None
-    assert len(problem["case_scales"]) == 4 and min(problem["case_scales"]) > 0
+    assert len(problem["case_scales"]) == 6 and min(problem["case_scales"]) > 0
+    assert len(problem["case_chattering"]) == 6 and problem["chattering_excess"] == 10.0
+    assert problem["horizon"] == 0.5 and problem["dt"] == 2e-3
     found = json.loads((out / "evaluation.json").read_text())["cases"]
-    assert found["draws"] == 2 and list(found["laws"]) == ["sat", "sign"]
-    assert found["cases"] == ["scenario 1", "scenario 2", "scenario 3", "random manoeuvres"]
+    assert found["draws"] == 2 and list(found["laws"]) == ["sat", "sign"] and found["dt"] == 1e-3
+    assert found["cases"] == ["scenario 1", "scenario 2", "scenario 3", "scenario 3 from 20 s",
+                              "random manoeuvres"]  # fmt: skip
     for law in found["laws"].values():
         for row in law.values():
             assert set(row) == {"start", "tuned"}
             assert row["start"]["diverged"] + (row["start"]["position_rmse"] is not None) > 0
     assert isinstance(found["tuned_worse"], list)
     printed = capsys.readouterr().out
-    assert "held-out, case by case (2 draws each, its own horizon):" in printed
-    assert "on the envelope's scenario 1, scenario 2, scenario 3, random manoeuvres" in printed
+    assert "held-out, case by case (2 draws each, its own horizon, dt 0.001 s):" in printed
+    assert ("on the envelope's scenario 1, scenario 2, scenario 3, scenario 3 from 20 s, "
+            "scenario 2 (sign), random manoeuvres") in printed
     assert (out / "cases.png").is_file() and (out / "cases.pdf").is_file()
 
 
@@ -202,7 +250,7 @@ def test_a_scaled_cost_is_each_cases_cost_over_its_scale():
     terms divided by its case's scale, recomputed on the host."""
     import numpy as np
 
-    loaded = envelope.load(EXAMPLE)
+    loaded = dataclasses.replace(envelope.load(EXAMPLE), windows=(), sign=())
     scales = (1.0, 0.5, 2.0, 0.1)
     spec = optimize.ProblemSpec(scenario=None, envelope=loaded, horizon=0.3, case_scales=scales)
     assert spec.as_dict()["case_scales"] == list(scales)

@@ -147,6 +147,10 @@ def _smoothing(a):
         return f"does not apply to {a.controller}, which has no boundary layer to anneal"
 
 
+ENVELOPE_HORIZON, ENVELOPE_DT = 20.0, 2e-3
+"""The tuning horizon and step over a flight envelope (docs/tuning.md): 20 s see (53)'s
+disturbances act and two-thirds of a manoeuvre, at the cost of 10 s at 1 ms."""
+
 count, real, whole = arguments.positive_int, arguments.positive_float, arguments.nonnegative_int
 OPTIONS = (
     # what is tuned, on which draws
@@ -165,8 +169,10 @@ OPTIONS = (
     Option("--draws", dict(type=count, help="draws per sample (16; 8 with --requirements); "
            "without --requirements " + "; ".join(f"{m} takes its own ({_own_draws(m)})"
            for m in OWN)), lambda a: 8 if a.requirements else 16, _draws),
-    Option("--horizon", dict(type=real, help="tuning horizon, s (10)"), 10.0),
-    Option("--dt", dict(type=real, help="step, s (1e-3)"), 1e-3),
+    Option("--horizon", dict(type=real, help="tuning horizon, s (10; 20 with --envelope)"),
+           lambda a: ENVELOPE_HORIZON if a.envelope is not None else 10.0),
+    Option("--dt", dict(type=real, help="step, s (1e-3; 2e-3 with --envelope)"),
+           lambda a: ENVELOPE_DT if a.envelope is not None else 1e-3),
     Option("--seed", dict(type=arguments.seed, help="the draws' seed (0)"), 0),
     Option("--fields", dict(help="comma-separated gain fields; 'default' (every bounded design "
            "gain); 'all'"), "default"),
@@ -183,8 +189,9 @@ OPTIONS = (
            lambda a: None if a.reference is not None else "applies with --reference only"),
     # the objective
     Option("--objective", dict(choices=WEIGHTED + CONSTRAINED, help="mean or cvar of the "
-           "weighted-sum cost (mean); with --requirements what is minimised under them: "
-           "effort (default) or tracking"), lambda a: "effort" if a.requirements else "mean"),
+           "weighted-sum cost (mean; cvar with --envelope); with --requirements what is "
+           "minimised under them: effort (default) or tracking"),
+           lambda a: "effort" if a.requirements else "cvar" if a.envelope else "mean"),
     Option("--cvar-fraction", dict(type=real, help="worst share averaged by cvar (0.25)"), 0.25,
            lambda a: None if a.objective == "cvar" else "applies to --objective cvar only"),
     Option("--error", dict(choices=("ise", "itae"), help="tracking error measure (ise)"), "ise",
@@ -195,12 +202,12 @@ OPTIONS = (
            lambda a: None if a.envelope is not None and not a.requirements
            else "applies with --envelope (without --requirements) only"),
     Option("--chattering-bound", dict(choices=("default", "none"), help="with --envelope: "
-           "a draw whose chattering term passes the median of the controller's default gains "
-           "on its case pays the excess (default), or not (none)"), "default",
+           "a draw whose torques vary more than the controller's default gains' median on its "
+           "case pays the excess (default), or not (none)"), "default",
            lambda a: None if a.envelope is not None and not a.requirements
            else "applies with --envelope (without --requirements) only"),
     Option("--chattering-excess", dict(type=arguments.nonnegative_float, help="the weight of "
-           "the chattering excess (1)"), 1.0,
+           "the chattering excess (10)"), 10.0,
            lambda a: None if a.envelope is not None and not a.requirements
            else "applies with --envelope (without --requirements) only"),
     *(Option(f"--{t}-weight", dict(type=arguments.nonnegative_float, help=f"({w:g})"), w, _weighted)
@@ -451,7 +458,7 @@ def _initial_gains(parser, args):
     if args.init == "paper":
         return registry.get_controller_class(args.controller).default_gains(dtype), "paper"
     if args.init == "naive":
-        return params.naive_gains(args.controller, dtype), "naive"
+        return params.naive_gains(args.controller, dtype, args.envelope is not None), "naive"
     try:
         path = arguments.check_input_file(args.init, "gains file")
         name, gains, _ = gains_io.load_gains(path, dtype)
@@ -462,6 +469,14 @@ def _initial_gains(parser, args):
         parser.error(f"--init: {text}" if args.init in text else f"--init {args.init}: {text}")
     if name != args.controller:
         parser.error(f"--init {args.init} holds gains of {name!r}, not of {args.controller!r}")
+    if args.envelope is not None:  # within the envelope's search bounds
+        spec = registry.get_controller_class(name).GAINS
+        for field, bounds in spec.search_bounds(True).items():
+            value = jnp.asarray(getattr(gains, field))
+            if bounds != spec.bounds[field] and bool(jnp.any(value >= bounds.high)):
+                print(f"--init: {field} brought below {bounds.high:g}, the largest value a "
+                      "tuner over a flight envelope searches (docs/tuning.md)")  # fmt: skip
+                gains = gains._replace(**{field: jnp.minimum(value, 0.999 * bounds.high)})
     return gains, str(Path(args.init).resolve())
 
 
@@ -661,15 +676,33 @@ def _cases(run: Run, result) -> dict:
     """The start's and the tuned gains on held-out draws of every case of the envelope,
     each over its own horizon, with each switching law (:mod:`fojax.optimize.cases`);
     printed with where the tuned gains do worse."""
+
+    from fojax import simulator
+    from fojax.controllers import registry
     from fojax.optimize import cases
 
     args, objective = run.args, run.objective
     gains = {"start": objective.gains(run.x0), "tuned": objective.gains(result.x)}
-    found = cases.evaluate_cases(objective.spec, gains, args.eval_draws,
+    default = registry.get_controller_class(objective.spec.controller).default_gains(
+        objective.dtype)
+    if run.label != "paper":  # the controller's default (the paper's) gains beside them
+        gains["default"] = objective.base_gains._replace(
+            **{n: getattr(default, n) for n in objective.param_map.names})
+    # judged at the step the simulator flies (the tuning may take a coarser one)
+    flown = dataclasses.replace(objective.spec, dt=simulator.SimulationConfig.dt)
+    found = cases.evaluate_cases(flown, gains, args.eval_draws,
                                  objective.rotor_speed_limit)  # fmt: skip
+    found["dt"] = flown.dt
     found["tuned_worse"] = cases.losses(found, "tuned", "start")
-    print(f"held-out, case by case ({args.eval_draws} draws each, its own horizon):")
-    print(cases.table(found, ("start", "tuned")))
+    if "default" in gains:
+        found["tuned_worse_than_default"] = cases.losses(found, "tuned", "default")
+    print(f"held-out, case by case ({args.eval_draws} draws each, its own horizon, dt "
+          f"{flown.dt:g} s):")
+    print(cases.table(found, tuple(gains)))
+    if "default" in gains:
+        worse = found["tuned_worse_than_default"]
+        print("the tuned gains do worse than the default gains: " + "; ".join(worse) if worse
+              else "the tuned gains do no worse than the default gains in any case")
     worse = found["tuned_worse"]
     print("the tuned gains do worse than the start: " + "; ".join(worse) if worse
           else "the tuned gains do no worse than the start in any case")  # fmt: skip

@@ -77,7 +77,7 @@ GAINS = GainSpec(
                   doc="``h``, the constant part of the switching gain (A3)."),
         GainField("adaptation", [(0.5, 0.001, 0.01)] * 3 + [(0.0118, 6.29e-4, 0.01)] * 3,
                   Bounds(0.0, include_low=True),
-                  doc="rates ``(mu0, mu1, mu2)`` of (A4)."),
+                  doc="rates ``(mu0, mu1, mu2)`` of (A4).", search_high=5.0),
         GainField("boundary_layer", per_axis(0.05, 0.05, 0.2), Bounds(0.0), role="smoothing",
                   doc="width of ``sat``/``tanh`` switching (unused by ``sign``)."),
     ],

@@ -70,6 +70,10 @@ class GainField:
     bounds: its feasible set. role: one of :data:`ROLES`. doc: symbol and meaning.
     integer_order: for a fractional order, the bound at which its operator is of
     integer order (the limit the order approaches there; ``None``: not an order).
+    search_high: the largest value a tuner over a flight envelope searches
+    (``fojax.envelope``; ``None``: the bounds' own), for the rate of a state that
+    integrates without leakage (an adaptive bound): a faster rate grows the state over
+    the envelope's longest case beyond what the tuning horizon sees.
     """
 
     name: str
@@ -78,6 +82,7 @@ class GainField:
     role: str = "design"
     doc: str = ""
     integer_order: float | None = None
+    search_high: float | None = None
 
     def __post_init__(self) -> None:
         if self.role not in ROLES:
@@ -87,6 +92,11 @@ class GainField:
             raise ValueError(f"gain field {self.name!r}: its default breaks its bounds")
         if self.integer_order not in (None, self.bounds.low, self.bounds.high):
             raise ValueError(f"gain field {self.name!r}: integer_order must be one of its bounds")
+        high = self.search_high
+        if high is not None and not (self.bounds.low < high <= self.bounds.high
+                                     and np.all(value < high)):  # fmt: skip
+            raise ValueError(f"gain field {self.name!r}: search_high must lie inside its bounds, "
+                             "above its default")  # fmt: skip
         object.__setattr__(self, "default", value)
 
     @property
@@ -122,6 +132,16 @@ class GainSpec:
     @property
     def bounds(self) -> dict[str, Bounds]:
         return {f.name: f.bounds for f in self.fields}
+
+    def search_bounds(self, capped: bool) -> dict[str, Bounds]:
+        """The bounds a tuner searches: :attr:`bounds`, with each field's
+        ``search_high`` where ``capped`` (a flight envelope's tuning)."""
+        out = dict(self.bounds)
+        if capped:
+            for f in self.fields:
+                if f.search_high is not None:
+                    out[f.name] = out[f.name]._replace(high=f.search_high)
+        return out
 
     @property
     def shapes(self) -> dict[str, tuple[int, ...]]:

@@ -126,12 +126,10 @@ def _auto(problem: Problem, steps: int, sigma: float, stages, coarse, draws, pop
     objective = problem.objective
     if problem.constrained:  # inside the augmented Lagrangian: one CMA-ES
         return CMAES(sigma0=sigma, seed=problem.seed, draws=draws, name="auto")
-    from fojax.optimize import params
 
     tie, d = None, objective.size
     if objective.param_map.share != "paper":
-        coarse_map = params.make_parameter_map(objective.spec.controller, objective.spec.fields,
-                                               "paper")  # fmt: skip
+        coarse_map = objective.spec.parameter_map("paper")
         tie = tuple(objective.param_map.tie(coarse_map).tolist())
     searches = stages[0][1] if stages else 1  # the first stage's: every start's search
     found = starts(objective, problem.x0)
@@ -294,7 +292,8 @@ def starts(objective, x0) -> list[np.ndarray]:
     def tuned_of(gains):  # base gains with the tuned fields of ``gains``
         return base._replace(**{name: getattr(gains, name) for name in tuned})
 
-    naive = tuned_of(params.naive_gains(objective.spec.controller, objective.dtype))
+    capped = objective.spec.envelope is not None
+    naive = tuned_of(params.naive_gains(objective.spec.controller, objective.dtype, capped))
     found: list[np.ndarray] = []
     for gains in (objective.gains(x0), naive):
         x = objective.vector(tuned_of(params.integer_order_gains(gains)))
