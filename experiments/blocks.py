@@ -179,6 +179,14 @@ BLOCKS: dict[str, Block] = {
             )
             for name in ("tuning-reference", "tuning-study")
         ),
+        _block(  # fojax tune --envelope per run, each in a process of its own
+            "envelope-targets",
+            "docs/tuning.md",
+            "envelope_targets --out results/envelope_targets --update-doc docs/tuning.md",
+            ("examples/envelopes/paper_and_manoeuvres.toml",),
+            modules="fojax.cli.tune",
+            results="results/envelope_targets",
+        ),
         _block(
             "tune-paper-gains",
             "docs/tuning.md",
