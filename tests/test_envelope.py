@@ -341,3 +341,35 @@ def test_windows_in_an_envelope_file(tmp_path):
         envelope.load(file)
     assert "start within (0, 50) s" in str(error.value) and "(3, 50.0)" not in str(error.value)
     assert "(4, 1.0) is not" in str(error.value)
+
+
+def test_the_envelope_targets_of_a_run():
+    """experiments.envelope_targets: the ratios to the paper's gains, per case and law,
+    and the targets met only when every one holds."""
+    from experiments.envelope_targets import targets
+
+    def row(rmse, chattering, diverged=0):
+        return {"position_rmse": rmse, "torque_chattering": chattering, "diverged": diverged}
+
+    evaluation = {"laws": {
+        "sat": {"a": {"paper": row(0.1, 2.0), "run": row(0.05, 1.0)},
+                "b": {"paper": row(0.2, 1.0), "run": row(0.1, 0.5)}},
+        "sign": {"a": {"paper": row(0.1, 9e3), "run": row(0.06, 9e4)},
+                 "b": {"paper": row(0.2, 9e3), "run": row(0.1, 9e4)}},
+    }}  # fmt: skip
+    t = targets(evaluation, "run")
+    assert t["met"] and t["diverged"] == 0 and t["worse"] == []
+    assert t["largest_rmse_ratio"] == pytest.approx(0.6)
+    assert t["mean_rmse_ratio"] == pytest.approx((0.5 + 0.5 + 0.6 + 0.5) / 4)
+    assert t["largest_chattering_ratio"] == pytest.approx(0.5)  # sign's chattering not judged
+    evaluation["laws"]["sat"]["b"]["run"] = row(0.1, 1.5)
+    t = targets(evaluation, "run")
+    assert not t["met"] and t["worse"] == ["sat b: chattering x1.50"]
+    for law in ("sat", "sign"):  # every case better, but by less than 0.7 on average
+        evaluation["laws"][law]["a"]["run"] = row(0.08, 1.0)
+        evaluation["laws"][law]["b"]["run"] = row(0.16, 0.5)
+    t = targets(evaluation, "run")
+    assert not t["met"] and t["mean_rmse_ratio"] > 0.7 and t["largest_rmse_ratio"] < 1
+    evaluation["laws"]["sign"]["a"]["run"] = row(None, None, diverged=64)
+    t = targets(evaluation, "run")
+    assert not t["met"] and t["diverged"] == 64 and t["largest_rmse_ratio"] == math.inf
