@@ -102,6 +102,7 @@ _PINNED = ("constraints.txt",)
 _SMALL_QUADROTOR = ("examples/requirements/small_quadrotor.toml",)
 _VEHICLES = _words(
     "examples/vehicles examples/requirements/crazyflie.toml examples/requirements/iris.toml"
+    " examples/envelopes/paper_and_manoeuvres.toml"
 )
 # README's two commands from a fresh clone: the installation, `fojax reproduce` and every test.
 _SETUP = _words("pyproject.toml fojax optimize tests")

@@ -8,8 +8,10 @@ of ``examples/vehicles/`` other than the paper's.
 Per vehicle ``V`` (``examples/vehicles/V.toml``, judged by ``examples/requirements/V.toml``),
 every step a ``fojax`` command in a process of its own, as a user runs it:
 
-1. **Tuning.** For each controller ``fojax tune --vehicle V --scenario 2 --controller C
-   --init naive`` with the default method (its held-out evaluation: 64 draws x 10 s).
+1. **Tuning.** For each controller ``fojax tune --vehicle V --envelope
+   examples/envelopes/paper_and_manoeuvres.toml --controller C --init naive`` with the
+   default method and the envelope's defaults (its held-out evaluation: 32 draws of
+   every case).
    A controller whose ``gains.json`` is in ``--out`` is not tuned again unless
    ``--retune``.
 2. **Yields.** ``fojax simulate --vehicle V --scenario 2 --controller all --requirements
@@ -44,6 +46,8 @@ from fojax.cli import output
 ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "vehicles.md"
 CONTROLLERS = ("afonftsmc", "anftsmc", "fobsmc", "bsmc", "fl")
+ENVELOPE = "examples/envelopes/paper_and_manoeuvres.toml"
+"""The flight envelope every controller is tuned over (``fojax tune``'s default mix)."""
 SEED = 1
 """The seed of the yield and full-horizon draws (the tuner draws from seed 0)."""
 
@@ -55,7 +59,7 @@ def files(vehicle: str) -> tuple[str, str]:
 
 def tune_command(vehicle: str, controller: str, out: Path) -> list[str]:
     return [
-        *("fojax", "tune", "--vehicle", files(vehicle)[0], "--scenario", "2"),
+        *("fojax", "tune", "--vehicle", files(vehicle)[0], "--envelope", ENVELOPE),
         *("--controller", controller, "--init", "naive", "--quiet", "--out", str(out)),
     ]
 

@@ -389,7 +389,7 @@ def _build(parser, args) -> Run:
     if spec.envelope is not None and reqs is None and (
         args.case_scale == "default" or args.chattering_bound == "default"
     ):
-        scales, chattering = _case_scales(spec, args, limit, mesh)
+        scales, chattering = _case_scales(spec, args, limit, mesh, gains)
         spec = dataclasses.replace(
             spec,
             case_scales=scales if args.case_scale == "default" else None,
@@ -426,10 +426,12 @@ CASE_SCALE_DRAWS = 32
 """Draws per case on which the reference gains set each case's scales (validation draws)."""
 
 
-def _case_scales(spec, args, limit, mesh) -> tuple:
-    """Each case's scale: the median cost of the controller's default gains on
-    :data:`CASE_SCALE_DRAWS` validation draws of the case, at the tuning horizon and the
-    evaluation law (:func:`fojax.optimize.cost.case_scales`)."""
+def _case_scales(spec, args, limit, mesh, start) -> tuple:
+    """Each case's scale and chattering bound: the median cost and torque variation of
+    the controller's default gains on :data:`CASE_SCALE_DRAWS` validation draws of the
+    case, at the tuning horizon and the evaluation law
+    (:func:`fojax.optimize.cost.case_scales`); on a case where they diverge on every
+    draw (another vehicle's, say), the start's."""
     import jax.numpy as jnp
     import numpy as np
 
@@ -437,14 +439,29 @@ def _case_scales(spec, args, limit, mesh) -> tuple:
     from fojax.controllers import registry
 
     defaults = registry.get_controller_class(spec.controller).default_gains(jnp.dtype(spec.dtype))
-    reference = optimize.Objective(spec, defaults, rotor_speed_limit=limit,
-                                   switching=args.eval_switching, mesh=mesh)  # fmt: skip
-    cases = max(1, reference.members)
-    keys = reference.keys("validation", CASE_SCALE_DRAWS * cases)
-    out = reference.forward(reference.x0[None], keys)
-    members = np.arange(len(keys)) % cases
-    return tuple(optimize.cost.case_scales(values, out.status[0], members, cases)
-                 for values in (out.values[0, :, 0], out.metrics["torque_variation"][0]))
+    runs = []
+    for gains in (defaults, start):
+        reference = optimize.Objective(spec, gains, rotor_speed_limit=limit,
+                                       switching=args.eval_switching, mesh=mesh)  # fmt: skip
+        cases = max(1, reference.members)
+        keys = reference.keys("validation", CASE_SCALE_DRAWS * cases)
+        members = np.arange(len(keys)) % cases
+        out = reference.forward(reference.x0[None], keys)
+        runs.append((out.values[0, :, 0], out.metrics["torque_variation"][0], out.status[0]))
+        kept = out.valid[0]
+        lost = [c for c in range(cases) if not np.any(kept[members == c])]
+        if not lost:
+            break
+        if len(runs) == 1:
+            names = [n for n, _ in spec.envelope.cases(spec.vehicle)]
+            print("the default gains diverge on every reference draw of "
+                  f"{', '.join(names[c] for c in lost)}: the start sets their scales")  # fmt: skip
+    if len(runs) == 2:  # the start's draws in the cases the defaults lost
+        swap = np.isin(members, lost)
+        runs = [tuple(np.where(swap, b, a) for a, b in zip(*runs, strict=True))]
+    values, variation, status = runs[0]
+    return tuple(optimize.cost.case_scales(v, status, members, cases)
+                 for v in (values, variation))  # fmt: skip
 
 
 def _initial_gains(parser, args):
