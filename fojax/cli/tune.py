@@ -702,7 +702,7 @@ def _cases(run: Run, result) -> dict:
     gains = {"start": objective.gains(run.x0), "tuned": objective.gains(result.x)}
     default = registry.get_controller_class(objective.spec.controller).default_gains(
         objective.dtype)
-    if run.label != "paper":  # the controller's default (the paper's) gains beside them
+    if run.init_label != "paper":  # the controller's default (the paper's) gains beside them
         gains["default"] = objective.base_gains._replace(
             **{n: getattr(default, n) for n in objective.param_map.names})
     # judged at the step the simulator flies (the tuning may take a coarser one)
