@@ -96,7 +96,7 @@ class ProblemSpec:
     envelope: Any = None
     case_scales: tuple[float, ...] | None = None
     case_chattering: tuple[float, ...] | None = None
-    chattering_excess: float = 1.0
+    chattering_excess: float = 10.0
 
     def __post_init__(self) -> None:
         registry.get_controller_class(self.controller)

@@ -39,6 +39,7 @@ from typing import Any, NamedTuple
 from fojax import records
 from fojax.cli import arguments, figures, output, style
 from fojax.cli import requirements as requirements_cli
+from fojax.optimize import spec as optimize_spec
 from fojax.optimize.strategies import METHODS, words
 
 __all__ = ["METHODS", "OPTIONS", "Run", "build_parser", "main", "parse_args"]
@@ -147,6 +148,8 @@ def _smoothing(a):
         return f"does not apply to {a.controller}, which has no boundary layer to anneal"
 
 
+_EXCESS = next(f.default for f in dataclasses.fields(optimize_spec.ProblemSpec)
+               if f.name == "chattering_excess")
 ENVELOPE_HORIZON, ENVELOPE_DT = 20.0, 2e-3
 """The tuning horizon and step over a flight envelope (docs/tuning.md): 20 s see (53)'s
 disturbances act and two-thirds of a manoeuvre, at the cost of 10 s at 1 ms."""
@@ -207,7 +210,7 @@ OPTIONS = (
            lambda a: None if a.envelope is not None and not a.requirements
            else "applies with --envelope (without --requirements) only"),
     Option("--chattering-excess", dict(type=arguments.nonnegative_float, help="the weight of "
-           "the chattering excess (10)"), 10.0,
+           f"the chattering excess ({_EXCESS:g})"), _EXCESS,
            lambda a: None if a.envelope is not None and not a.requirements
            else "applies with --envelope (without --requirements) only"),
     *(Option(f"--{t}-weight", dict(type=arguments.nonnegative_float, help=f"({w:g})"), w, _weighted)
