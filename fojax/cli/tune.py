@@ -732,9 +732,12 @@ def _cases(run: Run, result) -> dict:
 def _cases_figure(run: Run, evaluation: dict):
     """``cases.png`` (and ``.pdf``): the held-out evaluation case by case."""
     spec = run.objective.spec
+    labels = ("the start's, the tuned and the default gains"
+              if "tuned_worse_than_default" in evaluation["cases"]
+              else "the start's and the tuned gains")  # fmt: skip
     return style.attempt(
         "cases.png", figures.plot_cases, evaluation["cases"], Path(run.args.out) / "cases.png",
-        f"fojax tune: {spec.controller}, the start's and the tuned gains case by case",
+        f"fojax tune: {spec.controller}, {labels} case by case",
     )
 
 
