@@ -206,6 +206,8 @@ class Objective:
         scales = None if spec.case_scales is None else jnp.asarray(spec.case_scales, dtype)
         bounds = (None if spec.case_chattering is None
                   else jnp.asarray(spec.case_chattering, dtype))  # fmt: skip
+        tracking = (None if spec.case_tracking is None
+                    else jnp.asarray(spec.case_tracking, dtype))  # fmt: skip
         laws = spec.envelope.laws() if spec.envelope is not None else ()
         narrow = (jnp.asarray([SIGN_WIDTH if law == "sign" else 1.0 for law in laws], dtype)
                   if "sign" in laws and self._widths else None)  # fmt: skip
@@ -224,7 +226,10 @@ class Objective:
             if bounds is not None:  # chattering beyond its case's bound
                 variation = out.outputs["torques"]
                 excess = jnp.maximum(variation / bounds[draws.member] - 1.0, 0.0)
-                cost = cost + spec.chattering_excess * excess
+                cost = cost + spec.bound_excess * excess
+            if tracking is not None:  # position RMSE beyond its case's bound
+                ratio = jnp.sqrt(jnp.maximum(terms[0], 0.0) / tracking[draws.member])
+                cost = cost + spec.bound_excess * jnp.maximum(ratio - 1.0, 0.0)
             f = {"cost": cost, "effort": terms[2]}
             f["tracking"] = terms[0] + terms[1]
             metrics = out.outputs.get("requirements")

@@ -75,7 +75,12 @@ class ProblemSpec:
     whose cases are flown in place of ``scenario`` (which must then be ``None``).
     case_scales: ``None``, or per case of the union flown a divisor (> 0) of its draws'
     cost (:func:`fojax.optimize.cost.case_scales`): every case's cost in units of a
-    reference's on that case.
+    reference's on that case. case_chattering: ``None``, or per case a bound (N m) on a
+    draw's torques' total variation ``V`` (:class:`fojax.optimize.cost.TorqueVariation`).
+    case_tracking: ``None``, or per case a bound (m^2 s) on a draw's position term ``P``
+    (the integral of the squared position error). bound_excess: ``w``; a draw pays ``w
+    (V / V_c - 1)`` past its chattering bound and ``w (sqrt(P / P_c) - 1)`` (its position
+    RMSE over the bound's) past its tracking bound, on top of its (scaled) cost.
     """
 
     controller: str = "afonftsmc"
@@ -96,7 +101,8 @@ class ProblemSpec:
     envelope: Any = None
     case_scales: tuple[float, ...] | None = None
     case_chattering: tuple[float, ...] | None = None
-    chattering_excess: float = 10.0
+    case_tracking: tuple[float, ...] | None = None
+    bound_excess: float = 10.0
 
     def __post_init__(self) -> None:
         registry.get_controller_class(self.controller)
@@ -132,7 +138,7 @@ class ProblemSpec:
             scenarios.get_scenario(i)
         if isinstance(self.scenario, list):
             object.__setattr__(self, "scenario", tuple(self.scenario))
-        for name in ("case_scales", "case_chattering"):
+        for name in ("case_scales", "case_chattering", "case_tracking"):
             given = getattr(self, name)
             if given is None:
                 continue
@@ -142,7 +148,7 @@ class ProblemSpec:
                 raise ValueError(f"{name} must be {cases} numbers > 0 (one per case "
                                  f"flown), got {given!r}")  # fmt: skip
             object.__setattr__(self, name, values)
-        checks.number("chattering_excess", self.chattering_excess, allow_low=True)
+        checks.number("bound_excess", self.bound_excess, allow_low=True)
         checks.choice("compile", self.compile, COMPILE_MODES)
         for label in ("horizon", "dt"):
             checks.number(label, getattr(self, label))
@@ -232,7 +238,8 @@ class ProblemSpec:
         out = {  # the envelope in the description only where one is flown
             f.name: dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
             for f in dataclasses.fields(self)
-            if f.name not in ("envelope", "case_scales", "case_chattering", "chattering_excess")
+            if f.name not in ("envelope", "case_scales", "case_chattering", "case_tracking",
+                              "bound_excess")
             for value in [getattr(self, f.name)]
         }
         pmap = self.parameter_map()
@@ -243,7 +250,10 @@ class ProblemSpec:
             out["case_scales"] = list(self.case_scales)
         if self.case_chattering is not None:
             out["case_chattering"] = list(self.case_chattering)
-            out["chattering_excess"] = self.chattering_excess
+        if self.case_tracking is not None:
+            out["case_tracking"] = list(self.case_tracking)
+        if self.case_chattering is not None or self.case_tracking is not None:
+            out["bound_excess"] = self.bound_excess
         return out
 
     def describe_cases(self) -> str:

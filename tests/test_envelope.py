@@ -213,7 +213,8 @@ def test_tune_over_an_envelope_judges_every_case_with_both_laws(tmp_path, capsys
     problem = record["settings"]["objective"]["problem"]
     assert problem["envelope"]["scenarios"] == [1, 2, 3] and problem["scenario"] is None
     assert len(problem["case_scales"]) == 6 and min(problem["case_scales"]) > 0
-    assert len(problem["case_chattering"]) == 6 and problem["chattering_excess"] == 10.0
+    assert len(problem["case_chattering"]) == 6 and problem["bound_excess"] == 10.0
+    assert len(problem["case_tracking"]) == 6 and min(problem["case_tracking"]) > 0
     assert problem["horizon"] == 0.5 and problem["dt"] == 2e-3
     found = json.loads((out / "evaluation.json").read_text())["cases"]
     assert found["draws"] == 2 and list(found["laws"]) == ["sat", "sign"] and found["dt"] == 1e-3
@@ -247,10 +248,12 @@ def test_case_scales_are_the_references_median_cost_per_case():
 
 
 def test_a_scaled_and_bounded_cost_is_recomputed_on_the_host():
-    """The objective's per-draw cost with case scales and chattering bounds equals the
-    weighted sum of its raw terms divided by its case's scale, plus the weighted excess of
-    the torques' total variation over its case's bound, which equals the requirement
-    metric ``torque_chattering`` of the same draws times the horizon."""
+    """The objective's per-draw cost with case scales and bounds equals the weighted sum
+    of its raw terms divided by its case's scale, plus the weighted excesses of the
+    torques' total variation and of the position RMSE over their case's bounds, the
+    variation equal to the requirement metric ``torque_chattering`` of the same draws
+    times the horizon, the RMSE to the metric ``position_rmse`` (the bound on ``P``, the
+    integral of the squared position error, is the squared RMSE times the horizon)."""
     import numpy as np
 
     from fojax import simulator
@@ -275,10 +278,14 @@ def test_a_scaled_and_bounded_cost_is_recomputed_on_the_host():
         config, RequirementMetrics(1e-3, 300), "float32", members.astype(np.int32),
     ).outputs
     variation = np.asarray(metrics["torque_chattering"], np.float64) * 0.3
-    # bounds each case's least variation passes, so some draws pay and others do not
+    rmse = np.asarray(metrics["position_rmse"], np.float64)
+    # bounds each case's least value passes, so some draws pay and others do not
     bounds = tuple(float(np.min(variation[members == c])) * 1.01 for c in range(4))
-    bounded = dataclasses.replace(spec, case_chattering=bounds, chattering_excess=3.0)
+    tracking = tuple(float(np.min(rmse[members == c])) ** 2 * 0.3 * 1.02 for c in range(4))
+    bounded = dataclasses.replace(spec, case_chattering=bounds, case_tracking=tracking,
+                                  bound_excess=3.0)  # fmt: skip
     assert bounded.as_dict()["case_chattering"] == list(bounds)
+    assert bounded.as_dict()["case_tracking"] == list(tracking)
     objective = optimize.Objective(bounded, gains)
     out = objective.forward(objective.x0[None], keys)
     np.testing.assert_allclose(out.metrics["torque_variation"][0], variation, rtol=1e-4)
@@ -287,7 +294,9 @@ def test_a_scaled_and_bounded_cost_is_recomputed_on_the_host():
     own = out.metrics["torque_variation"][0]  # the excess from the objective's own sums
     excess = np.maximum(own / np.asarray(bounds)[members] - 1.0, 0.0)
     assert np.sum(excess > 0) >= 2 and np.sum(excess == 0) >= 4
-    np.testing.assert_allclose(out.values[0, :, 0], want + 3.0 * excess, rtol=1e-5)
+    behind = np.maximum(rmse / np.sqrt(np.asarray(tracking)[members] / 0.3) - 1.0, 0.0)
+    assert np.sum(behind > 0) >= 2 and np.sum(behind == 0) >= 4
+    np.testing.assert_allclose(out.values[0, :, 0], want + 3.0 * (excess + behind), rtol=1e-4)
 
 
 def test_a_window_is_its_scenario_from_its_start_on_the_reference():

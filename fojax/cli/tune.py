@@ -149,7 +149,7 @@ def _smoothing(a):
 
 
 _EXCESS = next(f.default for f in dataclasses.fields(optimize_spec.ProblemSpec)
-               if f.name == "chattering_excess")
+               if f.name == "bound_excess")
 ENVELOPE_HORIZON, ENVELOPE_DT = 20.0, 2e-3
 """The tuning horizon and step over a flight envelope (docs/tuning.md): 20 s see (53)'s
 disturbances act and two-thirds of a manoeuvre, at the cost of 10 s at 1 ms."""
@@ -209,8 +209,13 @@ OPTIONS = (
            "case pays the excess (default), or not (none)"), "default",
            lambda a: None if a.envelope is not None and not a.requirements
            else "applies with --envelope (without --requirements) only"),
-    Option("--chattering-excess", dict(type=arguments.nonnegative_float, help="the weight of "
-           f"the chattering excess ({_EXCESS:g})"), _EXCESS,
+    Option("--tracking-bound", dict(choices=("default", "none"), help="with --envelope: "
+           "a draw whose position RMSE passes the controller's default gains' median on its "
+           "case pays the excess (default), or not (none)"), "default",
+           lambda a: None if a.envelope is not None and not a.requirements
+           else "applies with --envelope (without --requirements) only"),
+    Option("--bound-excess", dict(type=arguments.nonnegative_float, help="the weight of "
+           f"a draw's excess over its case's bounds ({_EXCESS:g})"), _EXCESS,
            lambda a: None if a.envelope is not None and not a.requirements
            else "applies with --envelope (without --requirements) only"),
     *(Option(f"--{t}-weight", dict(type=arguments.nonnegative_float, help=f"({w:g})"), w, _weighted)
@@ -391,13 +396,15 @@ def _build(parser, args) -> Run:
     probe = objective_with(optimize.objective.LANES)
     if spec.envelope is not None and reqs is None and (
         args.case_scale == "default" or args.chattering_bound == "default"
+        or args.tracking_bound == "default"
     ):
-        scales, chattering = _case_scales(spec, args, limit, mesh, gains)
+        scales, chattering, tracking = _case_scales(spec, args, limit, mesh, gains)
         spec = dataclasses.replace(
             spec,
             case_scales=scales if args.case_scale == "default" else None,
             case_chattering=chattering if args.chattering_bound == "default" else None,
-            chattering_excess=args.chattering_excess,
+            case_tracking=tracking if args.tracking_bound == "default" else None,
+            bound_excess=args.bound_excess,
         )
         probe = objective_with(optimize.objective.LANES)
     x0 = probe.vector(gains)
@@ -430,9 +437,10 @@ CASE_SCALE_DRAWS = 32
 
 
 def _case_scales(spec, args, limit, mesh, start) -> tuple:
-    """Each case's scale and chattering bound: the median cost and torque variation of
-    the controller's default gains on :data:`CASE_SCALE_DRAWS` validation draws of the
-    case, at the tuning horizon and the evaluation law
+    """Each case's scale, chattering bound and tracking bound: the median cost, torque
+    variation and position term ``P`` of the controller's default gains on
+    :data:`CASE_SCALE_DRAWS` validation draws of the case, at the tuning horizon and the
+    evaluation law
     (:func:`fojax.optimize.cost.case_scales`); on a case where they diverge on every
     draw (another vehicle's, say), the start's."""
     import jax.numpy as jnp
@@ -450,7 +458,8 @@ def _case_scales(spec, args, limit, mesh, start) -> tuple:
         keys = reference.keys("validation", CASE_SCALE_DRAWS * cases)
         members = np.arange(len(keys)) % cases
         out = reference.forward(reference.x0[None], keys)
-        runs.append((out.values[0, :, 0], out.metrics["torque_variation"][0], out.status[0]))
+        runs.append((out.values[0, :, 0], out.metrics["torque_variation"][0],
+                     out.terms[0, :, 0], out.status[0]))
         kept = out.valid[0]
         lost = [c for c in range(cases) if not np.any(kept[members == c])]
         if not lost:
@@ -462,9 +471,9 @@ def _case_scales(spec, args, limit, mesh, start) -> tuple:
     if len(runs) == 2:  # the start's draws in the cases the defaults lost
         swap = np.isin(members, lost)
         runs = [tuple(np.where(swap, b, a) for a, b in zip(*runs, strict=True))]
-    values, variation, status = runs[0]
+    values, variation, tracking, status = runs[0]
     return tuple(optimize.cost.case_scales(v, status, members, cases)
-                 for v in (values, variation))  # fmt: skip
+                 for v in (values, variation, tracking))  # fmt: skip
 
 
 def _initial_gains(parser, args):
