@@ -94,6 +94,21 @@ SLOW_CASES = (
 )
 
 
+# The files whose slow tier takes longest (the tuning studies' end-to-end runs, the
+# Ctrl-C and resume runs, the envelope's tune, multi-process runs, the wheel), longest
+# first: with --slow they are collected first, so that pytest-xdist (--dist loadfile
+# hands out files in collection order) starts them first and the short files fill in
+# behind them, rather than a long file starting last on one worker while the other idles.
+LONG_FILES = (
+    "test_tuning_studies.py",
+    "test_tune_cli.py",
+    "test_envelope.py",
+    "test_distributed.py",
+    "test_packaging.py",
+    "test_fair_comparison.py",
+)
+
+
 def _is_slow(item) -> bool:
     return "slow" in item.keywords or item.nodeid.removeprefix("tests/").startswith(SLOW_CASES)
 
@@ -126,6 +141,8 @@ def pytest_collection_modifyitems(session, config, items):
             return
         raise pytest.UsageError(message)
     if config.getoption("--slow"):
+        rank = {name: i for i, name in enumerate(LONG_FILES)}
+        items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))  # stable
         return
     slow = [item for item in items if _is_slow(item)]
     if slow:
