@@ -2,7 +2,9 @@
 scenario or union, cost), optionally a requirement set, the actuators and the evaluation
 law, compiled once; every tuner (:mod:`fojax.optimize.strategies`) and every study calls
 it. Draws: the three ranges of :mod:`fojax.optimize.spec`; a union's draw ``i`` is of
-member ``i % members``.
+member ``i % members``, ``i`` its index in its range (a tuning sample ``k`` of ``n``
+draws holds draws ``k n`` to ``k n + n - 1``: samples of fewer draws than members take
+the members in turn).
 
 Laws. A request with a width ``w`` runs the *tuning law*: the sliding-mode controllers
 switch with ``tanh(S / (w b))``, ``b`` the gains' boundary layer (the field of role
@@ -242,8 +244,17 @@ class Objective:
 
         return run
 
-    def _members(self, count: int) -> np.ndarray:
-        return np.arange(count) % self.members if self.members else np.zeros(count, np.int64)
+    def stratified(self, draws: int) -> int:
+        """The fewest draws, at least ``draws``, that hold every member of a union (every
+        case of an envelope) equally often: a multiple of :attr:`members` (``draws``
+        itself without a union): a sample of them weighs every case alike."""
+        m = max(self.members, 1)
+        return -(-int(draws) // m) * m
+
+    def _members(self, count: int, first: int = 0) -> np.ndarray:
+        if not self.members:
+            return np.zeros(count, np.int64)
+        return (first + np.arange(count)) % self.members
 
     def _cached(self, key, make):
         """The program under ``key``, made by ``make()`` the first time (under a lock)."""
@@ -267,15 +278,17 @@ class Objective:
         key = ("sampler", None if registered else id(scenario), dt)
         return self._cached(key, lambda: _FirstCall(jax.jit(sample, compiler_options=fast)))
 
-    def draws(self, keys, scenario=None, horizon: float | None = None, dt: float | None = None):
-        """The draws of ``keys`` ``(n, 2)`` (a union's draw ``i`` of member ``i %
-        members``) at the step ``dt`` (default the spec's), batch first, on the host:
-        sampled in blocks of :data:`SAMPLE_BLOCK`."""
+    def draws(self, keys, scenario=None, horizon: float | None = None, dt: float | None = None,
+              first: int = 0):  # fmt: skip
+        """The draws of ``keys`` ``(n, 2)`` (a union's draw ``i`` of member ``(first + i)
+        % members``: ``first`` the index of the first key in its range) at the step ``dt``
+        (default the spec's), batch first, on the host: sampled in blocks of
+        :data:`SAMPLE_BLOCK`."""
         registered = scenario is None and self.registered
         scenario = _covering(self.scenario if scenario is None else scenario,
                              self.spec.horizon if horizon is None else horizon)  # fmt: skip
         keys = np.asarray(keys)
-        member = self._members(len(keys)).astype(np.int32)
+        member = self._members(len(keys), first).astype(np.int32)
         program = self._sampler(scenario, registered, self._step(dt))
         return blocks.evaluate_in_blocks(
             lambda shared, batch: program(*batch), None, (keys, member), None, SAMPLE_BLOCK
@@ -330,11 +343,13 @@ class Objective:
         horizon: float | None = None,
         scenario: scenarios.Scenario | None = None,
         dt: float | None = None,
+        first: int = 0,
     ) -> Outputs:
         """Outputs ``(P, n, ...)`` of ``points`` ``(P, d)`` on the draws ``keys`` ``(n, 2)``
         (common to the points), at the tuning law with ``width`` or the evaluation law
         (``None``), at ``horizon`` (default the spec's) on ``scenario`` (default the
-        objective's), at the step ``dt`` (default the spec's; a whole multiple of it)."""
+        objective's), at the step ``dt`` (default the spec's; a whole multiple of it);
+        ``first``: the index of the first key in its range (:meth:`draws`)."""
         points = np.atleast_2d(np.asarray(points, np.float64))
         if points.shape[1] != self.size:
             raise ValueError(f"points must be (P, {self.size}), got {points.shape}")
@@ -346,7 +361,7 @@ class Objective:
         dt = self._step(dt)
         program = self._forward(law, horizon, scenario, registered, dt)
         count, n = points.shape[0], keys.shape[0]
-        draws = self.draws(keys, None if registered else scenario, horizon, dt)
+        draws = self.draws(keys, None if registered else scenario, horizon, dt, first)
         xs = np.repeat(points, n, axis=0).astype(self.dtype)
         batch = (xs, jax.tree.map(lambda a: np.tile(a, (count,) + (1,) * (a.ndim - 1)), draws))
         width = jnp.asarray(1.0 if width is None else width, self.dtype)
@@ -488,10 +503,13 @@ class Objective:
         """Evaluate a strategy's request on its tuning sample."""
         loss = self.loss if request.loss is None else request.loss
         keys = self.sample(request.sample, request.draws)
+        # a union's cases by the draws' index in the tuning range: a sample of fewer
+        # draws than cases flies the next cases in the next sample
+        first = request.sample * keys.shape[0]
         points = np.atleast_2d(np.asarray(request.points, np.float64))
         draw_steps = points.shape[0] * keys.shape[0] * self.spec.steps_at(request.dt)
         if not request.gradient:
-            outputs = self.forward(points, keys, request.width, dt=request.dt)
+            outputs = self.forward(points, keys, request.width, dt=request.dt, first=first)
             work = self.work(points.shape[0] * keys.shape[0], dt=request.dt)
             return Evaluation(np.asarray(loss.values(outputs)), None, outputs, 0, draw_steps, work)
         if request.dt is not None and request.dt != self.spec.dt:
@@ -507,12 +525,14 @@ class Objective:
         if isinstance(loss, MeanLoss):
             cotangent = np.ones((n, 1))
         else:  # the cotangents need the outputs at the point first
-            cotangent = loss.cotangents(_first(self.forward(points, keys, request.width)))
+            cotangent = loss.cotangents(
+                _first(self.forward(points, keys, request.width, first=first))
+            )
             draw_steps, work = 2 * draw_steps, work + self.work(n)
         law = "tanh" if request.width is not None else self.switching
         width = 1.0 if request.width is None else request.width
         values, terms, status, grads = self._per_draw(
-            law, points[0], width, self.draws(keys), cotangent
+            law, points[0], width, self.draws(keys, first=first), cotangent
         )
         outputs = Outputs(values, terms, status)
         finite = np.all(np.isfinite(grads), -1)

@@ -687,6 +687,28 @@ def test_auto_moves_only_the_tuned_orders_to_integer_order():
     assert len(strategy.starts) == 3
 
 
+def test_auto_over_an_envelope_flies_every_case_in_every_sample():
+    """Over a union of K cases every draws per point of ``auto`` is a multiple of K
+    (each case equally often in every sample), the second phase's candidates fill the
+    first phase's declared lanes, and a tuning sample's draws fly the cases in turn."""
+    from fojax import envelope as envelope_lib
+
+    loaded = envelope_lib.load("examples/envelopes/paper_and_manoeuvres.toml")
+    spec = optimize.ProblemSpec(scenario=None, envelope=loaded, horizon=0.1)
+    gains = spec.make_controller("sat", 0.1).default_gains("float32")
+    objective = optimize.Objective(spec, gains)
+    cases, method = objective.members, st.METHODS["auto"]
+    assert cases == 6 and objective.stratified(4) == 6 and objective.stratified(12) == 12
+    strategy = method.make(st.Problem(objective, objective.x0))
+    (generations, searches, draws), = method.plan()["stages"]
+    assert strategy.stages == ((generations, searches, 6),) and strategy.draws == 12
+    lam = st.CMAES().constants(objective.size)["lam"]
+    assert strategy.popsize == searches * (lam + 1) * draws // 12 - 1
+    assert strategy.lanes(objective.size) == (strategy.popsize + 1) * 12
+    members = [objective._members(4, 4 * k) for k in range(3)]  # 4-draw samples 0, 1, 2
+    assert np.array_equal(np.sort(np.concatenate(members)), np.repeat(np.arange(6), 2))
+
+
 def test_the_auto_plan_is_its_table_entry_and_says_when_steps_cut_it():
     """``auto``'s strategy is built from its table entry's settings alone (a setting given
     to ``make`` replaces it), and its plan in words says when ``steps`` end within the
@@ -701,7 +723,8 @@ def test_the_auto_plan_is_its_table_entry_and_says_when_steps_cut_it():
     assert (strategy.window, strategy.lift) == (plan["window"], plan["lift"])
     lam = st.CMAES().constants(d)["lam"]  # "fill": the first phase's lanes on 8 draws
     assert strategy.popsize == searches * (lam + 1) * draws // plan["draws"] - 1
-    assert strategy.lanes(d) == searches * (lam + 1) * draws
+    assert strategy.lanes(d) == (strategy.popsize + 1) * plan["draws"]
+    assert strategy.lanes(d) == searches * (lam + 1) * draws  # one scenario: the same lanes
     full = strategy.plan(method.steps, d)
     assert full.startswith(f"{searches} CMA-ES searches ({lam} candidates and the mean each) "
                            f"for {generations} generations on {draws} draws at a 2 ms step")

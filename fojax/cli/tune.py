@@ -375,6 +375,19 @@ def _build(parser, args) -> Run:
     take = ("controller", "scenario", "horizon", "dt", "draws", "seed", "share", "fractional",
             "dtype", "compile", "vehicle", "reference", "envelope")  # fmt: skip
     spec = optimize.ProblemSpec(cost=cost, fields=fields, **{k: getattr(args, k) for k in take})
+    cases = len(spec.scenario_object().members)
+    if cases > 1:  # every sample holds each case equally often
+        rounded = {name: -(-getattr(args, name) // cases) * cases
+                   for name in ("draws", "validation_draws")}  # fmt: skip
+        changed = {n: v for n, v in rounded.items() if v != getattr(args, n)}
+        if changed and not args.quiet:
+            given = " and ".join("--" + n.replace("_", "-") + f" {getattr(args, n)}"
+                                 for n in changed)  # fmt: skip
+            print(f"{given} rounded up to {' and '.join(map(str, changed.values()))}, a "
+                  f"multiple of the {cases} cases")  # fmt: skip
+        for name, value in changed.items():
+            setattr(args, name, value)
+        spec = dataclasses.replace(spec, draws=args.draws)
     if args.eval_horizon is not None:  # a ValueError unless a whole number of steps
         dataclasses.replace(spec, horizon=args.eval_horizon)
     gains, label = _initial_gains(parser, args)
@@ -681,19 +694,20 @@ def _heldout(run: Run, result, session: dict) -> dict:
 
     args, objective = run.args, run.objective
     horizon = args.eval_horizon or objective.spec.horizon
-    keys = objective.keys("heldout", args.eval_draws)
+    draws = objective.stratified(args.eval_draws)  # each case equally often
+    keys = objective.keys("heldout", draws)
     document = {
-        "draws": args.eval_draws,
+        "draws": draws,
         "horizon_s": horizon,
         "switching": args.eval_switching,
-        "draw_indices": f"{HELDOUT_OFFSET} + [0, {args.eval_draws})",
+        "draw_indices": f"{HELDOUT_OFFSET} + [0, {draws})",
         "returned_step": result.returned_step,
     }
     for label, x in (("initial", run.x0), ("tuned", result.x)):
         document[label] = objective.evaluate(x, keys, horizon=horizon)[1]
     document["provenance"] = session
     print(
-        f"held-out ({args.eval_draws} draws, {horizon:g} s, {args.eval_switching}): initial "
+        f"held-out ({draws} draws, {horizon:g} s, {args.eval_switching}): initial "
         f"{headline(document['initial'])}, tuned {headline(document['tuned'])}"
     )
     if objective.spec.envelope is not None:

@@ -135,9 +135,13 @@ def _auto(problem: Problem, steps: int, sigma: float, stages, coarse, draws, pop
     found = starts(objective, problem.x0)
     free = found[-1] if found else np.asarray(problem.x0)  # the knowledge-free start
     found += [free] * (searches - 1 - len(found))
-    if popsize == "fill":  # as many candidates as fill the first phase's largest request
-        k = d if tie is None else max(tie) + 1
-        first = max(s * (CMAES().constants(k)["lam"] + 1) * n for _, s, n in stages)
+    k = d if tie is None else max(tie) + 1
+    first = max(s * (CMAES().constants(k)["lam"] + 1) * n for _, s, n in stages)
+    # every point's sample holds each case of a union equally often; the second phase
+    # keeps the lanes of the first at its declared draws (a call of them on two devices)
+    stages = tuple((g, s, objective.stratified(n)) for g, s, n in stages)
+    draws = objective.stratified(draws)
+    if popsize == "fill":  # as many candidates as fill the first phase's declared lanes
         popsize = max(first // draws - 1, CMAES().constants(d)["lam"])
     coarse_dt = None if coarse is None else coarse * objective.spec.dt
     try:
@@ -184,7 +188,10 @@ METHODS = {
             # first stage's searches every start's (MultiStart); coarse: its step, times
             # the objective's (None: the objective's); draws, popsize: the second phase's
             # draws per point and candidates ("fill": as many as fill the first phase's
-            # largest request's lanes); diagonal: the second phase separable; window: the
+            # largest request's lanes at its declared draws); over a union (an
+            # envelope's cases) every draws per point rounded up to a multiple of the
+            # cases (6 and 12 for six: 19 candidates on 12 draws); diagonal: the second
+            # phase separable; window: the
             # generations whose means rank the searches; lift: the variance the second
             # phase adds on its diagonal. With requirements: one CMA-ES on --draws draws
             # (every method samples --draws there).
@@ -306,7 +313,9 @@ def lanes(strategy, size: int, draws: int, devices: int) -> int:
     """Lanes per device and call that fit the strategy's requests: its largest request
     (``lanes(d)``, where it has one) or its first request's points (or its
     ``typical_points``) x draws over ``devices`` (the inner strategy's, for a wrapper),
-    in ``[8, 128]``: a population in one call where that fits, with no lane padded."""
+    in ``[8, 128]``: a population in one call where that fits, else in the fewest calls of
+    equal lanes (360 lanes on two devices: two calls of 90 each, not a call of 128 and
+    one of 52 padded to 128), with no lane padded where the division allows."""
     inner = getattr(strategy, "inner", strategy)
     if hasattr(inner, "lanes"):
         per_device = -(-inner.lanes(size) // devices)
@@ -314,4 +323,5 @@ def lanes(strategy, size: int, draws: int, devices: int) -> int:
         request = inner.ask(inner.init(np.zeros(size)))
         points = getattr(inner, "typical_points", len(request.points))
         per_device = -(-points * (request.draws or draws) // devices)
-    return int(min(128, max(8, per_device)))
+    calls = -(-per_device // 128)
+    return int(max(8, -(-per_device // calls)))

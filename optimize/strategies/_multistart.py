@@ -282,8 +282,7 @@ class MultiStart:
         return (("forward", None, self.coarse_dt), ("forward", None, None))
 
     def lanes(self, d: int) -> int:
-        """The most lanes (point x draw) of any request, for ``d`` parameters."""
-        k = int(self._embed(d).shape[1])
-        first = max((s * (CMAES().constants(k)["lam"] + 1) * n for _, s, n in self.stages),
-                    default=0)  # fmt: skip
-        return max(first, (self._search(-1).constants(d)["lam"] + 1) * self.draws)
+        """The lanes (point x draw) of the second phase's requests, for ``d`` parameters:
+        the calls are cut to the phase that runs longest; a larger request of the first
+        phase (an envelope's, its draws rounded up to the cases) takes more than one."""
+        return (self._search(-1).constants(d)["lam"] + 1) * self.draws
