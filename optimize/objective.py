@@ -50,7 +50,7 @@ from fojax.optimize.losses import MeanLoss
 from fojax.optimize.requests import Evaluation, Outputs, Request
 from fojax.optimize.spec import COMPILE_MODES, TARGETS, ProblemSpec, checkpoint_interval, draw_keys
 
-__all__ = ["LANES", "Evaluation", "Objective", "Outputs", "Request"]
+__all__ = ["LANES", "Evaluation", "Objective", "Outputs", "Request", "stratified"]
 
 LANES = 64
 """Default lanes (point x draw) per device and forward call."""
@@ -245,11 +245,8 @@ class Objective:
         return run
 
     def stratified(self, draws: int) -> int:
-        """The fewest draws, at least ``draws``, that hold every member of a union (every
-        case of an envelope) equally often: a multiple of :attr:`members` (``draws``
-        itself without a union): a sample of them weighs every case alike."""
-        m = max(self.members, 1)
-        return -(-int(draws) // m) * m
+        """:func:`stratified` for this objective's union (``draws`` itself without one)."""
+        return stratified(draws, self.members)
 
     def _members(self, count: int, first: int = 0) -> np.ndarray:
         if not self.members:
@@ -616,6 +613,14 @@ class _FirstCall:
                 self.ready = True
                 return out
         return self.program(*args)
+
+
+def stratified(draws: int, members: int) -> int:
+    """The fewest draws, at least ``draws``, that hold each of a union's ``members``
+    (an envelope's cases) equally often: a multiple of ``members`` (``draws`` itself for
+    ``members`` 0 or 1). A sample of them weighs every case alike."""
+    m = max(int(members), 1)
+    return -(-int(draws) // m) * m
 
 
 def _first(outputs: Outputs) -> Outputs:

@@ -377,7 +377,7 @@ def _build(parser, args) -> Run:
     spec = optimize.ProblemSpec(cost=cost, fields=fields, **{k: getattr(args, k) for k in take})
     cases = len(spec.scenario_object().members)
     if cases > 1:  # every sample holds each case equally often
-        rounded = {name: -(-getattr(args, name) // cases) * cases
+        rounded = {name: optimize.objective.stratified(getattr(args, name), cases)
                    for name in ("draws", "validation_draws")}  # fmt: skip
         changed = {n: v for n, v in rounded.items() if v != getattr(args, n)}
         if changed and not args.quiet:

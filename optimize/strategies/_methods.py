@@ -191,10 +191,10 @@ METHODS = {
             # largest request's lanes at its declared draws); over a union (an
             # envelope's cases) every draws per point rounded up to a multiple of the
             # cases (6 and 12 for six: 19 candidates on 12 draws); diagonal: the second
-            # phase separable; window: the
-            # generations whose means rank the searches; lift: the variance the second
-            # phase adds on its diagonal. With requirements: one CMA-ES on --draws draws
-            # (every method samples --draws there).
+            # phase separable; window: the generations whose means rank the searches;
+            # lift: the variance the second phase adds on its diagonal. With
+            # requirements: one CMA-ES on --draws draws (every method samples --draws
+            # there).
             settings={"stages": ((100, 4, 4),), "coarse": 2, "draws": 8, "popsize": "fill",
                       "diagonal": True, "window": 20, "lift": 0.5},
             constrained={"draws": None}, draws=False,
@@ -310,8 +310,9 @@ def starts(objective, x0) -> list[np.ndarray]:
 
 
 def lanes(strategy, size: int, draws: int, devices: int) -> int:
-    """Lanes per device and call that fit the strategy's requests: its largest request
-    (``lanes(d)``, where it has one) or its first request's points (or its
+    """Lanes per device and call that fit the strategy's requests: the lanes it asks for
+    (``lanes(d)``, where it has one: ``auto``'s, its longest phase's) or its first
+    request's points (or its
     ``typical_points``) x draws over ``devices`` (the inner strategy's, for a wrapper),
     in ``[8, 128]``: a population in one call where that fits, else in the fewest calls of
     equal lanes (360 lanes on two devices: two calls of 90 each, not a call of 128 and
