@@ -511,9 +511,10 @@ def plot_yield(results: dict, path: Path, title: str) -> Path:
 
 def plot_cases(evaluation: dict, path: Path, title: str) -> Path:
     """Held-out gains case by case (:func:`fojax.optimize.cases.evaluate_cases`): per law
-    (a column), position RMSE (top) and torque chattering (bottom, log scale) of each
-    case, a bar per set of gains, a diverged case marked; the diverged draws written
-    beside a bar."""
+    (a column), position RMSE (top) and torque chattering (bottom), both on log scales
+    (cases apart by orders of magnitude: millimetres on a steady reference, decimetres
+    in a transient), of each case, a bar per set of gains, a diverged case marked; the
+    diverged draws written beside a bar."""
     plt = style.pyplot()
     laws = list(evaluation["laws"])
     cases = evaluation["cases"]
@@ -524,7 +525,7 @@ def plot_cases(evaluation: dict, path: Path, title: str) -> Path:
     rows = np.arange(len(cases))
     for col, law in enumerate(laws):
         table = evaluation["laws"][law]
-        for row, (key, unit, log) in enumerate((("position_rmse", "m", False),
+        for row, (key, unit, log) in enumerate((("position_rmse", "m", True),
                                                 ("torque_chattering", "N m/s", True))):  # fmt: skip
             ax = axes[row, col]
             for i, label in enumerate(labels):
